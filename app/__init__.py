@@ -1,0 +1,1 @@
+"""omniformation app: everything that touches time, threads, files, ports and the browser."""

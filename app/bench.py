@@ -1,0 +1,71 @@
+"""`omniformation bench`: speed figures, as ratios and medians within one run.
+
+These machines are shared and noisy, so nothing here is asserted by tests;
+each figure is the median of several repeats. It lives in the app package
+(not a loose script) so the installed console script can run it anywhere.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Callable
+
+import numpy as np
+
+from core.control.formation import ControllerState, compute_commands
+from core.types import Gains
+
+from app.scenarios import load_scenario
+
+
+def _median_seconds(fn: Callable[[], object], repeats: int, inner: int) -> float:
+    samples = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(inner):
+            fn()
+        samples.append((time.perf_counter() - t0) / inner)
+    return statistics.median(samples)
+
+
+def bench_controller(n: int, rng: np.random.Generator) -> float:
+    """Median seconds of one compute_commands tick for n followers (per-tick API, as the loop calls it)."""
+    p = rng.uniform(-1.5, 1.5, (n, 2))
+    a = rng.uniform(-np.pi, np.pi, n)
+    p_d = rng.uniform(-1.5, 1.5, (n, 2))
+    p_d_dot = np.zeros((n, 2))
+    gains = Gains()
+    state = ControllerState.initial(n)
+    compute_commands(p, a, p_d, p_d_dot, 0.06, 0.02, gains, state, 0.01)  # compile / warm up
+    inner = max(1, 20000 // max(n, 1))
+    return _median_seconds(
+        lambda: compute_commands(p, a, p_d, p_d_dot, 0.06, 0.02, gains, state, 0.01), 7, inner
+    )
+
+
+def bench_paper_simulation() -> tuple[float, float]:
+    """(wall seconds, simulated seconds) of paper_simulation at 100 Hz with ground truth."""
+    from core.sim.run import simulate
+
+    scenario = load_scenario("paper_simulation").replace(rate_hz=100.0)
+    simulate(scenario.replace(duration_s=1.0))  # compile / warm up
+    wall = _median_seconds(lambda: simulate(scenario), 5, 1)
+    return wall, scenario.duration_s
+
+
+def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
+    rng = np.random.default_rng(0)
+    results: dict[str, float] = {}
+    print_fn("controller step (eq. 3-12, per tick, median):")
+    for n in (3, 100, 10_000):
+        s = bench_controller(n, rng)
+        results[f"controller_{n}_us"] = s * 1e6
+        print_fn(f"  {n:>6} followers: {s * 1e6:10.1f} us   ({s * 1e9 / n:8.1f} ns per follower)")
+    wall, simulated = bench_paper_simulation()
+    results["paper_simulation_x_realtime"] = simulated / wall
+    print_fn(
+        f"paper_simulation at 100 Hz, ground truth: {wall * 1e3:.1f} ms for {simulated:.0f} s"
+        f" = {simulated / wall:,.0f}x real time (target >= 2000x)"
+    )
+    return results

@@ -1,0 +1,297 @@
+"""static_config TOML -> frozen, validated config objects.
+
+Parsing is pure (text in, objects out); reading files is the caller's job.
+Every problem raises :class:`ConfigError` whose message is one line naming the
+file, the key, the bad value and what is allowed. Unknown keys are refused too:
+a misspelt key silently ignored is a bug report waiting to happen.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from core.sim.profiles import ConstantProfile, Eq39Profile, LeaderProfile, Segment, SegmentsProfile
+from core.sim.team import Disturbance, FollowerDynamics
+from core.types import GAIN_BOUNDS, FloatArray, Gains
+
+
+class ConfigError(ValueError):
+    """A user mistake in a config file: the message is one line for people."""
+
+
+@dataclass(frozen=True)
+class MeasurementNoise:
+    """Gaussian noise on the ground-truth leader-frame measurements."""
+
+    position_noise_m: float = 0.0
+    heading_noise_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything a simulated run needs. Poses in the leader frame at t = 0, SI units."""
+
+    name: str
+    description: str
+    duration_s: float
+    rate_hz: float
+    seed: int
+    leader: LeaderProfile
+    initial_p: FloatArray  # (n, 2) m
+    initial_a: FloatArray  # (n,) rad
+    slots: FloatArray  # (m, 2) m, m >= n
+    gains: Gains
+    dynamics: FollowerDynamics
+    measurement: MeasurementNoise
+    disturbances: tuple[Disturbance, ...]
+
+    @property
+    def n(self) -> int:
+        return int(self.initial_p.shape[0])
+
+    def replace(self, **changes: Any) -> "Scenario":
+        return dataclasses.replace(self, **changes)
+
+
+class _Table:
+    """A TOML table being read: checks types and ranges, remembers which keys were used."""
+
+    def __init__(self, data: Any, source: str, prefix: str) -> None:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{source}: {prefix or 'file'} = {data!r}: must be a table")
+        self.data = data
+        self.source = source
+        self.prefix = prefix
+        self.used: set[str] = set()
+
+    def key(self, name: str) -> str:
+        return f"{self.prefix}.{name}" if self.prefix else name
+
+    def fail(self, name: str, value: Any, allowed: str) -> ConfigError:
+        return ConfigError(f"{self.source}: {self.key(name)} = {value!r}: must be {allowed}")
+
+    def has(self, name: str) -> bool:
+        return name in self.data
+
+    def raw(self, name: str) -> Any:
+        self.used.add(name)
+        if name not in self.data:
+            raise ConfigError(f"{self.source}: {self.key(name)} is missing")
+        return self.data[name]
+
+    def number(
+        self, name: str, lo: float, hi: float, default: float | None = None, lo_open: bool = False,
+        unit: str = "",
+    ) -> float:
+        if default is not None and name not in self.data:
+            self.used.add(name)
+            return default
+        value = self.raw(name)
+        lo_br = "(" if lo_open else "["
+        allowed = f"a number in {lo_br}{lo:g}, {hi:g}]" + (f" {unit}" if unit else "")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(name, value, allowed)
+        v = float(value)
+        if not math.isfinite(v) or v > hi or (v <= lo if lo_open else v < lo):
+            raise self.fail(name, value, allowed)
+        return v
+
+    def integer(self, name: str, lo: int, hi: int, default: int | None = None) -> int:
+        if default is not None and name not in self.data:
+            self.used.add(name)
+            return default
+        value = self.raw(name)
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+            raise self.fail(name, value, f"a whole number from {lo} to {hi}")
+        return value
+
+    def text(self, name: str, default: str | None = None, choices: tuple[str, ...] = ()) -> str:
+        if default is not None and name not in self.data:
+            self.used.add(name)
+            return default
+        value = self.raw(name)
+        if not isinstance(value, str) or (choices and value not in choices):
+            raise self.fail(name, value, "one of " + ", ".join(choices) if choices else "a string")
+        return value
+
+    def point(self, name: str, limit: float) -> tuple[float, float]:
+        value = self.raw(name)
+        allowed = f"[x, y] with |x|, |y| <= {limit:g} m"
+        if (
+            not isinstance(value, list)
+            or len(value) != 2
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in value)
+            or not all(math.isfinite(float(c)) and abs(float(c)) <= limit for c in value)
+        ):
+            raise self.fail(name, value, allowed)
+        return float(value[0]), float(value[1])
+
+    def table(self, name: str, optional: bool = True) -> "_Table":
+        if optional and name not in self.data:
+            self.used.add(name)
+            return _Table({}, self.source, self.key(name))
+        return _Table(self.raw(name), self.source, self.key(name))
+
+    def tables(self, name: str) -> list["_Table"]:
+        value = self.raw(name) if name in self.data else []
+        self.used.add(name)
+        if not isinstance(value, list):
+            raise self.fail(name, value, "an array of tables ([[...]])")
+        return [_Table(v, self.source, f"{self.key(name)}[{i + 1}]") for i, v in enumerate(value)]
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            raise ConfigError(
+                f"{self.source}: {self.key(unknown[0])} is not a known key"
+                f" (known here: {', '.join(sorted(self.used)) or 'none'})"
+            )
+
+
+WORKSPACE_LIMIT_M = 10.0
+
+
+def _turn(t: _Table) -> float:
+    return math.radians(t.number("turn_deg_s", -90.0, 90.0, default=0.0, unit="deg/s"))
+
+
+def _speed(t: _Table) -> float:
+    return t.number("speed_mps", -1.0, 1.0, unit="m/s")
+
+
+def _parse_leader(t: _Table) -> LeaderProfile:
+    kind = t.text("profile", choices=("constant", "eq39", "segments"))
+    profile: LeaderProfile
+    if kind == "constant":
+        profile = ConstantProfile(_speed(t), _turn(t))
+    elif kind == "eq39":
+        profile = Eq39Profile(
+            speed_mps=_speed(t),
+            k1_rps=math.radians(t.number("k1_deg_s", -90.0, 90.0, unit="deg/s")),
+            k2_per_s=t.number("k2_per_s", 0.0, 100.0, lo_open=True, unit="1/s"),
+            t1_s=t.number("t1_s", 0.0, 1e6, unit="s"),
+            t_start_s=t.number("t_start_s", 0.0, 1e6, unit="s"),
+            t_end_s=t.number("t_end_s", 0.0, 1e6, unit="s"),
+        )
+        if profile.t_end_s < profile.t_start_s:
+            raise t.fail("t_end_s", profile.t_end_s, f">= t_start_s ({profile.t_start_s:g})")
+    else:
+        segs = []
+        for seg_t in t.tables("segments"):
+            segs.append(Segment(seg_t.number("t_start_s", 0.0, 1e6, unit="s"), _speed(seg_t), _turn(seg_t)))
+            seg_t.finish()
+        if not segs:
+            raise t.fail("segments", [], "at least one [[leader.segments]] table")
+        starts = [s.t_start_s for s in segs]
+        if starts != sorted(starts):
+            raise t.fail("segments", starts, "in increasing t_start_s order")
+        profile = SegmentsProfile(tuple(segs))
+    t.finish()
+    return profile
+
+
+def _parse_dataclass(t: _Table, cls: Any, bounds: dict[str, tuple[float, float, str]]) -> Any:
+    values = {}
+    for f in dataclasses.fields(cls):
+        if t.has(f.name):
+            lo, hi, unit = bounds[f.name]
+            values[f.name] = t.number(f.name, lo, hi, unit=unit)
+    t.finish()
+    return cls(**values)
+
+
+_DYNAMICS_BOUNDS = {
+    "actuator_tau_s": (0.0, 5.0, "s"),
+    "speed_max_mps": (0.0, 5.0, "m/s"),
+    "turn_max_rps": (0.0, 20.0, "rad/s"),
+    "accel_max_mps2": (0.0, 50.0, "m/s^2"),
+    "turn_accel_max_rps2": (0.0, 500.0, "rad/s^2"),
+    "wheel_noise_mps": (0.0, 0.5, "m/s"),
+    "wheel_base_m": (0.01, 2.0, "m"),
+}
+
+
+def parse_gains(t: _Table) -> Gains:
+    values = {}
+    for name, bound in GAIN_BOUNDS.items():
+        if t.has(name):
+            values[name] = t.number(name, bound.lo, bound.hi, lo_open=not bound.lo_inclusive, unit=bound.unit)
+    t.finish()
+    return Gains(**values)
+
+
+def parse_scenario(text: str, source: str) -> Scenario:
+    """Parse a scenario TOML document; ``source`` names it in error messages."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    top = _Table(data, source, "")
+    name = top.text("name")
+    description = top.text("description", default="")
+    duration = top.number("duration_s", 0.0, 86400.0, lo_open=True, unit="s")
+    rate = top.number("rate_hz", 1.0, 1000.0, unit="Hz")
+    seed = top.integer("seed", 0, 2**32 - 1, default=0)
+    leader = _parse_leader(top.table("leader", optional=False))
+
+    followers = top.tables("followers")
+    if not followers:
+        raise top.fail("followers", [], "at least one [[followers]] table")
+    p0, a0 = [], []
+    for ft in followers:
+        p0.append(ft.point("position", WORKSPACE_LIMIT_M))
+        a0.append(math.radians(ft.number("heading_deg", -360.0, 360.0, unit="deg")))
+        ft.finish()
+
+    formation = top.table("formation", optional=False)
+    slots_raw = formation.raw("slots")
+    if not isinstance(slots_raw, list):
+        raise formation.fail("slots", slots_raw, "a list of [x, y] points")
+    slots = [_Table({"slot": s}, source, formation.key(f"slots[{i + 1}]")).point("slot", WORKSPACE_LIMIT_M)
+             for i, s in enumerate(slots_raw)]
+    if len(slots) < len(p0):
+        raise formation.fail("slots", slots_raw, f"at least as many points as followers ({len(p0)})")
+    formation.finish()
+
+    gains = parse_gains(top.table("gains"))
+    dynamics = _parse_dataclass(top.table("dynamics"), FollowerDynamics, _DYNAMICS_BOUNDS)
+    meas_t = top.table("measurement")
+    measurement = MeasurementNoise(
+        meas_t.number("position_noise_m", 0.0, 0.5, default=0.0, unit="m"),
+        math.radians(meas_t.number("heading_noise_deg", 0.0, 90.0, default=0.0, unit="deg")),
+    )
+    meas_t.finish()
+
+    disturbances = []
+    for dt_ in top.tables("disturbances"):
+        follower = dt_.integer("follower", 1, len(p0))
+        dt_.text("kind", choices=("stuck",))
+        start = dt_.number("start_s", 0.0, 1e6, unit="s")
+        end = dt_.number("end_s", 0.0, 1e6, unit="s")
+        if end <= start:
+            raise dt_.fail("end_s", end, f"> start_s ({start:g})")
+        dt_.finish()
+        disturbances.append(Disturbance(follower - 1, start, end, "stuck"))
+    top.finish()
+
+    return Scenario(
+        name=name,
+        description=description,
+        duration_s=duration,
+        rate_hz=rate,
+        seed=seed,
+        leader=leader,
+        initial_p=np.array(p0, dtype=np.float64),
+        initial_a=np.array(a0, dtype=np.float64),
+        slots=np.array(slots, dtype=np.float64),
+        gains=gains,
+        dynamics=dynamics,
+        measurement=measurement,
+        disturbances=tuple(disturbances),
+    )
