@@ -80,7 +80,7 @@ def compensation_velocity_paper(p: ArrayLike, v_l: float, w_l: float) -> FloatAr
     """
     q = np.atleast_2d(np.asarray(p, dtype=np.float64))
     with np.errstate(divide="ignore", invalid="ignore"):
-        r = v_l / w_l
+        r = np.float64(v_l) / np.float64(w_l)
         r_i = np.sqrt((r + q[:, 0]) ** 2 + q[:, 1] ** 2)
         phi = np.arctan(q[:, 1] / (r + q[:, 0]))
     v_i = w_l * r_i

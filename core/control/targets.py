@@ -57,7 +57,10 @@ def step_slots(
     v_new = motion.v_d + dv * scale[:, None]
     p_new = motion.p_d + v_new * dt
     # Snap when close enough and slow: no creeping forever around the target.
-    arrived = (dist < 1e-6) & (np.hypot(v_new[:, 0], v_new[:, 1]) < accel_max * dt)
+    left = tgt - p_new
+    arrived = (np.hypot(left[:, 0], left[:, 1]) < 1e-6) & (
+        np.hypot(motion.v_d[:, 0], motion.v_d[:, 1]) <= limit
+    )
     p_new = np.where(arrived[:, None], tgt, p_new)
     v_new = np.where(arrived[:, None], 0.0, v_new)
     return SlotMotion(p_new, v_new)

@@ -1,0 +1,80 @@
+"""The command line as a user runs it: a real subprocess, real files."""
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCENARIO = Path(__file__).resolve().parents[2] / "static_config" / "scenarios" / "experiment2.toml"
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=300,
+        cwd=cwd or Path(__file__).resolve().parents[2],
+    )
+
+
+def test_help_lists_the_subcommands():
+    out = run_cli("--help")
+    assert out.returncode == 0
+    for cmd in ("simulate", "bench"):
+        assert cmd in out.stdout
+
+
+def test_simulate_writes_csv_and_plot(tmp_path):
+    csv_path, png = tmp_path / "run.csv", tmp_path / "run.png"
+    out = run_cli("simulate", "paper_simulation", "--out", str(csv_path), "--plot", str(png),
+                  "--duration", "20", "--rate", "50")
+    assert out.returncode == 0, out.stderr
+    rows = list(csv.reader(csv_path.open()))
+    header = rows[0]
+    assert header[:6] == ["t", "leader_x", "leader_y", "leader_theta", "leader_v", "leader_w"]
+    assert header[6:13] == ["f1_x", "f1_y", "f1_a", "f1_xd", "f1_yd", "f1_v", "f1_w"]
+    assert header[13:] == ["f2_x", "f2_y", "f2_a", "f2_xd", "f2_yd", "f2_v", "f2_w"]
+    assert len(rows) == 1 + 20 * 50 + 1
+    first = dict(zip(header, map(float, rows[1])))
+    assert first["f1_x"] == pytest.approx(-0.70) and first["f1_a"] == pytest.approx(2.35619, abs=1e-4)
+    assert first["f1_xd"] == pytest.approx(-0.50) and first["leader_v"] == pytest.approx(0.06)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+
+
+def test_simulate_takes_a_path_and_a_seed(tmp_path):
+    out = run_cli("simulate", str(SCENARIO), "--duration", "5", "--seed", "7")
+    assert out.returncode == 0, out.stderr
+    assert "experiment2" in out.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("simulate", "no_such_scenario"), "scenario 'no_such_scenario' not found"),
+        (("simulate", "paper_simulation", "--rate", "abc"), "argument --rate: 'abc' is not a number"),
+        (("simulate", "paper_simulation", "--duration", "-1"), "argument --duration: -1 is outside"),
+        (("simulate", "paper_simulation", "--seed", "-4"), "argument --seed: -4 is outside"),
+        (("frobnicate",), "invalid choice: 'frobnicate'"),
+    ],
+)
+def test_bad_arguments_exit_2_with_one_line(args, message):
+    out = run_cli(*args)
+    assert out.returncode == 2
+    assert message in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in out.stderr
+
+
+def test_bad_scenario_file_exits_2_naming_file_key_value(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SCENARIO.read_text().replace("turn_deg_s = 1.5", "turn_deg_s = 400"))
+    out = run_cli("simulate", str(bad))
+    assert out.returncode == 2
+    assert "bad.toml: leader.turn_deg_s = 400: must be a number in [-90, 90] deg/s" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_missing_output_folder_is_refused_before_running(tmp_path):
+    out = run_cli("simulate", "paper_simulation", "--out", str(tmp_path / "nope" / "x.csv"))
+    assert out.returncode == 2
+    assert "does not exist" in out.stderr
