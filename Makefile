@@ -16,10 +16,10 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 run: $(STAMP)
-	@mkdir -p out
-	$(BIN)/omniformation simulate paper_simulation --out out/paper_simulation.csv --plot out/paper_simulation.png
+	$(BIN)/omniformation run
 
 test: $(STAMP)
+	scripts/ensure-chromium
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)

@@ -82,6 +82,56 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    import signal
+
+    from app.scenarios import load_scenario
+    from app.service import LOOPBACK, Service
+
+    scenario = load_scenario(args.scenario) if args.scenario else None
+    if args.host not in LOOPBACK:
+        print(f"warning: serving on {args.host}: anyone who can reach it can command the robots"
+              " (there is no authentication)", file=sys.stderr)
+    try:
+        service = Service(host=args.host, port=args.port, scenario=scenario, n_followers=args.followers,
+                          rate_hz=args.rate, seed=args.seed or 0)
+    except OSError as exc:
+        raise UserError(f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}") from None
+    signal.signal(signal.SIGTERM, lambda *_: service.loop.stop())
+    service.start()
+    print(f"omniformation: dashboard at {service.url}  (Ctrl-C to stop)", flush=True)
+    try:
+        service.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        service.close()
+    print("omniformation: stopped; all followers commanded to zero", flush=True)
+    return 0
+
+
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"{text} is outside 0..65535 (0 = any free port)")
+    return value
+
+
+def _followers(text: str) -> int:
+    from app.params import MAX_FOLLOWERS
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 1 <= value <= MAX_FOLLOWERS:
+        raise argparse.ArgumentTypeError(f"{text} is outside 1..{MAX_FOLLOWERS}")
+    return value
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from app.bench import run_bench
 
@@ -109,6 +159,19 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--rate", type=_positive_float(0.0, 1000.0, "Hz"), help="override the control rate (Hz)")
     sim.add_argument("--seed", type=_seed, help="override the random seed")
     sim.set_defaults(func=_cmd_simulate)
+
+    run = sub.add_parser(
+        "run",
+        help="serve the live dashboard on the simulated team",
+        description="Run the loop and serve the viser dashboard (default: 3 simulated followers).",
+    )
+    run.add_argument("--scenario", help="start from a scenario's team, formation and gains")
+    run.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; others warn)")
+    run.add_argument("--port", type=_port, default=8080, help="port (default 8080, 0 = any free port)")
+    run.add_argument("--followers", type=_followers, default=3, help="simulated followers without --scenario")
+    run.add_argument("--rate", type=_positive_float(0.0, 200.0, "Hz"), default=30.0, help="loop rate (Hz)")
+    run.add_argument("--seed", type=_seed, help="random seed of the simulated team")
+    run.set_defaults(func=_cmd_run)
 
     bench = sub.add_parser("bench", help="measure controller and simulator speed")
     bench.set_defaults(func=_cmd_bench)

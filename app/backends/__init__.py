@@ -1,0 +1,1 @@
+"""Concrete ports: the simulated team today; camera, video and serial link later."""

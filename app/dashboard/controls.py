@@ -1,0 +1,193 @@
+"""Operator controls. Every callback only writes to the ParamsStore; a store listener
+pushes accepted (possibly clamped) values back to the widgets, which viser shows to
+every open browser. Callbacks ignore server-set values (event.client_id is None)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import viser
+
+from core.types import GAIN_BOUNDS
+
+from app.loop import TickState
+from app.params import (
+    FORMATION_PRESETS,
+    LEADER_MODES,
+    LEADER_SPEED,
+    LEADER_TURN,
+    MAX_FOLLOWERS,
+    SLOT_LIMIT_M,
+    Notice,
+    Params,
+    ParamsStore,
+    formation_preset,
+)
+
+GAIN_LABELS = {"k_f1": "k_f1 (m/s)", "k_f2": "k_f2 (m/s)", "a": "a (m)", "k_w1": "k_w1 (rad/s)", "k_w2": "k_w2"}
+GAIN_SLIDERS = {"k_f1": (0.01, 0.5, 0.01), "k_f2": (0.0, 0.5, 0.01), "a": (0.02, 1.0, 0.01),
+                "k_w1": (0.05, 3.0, 0.05), "k_w2": (0.1, 10.0, 0.1)}
+
+
+class Controls:
+    def __init__(self, server: viser.ViserServer, store: ParamsStore) -> None:
+        self.server = server
+        self.store = store
+        gui = server.gui
+        p = store.get()
+        self.notice = ""
+
+        self.stop_button = gui.add_button("STOP", color="red", hint="Command every follower to zero now. The loop keeps observing.")
+        self.release_button = gui.add_button("Release STOP", color="gray", disabled=True)
+        self.status = gui.add_markdown("starting ...")
+
+        with gui.add_folder("Run"):
+            self.pause_button = gui.add_button("Pause")
+            self.step_button = gui.add_button("Single step", disabled=True)
+            self.reset_button = gui.add_button("Reset")
+            self.n_slider = gui.add_slider("Followers", min=1, max=MAX_FOLLOWERS, step=1, initial_value=p.n_followers,
+                                           hint="number of simulated followers (resets the team)")
+        with gui.add_folder("Leader"):
+            self.mode = gui.add_dropdown("Motion", options=LEADER_MODES, initial_value=p.leader_mode,
+                                         hint="stop | straight | circle | eq39 (the paper's manoeuvre, eq. 39)")
+            self.speed = gui.add_slider("Speed (m/s)", min=LEADER_SPEED.lo, max=LEADER_SPEED.hi, step=0.01,
+                                        initial_value=p.leader_speed_mps, hint="leader forward speed v_l")
+            self.turn = gui.add_slider("Turn (deg/s)", min=LEADER_TURN.lo, max=LEADER_TURN.hi, step=0.5,
+                                       initial_value=p.leader_turn_deg_s,
+                                       hint="leader turn rate w_l (circle), or k1 of eq. 39")
+        with gui.add_folder("Gains"):
+            self.gains: dict[str, Any] = {}
+            for name, (lo, hi, step) in GAIN_SLIDERS.items():
+                self.gains[name] = gui.add_slider(
+                    GAIN_LABELS[name], min=lo, max=hi, step=step,
+                    initial_value=float(getattr(p.gains, name)), hint=GAIN_BOUNDS[name].meaning,
+                )
+        with gui.add_folder("Formation"):
+            self.preset = gui.add_dropdown("Preset", options=FORMATION_PRESETS, initial_value=FORMATION_PRESETS[0])
+            self.apply_preset = gui.add_button("Apply preset")
+            self.slot_folder = gui.add_folder("Desired positions (leader frame, m)")
+            self.slot_inputs: list[tuple[Any, Any]] = []
+        with gui.add_folder("View"):
+            self.show_truth = gui.add_checkbox("Show true poses", initial_value=True,
+                                               hint="simulation: the true pose as a wireframe beside the estimate")
+            self.follow_leader = gui.add_checkbox("Camera follows leader", initial_value=True)
+        self._build_slot_inputs(p)
+        self._wire()
+        store.subscribe(self._on_params)
+
+    # -- building -------------------------------------------------------------------------
+    def _build_slot_inputs(self, p: Params) -> None:
+        for x_in, y_in in self.slot_inputs:
+            x_in.remove()
+            y_in.remove()
+        self.slot_inputs = []
+        with self.slot_folder:
+            for j in range(p.slots.shape[0]):
+                x_in = self.server.gui.add_number(f"Slot {j + 1} x", initial_value=float(p.slots[j, 0]), step=0.01,
+                                                  min=-SLOT_LIMIT_M, max=SLOT_LIMIT_M)
+                y_in = self.server.gui.add_number(f"Slot {j + 1} y", initial_value=float(p.slots[j, 1]), step=0.01,
+                                                  min=-SLOT_LIMIT_M, max=SLOT_LIMIT_M)
+
+                def make_cb(j: int) -> Any:
+                    def cb(event: viser.GuiEvent) -> None:
+                        if event.client_id is None:
+                            return
+                        x_in_, y_in_ = self.slot_inputs[j]
+                        self._update(event, slot=(j, x_in_.value, y_in_.value))
+
+                    return cb
+
+                x_in.on_update(make_cb(j))
+                y_in.on_update(make_cb(j))
+                self.slot_inputs.append((x_in, y_in))
+
+    def _update(self, event: viser.GuiEvent, **changes: Any) -> None:
+        try:
+            _, notices = self.store.update(f"browser:{event.client_id}", **changes)
+        except ValueError as exc:
+            notices = (Notice("input", str(exc)),)
+        if notices and event.client is not None:
+            text = "; ".join(n.message for n in notices)
+            event.client.add_notification("Value adjusted", text, auto_close_seconds=6.0, color="yellow")
+
+    def _wire(self) -> None:
+        def on(handle: Any, **fixed: Any) -> None:
+            @handle.on_click
+            def _(event: viser.GuiEvent) -> None:
+                self._update(event, **fixed)
+
+        on(self.stop_button, stop=True)
+        on(self.release_button, stop=False)
+        on(self.step_button, step_requests=1)
+        on(self.reset_button, reset_requests=1)
+
+        @self.pause_button.on_click
+        def _(event: viser.GuiEvent) -> None:
+            self._update(event, paused=not self.store.get().paused)
+
+        def on_value(handle: Any, key: str, convert: Any = float) -> None:
+            @handle.on_update
+            def _(event: viser.GuiEvent) -> None:
+                if event.client_id is None:  # the server's own echo
+                    return
+                self._update(event, **{key: convert(handle.value)})
+
+        on_value(self.n_slider, "n_followers", int)
+        on_value(self.mode, "leader_mode", str)
+        on_value(self.speed, "leader_speed_mps")
+        on_value(self.turn, "leader_turn_deg_s")
+        for name, handle in self.gains.items():
+            on_value(handle, name)
+
+        @self.apply_preset.on_click
+        def _(event: viser.GuiEvent) -> None:
+            p = self.store.get()
+            self._update(event, slots=formation_preset(self.preset.value, p.n_followers))
+
+    # -- store -> widgets -----------------------------------------------------------------
+    @staticmethod
+    def _set(handle: Any, value: Any) -> None:
+        if isinstance(value, float) and isinstance(handle.value, (int, float)):
+            if math.isclose(float(handle.value), value, abs_tol=1e-9):
+                return
+        elif handle.value == value:
+            return
+        handle.value = value
+
+    def _on_params(self, p: Params, source: str, notices: tuple[Notice, ...]) -> None:
+        for name, handle in self.gains.items():
+            self._set(handle, float(getattr(p.gains, name)))
+        self._set(self.mode, p.leader_mode)
+        self._set(self.speed, float(p.leader_speed_mps))
+        self._set(self.turn, float(p.leader_turn_deg_s))
+        self._set(self.n_slider, int(p.n_followers))
+        if len(self.slot_inputs) != p.slots.shape[0]:
+            self._build_slot_inputs(p)
+        for j, (x_in, y_in) in enumerate(self.slot_inputs):
+            self._set(x_in, float(np.round(p.slots[j, 0], 4)))
+            self._set(y_in, float(np.round(p.slots[j, 1], 4)))
+        self.stop_button.disabled = p.stop
+        self.release_button.disabled = not p.stop
+        self.pause_button.label = "Resume" if p.paused else "Pause"
+        self.step_button.disabled = not p.paused
+        if notices:
+            self.notice = "; ".join(n.message for n in notices)
+
+    def update_status(self, s: TickState) -> None:
+        if s.tick % 6:
+            return
+        stages = " · ".join(f"{k.split(':')[0]} {v:.2f}" for k, v in s.stage_ms.items() if not k.startswith("publish"))
+        err = np.linalg.norm(s.p_true - s.p_d, axis=1) * 100
+        lines = [
+            f"**{'STOPPED — all followers at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
+            f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz",
+            f"stages (ms): {stages}",
+            f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
+            f" · link: {s.link_state} · recording: off (not built yet)",
+            "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" for i, e in enumerate(err)),
+        ]
+        if self.notice:
+            lines.append(f"notice: {self.notice}")
+        self.status.content = "  \n".join(lines)

@@ -1,0 +1,86 @@
+"""Live uPlot charts: x / y error per follower (fig. 19 style), headings, team V, commands.
+
+The loop appends every tick to ring buffers (last 60 s); charts are redrawn at
+about 10 Hz from a decimated copy, so the page stays smooth at any loop rate.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import viser
+import viser.uplot as uplot
+
+from app.dashboard.scene import FOLLOWER_RGB
+from app.loop import TickState
+
+WINDOW_S = 60.0
+REDRAW_S = 0.1
+MAX_POINTS = 400
+
+
+def _rgb(i: int) -> str:
+    r, g, b = FOLLOWER_RGB[i % len(FOLLOWER_RGB)]
+    return f"rgb({r},{g},{b})"
+
+
+class Plots:
+    def __init__(self, server: viser.ViserServer) -> None:
+        self.server = server
+        self.folder = server.gui.add_folder("Plots")
+        self.charts: dict[str, viser.GuiUplotHandle] = {}
+        self._n = -1
+        self._last_draw = 0.0
+        self._rows: list[np.ndarray] = []
+        self._t: list[float] = []
+
+    def _build(self, n: int) -> None:
+        for h in self.charts.values():
+            h.remove()
+        self.charts = {}
+        empty = np.zeros(2)
+
+        def chart(key: str, title: str, names: list[str], colours: list[str]) -> None:
+            series = (uplot.Series(label="t (s)"),) + tuple(
+                uplot.Series(label=nm, stroke=c, width=1.5) for nm, c in zip(names, colours)
+            )
+            with self.folder:
+                self.charts[key] = self.server.gui.add_uplot(
+                    data=(empty,) + tuple(empty for _ in names), series=series, title=title, aspect=2.2,
+                )
+
+        follower_names = [f"F{i + 1}" for i in range(n)]
+        colours = [_rgb(i) for i in range(n)]
+        chart("ex", "x error (m)", follower_names, colours)
+        chart("ey", "y error (m)", follower_names, colours)
+        chart("a", "heading a (deg), estimate", follower_names, colours)
+        chart("V", "team V = Σ ½‖ρ̃‖² (m²)", ["V"], ["rgb(40,70,140)"])
+        chart("v", "command v (m/s)", follower_names, colours)
+        chart("w", "command ω (rad/s)", follower_names, colours)
+        self._n = n
+        self._rows, self._t = [], []
+
+    def update(self, s: TickState) -> None:
+        n = s.n
+        if n != self._n:
+            self._build(n)
+        err = s.p_d - s.p_true
+        self._t.append(s.t)
+        self._rows.append(np.concatenate([err[:, 0], err[:, 1], np.degrees(s.a_est), [float(s.v_lyap.sum())],
+                                          s.commands[:, 0], s.commands[:, 1]]))
+        while self._t and self._t[0] < s.t - WINDOW_S:
+            self._t.pop(0)
+            self._rows.pop(0)
+        now = time.monotonic()
+        if now - self._last_draw < REDRAW_S or len(self._t) < 2:
+            return
+        self._last_draw = now
+        step = max(1, len(self._t) // MAX_POINTS)
+        t = np.array(self._t[::step])
+        rows = np.array(self._rows[::step])
+        cols = {"ex": rows[:, :n], "ey": rows[:, n:2 * n], "a": rows[:, 2 * n:3 * n], "V": rows[:, 3 * n:3 * n + 1],
+                "v": rows[:, 3 * n + 1:4 * n + 1], "w": rows[:, 4 * n + 1:5 * n + 1]}
+        with self.server.atomic():
+            for key, data in cols.items():
+                self.charts[key].data = (t,) + tuple(data[:, i].copy() for i in range(data.shape[1]))

@@ -1,0 +1,148 @@
+"""3D view: floor grid, leader with camera and working-area ring, followers with heading
+arrows, the desired formation polygon with draggable slot handles, trails, truth ghosts."""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+import viser
+
+from core.geometry import leader_to_world
+
+from app.dashboard.controls import Controls
+from app.loop import TickState
+from app.params import ParamsStore
+
+FOLLOWER_RGB = [(46, 160, 67), (230, 126, 34), (142, 68, 173), (192, 57, 43), (22, 160, 133), (241, 196, 15),
+                (52, 73, 94), (211, 84, 0)]
+WORKING_RING_M = (0.3, 1.5)
+TRAIL_SECONDS = 20.0
+
+
+def yaw_wxyz(yaw: float) -> tuple[float, float, float, float]:
+    return (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+
+
+def _circle(radius: float, segments: int = 72) -> np.ndarray:
+    ang = np.linspace(0, 2 * np.pi, segments + 1)
+    pts = np.column_stack([radius * np.cos(ang), radius * np.sin(ang), np.full(ang.shape, 0.01)])
+    return np.stack([pts[:-1], pts[1:]], axis=1)
+
+
+class Scene:
+    def __init__(self, server: viser.ViserServer, store: ParamsStore, controls: Controls) -> None:
+        self.server = server
+        self.store = store
+        self.controls = controls
+        s = server.scene
+        s.set_up_direction("+z")
+        s.add_grid("/grid", width=30.0, height=30.0, plane="xy", cell_size=0.25, section_size=1.0)
+        self.leader = s.add_frame("/leader", show_axes=False)
+        s.add_box("/leader/body", color=(40, 70, 140), dimensions=(0.40, 0.45, 0.22), position=(0, 0, 0.11))
+        s.add_cylinder("/leader/camera", radius=0.05, height=0.25, color=(30, 30, 30),
+                       wxyz=yaw_wxyz(0.0), position=(0, 0, 0.35))
+        s.add_arrows("/leader/heading", points=np.array([[[0, 0.1, 0.25], [0, 0.45, 0.25]]]),
+                     colors=(40, 70, 140), shaft_radius=0.015, head_radius=0.04, head_length=0.08)
+        for r in WORKING_RING_M:
+            s.add_line_segments(f"/leader/ring_{r}", _circle(r), colors=(120, 160, 220), thickness=0.01)
+        self.formation_lines: viser.LineSegmentsHandle | None = None
+        self.slot_handles: list[viser.TransformControlsHandle] = []
+        self.followers: list[viser.FrameHandle] = []
+        self.ghosts: list[viser.FrameHandle] = []
+        self.trails: list[deque[tuple[float, float]]] = []
+        self.trail_handles: list[viser.LineSegmentsHandle] = []
+        self._n = 0
+        self._slots_key = b""
+        self._dragging = False
+
+    def _rebuild(self, n: int, state: TickState) -> None:
+        s = self.server.scene
+        for h in self.followers + self.ghosts + self.slot_handles + self.trail_handles:
+            h.remove()
+        self.followers, self.ghosts, self.slot_handles, self.trail_handles = [], [], [], []
+        self.trails = [deque(maxlen=int(TRAIL_SECONDS * 10)) for _ in range(n)]
+        for i in range(n):
+            rgb = FOLLOWER_RGB[i % len(FOLLOWER_RGB)]
+            f = s.add_frame(f"/followers/{i}", show_axes=False)
+            s.add_box(f"/followers/{i}/body", color=(45, 45, 45), dimensions=(0.25, 0.15, 0.10), position=(0, 0, 0.05))
+            s.add_box(f"/followers/{i}/marker", color=rgb, dimensions=(0.12, 0.08, 0.01), position=(0, 0, 0.105))
+            s.add_arrows(f"/followers/{i}/heading", points=np.array([[[0.1, 0, 0.12], [0.35, 0, 0.12]]]), colors=rgb,
+                         shaft_radius=0.01, head_radius=0.03, head_length=0.06)
+            s.add_label(f"/followers/{i}/label", f"F{i + 1}", position=(0, 0, 0.3))
+            self.followers.append(f)
+            g = s.add_frame(f"/truth/{i}", show_axes=False, visible=self.controls.show_truth.value)
+            s.add_box(f"/truth/{i}/body", color=rgb, dimensions=(0.25, 0.15, 0.10), position=(0, 0, 0.05),
+                      wireframe=True)
+            self.ghosts.append(g)
+            self.trail_handles.append(
+                s.add_line_segments(f"/trails/{i}", np.zeros((1, 2, 3)), colors=rgb, thickness=0.01)
+            )
+        for j in range(state.slot_targets.shape[0]):
+            self._add_slot_handle(j, state.slot_targets[j])
+        self._n = n
+
+    def _add_slot_handle(self, j: int, xy: np.ndarray) -> None:
+        h = self.server.scene.add_transform_controls(
+            f"/leader/slots/{j}", scale=0.25, disable_rotations=True, active_axes=(True, True, False),
+            position=(float(xy[0]), float(xy[1]), 0.02), depth_test=False,
+        )
+        self.server.scene.add_icosphere(f"/leader/slots/{j}/dot", radius=0.04, color=(200, 40, 40))
+
+        @h.on_update
+        def _(event: viser.TransformControlsEvent, j: int = j) -> None:
+            x, y = float(h.position[0]), float(h.position[1])
+            self.store.update(f"browser:{event.client_id}", slot=(j, x, y))
+
+        self.slot_handles.append(h)
+
+    def update(self, state: TickState) -> None:
+        n = state.n
+        if n != self._n or len(self.slot_handles) != state.slot_targets.shape[0]:
+            self._rebuild(n, state)
+        lx, ly, lth = state.leader
+        self.leader.position = (float(lx), float(ly), 0.0)
+        self.leader.wxyz = yaw_wxyz(float(lth) - math.pi / 2)
+
+        key = state.slot_targets.tobytes() + state.assignment.tobytes()
+        if key != self._slots_key:
+            self._slots_key = key
+            slots = state.slot_targets
+            for j, h in enumerate(self.slot_handles):
+                target = (float(slots[j, 0]), float(slots[j, 1]), 0.02)
+                if np.abs(np.asarray(h.position) - target).max() > 1e-6:
+                    h.position = target
+            # The formation polygon: leader -> assigned slots in angular order -> leader.
+            used = slots[state.assignment]
+            order = np.argsort(np.arctan2(used[:, 1], used[:, 0]))
+            ring = np.vstack([[0.0, 0.0], used[order], [0.0, 0.0]])
+            pts = np.column_stack([ring, np.full(len(ring), 0.015)])
+            seg = np.stack([pts[:-1], pts[1:]], axis=1)
+            self.formation_lines = self.server.scene.add_line_segments(
+                "/leader/formation", seg, colors=(200, 40, 40), thickness=0.012
+            )
+
+        # Estimated poses (what the controller sees) drawn in the world.
+        est_world = leader_to_world(state.p_est, state.leader[:2], float(lth))
+        phi = float(lth) - math.pi / 2
+        show_truth = bool(self.controls.show_truth.value)
+        for i in range(n):
+            self.followers[i].position = (float(est_world[i, 0]), float(est_world[i, 1]), 0.0)
+            self.followers[i].wxyz = yaw_wxyz(float(state.a_est[i]) + phi)
+            self.followers[i].visible = bool(state.tracked[i])
+            tw = state.followers_world[i]
+            self.ghosts[i].visible = show_truth
+            if show_truth:
+                self.ghosts[i].position = (float(tw[0]), float(tw[1]), 0.0)
+                self.ghosts[i].wxyz = yaw_wxyz(float(tw[2]))
+        if state.tick % 3 == 0:
+            for i in range(n):
+                self.trails[i].append((float(est_world[i, 0]), float(est_world[i, 1])))
+                pts = np.array(self.trails[i])
+                if len(pts) >= 2:
+                    p3 = np.column_stack([pts, np.full(len(pts), 0.005)])
+                    self.trail_handles[i].points = np.stack([p3[:-1], p3[1:]], axis=1)
+        if self.controls.follow_leader.value and state.tick % 3 == 0:
+            for client in self.server.get_clients().values():
+                client.camera.look_at = (float(lx), float(ly), 0.0)

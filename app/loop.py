@@ -1,0 +1,242 @@
+"""THE loop: observe -> assign -> controller -> follower link -> publish, at a fixed rate.
+
+It owns time (monotonic clock, fixed tick dt); the dashboard and the recorder
+only read the :class:`TickState` it publishes, and operator controls reach it
+only through the :class:`ParamsStore`, read once per tick. On stop (Ctrl-C,
+SIGTERM, an exception inside a tick) every follower is commanded to zero
+before the loop returns.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from core.control.assignment import assign_slots
+from core.control.formation import ControllerState, compute_commands
+from core.control.targets import SlotMotion, step_slots
+from core.sim.profiles import Eq39Profile
+from core.sim.team import FollowerDynamics
+from core.types import Commands, FloatArray, Gains, IntArray
+
+from app.backends.sim import SimTeam, spread_start
+from app.params import Params, ParamsStore
+
+log = logging.getLogger(__name__)
+
+REASSIGN_MARGIN_M2 = 0.05  # eq. 33 is re-solved when slots change; keep the old one unless this much cheaper
+
+
+@dataclass(frozen=True)
+class TickState:
+    """Everything one tick produced, published to the dashboard and recorder."""
+
+    tick: int
+    t: float
+    leader: FloatArray  # (3,) world x, y, theta
+    leader_twist: tuple[float, float]
+    followers_world: FloatArray  # (n, 3) true, simulation only
+    p_est: FloatArray  # (n, 2) leader frame, what the controller used
+    a_est: FloatArray  # (n,)
+    tracked: FloatArray  # (n,) bool
+    p_true: FloatArray  # (n, 2)
+    a_true: FloatArray  # (n,)
+    p_d: FloatArray  # (n, 2) desired position of each follower (ramped)
+    slot_targets: FloatArray  # (m, 2) the formation as set
+    assignment: IntArray  # (n,) slot of each follower
+    commands: FloatArray  # (n, 2) v, w sent
+    a_err: FloatArray  # (n,)
+    v_lyap: FloatArray  # (n,)
+    gains: Gains
+    params_version: int
+    stopped: bool
+    paused: bool
+    link_state: str
+    rate_hz: float
+    stage_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.p_est.shape[0])
+
+
+@dataclass
+class _World:
+    team: SimTeam
+    controller: ControllerState
+    slots: SlotMotion
+    assignment: IntArray
+    slot_version: object
+
+
+class ServiceLoop:
+    """The one loop. ``tick()`` does one step; ``run()`` paces ticks until stopped."""
+
+    def __init__(
+        self,
+        store: ParamsStore,
+        rate_hz: float = 30.0,
+        seed: int = 0,
+        dynamics: FollowerDynamics | None = None,
+        position_noise_m: float = 0.003,
+        heading_noise_rad: float = math.radians(1.0),
+        initial_poses: tuple[FloatArray, FloatArray] | None = None,
+    ) -> None:
+        self.store = store
+        self.dt = 1.0 / rate_hz
+        self.rate_hz = rate_hz
+        self.seed = seed
+        self.dynamics = dynamics or FollowerDynamics(
+            actuator_tau_s=0.3, speed_max_mps=0.35, turn_max_rps=2.5, accel_max_mps2=0.6,
+            turn_accel_max_rps2=6.0, wheel_noise_mps=0.005,
+        )
+        self.position_noise_m = position_noise_m
+        self.heading_noise_rad = heading_noise_rad
+        self._initial_poses = initial_poses
+        self._subscribers: list[Callable[[TickState], None]] = []
+        self._stop = threading.Event()
+        self.tick_count = 0
+        self.t = 0.0
+        self._resets = 0
+        self._steps_done = store.get().step_requests
+        self._mode = ("", 0.0)
+        self.achieved_rate_hz = 0.0
+        self.last: TickState | None = None
+        self._world = self._make_world(store.get())
+
+    # -- wiring ---------------------------------------------------------------------------
+    def subscribe(self, fn: Callable[[TickState], None]) -> None:
+        self._subscribers.append(fn)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    # -- world ----------------------------------------------------------------------------
+    def _make_world(self, params: Params) -> _World:
+        n = params.n_followers
+        rng = np.random.default_rng(self.seed + self._resets)
+        if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
+            p0, a0 = self._initial_poses
+        else:
+            p0, a0 = spread_start(n, rng)
+        team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
+                       self.seed + 1000 + self._resets)
+        assignment = assign_slots(p0, params.slots)
+        self.t = 0.0
+        return _World(team, ControllerState.initial(n), SlotMotion.at_rest(params.slots[assignment]),
+                      assignment, params.slots.tobytes())
+
+    def _leader_twist(self, params: Params) -> tuple[float, float]:
+        if self._mode[0] != params.leader_mode:
+            self._mode = (params.leader_mode, self.t)
+        v, w = params.leader_speed_mps, math.radians(params.leader_turn_deg_s)
+        if params.leader_mode == "stop":
+            return 0.0, 0.0
+        if params.leader_mode == "straight":
+            return v, 0.0
+        if params.leader_mode == "circle":
+            return v, w
+        profile = Eq39Profile(speed_mps=v, k1_rps=w)
+        return profile.twist(self.t - self._mode[1])
+
+    # -- one tick -------------------------------------------------------------------------
+    def tick(self) -> TickState:
+        stage: dict[str, float] = {}
+        t0 = time.perf_counter()
+        params = self.store.get()
+        if params.reset_requests != self._resets or params.n_followers != self._world.team.state.n:
+            self._resets = params.reset_requests
+            self._world = self._make_world(params)
+            self._mode = ("", 0.0)
+        world = self._world
+        n = world.team.state.n
+        advance = not params.paused or params.step_requests != self._steps_done
+        self._steps_done = params.step_requests
+
+        p, a, tracked = world.team.observe()
+        t1 = time.perf_counter()
+        stage["observe"] = (t1 - t0) * 1e3
+
+        slots_key = params.slots.tobytes()
+        if slots_key != world.slot_version:
+            world.assignment = assign_slots(p, params.slots, current=world.assignment, margin_m2=REASSIGN_MARGIN_M2)
+            world.slot_version = slots_key
+        targets = params.slots[world.assignment]
+        if advance:
+            world.slots = step_slots(world.slots, targets, self.dt)
+        twist = self._leader_twist(params) if advance else (0.0, 0.0)
+        active = np.asarray(tracked, dtype=bool) & (not params.stop) & advance
+        out = compute_commands(p, a, world.slots.p_d, world.slots.v_d, twist[0], twist[1],
+                               params.gains, world.controller, self.dt, active)
+        world.controller = out.state
+        t2 = time.perf_counter()
+        stage["control"] = (t2 - t1) * 1e3
+
+        world.team.send(out.commands)
+        t3 = time.perf_counter()
+        stage["link"] = (t3 - t2) * 1e3
+
+        p_true, a_true = world.team.truth()
+        state = TickState(
+            tick=self.tick_count, t=self.t, leader=world.team.state.leader.copy(), leader_twist=twist,
+            followers_world=world.team.state.followers.copy(), p_est=p, a_est=a, tracked=tracked,
+            p_true=p_true, a_true=a_true, p_d=world.slots.p_d.copy(), slot_targets=params.slots.copy(),
+            assignment=world.assignment.copy(),
+            commands=np.column_stack([out.commands.v, out.commands.w]), a_err=out.a_err,
+            v_lyap=out.v_lyap, gains=params.gains, params_version=params.version,
+            stopped=params.stop, paused=params.paused and not advance, link_state=world.team.link_state,
+            rate_hz=self.achieved_rate_hz, stage_ms=stage,
+        )
+        if advance:
+            world.team.advance(twist, self.dt, self.t)
+            self.t += self.dt
+        self.tick_count += 1
+        self.last = state
+        for fn in self._subscribers:
+            t_pub = time.perf_counter()
+            try:
+                fn(state)
+            except Exception:  # a broken view must not stop the robots' loop
+                log.exception("subscriber failed")
+            stage[f"publish:{getattr(fn, '__qualname__', 'fn')}"] = (time.perf_counter() - t_pub) * 1e3
+        return state
+
+    def halt_followers(self) -> None:
+        """Command every follower to zero now (used on stop and on errors)."""
+        n = self._world.team.state.n
+        self._world.team.send(Commands.zeros(n))
+        self._world.controller = ControllerState.initial(n)
+
+    # -- pacing ---------------------------------------------------------------------------
+    def run(self) -> None:
+        """Tick at the configured rate until stop(); always leaves the followers at zero."""
+        next_deadline = time.monotonic()
+        window: list[float] = []
+        try:
+            while not self._stop.is_set():
+                start = time.monotonic()
+                self.tick()
+                window.append(start)
+                if len(window) > 60:
+                    window.pop(0)
+                if len(window) >= 2 and window[-1] > window[0]:
+                    self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
+                next_deadline += self.dt
+                delay = next_deadline - time.monotonic()
+                if delay < -self.dt:  # fell behind: do not try to catch up in a burst
+                    next_deadline = time.monotonic()
+                elif delay > 0:
+                    self._stop.wait(delay)
+        finally:
+            self.halt_followers()
+            self._world.team.close()

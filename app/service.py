@@ -1,0 +1,75 @@
+"""The long-running service: one loop thread, the viser server, the dashboard.
+
+``Service.start()`` starts the loop in its own thread (the only thread that
+steps the world); ``Service.close()`` stops it, which commands every follower
+to zero, then stops the server. `omniformation run` runs one until Ctrl-C or
+SIGTERM.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import viser
+
+from core.config import Scenario
+from core.sim.profiles import ConstantProfile, Eq39Profile
+
+from app.dashboard import Dashboard
+from app.loop import ServiceLoop
+from app.params import Params, ParamsStore, default_slots
+
+LOOPBACK = {"127.0.0.1", "localhost", "::1"}
+
+
+def params_for(scenario: Scenario | None, n_followers: int) -> Params:
+    """The operator's starting values: a scenario's, or the built-in team's."""
+    if scenario is None:
+        return Params(n_followers=n_followers, slots=default_slots(n_followers), leader_mode="straight")
+    mode, speed, turn = "straight", 0.06, 1.5
+    lp = scenario.leader
+    if isinstance(lp, ConstantProfile):
+        mode = "circle" if lp.turn_rps else "straight"
+        speed, turn = lp.speed_mps, math.degrees(lp.turn_rps) or 1.5
+    elif isinstance(lp, Eq39Profile):
+        mode, speed, turn = "eq39", lp.speed_mps, math.degrees(lp.k1_rps)
+    return Params(gains=scenario.gains, leader_mode=mode, leader_speed_mps=speed, leader_turn_deg_s=turn,
+                  slots=scenario.slots.copy(), n_followers=scenario.n)
+
+
+class Service:
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, scenario: Scenario | None = None,
+                 n_followers: int = 3, rate_hz: float = 30.0, seed: int = 0) -> None:
+        self.store = ParamsStore(params_for(scenario, n_followers))
+        kwargs = {}
+        if scenario is not None:
+            kwargs = dict(dynamics=scenario.dynamics, position_noise_m=scenario.measurement.position_noise_m,
+                          heading_noise_rad=scenario.measurement.heading_noise_rad,
+                          initial_poses=(scenario.initial_p, scenario.initial_a))
+            seed = scenario.seed
+        self.loop = ServiceLoop(self.store, rate_hz=rate_hz, seed=seed, **kwargs)
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.dashboard = Dashboard(self.server, self.store)
+        self.loop.subscribe(self.dashboard.publish)
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        host = self.server.get_host()
+        shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+        return f"http://{shown}:{self.server.get_port()}"
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.loop.run, name="omniformation-loop", daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        while self._thread is not None and self._thread.is_alive():
+            self._thread.join(0.2)
+
+    def close(self) -> None:
+        self.loop.stop()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        self.server.stop()

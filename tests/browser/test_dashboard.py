@@ -1,0 +1,137 @@
+"""The dashboard in real Chromium (Playwright) against a real viser server and loop."""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+from app.loop import TickState
+from app.service import Service
+
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+
+def wait_for(pred: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def service():
+    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=4)
+    seen: list[TickState] = []
+    lock = threading.Lock()
+
+    def keep(state: TickState) -> None:
+        with lock:
+            seen.append(state)
+            del seen[:-2000]
+
+    svc.loop.subscribe(keep)
+    svc.seen = seen  # type: ignore[attr-defined]
+    svc.start()
+    yield svc
+    svc.close()
+
+
+@pytest.fixture(scope="module")
+def page(service):
+    chromium = shutil.which("chromium")
+    assert chromium, "Debian's chromium is missing: `make test` installs it (scripts/ensure-chromium)"
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+        pg = browser.new_page(viewport={"width": 1500, "height": 950})
+        pg.goto(service.url)
+        pg.wait_for_selector('canvas[data-engine^="three.js"]', timeout=30_000)
+        pg.wait_for_selector(".uplot canvas", timeout=30_000)
+        yield pg
+        browser.close()
+
+
+def control_id(page, label: str) -> str:
+    loc = page.locator("label", has_text=label).first
+    loc.wait_for(timeout=10_000)
+    ident = loc.get_attribute("for")
+    assert ident, f"label {label!r} has no control id"
+    return ident
+
+
+def states_after(service, version: int) -> list[TickState]:
+    return [s for s in list(service.seen) if s.params_version >= version]
+
+
+def test_page_shows_scene_and_plots_and_is_screenshotted(page, service):
+    ARTIFACTS.mkdir(exist_ok=True)
+    time.sleep(2.0)  # let trails and plots fill
+    page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
+    assert (ARTIFACTS / "dashboard.png").stat().st_size > 30_000
+    assert page.locator(".uplot").count() >= 6
+    assert service.loop.last is not None and service.loop.last.n == 3
+
+
+def test_kf1_slider_reaches_the_controller_on_the_next_tick(page, service):
+    before = service.store.get()
+    assert before.gains.k_f1 == pytest.approx(0.10)
+    thumb = page.locator(f'[id="{control_id(page, "k_f1 (m/s)")}"] [role=slider]')
+    thumb.focus()
+    thumb.press("ArrowRight")
+    wait_for(lambda: service.store.get().gains.k_f1 == pytest.approx(0.11), what="k_f1 in the store")
+    version = service.store.get().version
+    wait_for(lambda: len(states_after(service, version)) > 0, what="a tick with the new parameters")
+    first = states_after(service, version)[0]
+    assert first.gains.k_f1 == pytest.approx(0.11)
+    # The tick right before it still used the old value: it took effect on the next tick.
+    earlier = [s for s in service.seen if s.tick == first.tick - 1]
+    assert earlier and earlier[0].params_version < version
+
+
+def test_typed_desired_position_moves_the_slot(page, service):
+    ident = control_id(page, "Slot 1 x")
+    box = page.locator(f'input[id="{ident}"], [id="{ident}"] input').first
+    box.fill("-0.8")
+    box.press("Enter")
+    wait_for(lambda: service.store.get().slots[0, 0] == pytest.approx(-0.8), what="slot 1 x in the store")
+    version = service.store.get().version
+    wait_for(lambda: len(states_after(service, version)) > 0, what="a tick with the new slot")
+    assert states_after(service, version)[0].slot_targets[0, 0] == pytest.approx(-0.8)
+    # The follower assigned to slot 1 is driven towards it (ramped, not jumped).
+    follower = int(np.flatnonzero(service.loop.last.assignment == 0)[0])
+    wait_for(lambda: service.loop.last.p_d[follower, 0] < -0.7, timeout=15.0, what="the desired position to move")
+
+
+def test_out_of_range_value_is_clamped_with_a_notice(page, service):
+    ident = control_id(page, "Slot 2 y")
+    box = page.locator(f'input[id="{ident}"], [id="{ident}"] input').first
+    box.fill("7")
+    box.press("Enter")
+    wait_for(lambda: abs(service.store.get().slots[1, 1]) <= 2.0 and service.store.get().slots[1, 1] > 1.0,
+             what="slot 2 y clamped")
+    assert service.store.get().slots[1, 1] == pytest.approx(2.0)
+    assert service.loop.last is not None and service.loop.stopping is False
+
+
+def test_stop_zeroes_every_command_on_the_next_tick(page, service):
+    wait_for(lambda: np.abs(service.loop.last.commands).max() > 1e-3, what="followers moving")
+    page.get_by_role("button", name="STOP", exact=True).click()
+    wait_for(lambda: service.store.get().stop, what="STOP in the store")
+    version = service.store.get().version
+    wait_for(lambda: len(states_after(service, version)) >= 3, what="ticks after STOP")
+    after = states_after(service, version)
+    assert all(s.stopped for s in after)
+    assert np.all(after[0].commands == 0.0)
+    assert np.all(after[-1].commands == 0.0)
+    assert after[-1].tick > after[0].tick  # the loop keeps observing
+    page.get_by_role("button", name="Release STOP").click()
+    wait_for(lambda: not service.store.get().stop, what="STOP released")
