@@ -150,7 +150,8 @@ def _clamped(key: str, value: Any, bound: Bound, notices: list[Notice]) -> float
         raise ValueError(f"{key} = {value!r}: must be a number") from None
     clamped = bound.clamp(number)
     if clamped != number or not math.isfinite(number):
-        notices.append(Notice(key, f"{key} = {value!r} is outside [{bound.lo:g}, {bound.hi:g}] {bound.unit}: set to {clamped:g}"))
+        lo_br = "[" if bound.lo_inclusive else "("
+        notices.append(Notice(key, f"{key} = {value!r} is outside {lo_br}{bound.lo:g}, {bound.hi:g}] {bound.unit}: set to {clamped:g}"))
     return clamped
 
 
@@ -162,8 +163,17 @@ def default_slots(n: int) -> FloatArray:
 FORMATION_PRESETS = ("paper triangle", "triangle ahead", "line abreast", "column", "V", "diamond", "ring")
 
 
+PRESET_REACH_M = 1.5  # presets stay inside the camera's working ring
+
+
 def formation_preset(name: str, n: int) -> FloatArray:
-    """Slots (n, 2) in the leader frame for a named formation."""
+    """Slots (n, 2) in the leader frame for a named formation, shrunk to fit within 1.5 m."""
+    slots = _preset_shape(name, n)
+    reach = float(np.abs(slots).max()) if slots.size else 0.0
+    return slots * (PRESET_REACH_M / reach) if reach > PRESET_REACH_M else slots
+
+
+def _preset_shape(name: str, n: int) -> FloatArray:
     i = np.arange(n, dtype=np.float64)
     if name == "paper triangle":  # §4: (-0.5, -0.3), (0.5, -0.3), more behind
         side = np.where(i % 2 == 0, -1.0, 1.0)
@@ -178,14 +188,15 @@ def formation_preset(name: str, n: int) -> FloatArray:
         side = np.where(i % 2 == 0, -1.0, 1.0)
         return np.column_stack([side * 0.5 * k, np.zeros(n)])
     if name == "column":
-        return np.column_stack([np.zeros(n), -0.5 * (i + 1)])
+        spacing = min(0.5, 1.1 / max(n, 1))
+        return np.column_stack([np.zeros(n), -(0.4 + spacing * i)])
     if name == "V":
         k = i // 2 + 1
         side = np.where(i % 2 == 0, -1.0, 1.0)
         return np.column_stack([side * 0.4 * k, -0.4 * k])
     if name == "diamond":
         base = np.array([[-0.5, -0.5], [0.5, -0.5], [0.0, -1.0], [0.0, 0.6]])
-        extra = formation_preset("ring", n)[4:] * 1.3 if n > 4 else np.zeros((0, 2))
+        extra = _preset_shape("ring", n)[4:] * 1.3 if n > 4 else np.zeros((0, 2))
         return np.vstack([base[: min(n, 4)], extra])
     if name == "ring":
         ang = np.pi / 2 + 2 * np.pi * i / max(n, 1)

@@ -1,0 +1,104 @@
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.loop import ServiceLoop
+from app.params import Params, ParamsStore
+
+
+def test_team_reaches_formation_in_the_live_loop():
+    store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]]),
+                               leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=2)
+    for _ in range(30 * 40):
+        s = loop.tick()
+    err = np.linalg.norm(s.p_true - s.p_d, axis=1)
+    assert err.max() < 0.03
+
+
+def test_stop_pause_step_and_reset():
+    store = ParamsStore(Params(leader_mode="circle"))
+    loop = ServiceLoop(store, rate_hz=30.0)
+    for _ in range(30):
+        loop.tick()
+    store.update("test", stop=True)
+    s = loop.tick()
+    assert s.stopped and np.all(s.commands == 0.0)
+    store.update("test", stop=False, paused=True)
+    t_paused = loop.tick().t
+    assert loop.tick().t == t_paused  # paused: time does not advance, commands are zero
+    assert np.all(loop.last.commands == 0.0)
+    store.update("test", step_requests=1)
+    loop.tick()
+    assert loop.tick().t > t_paused
+    store.update("test", paused=False, reset_requests=1)
+    assert loop.tick().t == 0.0
+
+
+def test_a_failing_subscriber_does_not_stop_the_loop():
+    loop = ServiceLoop(ParamsStore())
+    loop.subscribe(lambda s: 1 / 0)
+    assert loop.tick().tick == 0 and loop.tick().tick == 1
+
+
+def test_run_paces_ticks_and_halts_followers_on_stop():
+    loop = ServiceLoop(ParamsStore(Params(leader_mode="straight")), rate_hz=50.0)
+    import threading
+
+    th = threading.Thread(target=loop.run)
+    th.start()
+    time.sleep(1.0)
+    loop.stop()
+    th.join(2.0)
+    assert not th.is_alive()
+    assert 35 <= loop.tick_count <= 60
+    assert np.all(loop._world.team.commands.v == 0.0)
+
+
+def test_the_service_stops_cleanly_on_sigterm():
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "run", "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, cwd=Path(__file__).resolve().parents[2],
+    )
+    try:
+        line = ""
+        deadline = time.monotonic() + 60
+        while "dashboard at" not in line and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+        assert re.search(r"dashboard at http://127\.0\.0\.1:\d+", line), line
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "all followers commanded to zero" in out
+    assert "Traceback" not in err
+
+
+def test_other_hosts_warn_and_bad_ports_exit_2():
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run([sys.executable, "-m", "app.cli", "run", "--port", "99999"], capture_output=True,
+                         text=True, cwd=root, timeout=60)
+    assert out.returncode == 2 and "99999 is outside 0..65535" in out.stderr
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--host", "0.0.0.0", "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=root)
+    try:
+        deadline = time.monotonic() + 60
+        line = ""
+        while "dashboard at" not in line and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+        proc.send_signal(signal.SIGINT if os.name != "nt" else signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert "no authentication" in err
+    assert proc.returncode == 0
