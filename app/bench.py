@@ -68,4 +68,59 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
         f"paper_simulation at 100 Hz, ground truth: {wall * 1e3:.1f} ms for {simulated:.0f} s"
         f" = {simulated / wall:,.0f}x real time (target >= 2000x)"
     )
+    try:
+        rates = bench_loop_with_browsers()
+    except Exception as exc:  # a browser that does not come up is a skipped figure, not a crash
+        print_fn(f"live loop with browsers: failed to open the pages ({type(exc).__name__}: {str(exc).splitlines()[0]})")
+        return results
+    if rates is None:
+        print_fn("live loop with browsers: skipped (needs Debian's chromium and playwright: make test installs both)")
+    else:
+        alone, watched = rates
+        results["loop_hz_no_browser"], results["loop_hz_3_browsers"] = alone, watched
+        print_fn(
+            f"live loop at 30 Hz: {alone:.2f} Hz with no browser, {watched:.2f} Hz with 3 browsers"
+            f" ({(watched / alone - 1) * 100:+.1f} %, target within 5 %)"
+        )
     return results
+
+
+def bench_loop_with_browsers(seconds: float = 6.0, browsers: int = 3) -> tuple[float, float] | None:
+    """Achieved loop rate (Hz) with no browser and with ``browsers`` Chromium pages open.
+
+    Returns None when Debian's chromium or Playwright is not installed.
+    """
+    import shutil
+    import time as _time
+
+    chromium = shutil.which("chromium")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        return None
+    if chromium is None:
+        return None
+    from app.service import Service
+
+    def measure(svc: Service) -> float:
+        start_tick, start = svc.loop.tick_count, _time.monotonic()
+        _time.sleep(seconds)
+        return (svc.loop.tick_count - start_tick) / (_time.monotonic() - start)
+
+    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0)
+    svc.start()
+    try:
+        _time.sleep(1.0)
+        alone = measure(svc)
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+            # One context (window) each: a background tab in a shared window is throttled.
+            pages = [browser.new_context().new_page() for _ in range(browsers)]
+            for page in pages:
+                page.goto(svc.url)
+                page.wait_for_selector(".uplot", state="attached", timeout=30_000)
+            watched = measure(svc)
+            browser.close()
+    finally:
+        svc.close()
+    return alone, watched
