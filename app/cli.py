@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 from typing import NoReturn, Sequence
 
+from app.params import MAX_FOLLOWERS
 from app.paths import UserError, display_path, scenario_names
 
 EXIT_USAGE = 2
@@ -37,14 +38,22 @@ def _positive_float(lo: float, hi: float, unit: str) -> "argparse._ActionType": 
     return parse
 
 
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 0 <= value < 2**32:
-        raise argparse.ArgumentTypeError(f"{text} is outside 0 .. 2^32-1")
-    return value
+def _int_in(lo: int, hi: int, what: str = "") -> "argparse._ActionType":  # type: ignore[name-defined]
+    """An argparse type: a whole number in [lo, hi], refused in one line otherwise."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"{text} is outside {lo}..{hi}{what}")
+        return value
+
+    return parse
+
+
+_seed = _int_in(0, 2**32 - 1)
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -110,28 +119,6 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"{text} is outside 0..65535 (0 = any free port)")
-    return value
-
-
-def _followers(text: str) -> int:
-    from app.params import MAX_FOLLOWERS
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 1 <= value <= MAX_FOLLOWERS:
-        raise argparse.ArgumentTypeError(f"{text} is outside 1..{MAX_FOLLOWERS}")
-    return value
-
-
 def _cmd_bench(args: argparse.Namespace) -> int:
     from app.bench import run_bench
 
@@ -167,8 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--scenario", help="start from a scenario's team, formation and gains")
     run.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; others warn)")
-    run.add_argument("--port", type=_port, default=8080, help="port (default 8080, 0 = any free port)")
-    run.add_argument("--followers", type=_followers, default=3, help="simulated followers without --scenario")
+    run.add_argument("--port", type=_int_in(0, 65535, " (0 = any free port)"), default=8080, help="port (default 8080, 0 = any free port)")
+    run.add_argument("--followers", type=_int_in(1, MAX_FOLLOWERS), default=3, help="simulated followers without --scenario")
     run.add_argument("--rate", type=_positive_float(0.0, 200.0, "Hz"), default=30.0, help="loop rate (Hz)")
     run.add_argument("--seed", type=_seed, help="random seed of the simulated team")
     run.set_defaults(func=_cmd_run)

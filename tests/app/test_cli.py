@@ -53,7 +53,9 @@ def test_simulate_takes_a_path_and_a_seed(tmp_path):
         (("simulate", "no_such_scenario"), "scenario 'no_such_scenario' not found"),
         (("simulate", "paper_simulation", "--rate", "abc"), "argument --rate: 'abc' is not a number"),
         (("simulate", "paper_simulation", "--duration", "-1"), "argument --duration: -1 is outside"),
-        (("simulate", "paper_simulation", "--seed", "-4"), "argument --seed: -4 is outside"),
+        (("simulate", "paper_simulation", "--seed", "-4"), "argument --seed: -4 is outside 0..4294967295"),
+        (("run", "--followers", "9"), "argument --followers: 9 is outside 1..8"),
+        (("run", "--port", "http"), "argument --port: 'http' is not a whole number"),
         (("frobnicate",), "invalid choice: 'frobnicate'"),
     ],
 )
