@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -124,14 +124,6 @@ GAIN_INDEX: dict[str, int] = {f.name: i for i, f in enumerate(dataclasses.fields
 
 
 @dataclass(frozen=True)
-class Twist:
-    """A unicycle velocity: forward speed (m/s) and turn rate (rad/s, CCW positive)."""
-
-    v: float
-    w: float
-
-
-@dataclass(frozen=True)
 class Commands:
     """Per-follower velocity commands: v (n,) m/s, w (n,) rad/s."""
 
@@ -141,16 +133,3 @@ class Commands:
     @staticmethod
     def zeros(n: int) -> "Commands":
         return Commands(np.zeros(n), np.zeros(n))
-
-
-@dataclass(frozen=True)
-class FollowerEstimates:
-    """What the controller is fed: leader-frame poses and which followers are tracked."""
-
-    p: FloatArray  # (n, 2) m
-    a: FloatArray  # (n,) rad
-    tracked: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-
-    def __post_init__(self) -> None:
-        if self.tracked.shape != self.a.shape:
-            object.__setattr__(self, "tracked", np.ones(self.a.shape, dtype=bool))

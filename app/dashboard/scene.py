@@ -47,7 +47,6 @@ class Scene:
                      colors=(40, 70, 140), shaft_radius=0.015, head_radius=0.04, head_length=0.08)
         for r in WORKING_RING_M:
             s.add_line_segments(f"/leader/ring_{r}", _circle(r), colors=(120, 160, 220), thickness=0.01)
-        self.formation_lines: viser.LineSegmentsHandle | None = None
         self.slot_handles: list[viser.TransformControlsHandle] = []
         self.followers: list[viser.FrameHandle] = []
         self.ghosts: list[viser.FrameHandle] = []
@@ -119,7 +118,7 @@ class Scene:
             ring = np.vstack([[0.0, 0.0], used[order], [0.0, 0.0]])
             pts = np.column_stack([ring, np.full(len(ring), 0.015)])
             seg = np.stack([pts[:-1], pts[1:]], axis=1)
-            self.formation_lines = self.server.scene.add_line_segments(
+            self.server.scene.add_line_segments(
                 "/leader/formation", seg, colors=(200, 40, 40), thickness=0.012
             )
 
