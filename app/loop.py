@@ -159,7 +159,6 @@ class ServiceLoop:
             self._world = self._make_world(params)
             self._mode = ("", 0.0)
         world = self._world
-        n = world.team.state.n
         advance = not params.paused or params.step_requests != self._steps_done
         self._steps_done = params.step_requests
 

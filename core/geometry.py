@@ -28,12 +28,6 @@ def wrap_angle(angle: float) -> float:
     return w - math.pi
 
 
-def rotation(angle: float) -> FloatArray:
-    """2x2 rotation matrix R(angle), counter-clockwise for positive angle."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s], [s, c]], dtype=np.float64)
-
-
 def frame_yaw(leader_theta: ArrayLike) -> FloatArray:
     """Yaw of the leader frame's axes in the world: theta - pi/2 (x right, y forward)."""
     return np.asarray(leader_theta, dtype=np.float64) - np.pi / 2.0

@@ -53,9 +53,6 @@ class Disturbance:
     end_s: float
     kind: str = "stuck"
 
-    def active(self, t: float) -> bool:
-        return self.start_s <= t < self.end_s
-
 
 def stuck_mask(disturbances: tuple[Disturbance, ...], n: int, t: ArrayLike) -> BoolArray:
     """(len(t), n) True where a follower is stuck at time t."""
