@@ -16,7 +16,7 @@ import numpy as np
 
 from core.config import Scenario
 from core.control.assignment import assign_slots
-from core.control.formation import controller_kernel
+from core.control.formation import controller_kernel, lyapunov
 from core.geometry import world_to_leader_kernel, wrap_angle
 from core.jit import kernel
 from core.sim.team import arc_kernel, followers_kernel, make_team_state, stuck_mask
@@ -53,8 +53,7 @@ class SimulationLog:
     @property
     def v_lyap(self) -> FloatArray:
         """(T, n) eq. 21 on the true positions."""
-        e = self.error
-        return 0.5 * np.sum(e * e, axis=-1)
+        return lyapunov(self.p, self.p_d)
 
 
 @kernel
