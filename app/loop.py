@@ -13,6 +13,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -220,14 +221,12 @@ class ServiceLoop:
     def run(self) -> None:
         """Tick at the configured rate until stop(); always leaves the followers at zero."""
         next_deadline = time.monotonic()
-        window: list[float] = []
+        window: deque[float] = deque(maxlen=61)  # tick start times of the last 60 ticks
         try:
             while not self._stop.is_set():
                 start = time.monotonic()
                 self.tick()
                 window.append(start)
-                if len(window) > 60:
-                    window.pop(0)
                 if len(window) >= 2 and window[-1] > window[0]:
                     self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
                 next_deadline += self.dt
