@@ -54,6 +54,37 @@ def bench_paper_simulation() -> tuple[float, float]:
     return wall, scenario.duration_s
 
 
+def bench_render(n_followers: int = 6) -> tuple[float, float, float]:
+    """Median ms of one synthetic 640x480 frame with n followers (default settings: noise, blur,
+    drift, clutter), the same with a JPEG round trip, and one BGR->HSV conversion of it."""
+    import math
+
+    import cv2
+
+    from app.camera_files import SYNTHETIC_CAMERA, load_camera
+    from core.camera.synthetic import renderer_for
+
+    rig = load_camera(SYNTHETIC_CAMERA)
+    plain = renderer_for(rig, jpeg_quality=0)
+    jpeg = renderer_for(rig, jpeg_quality=85)
+    rng = np.random.default_rng(1)
+    ang = np.linspace(0, 2 * math.pi, n_followers, endpoint=False)
+    followers = np.column_stack([np.cos(ang), np.sin(ang), ang])
+    step = [0]
+
+    def frame(r: object) -> np.ndarray:
+        step[0] += 1
+        k = step[0]
+        return r.render(np.array([0.01 * k, 0.0, 1.0 + 0.003 * k]), followers, k / 30.0, rng)  # type: ignore[attr-defined]
+
+    frame(plain)
+    img = frame(jpeg)
+    render_s = _median_seconds(lambda: frame(plain), 9, 30)
+    jpeg_s = _median_seconds(lambda: frame(jpeg), 5, 20)
+    hsv_s = _median_seconds(lambda: cv2.cvtColor(img, cv2.COLOR_BGR2HSV), 9, 50)
+    return render_s * 1e3, jpeg_s * 1e3, hsv_s * 1e3
+
+
 def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     rng = np.random.default_rng(0)
     results: dict[str, float] = {}
@@ -67,6 +98,12 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     print_fn(
         f"paper_simulation at 100 Hz, ground truth: {wall * 1e3:.1f} ms for {simulated:.0f} s"
         f" = {simulated / wall:,.0f}x real time (target >= 2000x)"
+    )
+    render_ms, jpeg_ms, hsv_ms = bench_render(6)
+    results["render_ms"], results["render_jpeg_ms"] = render_ms, jpeg_ms
+    print_fn(
+        f"synthetic frame 640x480, 6 followers: {render_ms:.2f} ms (target <= 3 ms); with a JPEG round trip"
+        f" {jpeg_ms:.2f} ms; one BGR->HSV conversion of it {hsv_ms:.2f} ms"
     )
     try:
         rates = bench_loop_with_browsers()

@@ -25,14 +25,17 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _positive_float(lo: float, hi: float, unit: str) -> "argparse._ActionType":  # type: ignore[name-defined]
+def _positive_float(lo: float, hi: float, unit: str, lo_inclusive: bool = False) -> "argparse._ActionType":  # type: ignore[name-defined]
+    """An argparse type: a finite number in (lo, hi] (or [lo, hi]), refused in one line otherwise."""
+
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if not math.isfinite(value) or not lo < value <= hi:
-            raise argparse.ArgumentTypeError(f"{text} is outside ({lo:g}, {hi:g}] {unit}")
+        inside = (lo <= value if lo_inclusive else lo < value) and value <= hi
+        if not math.isfinite(value) or not inside:
+            raise argparse.ArgumentTypeError(f"{text} is outside {'[' if lo_inclusive else '('}{lo:g}, {hi:g}] {unit}")
         return value
 
     return parse
@@ -160,6 +163,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=_seed, help="random seed of the simulated team")
     run.set_defaults(func=_cmd_run)
 
+    from app.camera_cli import add_parsers as add_camera_parsers
+
+    add_camera_parsers(sub, _positive_float, _int_in, _seed)
+
     bench = sub.add_parser("bench", help="measure controller and simulator speed")
     bench.set_defaults(func=_cmd_bench)
     return parser
@@ -175,6 +182,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # output piped into `head` and the like
+        return 0
 
 
 if __name__ == "__main__":

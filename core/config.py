@@ -59,7 +59,7 @@ class Scenario:
         return dataclasses.replace(self, **changes)
 
 
-class _Table:
+class Table:
     """A TOML table being read: checks types and ranges, remembers which keys were used."""
 
     def __init__(self, data: Any, source: str, prefix: str) -> None:
@@ -132,18 +132,18 @@ class _Table:
             raise self.fail(name, value, allowed)
         return float(value[0]), float(value[1])
 
-    def table(self, name: str, optional: bool = True) -> "_Table":
+    def table(self, name: str, optional: bool = True) -> "Table":
         if optional and name not in self.data:
             self.used.add(name)
-            return _Table({}, self.source, self.key(name))
-        return _Table(self.raw(name), self.source, self.key(name))
+            return Table({}, self.source, self.key(name))
+        return Table(self.raw(name), self.source, self.key(name))
 
-    def tables(self, name: str) -> list["_Table"]:
+    def tables(self, name: str) -> list["Table"]:
         value = self.raw(name) if name in self.data else []
         self.used.add(name)
         if not isinstance(value, list):
             raise self.fail(name, value, "an array of tables ([[...]])")
-        return [_Table(v, self.source, f"{self.key(name)}[{i + 1}]") for i, v in enumerate(value)]
+        return [Table(v, self.source, f"{self.key(name)}[{i + 1}]") for i, v in enumerate(value)]
 
     def finish(self) -> None:
         unknown = sorted(set(self.data) - self.used)
@@ -157,15 +157,15 @@ class _Table:
 WORKSPACE_LIMIT_M = 10.0
 
 
-def _turn(t: _Table) -> float:
+def _turn(t: Table) -> float:
     return math.radians(t.number("turn_deg_s", -90.0, 90.0, default=0.0, unit="deg/s"))
 
 
-def _speed(t: _Table) -> float:
+def _speed(t: Table) -> float:
     return t.number("speed_mps", -1.0, 1.0, unit="m/s")
 
 
-def _parse_leader(t: _Table) -> LeaderProfile:
+def _parse_leader(t: Table) -> LeaderProfile:
     kind = t.text("profile", choices=("constant", "eq39", "segments"))
     profile: LeaderProfile
     if kind == "constant":
@@ -196,7 +196,7 @@ def _parse_leader(t: _Table) -> LeaderProfile:
     return profile
 
 
-def _parse_dataclass(t: _Table, cls: Any, bounds: dict[str, tuple[float, float, str]]) -> Any:
+def _parse_dataclass(t: Table, cls: Any, bounds: dict[str, tuple[float, float, str]]) -> Any:
     values = {}
     for f in dataclasses.fields(cls):
         if t.has(f.name):
@@ -217,7 +217,7 @@ _DYNAMICS_BOUNDS = {
 }
 
 
-def parse_gains(t: _Table) -> Gains:
+def parse_gains(t: Table) -> Gains:
     values = {}
     for name, bound in GAIN_BOUNDS.items():
         if t.has(name):
@@ -232,7 +232,7 @@ def parse_scenario(text: str, source: str) -> Scenario:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    top = _Table(data, source, "")
+    top = Table(data, source, "")
     name = top.text("name")
     description = top.text("description", default="")
     duration = top.number("duration_s", 0.0, 86400.0, lo_open=True, unit="s")
@@ -253,7 +253,7 @@ def parse_scenario(text: str, source: str) -> Scenario:
     slots_raw = formation.raw("slots")
     if not isinstance(slots_raw, list):
         raise formation.fail("slots", slots_raw, "a list of [x, y] points")
-    slots = [_Table({"slot": s}, source, formation.key(f"slots[{i + 1}]")).point("slot", WORKSPACE_LIMIT_M)
+    slots = [Table({"slot": s}, source, formation.key(f"slots[{i + 1}]")).point("slot", WORKSPACE_LIMIT_M)
              for i, s in enumerate(slots_raw)]
     if len(slots) < len(p0):
         raise formation.fail("slots", slots_raw, f"at least as many points as followers ({len(p0)})")

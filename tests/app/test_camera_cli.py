@@ -1,0 +1,138 @@
+"""`render`, `calibrate`, `locate` as a user runs them, and the accuracy the issue asks for."""
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from app.camera_files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
+from core.camera.synthetic import renderer_for
+from core.vision.blobs import find_blobs, hue_distance_deg
+from tests.app.test_cli import run_cli
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cal") / "camera.toml"
+    table = out.parent / "table.csv"
+    res = run_cli("calibrate", "--synthetic", str(SYNTHETIC_CAMERA), "--out", str(out), "--save-table", str(table))
+    assert res.returncode == 0, res.stderr
+    assert "8 sectors, degree 3" in res.stdout and "residual RMS" in res.stdout
+    return out, table
+
+
+def test_committed_calibration_is_what_calibrate_makes(calibrated):
+    out, _ = calibrated
+    assert out.read_text() == SYNTHETIC_CALIBRATED.read_text()
+
+
+def test_a_real_table_fits_the_same_way(calibrated, tmp_path):
+    _, table = calibrated
+    res = run_cli("calibrate", str(table), "--out", str(tmp_path / "c.toml"), "--sectors", "4")
+    assert res.returncode == 0, res.stderr
+    assert "4 sectors" in res.stdout
+    cam = load_camera(tmp_path / "c.toml")
+    assert cam.gamma is not None and cam.gamma.n_sectors == 4
+
+
+def _placements(rng, n, lo=0.3, hi=1.5, gap=0.4):
+    pts = []
+    while len(pts) < n:
+        d, b = rng.uniform(lo, hi), rng.uniform(-math.pi, math.pi)
+        p = np.array([-d * math.sin(b), d * math.cos(b)])
+        if all(np.linalg.norm(p - q) > gap for q in pts):
+            pts.append(p)
+    return np.array(pts)
+
+
+def test_locate_accuracy_on_random_placements(calibrated, tmp_path):
+    """Median <= 1.5 cm, 95th percentile <= 3 cm, 0.3..1.5 m, default flaws, noise and clutter."""
+    out, _ = calibrated
+    cam = load_camera(out)
+    rig = load_camera(SYNTHETIC_CAMERA)
+    renderer = renderer_for(rig)
+    gamma = cam.gamma
+    area = cam.working_area.mask(640, 480, (gamma.cx, gamma.cy))
+    rng = np.random.default_rng(2024)
+    errors, missed = [], 0
+    for k in range(50):
+        truth = _placements(rng, 6)
+        poses = np.column_stack([truth, rng.uniform(-math.pi, math.pi, 6)])
+        leader = np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-math.pi, math.pi)])
+        frame = renderer.render(leader, poses, 0.9 * k, rng)
+        if k < 3:  # through the command, as a user would
+            path = tmp_path / f"frame{k}.png"
+            cv2.imwrite(str(path), frame)
+            res = run_cli("locate", str(path), "--camera", str(out))
+            assert res.returncode == 0, res.stderr
+            blobs = [json.loads(line) for line in res.stdout.splitlines()]
+            assert set(blobs[0]) == {"hue_deg", "pixel", "area_px", "x", "y"}
+            found = [(b["hue_deg"], np.array([b["x"], b["y"]])) for b in blobs]
+        else:
+            found = [(b.hue_deg, gamma.pixel_to_leader(np.array(b.u), np.array(b.v))) for b in find_blobs(frame, area, cam.detect)]
+        for i in range(6):
+            hue = rig.render.hues_deg[i]
+            cands = [xy for h, xy in found if hue_distance_deg(h, hue) < 15]
+            if not cands:
+                missed += 1  # hidden behind a box of the clutter
+                continue
+            errors.append(min(np.linalg.norm(xy - truth[i]) for xy in cands))
+    e = np.array(errors) * 100
+    print(f"locate: {len(e)} markers, median {np.median(e):.2f} cm, p95 {np.percentile(e, 95):.2f} cm, max {e.max():.2f} cm")
+    assert missed <= 0.03 * 300
+    assert np.median(e) <= 1.5
+    assert np.percentile(e, 95) <= 3.0
+
+
+def test_grey_clutter_is_never_reported(calibrated, tmp_path):
+    out, _ = calibrated
+    cam = load_camera(out)
+    renderer = renderer_for(load_camera(SYNTHETIC_CAMERA), distractor=False)
+    area = cam.working_area.mask(640, 480, (cam.gamma.cx, cam.gamma.cy))
+    rng = np.random.default_rng(5)
+    boxes_in_view = 0
+    for k in range(40):
+        leader = np.array([rng.uniform(-8, 8), rng.uniform(-8, 8), rng.uniform(-math.pi, math.pi)])
+        boxes_in_view += sum(1 for o in renderer._clutter_objects(leader) if math.hypot(o.x, o.y) < 2.0)
+        frame = renderer.render(leader, np.zeros((0, 3)), 0.5 * k, rng)
+        assert find_blobs(frame, area, cam.detect) == []
+    assert boxes_in_view >= 20  # the boxes really were in the working area
+    path = tmp_path / "grey.png"
+    cv2.imwrite(str(path), frame)
+    res = run_cli("locate", str(path), "--camera", str(out))
+    assert res.returncode == 0 and res.stdout == ""
+
+
+def test_render_writes_a_frame_of_a_scenario(tmp_path):
+    out = tmp_path / "f.png"
+    res = run_cli("render", "experiment1", "--t", "12.5", "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    img = cv2.imread(str(out))
+    assert img.shape == (480, 640, 3)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["render", "experiment1", "--t", "500", "--out", "X/f.png"], "lasts 90 s"),
+        (["render", "experiment1", "--t", "-1", "--out", "f.png"], "argument --t: -1 is outside [0, 86400] s"),
+        (["render", "nosuch", "--out", "f.png"], "scenario 'nosuch' not found"),
+        (["calibrate", "--out", "c.toml"], "give either TABLE.csv or --synthetic"),
+        (["calibrate", "BAD_TABLE", "--out", "OUT/c.toml"], "missing column 'v'"),
+        (["calibrate", "BAD_TABLE", "--out", "c.toml", "--degree", "9"], "argument --degree: 9 is outside 1..7"),
+        (["locate", "NOT_IMAGE", "--camera", str(SYNTHETIC_CALIBRATED)], "not an image OpenCV can read"),
+        (["locate", "NOT_IMAGE", "--camera", str(SYNTHETIC_CAMERA)], "has no [gamma] section"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+    (tmp_path / "OUT").mkdir()
+    (tmp_path / "bad.csv").write_text("bearing_deg,metres,u\n0,1,2\n")
+    (tmp_path / "notes.png").write_text("not a picture")
+    args = [a.replace("BAD_TABLE", str(tmp_path / "bad.csv")).replace("NOT_IMAGE", str(tmp_path / "notes.png"))
+            .replace("OUT/", str(tmp_path / "OUT") + "/").replace("X/", str(tmp_path) + "/") for a in args]
+    res = run_cli(*args)
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
