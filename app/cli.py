@@ -12,10 +12,12 @@ import sys
 from pathlib import Path
 from typing import NoReturn, Sequence
 
+from app.camera_files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA
 from app.params import MAX_FOLLOWERS
 from app.paths import UserError, display_path, scenario_names
 
 EXIT_USAGE = 2
+VISION_RATE_HZ = 30.0  # the synthetic camera's frame rate
 
 
 class _Parser(argparse.ArgumentParser):
@@ -69,14 +71,43 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         changes["duration_s"] = args.duration
     if args.rate is not None:
         changes["rate_hz"] = args.rate
+    elif args.vision:
+        changes["rate_hz"] = VISION_RATE_HZ  # one control step per camera frame
     if args.seed is not None:
         changes["seed"] = args.seed
     scenario = scenario.replace(**changes)
     for out in (args.out, args.plot):
         if out is not None and not out.parent.exists():
             raise UserError(f"{out}: folder {out.parent} does not exist")
-    log = simulate(scenario)
     import numpy as np
+
+    tracked = None
+    if args.vision:
+        from app.camera_files import load_camera
+        from core.sim.vision_run import simulate_vision
+
+        rig = load_camera(args.camera)
+        calibration = load_camera(args.calibration)
+        if rig.model is None:
+            raise UserError(f"{display_path(args.camera)}: has no [model]: a synthetic rig is needed to render frames")
+        if calibration.gamma is None:
+            raise UserError(f"{display_path(args.calibration)}: has no [gamma]; make one with omniformation calibrate")
+        vision = simulate_vision(scenario, rig, calibration.gamma)
+        log, tracked = vision.log, vision.tracked
+        after = log.t >= 0
+        lost = (~tracked[after]).sum(axis=0) / scenario.rate_hz
+        est = np.linalg.norm(log.p_meas - log.p, axis=-1)[after]
+        from core.geometry import wrap_angle
+
+        diff = log.a_meas - log.a
+        known = np.isfinite(diff)
+        head = np.where(known, np.degrees(np.abs(wrap_angle(np.where(known, diff, 0.0)))), np.nan)[after]
+        print(f"vision: start-up manoeuvres took {vision.startup_s:.1f} s; then, per follower:")
+        for i in range(log.n):
+            print(f"  f{i + 1}: position estimate RMS {np.sqrt(np.nanmean(est[:, i] ** 2)) * 100:.2f} cm,"
+                  f" heading RMS {np.sqrt(np.nanmean(head[:, i] ** 2)):.2f} deg, not tracked {lost[i]:.2f} s")
+    else:
+        log = simulate(scenario)
 
     err = np.linalg.norm(log.error, axis=-1)
     final = ", ".join(f"f{i + 1} {err[-1, i] * 100:.2f} cm" for i in range(log.n))
@@ -84,7 +115,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if args.out is not None:
         from app.simlog_io import write_csv
 
-        write_csv(log, args.out)
+        write_csv(log, args.out, tracked)
         print(f"wrote {display_path(args.out)}")
     if args.plot is not None:
         from app.figures import plot_simulation
@@ -148,6 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--duration", type=_positive_float(0.0, 86400.0, "s"), help="override the duration (s)")
     sim.add_argument("--rate", type=_positive_float(0.0, 1000.0, "Hz"), help="override the control rate (Hz)")
     sim.add_argument("--seed", type=_seed, help="override the random seed")
+    sim.add_argument("--vision", action="store_true",
+                     help="feed the controller from the vision pipeline on synthetic frames (default rate 30 Hz)")
+    sim.add_argument("--camera", type=Path, default=SYNTHETIC_CAMERA, help="synthetic rig for --vision")
+    sim.add_argument("--calibration", type=Path, default=SYNTHETIC_CALIBRATED, help="Γ for --vision (from calibrate)")
     sim.set_defaults(func=_cmd_simulate)
 
     run = sub.add_parser(

@@ -43,7 +43,8 @@ def plot_simulation(log: SimulationLog, path: Path, instants: int = 6) -> None:
         ax_traj.plot(desired_world[:, 0], desired_world[:, 1], "--", color=_colour(i), lw=0.9)
         ax_traj.plot(log.followers_world[:, i, 0], log.followers_world[:, i, 1], color=_colour(i), lw=1.3,
                      label=f"follower {i + 1}")
-    for k in np.linspace(0, len(log.t) - 1, instants).astype(int):
+    start = int(np.searchsorted(log.t, 0.0))  # a vision run starts with its start-up manoeuvres (t < 0)
+    for k in np.linspace(start, len(log.t) - 1, instants).astype(int):
         pts = np.vstack([log.leader[k, :2], log.followers_world[k, :, :2]])
         ax_traj.fill(pts[:, 0], pts[:, 1], facecolor="none", edgecolor="tab:red", lw=1.0)
         ax_traj.annotate(f"{log.t[k]:.0f} s", log.leader[k, :2], fontsize=7, color="tab:red",

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from core.sim.profiles import ConstantProfile, Eq39Profile, LeaderProfile, Segment, SegmentsProfile
-from core.sim.team import Disturbance, FollowerDynamics
+from core.sim.team import DISTURBANCE_KINDS, Disturbance, FollowerDynamics
 from core.types import GAIN_BOUNDS, FloatArray, Gains
 
 
@@ -271,13 +271,13 @@ def parse_scenario(text: str, source: str) -> Scenario:
     disturbances = []
     for dt_ in top.tables("disturbances"):
         follower = dt_.integer("follower", 1, len(p0))
-        dt_.text("kind", choices=("stuck",))
+        kind = dt_.text("kind", choices=DISTURBANCE_KINDS)
         start = dt_.number("start_s", 0.0, 1e6, unit="s")
         end = dt_.number("end_s", 0.0, 1e6, unit="s")
         if end <= start:
             raise dt_.fail("end_s", end, f"> start_s ({start:g})")
         dt_.finish()
-        disturbances.append(Disturbance(follower - 1, start, end, "stuck"))
+        disturbances.append(Disturbance(follower - 1, start, end, kind))
     top.finish()
 
     return Scenario(

@@ -9,7 +9,8 @@ def test_importing_core_loads_no_io_packages():
         "import sys, core, core.config, core.geometry, core.control.formation, core.control.assignment,"
         " core.control.targets, core.sim.run, core.sim.team, core.sim.profiles,"
         " core.camera.model, core.camera.render, core.camera.gamma, core.camera.config, core.camera.synthetic,"
-        " core.vision.blobs;"
+        " core.vision.blobs, core.vision.pipeline, core.vision.heading, core.vision.tracking, core.vision.background,"
+        " core.sim.vision_run;"
         "bad = [m for m in ('viser', 'serial', 'app', 'threading') if m in sys.modules and m != 'threading'];"
         "print(','.join(bad))"
     )

@@ -281,8 +281,12 @@ class Renderer:
                           marker_bgr(s.distractor_hue_deg, 0.8, 0.8)))
         return items
 
-    def _clutter_objects(self, leader_pose: FloatArray) -> list[SceneObject]:
-        """Clutter instances within the floor's reach, in the leader frame."""
+    def _clutter_objects(self, leader_pose: FloatArray, robots: FloatArray | None = None) -> list[SceneObject]:
+        """Clutter instances within the floor's reach, in the leader frame.
+
+        The simulator has no collisions, so an instance a robot would drive into is left
+        out: none within 0.6 m of the leader or 0.45 m of a follower (``robots``, (n, 2)+).
+        """
         if not self._clutter:
             return []
         period = self.settings.clutter_period_m
@@ -299,8 +303,11 @@ class Renderer:
                     wx = (cx0 + i) * period + wx0 - lx
                     wy = (cy0 + j) * period + wy0 - ly
                     x, y = c * wx + s * wy, -s * wx + c * wy
-                    if math.hypot(x, y) < reach - 0.3:
-                        objs.append(SceneObject(x, y, wa - phi, look, body, top))
+                    if not 0.6 < math.hypot(x, y) < reach - 0.3:
+                        continue
+                    if robots is not None and len(robots) and np.min(np.hypot(robots[:, 0] - x, robots[:, 1] - y)) < 0.45:
+                        continue
+                    objs.append(SceneObject(x, y, wa - phi, look, body, top))
         return objs
 
     # -- a frame -----------------------------------------------------------------------
@@ -332,13 +339,12 @@ class Renderer:
         t: float,
         rng: np.random.Generator,
         hidden: BoolArray | None = None,
-        extra: list[SceneObject] | None = None,
     ) -> np.ndarray:
         """One BGR frame (H, W, 3) uint8.
 
         leader_pose: the leader's world pose (x, y, theta) (moves the floor and clutter);
         followers_leader: (n, 3) follower poses (x, y, a) in the leader frame;
-        hidden: followers not drawn (occluded); extra: more objects (e.g. calibration markers).
+        hidden: followers not drawn (occluded).
         """
         gain, offset = self.lighting(t)
         out = self._template.copy()
@@ -349,7 +355,8 @@ class Renderer:
             self._floor_tex, self._wall_tex, self._body, _TEX_PPM, gain, offset,
             out.reshape(-1, 3),
         )
-        objs = self._clutter_objects(lp) + self.follower_objects(followers_leader, hidden) + list(extra or [])
+        robots = np.asarray(followers_leader, dtype=np.float64).reshape(-1, 3)[:, :2]
+        objs = self._clutter_objects(lp, robots) + self.follower_objects(followers_leader, hidden)
         objs.sort(key=lambda o: -math.hypot(o.x, o.y))
         if objs:
             self._draw_boxes(out, objs, gain, offset)

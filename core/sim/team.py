@@ -44,9 +44,13 @@ class FollowerDynamics:
         return np.array([float(getattr(self, f.name)) for f in dataclasses.fields(self)])
 
 
+DISTURBANCE_KINDS = ("stuck", "hidden")
+
+
 @dataclass(frozen=True)
 class Disturbance:
-    """Follower ``follower`` (0-based) cannot move (stuck) from start_s until end_s."""
+    """From start_s until end_s, follower ``follower`` (0-based) cannot move ("stuck") or
+    cannot be seen by the leader's camera ("hidden": occluded in the renderer)."""
 
     follower: int
     start_s: float
@@ -56,10 +60,15 @@ class Disturbance:
 
 def stuck_mask(disturbances: tuple[Disturbance, ...], n: int, t: ArrayLike) -> BoolArray:
     """(len(t), n) True where a follower is stuck at time t."""
+    return disturbance_mask(disturbances, n, t, "stuck")
+
+
+def disturbance_mask(disturbances: tuple[Disturbance, ...], n: int, t: ArrayLike, kind: str) -> BoolArray:
+    """(len(t), n) True where a disturbance of this kind acts on a follower at time t."""
     times = np.atleast_1d(np.asarray(t, dtype=np.float64))
     mask = np.zeros((times.shape[0], n), dtype=np.bool_)
     for d in disturbances:
-        if d.kind == "stuck" and 0 <= d.follower < n:
+        if d.kind == kind and 0 <= d.follower < n:
             mask[:, d.follower] |= (times >= d.start_s) & (times < d.end_s)
     return mask
 

@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 SCENARIO = Path(__file__).resolve().parents[2] / "static_config" / "scenarios" / "experiment2.toml"
@@ -80,3 +81,22 @@ def test_missing_output_folder_is_refused_before_running(tmp_path):
     out = run_cli("simulate", "paper_simulation", "--out", str(tmp_path / "nope" / "x.csv"))
     assert out.returncode == 2
     assert "does not exist" in out.stderr
+
+
+def test_simulate_with_vision_adds_the_estimates(tmp_path):
+    csv_path = tmp_path / "vision.csv"
+    out = run_cli("simulate", "experiment1", "--vision", "--duration", "4", "--out", str(csv_path))
+    assert out.returncode == 0, out.stderr
+    assert "start-up manoeuvres took" in out.stdout and "heading RMS" in out.stdout
+    rows = list(csv.reader(csv_path.open()))
+    header = rows[0]
+    for i in (1, 2):
+        assert [f"f{i}_x_est", f"f{i}_y_est", f"f{i}_a_est", f"f{i}_tracked"] == header[
+            header.index(f"f{i}_w") + 1: header.index(f"f{i}_w") + 5]
+    table = np.array(rows[1:], dtype=float)
+    t = table[:, 0]
+    assert t[0] < -3.0 and abs(t[-1] - 4.0) < 1e-6  # start-up takes simulated time, then 4 s
+    col = {name: k for k, name in enumerate(header)}
+    after = t >= 0
+    assert np.all(table[after, col["f1_tracked"]] == 1.0)
+    assert np.all(np.abs(table[after, col["f1_x_est"]] - table[after, col["f1_x"]]) < 0.03)

@@ -1,0 +1,339 @@
+"""The paper's vision pipeline (§3) as a state machine the loop steps once per frame.
+
+Phases
+------
+``base``      everyone still: the base background (mean of K grey frames, working area only).
+``probe``     follower i makes a short forward move (the pipeline asks for it through
+              ``VisionOutput.manoeuvre``), stops, the discriminant background is built,
+              the thresholded difference gives its blob, and its colour (hue histogram)
+              and window are learned from the rectangle inside that blob (§3.1). The
+              discriminant is the next follower's base: n + 1 backgrounds for n followers.
+``heading``   all found followers drive forward together; CAMSHIFT tracks each; the
+              positions (through Γ) are fitted by RANSAC then least squares; the line's
+              direction, signed by the motion, is a₀ (§3.2).
+``tracking``  every frame: CAMSHIFT → window centroid → Γ → position; headings by eq. 34–37
+              with eq. 38 between measurements and a Kalman filter (core.vision.heading).
+              A follower whose colour mass collapses, whose window leaves the working area,
+              or that is not seen for N frames is lost: ``tracked`` goes False at once (the
+              controller stops it) and it is searched for by colour until it is found.
+
+Nothing here knows whether frames are synthetic: it sees BGR images, the leader's odometry
+and the commands that were sent. Slot assignment (eq. 33) is the caller's, once ``ready``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from core.camera.config import DetectSettings, WorkingArea
+from core.camera.gamma import Gamma
+from core.geometry import reexpress_in_new_frame, wrap_angle
+from core.types import BoolArray, FloatArray
+from core.vision.background import BackgroundAccumulator, motion_blob
+from core.vision.blobs import find_blobs, hue_distance_deg, saturated_mask
+from core.vision.heading import ArcAnchor, HeadingFilter, arc_measurement, fit_heading_line
+from core.vision.tracking import Track, camshift, hue_histogram
+
+PHASES = ("base", "probe", "heading", "tracking")
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    background_frames: int = 8  # K grey frames per background
+    settle_s: float = 0.5  # wait after a move before building a background (actuator lag)
+    probe_speed_mps: float = 0.08  # §3.1: a short forward move ...
+    probe_s: float = 0.8  # ... of 6.4 cm
+    heading_speed_mps: float = 0.06  # §3.2: all drive forward ...
+    heading_s: float = 1.6  # ... about 10 cm
+    diff_threshold: float = 18.0  # grey levels between the two backgrounds
+    min_blob_px: int = 30
+    lost_after_frames: int = 3  # unseen this many frames in a row: lost (0.1 s at 30 Hz)
+    min_mass_fraction: float = 0.25  # colour mass below this share of the learned area: unseen
+    roi_margin_px: int = 16
+    hue_tolerance_deg: float = 15.0  # a blob this close in hue may be a lost follower
+    ransac_tolerance_m: float = 0.006
+    kalman_sigma0_deg: float = 8.0
+    kalman_process_deg: float = 6.0  # per sqrt(s)
+    kalman_measurement_deg: float = 6.0
+
+
+@dataclass(frozen=True)
+class VisionOutput:
+    phase: str
+    probing: int  # follower being probed (0-based), -1 otherwise
+    positions: FloatArray  # (n, 2) leader frame, m; NaN until first seen
+    headings: FloatArray  # (n,) Kalman-filtered, rad; NaN until known
+    heading_measured: FloatArray  # (n,) this frame's eq. 34–37 measurement, NaN if none
+    tracked: BoolArray  # (n,)
+    manoeuvre: FloatArray | None  # (n, 2) (v, w) the pipeline needs sent during start-up
+    windows: np.ndarray  # (n, 4) x, y, w, h; zeros when unknown
+    hues_deg: FloatArray  # (n,) learned colours, NaN until learned
+
+    @property
+    def ready(self) -> bool:
+        return self.phase == "tracking"
+
+
+@dataclass
+class _Follower:
+    track: Track | None = None
+    position: FloatArray = field(default_factory=lambda: np.full(2, np.nan))
+    tracked: bool = False
+    heading: HeadingFilter | None = None
+    anchor: ArcAnchor | None = None
+    path: list[FloatArray] = field(default_factory=list)  # heading phase positions
+
+
+class VisionPipeline:
+    """One leader's vision: feed it frames; it tells you where the followers are."""
+
+    def __init__(
+        self,
+        n: int,
+        gamma: Gamma,
+        working_area: WorkingArea,
+        detect: DetectSettings,
+        image_size: tuple[int, int],
+        rng: np.random.Generator,
+        settings: PipelineSettings = PipelineSettings(),
+    ) -> None:
+        self.n = n
+        self.gamma = gamma
+        self.area = working_area
+        self.detect = detect
+        self.settings = settings
+        self.rng = rng
+        width, height = image_size
+        self.center = (gamma.cx, gamma.cy)
+        self.mask = working_area.mask(width, height, self.center)
+        self.followers = [_Follower() for _ in range(n)]
+        self.phase = "base"
+        self.probing = -1
+        self._timer = 0.0
+        self._stage = "settle"  # within a phase: move | settle | collect
+        self._acc: BackgroundAccumulator | None = None
+        self._base: np.ndarray | None = None
+
+    # -- helpers -------------------------------------------------------------------------
+
+    def _to_leader(self, u: float, v: float) -> FloatArray:
+        return self.gamma.pixel_to_leader(np.array(u), np.array(v))
+
+    def _in_area(self, u: float, v: float) -> bool:
+        return bool(self.area.contains(np.array(u), np.array(v), self.center))
+
+    def _learn(self, frame: np.ndarray, bbox: tuple[int, int, int, int]) -> Track | None:
+        """The follower's rectangle inside the motion blob: its window and hue histogram."""
+        x, y, w, h = bbox
+        pad = 6
+        hgt, wid = frame.shape[:2]
+        x0, y0 = max(0, x - pad), max(0, y - pad)
+        x1, y1 = min(wid, x + w + pad), min(hgt, y + h + pad)
+        roi = frame[y0:y1, x0:x1]
+        hsv = cv2.cvtColor(roi, cv2.COLOR_BGR2HSV)
+        blobs = find_blobs(roi, self.mask[y0:y1, x0:x1], self.detect, hsv=hsv)
+        if not blobs:
+            return None
+        best = max(blobs, key=lambda b: b.area_px)
+        bx, by, bw, bh = best.bbox
+        sat = saturated_mask(hsv, self.mask[y0:y1, x0:x1], self.detect)
+        hue = hsv[..., 0].astype(np.float64) * 2.0
+        near = np.minimum(np.abs(hue - best.hue_deg), 360.0 - np.abs(hue - best.hue_deg)) <= self.settings.hue_tolerance_deg
+        sel = np.zeros(sat.shape, np.uint8)
+        sel[by:by + bh, bx:bx + bw] = 255
+        m = cv2.bitwise_and(sat, sel)
+        m[~near] = 0
+        hist = hue_histogram(hsv, m)
+        return Track(hist, best.hue_deg, (x0 + bx - 2, y0 + by - 2, bw + 4, bh + 4), float(best.area_px),
+                     u=x0 + best.u, v=y0 + best.v, mass_px=float(best.area_px))
+
+    def _track_all(self, frame: np.ndarray) -> None:
+        """CAMSHIFT every follower that has a colour; update position and tracked."""
+        s = self.settings
+        for f in self.followers:
+            t = f.track
+            if t is None or not f.tracked:
+                continue
+            seen = camshift(frame, t, self.mask, self.detect, s.roi_margin_px)
+            if seen and t.mass_px >= s.min_mass_fraction * t.area_px and self._in_area(t.u, t.v):
+                t.misses = 0
+                f.position = self._to_leader(t.u, t.v)
+            else:
+                t.misses += 1
+                if t.misses >= s.lost_after_frames or (seen and not self._in_area(t.u, t.v)):
+                    f.tracked = False
+
+    def _search_lost(self, frame: np.ndarray) -> None:
+        """Look for lost followers by colour in the whole working area (§3.3, recovery)."""
+        lost = [f for f in self.followers if f.track is not None and not f.tracked]
+        if not lost:
+            return
+        blobs = find_blobs(frame, self.mask, self.detect)
+        taken = [f.track.window for f in self.followers if f.track is not None and f.tracked]
+        for f in lost:
+            t = f.track
+            assert t is not None
+            cands = [b for b in blobs if hue_distance_deg(b.hue_deg, t.hue_deg) <= self.settings.hue_tolerance_deg
+                     and b.area_px >= self.settings.min_mass_fraction * t.area_px
+                     and not any(_overlaps(b.bbox, w) for w in taken)]
+            if not cands:
+                continue
+            best = max(cands, key=lambda b: b.area_px)
+            bx, by, bw, bh = best.bbox
+            t.window = (bx - 2, by - 2, bw + 4, bh + 4)
+            t.u, t.v, t.misses = best.u, best.v, 0
+            f.tracked = True
+            f.position = self._to_leader(best.u, best.v)
+            if f.anchor is not None:
+                f.anchor = ArcAnchor(f.position.copy())
+            taken.append(t.window)
+
+    # -- the state machine ---------------------------------------------------------------
+
+    def step(
+        self,
+        frame: np.ndarray,
+        dt: float,
+        odometry: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        commands: FloatArray | None = None,
+        error_norm: FloatArray | None = None,
+    ) -> VisionOutput:
+        """One frame. ``odometry``: the leader's (dx, dy, γ) since the previous frame (old frame);
+        ``commands``: the (v, w) sent to each follower over that interval; ``error_norm``: ‖P̃‖
+        per follower for eq. 34."""
+        n = self.n
+        s = self.settings
+        cmd = np.zeros((n, 2)) if commands is None else np.asarray(commands, dtype=np.float64)
+        err = np.zeros(n) if error_norm is None else np.asarray(error_norm, dtype=np.float64)
+        dx, dy, gamma = odometry
+        # everything remembered in the leader frame moves with the leader (eq. 38)
+        moved = dx != 0.0 or dy != 0.0 or gamma != 0.0
+        for f in self.followers:
+            if moved and np.all(np.isfinite(f.position)):
+                f.position = reexpress_in_new_frame(f.position, dx, dy, gamma)[0]
+            if moved and f.path:
+                f.path = list(reexpress_in_new_frame(np.array(f.path), dx, dy, gamma))
+        self._timer += dt
+        manoeuvre: FloatArray | None = np.zeros((n, 2))
+        measured = np.full(n, np.nan)
+
+        if self.phase == "base":
+            self._collect_background(frame, first=True)
+        elif self.phase == "probe":
+            i = self.probing
+            if self._stage == "move":
+                manoeuvre[i] = (s.probe_speed_mps, 0.0)
+                if self._timer >= s.probe_s:
+                    self._next_stage("settle")
+            else:
+                self._collect_background(frame, first=False)
+        elif self.phase == "heading":
+            self._track_all(frame)
+            for f in self.followers:
+                if f.tracked:
+                    f.path.append(f.position.copy())
+            if self._stage == "move":
+                for i, f in enumerate(self.followers):
+                    if f.track is not None:
+                        manoeuvre[i] = (s.heading_speed_mps, 0.0)
+                if self._timer >= s.heading_s:
+                    self._next_stage("settle")
+            elif self._timer >= s.settle_s:
+                self._finish_headings()
+        else:
+            manoeuvre = None
+            self._track_all(frame)
+            self._search_lost(frame)
+            for i, f in enumerate(self.followers):
+                if f.heading is None or f.anchor is None:
+                    continue
+                v, w = cmd[i]
+                f.anchor.move_leader(dx, dy, gamma)
+                f.anchor.add_command(v, w, dt)
+                f.heading.predict(w * dt - gamma, dt)
+                if f.tracked:
+                    z = arc_measurement(f.anchor, f.position, float(err[i]))
+                    if z is not None:
+                        f.heading.update(z)
+                        measured[i] = z  # shown raw, fused or not (paper fig. 20: raw vs filtered)
+                        f.anchor = ArcAnchor(f.position.copy())
+
+        return VisionOutput(
+            phase=self.phase,
+            probing=self.probing if self.phase == "probe" else -1,
+            positions=np.array([f.position for f in self.followers]).reshape(n, 2),
+            headings=np.array([f.heading.heading if f.heading is not None else np.nan for f in self.followers]),
+            heading_measured=measured,
+            tracked=np.array([f.tracked and f.heading is not None for f in self.followers], dtype=bool)
+            if self.phase == "tracking" else np.array([f.tracked for f in self.followers], dtype=bool),
+            manoeuvre=manoeuvre,
+            windows=np.array([f.track.window if f.track is not None else (0, 0, 0, 0) for f in self.followers],
+                             dtype=np.int64).reshape(n, 4),
+            hues_deg=np.array([f.track.hue_deg if f.track is not None else np.nan for f in self.followers]),
+        )
+
+    def _next_stage(self, stage: str) -> None:
+        self._stage = stage
+        self._timer = 0.0
+
+    def _collect_background(self, frame: np.ndarray, first: bool) -> None:
+        s = self.settings
+        if self._stage == "settle":
+            if self._timer >= s.settle_s:
+                self._next_stage("collect")
+                self._acc = BackgroundAccumulator(self.mask)
+            return
+        assert self._acc is not None
+        self._acc.add(frame)
+        if self._acc.count < s.background_frames:
+            return
+        background = self._acc.mean()
+        if not first:
+            assert self._base is not None
+            i = self.probing
+            blob = motion_blob(self._base, background, self.mask, s.diff_threshold, s.min_blob_px,
+                               self.detect.merge_distance_px)
+            if blob is not None:
+                track = self._learn(frame, blob.bbox)
+                if track is not None:
+                    f = self.followers[i]
+                    f.track = track
+                    f.tracked = True
+                    f.position = self._to_leader(track.u, track.v)
+        self._base = background  # the discriminant is the next follower's base
+        if self.probing + 1 < self.n:
+            self.phase = "probe"
+            self.probing += 1
+            self._next_stage("move")
+        else:
+            self.phase = "heading"
+            self.probing = -1
+            self._next_stage("move")
+
+    def _finish_headings(self) -> None:
+        s = self.settings
+        sigma0 = math.radians(s.kalman_sigma0_deg)
+        for f in self.followers:
+            if f.track is None:
+                continue
+            if len(f.path) >= 3:
+                a0 = fit_heading_line(np.array(f.path), self.rng, tolerance_m=s.ransac_tolerance_m).heading
+            else:
+                a0 = math.pi / 2  # not seen moving: assume aligned; the first arc will correct it
+            f.heading = HeadingFilter(a0, sigma0, math.radians(s.kalman_process_deg), math.radians(s.kalman_measurement_deg))
+            f.anchor = ArcAnchor(f.position.copy())
+            f.path = []
+        self.phase = "tracking"
+        self._next_stage("run")
+
+
+def _overlaps(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    return not (a[0] + a[2] <= b[0] or b[0] + b[2] <= a[0] or a[1] + a[3] <= b[1] or b[1] + b[3] <= a[1])
+
+
+def heading_error(estimate: FloatArray, truth: FloatArray) -> FloatArray:
+    return np.asarray(wrap_angle(np.asarray(estimate) - np.asarray(truth)))

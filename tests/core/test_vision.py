@@ -1,0 +1,130 @@
+"""The vision pipeline, stage by stage on synthetic frames with known truth, then closed loop."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.camera.config import parse_camera
+from core.camera.render import Renderer
+from core.geometry import heading_world_to_leader, leader_displacement, world_to_leader, wrap_angle
+from core.sim.team import integrate_unicycle, make_team_state, step_team
+from core.types import Commands
+from core.vision.blobs import hue_distance_deg
+from core.vision.heading import ArcAnchor, HeadingFilter, arc_measurement, chord_heading, fit_heading_line, min_displacement
+from core.vision.pipeline import VisionPipeline
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return parse_camera((ROOT / "static_config/camera/synthetic.toml").read_text(), "synthetic.toml")
+
+
+@pytest.fixture(scope="module")
+def gamma():
+    path = ROOT / "static_config/camera/synthetic_calibrated.toml"
+    return parse_camera(path.read_text(), path.name).gamma
+
+
+def run_startup(rig, gamma, p0, a0, seed=0, max_s=40.0):
+    """Step the pipeline on rendered frames of a still leader, driving the followers as it asks."""
+    n = len(p0)
+    renderer = Renderer(rig.model, rig.render)
+    pipe = VisionPipeline(n, gamma, rig.working_area, rig.detect, (640, 480), np.random.default_rng(seed))
+    state = make_team_state(np.array(p0), np.array(a0))
+    rng = np.random.default_rng(seed)
+    dt = 1 / 30
+    cmd = np.zeros((n, 2))
+    t = 0.0
+    while t < max_s:
+        theta = float(state.leader[2])
+        p = world_to_leader(state.followers[:, :2], state.leader[:2], theta)
+        a = np.asarray(heading_world_to_leader(state.followers[:, 2], theta))
+        out = pipe.step(renderer.render(state.leader, np.column_stack([p, a]), t, rng), dt, (0.0, 0.0, 0.0), cmd)
+        if out.ready:
+            return out, p, a
+        cmd = out.manoeuvre
+        state = step_team(state, Commands(cmd[:, 0].copy(), cmd[:, 1].copy()), (0.0, 0.0), dt, t, rng)
+        t += dt
+    raise AssertionError("start-up did not finish")
+
+
+@pytest.mark.parametrize("n", [2, 3, 6])
+def test_initial_detection_finds_every_follower_with_its_colour_and_heading(rig, gamma, n):
+    rng = np.random.default_rng(n)
+    ang = np.linspace(0, 2 * math.pi, n, endpoint=False) + rng.uniform(0, 1)
+    dist = rng.uniform(0.6, 1.2, n)
+    p0 = np.column_stack([-dist * np.sin(ang), dist * np.cos(ang)])
+    a0 = rng.uniform(-math.pi, math.pi, n)
+    out, p, a = run_startup(rig, gamma, p0, a0, seed=n)
+    assert out.tracked.all()
+    for i in range(n):
+        assert hue_distance_deg(out.hues_deg[i], rig.render.hues_deg[i]) < 8, (i, out.hues_deg)
+        assert np.linalg.norm(out.positions[i] - p[i]) < 0.03
+        assert abs(math.degrees(wrap_angle(out.headings[i] - a[i]))) < 5.0
+
+
+def test_ransac_heading_within_5_degrees_with_20_percent_outliers():
+    rng = np.random.default_rng(7)
+    for trial in range(50):
+        heading = rng.uniform(-math.pi, math.pi)
+        s = np.linspace(0, 0.12, 40)
+        pts = np.array([0.3, -0.5]) + np.outer(s, [math.cos(heading), math.sin(heading)])
+        pts += rng.normal(0, 0.002, pts.shape)
+        bad = rng.choice(40, 8, replace=False)
+        normal = np.array([-math.sin(heading), math.cos(heading)])
+        off = rng.uniform(0.02, 0.08, 8) * rng.choice([-1, 1], 8)  # 2..8 cm off the line, either side
+        pts[bad] += off[:, None] * normal + rng.uniform(-0.03, 0.03, (8, 1)) * normal[::-1] * [1, -1]
+        fit = fit_heading_line(pts, rng)
+        assert abs(math.degrees(wrap_angle(fit.heading - heading))) < 5.0, trial
+        assert not fit.inliers[bad].any()
+
+
+def test_eq34_to_37_heading_on_a_clean_arc_and_a_straight_line():
+    for w in (0.0, 0.4, -1.0, 2.0):
+        pose = np.array([0.2, -0.4, 1.1])
+        dt = 0.3
+        end = integrate_unicycle(pose, 0.1, w, dt)[0]
+        a = chord_heading(pose[:2], end[:2], w * dt)
+        assert abs(math.degrees(wrap_angle(a - end[2]))) < 3.0 * 0.01  # exact up to rounding
+    # the paper's special case x2 = x1
+    assert chord_heading([0.0, 0.0], [0.0, 0.05], 0.0) == pytest.approx(math.pi / 2)
+    assert chord_heading([0.0, 0.05], [0.0, 0.0], 0.0) == pytest.approx(-math.pi / 2)
+    assert min_displacement(0.0) == pytest.approx(0.02) and min_displacement(10.0) == pytest.approx(0.05)
+
+
+def test_arc_measurement_with_the_leader_moving_uses_eq38():
+    """A follower's arc seen from a leader that moved and turned: the anchor re-expressed by the
+    leader's odometry, the chord and the turn give the follower's heading in the new frame."""
+    leader0 = np.array([0.0, 0.0, math.pi / 2])
+    follower0 = np.array([0.5, 0.3, 1.0])
+    dt, steps = 1 / 30, 12
+    leader, follower = leader0.copy(), follower0.copy()
+    anchor = ArcAnchor(world_to_leader(follower0[:2], leader0[:2], leader0[2])[0])
+    for _ in range(steps):
+        new_leader = integrate_unicycle(leader, 0.06, 0.3, dt)[0]
+        anchor.move_leader(*leader_displacement(leader, new_leader))
+        anchor.add_command(0.1, 0.8, dt)
+        follower = integrate_unicycle(follower, 0.1, 0.8, dt)[0]
+        leader = new_leader
+    pos = world_to_leader(follower[:2], leader[:2], leader[2])[0]
+    z = arc_measurement(anchor, pos, 0.0)
+    truth = float(heading_world_to_leader(follower[2], leader[2]))
+    assert z is not None and abs(math.degrees(wrap_angle(z - truth))) < 0.01
+    # too short a move gives no measurement (eq. 34)
+    assert arc_measurement(ArcAnchor(pos - [0.005, 0.0]), pos, 0.0) is None
+
+
+def test_kalman_heading_residual_wraps_around_pi():
+    kf = HeadingFilter(math.radians(178.0), math.radians(5), math.radians(10), math.radians(5))
+    for _ in range(5):
+        kf.predict(0.0, 1 / 30)
+        assert kf.update(math.radians(-178.0))
+    assert abs(math.degrees(wrap_angle(kf.heading - math.pi))) < 2.5
+    # a wild measurement is gated out, but a persistent one is believed
+    assert not kf.update(0.0)
+    assert not kf.update(0.0)
+    assert kf.update(0.0)
