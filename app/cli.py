@@ -14,6 +14,7 @@ from typing import NoReturn, Sequence
 
 from app.camera_files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA
 from app.params import MAX_FOLLOWERS
+from app.service_config import DEFAULT_CONFIG
 from app.paths import UserError, display_path, scenario_names
 
 EXIT_USAGE = 2
@@ -130,19 +131,26 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     from app.scenarios import load_scenario
     from app.service import LOOPBACK, Service
+    from app.service_config import load_service_config
 
+    config = load_service_config(args.config, MAX_FOLLOWERS)
     scenario = load_scenario(args.scenario) if args.scenario else None
+    feedback = args.feedback or config.feedback
+    camera = config.camera() if feedback == "vision" else None
     if args.host not in LOOPBACK:
         print(f"warning: serving on {args.host}: anyone who can reach it can command the robots"
               " (there is no authentication)", file=sys.stderr)
     try:
-        service = Service(host=args.host, port=args.port, scenario=scenario, n_followers=args.followers,
-                          rate_hz=args.rate, seed=args.seed or 0)
+        service = Service(host=args.host, port=args.port, scenario=scenario,
+                          n_followers=args.followers or config.followers, rate_hz=args.rate or config.rate_hz,
+                          seed=config.seed if args.seed is None else args.seed, camera=camera,
+                          dynamics=config.dynamics, noise=config.measurement)
     except OSError as exc:
         raise UserError(f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}") from None
     signal.signal(signal.SIGTERM, lambda *_: service.loop.stop())
     service.start()
-    print(f"omniformation: dashboard at {service.url}  (Ctrl-C to stop)", flush=True)
+    source = "the vision pipeline on the synthetic camera" if camera else "the simulator's poses plus noise"
+    print(f"omniformation: dashboard at {service.url}  (poses from {source}; Ctrl-C to stop)", flush=True)
     try:
         service.wait()
     except KeyboardInterrupt:
@@ -193,8 +201,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--scenario", help="start from a scenario's team, formation and gains")
     run.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; others warn)")
     run.add_argument("--port", type=_int_in(0, 65535, " (0 = any free port)"), default=8080, help="port (default 8080, 0 = any free port)")
-    run.add_argument("--followers", type=_int_in(1, MAX_FOLLOWERS), default=3, help="simulated followers without --scenario")
-    run.add_argument("--rate", type=_positive_float(0.0, 200.0, "Hz"), default=30.0, help="loop rate (Hz)")
+    run.add_argument("--config", type=Path, default=DEFAULT_CONFIG,
+                     help="service config (default static_config/default.toml)")
+    run.add_argument("--feedback", choices=("vision", "truth"),
+                     help="poses from the vision pipeline (default) or the simulator's truth plus noise")
+    run.add_argument("--followers", type=_int_in(1, MAX_FOLLOWERS), help="simulated followers without --scenario (default: config)")
+    run.add_argument("--rate", type=_positive_float(0.0, 200.0, "Hz"), help="loop rate (Hz, default: config)")
     run.add_argument("--seed", type=_seed, help="random seed of the simulated team")
     run.set_defaults(func=_cmd_run)
 

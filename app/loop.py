@@ -20,13 +20,16 @@ from typing import Callable
 import numpy as np
 
 from core.control.assignment import assign_slots
-from core.control.formation import ControllerState, compute_commands
+from core.camera.config import CameraConfig
+from core.camera.gamma import Gamma
+from core.control.formation import ControlOutput, ControllerState, compute_commands
 from core.control.targets import SlotMotion, step_slots
 from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
 from core.types import Commands, FloatArray, Gains, IntArray
 
 from app.backends.sim import SimTeam, spread_start
+from app.feedback import Observation, TruthFeedback, VisionFeedback
 from app.params import Params, ParamsStore
 
 log = logging.getLogger(__name__)
@@ -61,6 +64,12 @@ class TickState:
     link_state: str
     rate_hz: float
     stage_ms: dict[str, float] = field(default_factory=dict)
+    phase: str = "truth"  # where poses come from: "truth", or the vision pipeline's phase
+    probing: int = -1  # the follower the pipeline is probing (start-up), -1 otherwise
+    a_raw: FloatArray | None = None  # (n,) last raw heading measurement (eq. 34-37), held
+    frame: np.ndarray | None = None  # the camera image (BGR) this tick, vision only
+    windows: np.ndarray | None = None  # (n, 4) CAMSHIFT windows, pixels
+    hues_deg: FloatArray | None = None  # (n,) learned marker colours
 
     @property
     def n(self) -> int:
@@ -70,10 +79,15 @@ class TickState:
 @dataclass
 class _World:
     team: SimTeam
+    feedback: TruthFeedback | VisionFeedback
     controller: ControllerState
     slots: SlotMotion
     assignment: IntArray
     slot_version: object
+    ready: bool = False  # the pipeline finished its start-up (always True for truth feedback)
+    last_obs: Observation | None = None
+    last_cmd: FloatArray | None = None
+    err_norm: FloatArray | None = None
 
 
 class ServiceLoop:
@@ -88,18 +102,19 @@ class ServiceLoop:
         position_noise_m: float = 0.003,
         heading_noise_rad: float = math.radians(1.0),
         initial_poses: tuple[FloatArray, FloatArray] | None = None,
+        camera: tuple[CameraConfig, Gamma] | None = None,
     ) -> None:
+        """``camera``: the synthetic rig and its calibrated Γ; with it the controller is fed
+        by the vision pipeline on rendered frames, without it by ground truth plus noise."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
         self.seed = seed
-        self.dynamics = dynamics or FollowerDynamics(
-            actuator_tau_s=0.3, speed_max_mps=0.35, turn_max_rps=2.5, accel_max_mps2=0.6,
-            turn_accel_max_rps2=6.0, wheel_noise_mps=0.005,
-        )
+        self.dynamics = dynamics or FollowerDynamics()  # ideal followers unless told (default.toml tells)
         self.position_noise_m = position_noise_m
         self.heading_noise_rad = heading_noise_rad
         self._initial_poses = initial_poses
+        self.camera = camera
         self._subscribers: list[Callable[[TickState], None]] = []
         self._stop = threading.Event()
         self.tick_count = 0
@@ -132,10 +147,16 @@ class ServiceLoop:
             p0, a0 = spread_start(n, rng)
         team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
                        self.seed + 1000 + self._resets)
+        feedback: TruthFeedback | VisionFeedback
+        if self.camera is not None:
+            feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets)
+        else:
+            feedback = TruthFeedback(team)
         assignment = assign_slots(p0, params.slots)
         self.t = 0.0
-        return _World(team, ControllerState.initial(n), SlotMotion.at_rest(params.slots[assignment]),
-                      assignment, params.slots.tobytes())
+        return _World(team, feedback, ControllerState.initial(n), SlotMotion.at_rest(params.slots[assignment]),
+                      assignment, params.slots.tobytes(), ready=self.camera is None,
+                      last_cmd=np.zeros((n, 2)), err_norm=np.zeros(n))
 
     def _leader_twist(self, params: Params) -> tuple[float, float]:
         if self._mode[0] != params.leader_mode:
@@ -163,22 +184,43 @@ class ServiceLoop:
         advance = not params.paused or params.step_requests != self._steps_done
         self._steps_done = params.step_requests
 
-        p, a, tracked = world.team.observe()
+        if advance or world.last_obs is None:
+            obs = world.feedback.observe(self.dt, world.last_cmd, world.err_norm)
+            world.last_obs = obs
+        else:
+            obs = world.last_obs  # paused: the world is frozen, so is what the camera sees
+        stage.update(obs.stage_ms)
+        p = np.where(np.isfinite(obs.p), obs.p, 0.0)
+        a = np.where(np.isfinite(obs.a), obs.a, math.pi / 2)
+        tracked = np.asarray(obs.tracked, dtype=bool)
         t1 = time.perf_counter()
         stage["observe"] = (t1 - t0) * 1e3
 
+        if obs.ready and not world.ready:  # the pipeline knows every pose: eq. 33 on its estimates
+            world.ready = True
+            world.assignment = assign_slots(p, params.slots)
+            world.slots = SlotMotion.at_rest(params.slots[world.assignment])
+            world.slot_version = params.slots.tobytes()
+            self._mode = ("", self.t)
         slots_key = params.slots.tobytes()
-        if slots_key != world.slot_version:
+        if world.ready and slots_key != world.slot_version:
             world.assignment = assign_slots(p, params.slots, current=world.assignment, margin_m2=REASSIGN_MARGIN_M2)
             world.slot_version = slots_key
         targets = params.slots[world.assignment]
-        if advance:
+        if advance and world.ready:
             world.slots = step_slots(world.slots, targets, self.dt)
-        twist = self._leader_twist(params) if advance else (0.0, 0.0)
-        active = np.asarray(tracked, dtype=bool) & (not params.stop) & advance
-        out = compute_commands(p, a, world.slots.p_d, world.slots.v_d, twist[0], twist[1],
-                               params.gains, world.controller, self.dt, active)
-        world.controller = out.state
+        twist = self._leader_twist(params) if advance and world.ready else (0.0, 0.0)
+        if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
+            move = advance and not params.stop
+            manoeuvre = obs.manoeuvre if move else np.zeros((params.n_followers, 2))
+            out = ControlOutput.idle(manoeuvre)
+        else:
+            active = tracked & (not params.stop) & advance
+            out = compute_commands(p, a, world.slots.p_d, world.slots.v_d, twist[0], twist[1],
+                                   params.gains, world.controller, self.dt, active)
+            world.controller = out.state
+        world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
+        world.err_norm = np.linalg.norm(world.slots.p_d - p, axis=1)
         t2 = time.perf_counter()
         stage["control"] = (t2 - t1) * 1e3
 
@@ -189,13 +231,14 @@ class ServiceLoop:
         p_true, a_true = world.team.truth()
         state = TickState(
             tick=self.tick_count, t=self.t, leader=world.team.state.leader.copy(), leader_twist=twist,
-            followers_world=world.team.state.followers.copy(), p_est=p, a_est=a, tracked=tracked,
+            followers_world=world.team.state.followers.copy(), p_est=obs.p, a_est=obs.a, tracked=tracked,
             p_true=p_true, a_true=a_true, p_d=world.slots.p_d.copy(), slot_targets=params.slots.copy(),
             assignment=world.assignment.copy(),
             commands=np.column_stack([out.commands.v, out.commands.w]), a_err=out.a_err,
             v_lyap=out.v_lyap, gains=params.gains, params_version=params.version,
             stopped=params.stop, paused=params.paused and not advance, link_state=world.team.link_state,
-            rate_hz=self.achieved_rate_hz, stage_ms=stage,
+            rate_hz=self.achieved_rate_hz, stage_ms=stage, phase=obs.phase, probing=obs.probing,
+            a_raw=obs.a_raw, frame=obs.frame, windows=obs.windows, hues_deg=obs.hues_deg,
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)
@@ -216,6 +259,7 @@ class ServiceLoop:
         n = self._world.team.state.n
         self._world.team.send(Commands.zeros(n))
         self._world.controller = ControllerState.initial(n)
+        self._world.last_cmd = np.zeros((n, 2))
 
     # -- pacing ---------------------------------------------------------------------------
     def run(self) -> None:

@@ -13,10 +13,14 @@ import threading
 
 import viser
 
-from core.config import Scenario
+from core.camera.config import CameraConfig
+from core.camera.gamma import Gamma
+from core.config import MeasurementNoise, Scenario
+from core.sim.team import FollowerDynamics
 from core.sim.profiles import ConstantProfile, Eq39Profile
 
 from app.dashboard import Dashboard
+from app.dashboard.camera_panel import Overlay
 from app.loop import ServiceLoop
 from app.params import Params, ParamsStore, default_slots
 
@@ -39,18 +43,31 @@ def params_for(scenario: Scenario | None, n_followers: int) -> Params:
 
 
 class Service:
+    """``camera``: the synthetic rig and its Γ — the loop then sees the team through the vision
+    pipeline; None feeds it the simulator's poses plus noise (``dynamics`` and ``noise`` apply)."""
+
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, scenario: Scenario | None = None,
-                 n_followers: int = 3, rate_hz: float = 30.0, seed: int = 0) -> None:
+                 n_followers: int = 3, rate_hz: float = 30.0, seed: int = 0,
+                 camera: tuple[CameraConfig, Gamma] | None = None,
+                 dynamics: FollowerDynamics | None = None, noise: MeasurementNoise | None = None) -> None:
         self.store = ParamsStore(params_for(scenario, n_followers))
-        kwargs = {}
+        kwargs: dict[str, object] = {}
+        if noise is not None:
+            kwargs.update(position_noise_m=noise.position_noise_m, heading_noise_rad=noise.heading_noise_rad)
         if scenario is not None:
-            kwargs = dict(dynamics=scenario.dynamics, position_noise_m=scenario.measurement.position_noise_m,
+            kwargs = dict(position_noise_m=scenario.measurement.position_noise_m,
                           heading_noise_rad=scenario.measurement.heading_noise_rad,
                           initial_poses=(scenario.initial_p, scenario.initial_a))
+            dynamics = scenario.dynamics
             seed = scenario.seed
-        self.loop = ServiceLoop(self.store, rate_hz=rate_hz, seed=seed, **kwargs)
+        self.loop = ServiceLoop(self.store, rate_hz=rate_hz, seed=seed, dynamics=dynamics, camera=camera,
+                                **kwargs)  # type: ignore[arg-type]
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self.dashboard = Dashboard(self.server, self.store)
+        overlay = None
+        if camera is not None:
+            wa = camera[0].working_area
+            overlay = Overlay((camera[1].cx, camera[1].cy), wa.inner_px, wa.outer_px)
+        self.dashboard = Dashboard(self.server, self.store, overlay)
         self.loop.subscribe(self.dashboard.publish)
         self._thread: threading.Thread | None = None
 

@@ -217,6 +217,21 @@ _DYNAMICS_BOUNDS = {
 }
 
 
+def parse_dynamics(t: Table) -> FollowerDynamics:
+    """A [dynamics] table: the simulated followers' lag, limits and wheel noise."""
+    return _parse_dataclass(t, FollowerDynamics, _DYNAMICS_BOUNDS)  # type: ignore[no-any-return]
+
+
+def parse_measurement(t: Table) -> MeasurementNoise:
+    """A [measurement] table: noise on ground-truth feedback."""
+    noise = MeasurementNoise(
+        t.number("position_noise_m", 0.0, 0.5, default=0.0, unit="m"),
+        math.radians(t.number("heading_noise_deg", 0.0, 90.0, default=0.0, unit="deg")),
+    )
+    t.finish()
+    return noise
+
+
 def parse_gains(t: Table) -> Gains:
     values = {}
     for name, bound in GAIN_BOUNDS.items():
@@ -260,13 +275,8 @@ def parse_scenario(text: str, source: str) -> Scenario:
     formation.finish()
 
     gains = parse_gains(top.table("gains"))
-    dynamics = _parse_dataclass(top.table("dynamics"), FollowerDynamics, _DYNAMICS_BOUNDS)
-    meas_t = top.table("measurement")
-    measurement = MeasurementNoise(
-        meas_t.number("position_noise_m", 0.0, 0.5, default=0.0, unit="m"),
-        math.radians(meas_t.number("heading_noise_deg", 0.0, 90.0, default=0.0, unit="deg")),
-    )
-    meas_t.finish()
+    dynamics = parse_dynamics(top.table("dynamics"))
+    measurement = parse_measurement(top.table("measurement"))
 
     disturbances = []
     for dt_ in top.tables("disturbances"):

@@ -179,11 +179,12 @@ class Controls:
         if s.tick % 6:
             return
         stages = " · ".join(f"{k.split(':')[0]} {v:.2f}" for k, v in s.stage_ms.items() if not k.startswith("publish"))
-        err = np.linalg.norm(s.p_true - s.p_d, axis=1) * 100
+        err = np.nan_to_num(np.linalg.norm(s.p_true - s.p_d, axis=1) * 100)
         lines = [
             f"**{'STOPPED — all followers at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
             f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz",
             f"stages (ms): {stages}",
+            f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
             f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
             f" · link: {s.link_state} · recording: off (not built yet)",
             "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" for i, e in enumerate(err)),
@@ -191,3 +192,8 @@ class Controls:
         if self.notice:
             lines.append(f"notice: {self.notice}")
         self.status.content = "  \n".join(lines)
+
+
+def _phase_text(s: TickState) -> str:
+    return {"base": "start-up: base background", "probe": f"start-up: probing F{s.probing + 1}",
+            "heading": "start-up: first headings", "tracking": "tracking"}.get(s.phase, s.phase)

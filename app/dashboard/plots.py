@@ -12,7 +12,7 @@ import numpy as np
 import viser
 import viser.uplot as uplot
 
-from app.dashboard.scene import FOLLOWER_RGB
+from app.dashboard.colours import follower_rgb
 from app.loop import TickState
 
 WINDOW_S = 60.0
@@ -21,7 +21,7 @@ MAX_POINTS = 400
 
 
 def _rgb(i: int) -> str:
-    r, g, b = FOLLOWER_RGB[i % len(FOLLOWER_RGB)]
+    r, g, b = follower_rgb(i)
     return f"rgb({r},{g},{b})"
 
 
@@ -41,9 +41,13 @@ class Plots:
         self.charts = {}
         empty = np.zeros(2)
 
-        def chart(key: str, title: str, names: list[str], colours: list[str]) -> None:
+        def chart(key: str, title: str, names: list[str], colours: list[str], dashed: int = 0) -> None:
+            """``dashed``: the last this-many series are drawn thin and dashed."""
+            first_dashed = len(names) - dashed
             series = (uplot.Series(label="t (s)"),) + tuple(
-                uplot.Series(label=nm, stroke=c, width=1.5) for nm, c in zip(names, colours)
+                uplot.Series(label=nm, stroke=c, width=1.0, dash=(4.0, 3.0)) if k >= first_dashed
+                else uplot.Series(label=nm, stroke=c, width=1.5)
+                for k, (nm, c) in enumerate(zip(names, colours))
             )
             with self.folder:
                 self.charts[key] = self.server.gui.add_uplot(
@@ -54,7 +58,8 @@ class Plots:
         colours = [_rgb(i) for i in range(n)]
         chart("ex", "x error (m)", follower_names, colours)
         chart("ey", "y error (m)", follower_names, colours)
-        chart("a", "heading a (deg), estimate", follower_names, colours)
+        chart("a", "heading a (deg): Kalman-filtered (solid), measured eq. 34-37 (dashed)",
+              follower_names + [f"{nm} raw" for nm in follower_names], colours + colours, dashed=n)
         chart("V", "team V = Σ ½‖ρ̃‖² (m²)", ["V"], ["rgb(40,70,140)"])
         chart("v", "command v (m/s)", follower_names, colours)
         chart("w", "command ω (rad/s)", follower_names, colours)
@@ -67,8 +72,11 @@ class Plots:
             self._build(n)
         err = s.p_d - s.p_true
         self._t.append(s.t)
-        self._rows.append(np.concatenate([err[:, 0], err[:, 1], np.degrees(s.a_est), [float(s.v_lyap.sum())],
-                                          s.commands[:, 0], s.commands[:, 1]]))
+        a_raw = s.a_raw if s.a_raw is not None else s.a_est
+        # uPlot has no use for NaN: a heading not known yet is drawn at 90 deg (aligned)
+        heads = np.degrees(np.nan_to_num(np.concatenate([s.a_est, a_raw]), nan=np.pi / 2))
+        self._rows.append(np.concatenate([np.nan_to_num(err[:, 0]), np.nan_to_num(err[:, 1]), heads,
+                                          [float(np.nansum(s.v_lyap))], s.commands[:, 0], s.commands[:, 1]]))
         while self._t and self._t[0] < s.t - WINDOW_S:
             self._t.pop(0)
             self._rows.pop(0)
@@ -79,8 +87,8 @@ class Plots:
         step = max(1, len(self._t) // MAX_POINTS)
         t = np.array(self._t[::step])
         rows = np.array(self._rows[::step])
-        cols = {"ex": rows[:, :n], "ey": rows[:, n:2 * n], "a": rows[:, 2 * n:3 * n], "V": rows[:, 3 * n:3 * n + 1],
-                "v": rows[:, 3 * n + 1:4 * n + 1], "w": rows[:, 4 * n + 1:5 * n + 1]}
+        cols = {"ex": rows[:, :n], "ey": rows[:, n:2 * n], "a": rows[:, 2 * n:4 * n], "V": rows[:, 4 * n:4 * n + 1],
+                "v": rows[:, 4 * n + 1:5 * n + 1], "w": rows[:, 5 * n + 1:6 * n + 1]}
         with self.server.atomic():
             for key, data in cols.items():
                 self.charts[key].data = (t,) + tuple(data[:, i].copy() for i in range(data.shape[1]))

@@ -11,12 +11,11 @@ import viser
 
 from core.geometry import leader_to_world
 
+from app.dashboard.colours import follower_rgb
 from app.dashboard.controls import Controls
 from app.loop import TickState
 from app.params import ParamsStore
 
-FOLLOWER_RGB = [(46, 160, 67), (230, 126, 34), (142, 68, 173), (192, 57, 43), (22, 160, 133), (241, 196, 15),
-                (52, 73, 94), (211, 84, 0)]
 WORKING_RING_M = (0.3, 1.5)
 TRAIL_SECONDS = 20.0
 
@@ -63,7 +62,7 @@ class Scene:
         self.followers, self.ghosts, self.slot_handles, self.trail_handles = [], [], [], []
         self.trails = [deque(maxlen=int(TRAIL_SECONDS * 10)) for _ in range(n)]
         for i in range(n):
-            rgb = FOLLOWER_RGB[i % len(FOLLOWER_RGB)]
+            rgb = follower_rgb(i)
             f = s.add_frame(f"/followers/{i}", show_axes=False)
             s.add_box(f"/followers/{i}/body", color=(45, 45, 45), dimensions=(0.25, 0.15, 0.10), position=(0, 0, 0.05))
             s.add_box(f"/followers/{i}/marker", color=rgb, dimensions=(0.12, 0.08, 0.01), position=(0, 0, 0.105))
@@ -123,13 +122,14 @@ class Scene:
             )
 
         # Estimated poses (what the controller sees) drawn in the world.
-        est_world = leader_to_world(state.p_est, state.leader[:2], float(lth))
+        known = np.all(np.isfinite(state.p_est), axis=1) & np.isfinite(state.a_est)  # vision start-up: not yet
+        est_world = leader_to_world(np.where(known[:, None], state.p_est, 0.0), state.leader[:2], float(lth))
         phi = float(lth) - math.pi / 2
         show_truth = bool(self.controls.show_truth.value)
         for i in range(n):
             self.followers[i].position = (float(est_world[i, 0]), float(est_world[i, 1]), 0.0)
-            self.followers[i].wxyz = yaw_wxyz(float(state.a_est[i]) + phi)
-            self.followers[i].visible = bool(state.tracked[i])
+            self.followers[i].wxyz = yaw_wxyz(float(state.a_est[i]) + phi if known[i] else phi + math.pi / 2)
+            self.followers[i].visible = bool(state.tracked[i]) and bool(known[i])
             tw = state.followers_world[i]
             self.ghosts[i].visible = show_truth
             if show_truth:
@@ -137,6 +137,8 @@ class Scene:
                 self.ghosts[i].wxyz = yaw_wxyz(float(tw[2]))
         if state.tick % 3 == 0:
             for i in range(n):
+                if not known[i]:
+                    continue
                 self.trails[i].append((float(est_world[i, 0]), float(est_world[i, 1])))
                 pts = np.array(self.trails[i])
                 if len(pts) >= 2:

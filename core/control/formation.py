@@ -197,6 +197,15 @@ class ControlOutput:
     a_r_dot: FloatArray  # (n,) reference-angle rate used in eq. 11
     v_lyap: FloatArray  # (n,) eq. 21
 
+    @staticmethod
+    def idle(commands: FloatArray) -> "ControlOutput":
+        """Commands that did not come from the controller (start-up manoeuvres, STOP): (n, 2)."""
+        c = np.asarray(commands, dtype=np.float64).reshape(-1, 2)
+        n = c.shape[0]
+        z2, z1 = np.zeros((n, 2)), np.zeros(n)
+        return ControlOutput(Commands(c[:, 0].copy(), c[:, 1].copy()), ControllerState.initial(n),
+                             z2, z1.copy(), z1.copy(), z1.copy(), z1.copy())
+
 
 def compute_commands(
     p: ArrayLike,

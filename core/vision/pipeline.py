@@ -127,9 +127,13 @@ class VisionPipeline:
         return bool(self.area.contains(np.array(u), np.array(v), self.center))
 
     def _learn(self, frame: np.ndarray, bbox: tuple[int, int, int, int]) -> Track | None:
-        """The follower's rectangle inside the motion blob: its window and hue histogram."""
+        """The follower's rectangle at the motion blob: its window and hue histogram.
+
+        The blob is where the robot was and now is; a dark-blue rectangle on a dark body can
+        hardly change the grey image, so the rectangle is looked for around the blob too.
+        """
         x, y, w, h = bbox
-        pad = 6
+        pad = 6 + int(0.6 * max(w, h))
         hgt, wid = frame.shape[:2]
         x0, y0 = max(0, x - pad), max(0, y - pad)
         x1, y1 = min(wid, x + w + pad), min(hgt, y + h + pad)
@@ -138,7 +142,8 @@ class VisionPipeline:
         blobs = find_blobs(roi, self.mask[y0:y1, x0:x1], self.detect, hsv=hsv)
         if not blobs:
             return None
-        best = max(blobs, key=lambda b: b.area_px)
+        cx, cy = x + w / 2 - x0, y + h / 2 - y0
+        best = max(blobs, key=lambda b: b.area_px / (1.0 + math.hypot(b.u - cx, b.v - cy) / max(w, h)))
         bx, by, bw, bh = best.bbox
         sat = saturated_mask(hsv, self.mask[y0:y1, x0:x1], self.detect)
         hue = hsv[..., 0].astype(np.float64) * 2.0

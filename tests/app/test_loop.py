@@ -22,6 +22,50 @@ def test_team_reaches_formation_in_the_live_loop():
     assert err.max() < 0.03
 
 
+def _default_camera():
+    from app.params import MAX_FOLLOWERS
+    from app.service_config import DEFAULT_CONFIG, load_service_config
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    return config, config.camera()
+
+
+def test_the_live_loop_sees_the_team_through_the_vision_pipeline():
+    """make run's loop: start-up manoeuvres with the leader waiting, then formation from vision."""
+    config, camera = _default_camera()
+    store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]]),
+                               leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=3, dynamics=config.dynamics, camera=camera)
+    phases = []
+    s = loop.tick()
+    assert s.frame is not None and s.frame.shape == (480, 640, 3) and s.phase == "base"
+    for _ in range(30 * 50):
+        s = loop.tick()
+        phases.append(s.phase)
+        if s.phase != "tracking":
+            assert s.leader_twist == (0.0, 0.0), "the leader waits for the start-up manoeuvres"
+            moving = np.flatnonzero(s.commands[:, 0])
+            assert s.phase != "probe" or set(moving) <= {s.probing}, "one follower probes at a time"
+    assert phases.index("tracking") < 30 * 12
+    assert {"base", "probe", "heading", "tracking"} <= set(phases)
+    assert s.tracked.all()
+    assert np.linalg.norm(s.p_est - s.p_true, axis=1).max() < 0.02
+    assert np.linalg.norm(s.p_true - s.p_d, axis=1).max() < 0.03
+    assert {"camera", "vision", "control"} <= set(s.stage_ms)
+
+
+def test_stop_during_start_up_holds_everyone():
+    config, camera = _default_camera()
+    store = ParamsStore(Params(n_followers=2, slots=np.array([[-0.5, -0.4], [0.5, -0.4]])))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=5, dynamics=config.dynamics, camera=camera)
+    for _ in range(40):  # into the first probe
+        s = loop.tick()
+    assert s.phase == "probe" and s.commands[0, 0] > 0
+    store.update("test", stop=True)
+    s = loop.tick()
+    assert np.all(s.commands == 0.0)
+
+
 def test_stop_pause_step_and_reset():
     store = ParamsStore(Params(leader_mode="circle"))
     loop = ServiceLoop(store, rate_hz=30.0)

@@ -30,7 +30,13 @@ def wait_for(pred: Callable[[], bool], timeout: float = 10.0, what: str = "condi
 
 @pytest.fixture(scope="module")
 def service():
-    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=4)
+    """What `make run` serves: default.toml, the synthetic camera and the vision pipeline."""
+    from app.params import MAX_FOLLOWERS
+    from app.service_config import DEFAULT_CONFIG, load_service_config
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=4, camera=config.camera(),
+                  dynamics=config.dynamics)
     seen: list[TickState] = []
     lock = threading.Lock()
 
@@ -72,9 +78,18 @@ def states_after(service, version: int) -> list[TickState]:
     return [s for s in list(service.seen) if s.params_version >= version]
 
 
-def test_page_shows_scene_and_plots_and_is_screenshotted(page, service):
+def test_page_shows_scene_plots_and_camera_and_is_screenshotted(page, service):
     ARTIFACTS.mkdir(exist_ok=True)
-    time.sleep(2.0)  # let trails and plots fill
+    wait_for(lambda: service.loop.last is not None and service.loop.last.phase == "tracking", 40.0,
+             "the vision start-up to finish")
+    time.sleep(3.0)  # let trails and plots fill
+    assert service.loop.last.tracked.all()
+    page.get_by_text("poses from: vision, tracking").first.wait_for(timeout=10_000)
+    img = page.locator("img[src^='blob:']").first  # viser sends GUI images as blobs (the logo is an SVG data URI)
+    img.wait_for(timeout=10_000)
+    box = img.bounding_box()
+    assert box is not None and box["width"] > 150, "the camera panel shows the leader's frame"
+    assert service.dashboard.camera.frames_shown > 10
     page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
     assert (ARTIFACTS / "dashboard.png").stat().st_size > 30_000
     assert page.locator(".uplot").count() >= 6

@@ -1,0 +1,71 @@
+"""static_config/default.toml (or --config FILE): what `omniformation run` starts with."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from core.camera.config import CameraConfig
+from core.camera.gamma import Gamma
+from core.config import ConfigError, MeasurementNoise, Table, parse_dynamics, parse_measurement
+from core.sim.team import FollowerDynamics
+
+from app.camera_files import load_camera
+from app.paths import STATIC_CONFIG, UserError, display_path
+
+DEFAULT_CONFIG = STATIC_CONFIG / "default.toml"
+FEEDBACKS = ("vision", "truth")
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    source: str
+    rate_hz: float
+    followers: int
+    seed: int
+    feedback: str
+    rig_path: Path
+    calibration_path: Path
+    dynamics: FollowerDynamics
+    measurement: MeasurementNoise
+
+    def camera(self) -> tuple[CameraConfig, Gamma]:
+        """The synthetic rig and its Γ, read and checked (one-line UserError otherwise)."""
+        rig = load_camera(self.rig_path)
+        cal = load_camera(self.calibration_path)
+        if rig.model is None:
+            raise UserError(f"{display_path(self.rig_path)}: has no [model]: the simulated camera needs one")
+        if cal.gamma is None:
+            raise UserError(f"{display_path(self.calibration_path)}: has no [gamma]; make one with omniformation calibrate")
+        return rig, cal.gamma
+
+
+def load_service_config(path: Path, max_followers: int) -> ServiceConfig:
+    if not path.is_file():
+        raise UserError(f"{path}: no such config file")
+    source = display_path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{source}: cannot read: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{source}: not valid TOML: {exc}") from None
+    try:
+        top = Table(data, source, "")
+        svc = top.table("service")
+        rate = svc.number("rate_hz", 1.0, 200.0, default=30.0, unit="Hz")
+        followers = svc.integer("followers", 1, max_followers, default=3)
+        seed = svc.integer("seed", 0, 2**32 - 1, default=0)
+        feedback = svc.text("feedback", default="vision", choices=FEEDBACKS)
+        svc.finish()
+        cam = top.table("camera")
+        rig = path.parent / cam.text("rig", default="camera/synthetic.toml")
+        calibration = path.parent / cam.text("calibration", default="camera/synthetic_calibrated.toml")
+        cam.finish()
+        dynamics = parse_dynamics(top.table("dynamics"))
+        measurement = parse_measurement(top.table("measurement"))
+        top.finish()
+    except ConfigError as exc:
+        raise UserError(str(exc)) from None
+    return ServiceConfig(source, rate, followers, seed, feedback, rig, calibration, dynamics, measurement)
