@@ -1,0 +1,108 @@
+"""What a follower's firmware does with the link's frames: differential drive, encoders, watchdog.
+
+Pure functions on a frozen state, so the same rules are tested here and run by the
+emulator (`omniformation emulate-follower`) behind a real pseudo-terminal. The rules are
+those of docs/follower-protocol.md:
+
+* SET_VELOCITY sets the wheel targets (v ± w·b/2) and resets the command age;
+* STOP sets them to zero at once and raises FLAG_STOPPED until the next SET_VELOCITY;
+* a command older than WATCHDOG_S sets them to zero and raises FLAG_WATCHDOG;
+* PING only answers with STATUS (it does not feed the watchdog);
+* a broadcast frame is obeyed and never answered (robots would collide on a shared radio).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from core.link import protocol as p
+
+
+@dataclass(frozen=True)
+class FollowerHardware:
+    """A small differential-drive robot like the paper's (15 x 25 cm, gear motors)."""
+
+    wheel_base_m: float = 0.12
+    wheel_radius_m: float = 0.03
+    ticks_per_rev: int = 360
+    motor_tau_s: float = 0.12  # first-order lag of each wheel's speed
+    wheel_speed_max_mps: float = 0.45
+    battery_mv: int = 7400
+
+    @property
+    def metres_per_tick(self) -> float:
+        return 2 * math.pi * self.wheel_radius_m / self.ticks_per_rev
+
+
+@dataclass(frozen=True)
+class FollowerState:
+    address: int
+    target_l_mps: float = 0.0
+    target_r_mps: float = 0.0
+    wheel_l_mps: float = 0.0
+    wheel_r_mps: float = 0.0
+    dist_l_m: float = 0.0  # wheel travel since power-on (the encoders count it in ticks)
+    dist_r_m: float = 0.0
+    command_age_s: float = math.inf  # since the last valid SET_VELOCITY
+    flags: int = p.FLAG_WATCHDOG  # at power-on nothing has been commanded
+    uptime_s: float = 0.0
+
+    def ticks(self, hw: FollowerHardware) -> tuple[int, int]:
+        return int(math.floor(self.dist_l_m / hw.metres_per_tick)), int(math.floor(self.dist_r_m / hw.metres_per_tick))
+
+    def measured(self, hw: FollowerHardware) -> tuple[float, float]:
+        """(v m/s, w rad/s) from the wheel speeds, as the encoders see them."""
+        return (self.wheel_l_mps + self.wheel_r_mps) / 2, (self.wheel_r_mps - self.wheel_l_mps) / hw.wheel_base_m
+
+    @property
+    def moving(self) -> bool:
+        return abs(self.wheel_l_mps) > 1e-4 or abs(self.wheel_r_mps) > 1e-4
+
+
+def _clamp(x: float, m: float) -> float:
+    return max(-m, min(m, x))
+
+
+def step_follower(s: FollowerState, hw: FollowerHardware, dt: float) -> FollowerState:
+    """Advance the motors and encoders by dt seconds; the watchdog acts here."""
+    age = s.command_age_s + dt
+    tl, tr, flags = s.target_l_mps, s.target_r_mps, s.flags
+    if age > p.WATCHDOG_S and not flags & p.FLAG_WATCHDOG:
+        tl, tr, flags = 0.0, 0.0, flags | p.FLAG_WATCHDOG
+    k = 1.0 - math.exp(-dt / hw.motor_tau_s) if hw.motor_tau_s > 0 else 1.0
+    wl = s.wheel_l_mps + k * (tl - s.wheel_l_mps)
+    wr = s.wheel_r_mps + k * (tr - s.wheel_r_mps)
+    if tl == 0.0 and abs(wl) < 1e-4:
+        wl = 0.0
+    if tr == 0.0 and abs(wr) < 1e-4:
+        wr = 0.0
+    return dataclasses.replace(
+        s, target_l_mps=tl, target_r_mps=tr, wheel_l_mps=wl, wheel_r_mps=wr,
+        dist_l_m=s.dist_l_m + (s.wheel_l_mps + wl) / 2 * dt, dist_r_m=s.dist_r_m + (s.wheel_r_mps + wr) / 2 * dt,
+        command_age_s=age, flags=flags, uptime_s=s.uptime_s + dt)
+
+
+def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:
+    """Obey one frame addressed to this robot (or broadcast); return the new state and the reply."""
+    if frame.address not in (s.address, p.BROADCAST):
+        return s, None
+    if frame.msg_type == p.MSG_SET_VELOCITY:
+        v, w = p.decode_velocity(frame)
+        half = w * hw.wheel_base_m / 2
+        s = dataclasses.replace(s, target_l_mps=_clamp(v - half, hw.wheel_speed_max_mps),
+                                target_r_mps=_clamp(v + half, hw.wheel_speed_max_mps), command_age_s=0.0,
+                                flags=s.flags & ~(p.FLAG_WATCHDOG | p.FLAG_STOPPED))
+    elif frame.msg_type == p.MSG_STOP:
+        s = dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0, flags=s.flags | p.FLAG_STOPPED)
+    elif frame.msg_type != p.MSG_PING:
+        return s, None  # replies from other robots on a shared line: not for us
+    if frame.address == p.BROADCAST:
+        return s, None
+    if frame.msg_type == p.MSG_PING:
+        age_ms = 0xFFFF if math.isinf(s.command_age_s) else int(min(0xFFFF, s.command_age_s * 1000))
+        return s, p.status(s.address, frame.seq, p.Status(hw.battery_mv, s.flags, age_ms, int(s.uptime_s * 1000)))
+    left, right = s.ticks(hw)
+    v_meas, w_meas = s.measured(hw)
+    return s, p.ack(s.address, frame.seq, p.Ack(left, right, v_meas, w_meas, s.flags))

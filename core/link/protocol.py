@@ -1,0 +1,230 @@
+"""The follower link's wire format: framed, addressed, CRC-checked binary messages (pure).
+
+The byte layout is specified for firmware authors in docs/follower-protocol.md; this
+module is its reference implementation. Every multi-byte field is little-endian (the
+MSP430 the paper's followers carry is little-endian), the CRC included.
+
+    offset  size  field
+    0       1     sync 0 = 0xA5
+    1       1     sync 1 = 0x5A
+    2       1     address: 1..250 a follower, 0 the leader base, 0xFF broadcast (no reply)
+    3       1     sequence number (the host counts 0..255 and wraps; a reply echoes it)
+    4       1     message type (MSG_*)
+    5       1     payload length L, 0..MAX_PAYLOAD
+    6       L     payload
+    6+L     2     CRC-16/CCITT-FALSE over bytes 2 .. 5+L (address .. end of payload)
+
+The parser (:class:`FrameParser`) never raises on any input: it resynchronises on the
+sync bytes and counts what it rejects (bad CRC, impossible length, unknown type, a
+payload whose length does not fit its type).
+"""
+
+from __future__ import annotations
+
+import binascii
+import math
+import struct
+from dataclasses import dataclass, field
+
+SYNC = b"\xa5\x5a"
+HEADER_LEN = 6  # sync (2), address, sequence, type, length
+CRC_LEN = 2
+MAX_PAYLOAD = 32
+MAX_FRAME = HEADER_LEN + MAX_PAYLOAD + CRC_LEN
+
+LEADER_ADDRESS = 0
+BROADCAST = 0xFF
+MAX_FOLLOWER_ADDRESS = 250
+
+# host -> robot
+MSG_SET_VELOCITY = 0x01  # int16 v (mm/s), int16 w (mrad/s); feeds the watchdog; answered by ACK
+MSG_STOP = 0x02  # no payload: motors to zero at once, until the next SET_VELOCITY; answered by ACK
+MSG_PING = 0x03  # no payload: answered by STATUS; does NOT feed the watchdog
+# robot -> host
+MSG_ACK = 0x81  # int32 left ticks, int32 right ticks, int16 v (mm/s), int16 w (mrad/s), uint8 flags
+MSG_STATUS = 0x82  # uint16 battery (mV), uint8 flags, uint16 command age (ms), uint32 uptime (ms)
+
+FLAG_WATCHDOG = 0x01  # stopped by the watchdog: no valid SET_VELOCITY for WATCHDOG_S
+FLAG_STOPPED = 0x02  # stopped by a STOP message
+FLAG_LOW_BATTERY = 0x04
+
+WATCHDOG_S = 0.5  # a robot whose last valid SET_VELOCITY is older than this stops by itself
+
+_ACK = struct.Struct("<iihhB")
+_STATUS = struct.Struct("<HBHI")
+_VELOCITY = struct.Struct("<hh")
+PAYLOAD_LEN = {MSG_SET_VELOCITY: _VELOCITY.size, MSG_STOP: 0, MSG_PING: 0, MSG_ACK: _ACK.size,
+               MSG_STATUS: _STATUS.size}
+MESSAGE_NAMES = {MSG_SET_VELOCITY: "SET_VELOCITY", MSG_STOP: "STOP", MSG_PING: "PING", MSG_ACK: "ACK",
+                 MSG_STATUS: "STATUS"}
+INT16_MAX = 32767
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE: polynomial 0x1021, initial value 0xFFFF, no reflection, no final XOR."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+@dataclass(frozen=True)
+class Frame:
+    address: int
+    seq: int
+    msg_type: int
+    payload: bytes = b""
+
+
+def encode_frame(frame: Frame) -> bytes:
+    """The bytes on the wire for one frame; ValueError for fields out of range."""
+    if not 0 <= frame.address <= 0xFF or not 0 <= frame.seq <= 0xFF or not 0 <= frame.msg_type <= 0xFF:
+        raise ValueError(f"address, sequence and type are bytes (0..255): {frame}")
+    if len(frame.payload) > MAX_PAYLOAD:
+        raise ValueError(f"payload of {len(frame.payload)} bytes: at most {MAX_PAYLOAD}")
+    body = bytes((frame.address, frame.seq, frame.msg_type, len(frame.payload))) + frame.payload
+    return SYNC + body + struct.pack("<H", crc16(body))
+
+
+def _fixed(value: float, scale: float) -> int:
+    """A physical value as a saturated int16 in units of 1/scale (NaN -> 0)."""
+    if math.isnan(value):
+        return 0
+    return int(max(-INT16_MAX, min(INT16_MAX, round(value * scale))))
+
+
+def set_velocity(address: int, seq: int, v_mps: float, w_rps: float) -> Frame:
+    """SET_VELOCITY in mm/s and mrad/s (saturated to int16: ±32.767 m/s, ±32.767 rad/s)."""
+    return Frame(address, seq, MSG_SET_VELOCITY, _VELOCITY.pack(_fixed(v_mps, 1000.0), _fixed(w_rps, 1000.0)))
+
+
+def stop(address: int, seq: int) -> Frame:
+    return Frame(address, seq, MSG_STOP)
+
+
+def ping(address: int, seq: int) -> Frame:
+    return Frame(address, seq, MSG_PING)
+
+
+def decode_velocity(frame: Frame) -> tuple[float, float]:
+    """(v m/s, w rad/s) of a SET_VELOCITY frame."""
+    v, w = _VELOCITY.unpack(frame.payload)
+    return v / 1000.0, w / 1000.0
+
+
+@dataclass(frozen=True)
+class Ack:
+    """A robot's answer to SET_VELOCITY / STOP: its wheel-encoder odometry."""
+
+    left_ticks: int
+    right_ticks: int
+    v_mps: float  # measured by the encoders
+    w_rps: float
+    flags: int
+
+
+def ack(address: int, seq: int, a: Ack) -> Frame:
+    return Frame(address, seq, MSG_ACK, _ACK.pack(
+        _wrap_i32(a.left_ticks), _wrap_i32(a.right_ticks), _fixed(a.v_mps, 1000.0), _fixed(a.w_rps, 1000.0),
+        a.flags & 0xFF))
+
+
+def decode_ack(frame: Frame) -> Ack:
+    left, right, v, w, flags = _ACK.unpack(frame.payload)
+    return Ack(left, right, v / 1000.0, w / 1000.0, flags)
+
+
+@dataclass(frozen=True)
+class Status:
+    """A robot's answer to PING."""
+
+    battery_mv: int
+    flags: int
+    command_age_ms: int  # saturates at 65535
+    uptime_ms: int  # wraps at 2^32
+
+
+def status(address: int, seq: int, s: Status) -> Frame:
+    return Frame(address, seq, MSG_STATUS, _STATUS.pack(
+        max(0, min(0xFFFF, s.battery_mv)), s.flags & 0xFF, max(0, min(0xFFFF, s.command_age_ms)),
+        s.uptime_ms & 0xFFFFFFFF))
+
+
+def decode_status(frame: Frame) -> Status:
+    return Status(*_STATUS.unpack(frame.payload))
+
+
+def _wrap_i32(x: int) -> int:
+    return ((int(x) + 2**31) % 2**32) - 2**31
+
+
+@dataclass
+class FrameParser:
+    """Bytes in (any chunking), valid frames out; never raises, counts what it rejects.
+
+    ``rejected`` counts frames that started with the sync bytes but were refused, by
+    reason: ``crc``, ``length`` (over MAX_PAYLOAD, or not the size the type needs),
+    ``type`` (unknown message type). ``skipped_bytes`` counts bytes that were not part
+    of any frame (noise between frames, the first byte of a refused frame).
+    ``last_rejects`` lists (reason, address byte as received) for the frames the last
+    ``feed`` refused: the address is unprotected by then, so only a hint.
+    """
+
+    buffer: bytearray = field(default_factory=bytearray)
+    frames_ok: int = 0
+    skipped_bytes: int = 0
+    rejected: dict[str, int] = field(default_factory=lambda: {"crc": 0, "length": 0, "type": 0})
+    last_rejects: list[tuple[str, int]] = field(default_factory=list)
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+    def feed(self, data: bytes) -> list[Frame]:
+        buf = self.buffer
+        buf += data
+        out: list[Frame] = []
+        rejects: list[tuple[str, int]] = []
+        self.last_rejects = rejects
+        pos = 0
+        n = len(buf)
+        while True:
+            start = buf.find(SYNC, pos)
+            if start < 0:
+                # keep a trailing first sync byte: its partner may come with the next chunk
+                keep = n - 1 if n > pos and buf[n - 1] == SYNC[0] else n
+                self.skipped_bytes += keep - pos
+                pos = keep
+                break
+            self.skipped_bytes += start - pos
+            pos = start
+            if n - start < HEADER_LEN:
+                break  # wait for the rest of the header
+            length = buf[start + 5]
+            if length > MAX_PAYLOAD:
+                self.rejected["length"] += 1
+                rejects.append(("length", buf[start + 2]))
+                self.skipped_bytes += 1
+                pos = start + 1
+                continue
+            end = start + HEADER_LEN + length + CRC_LEN
+            if n < end:
+                break  # wait for the rest of the frame
+            body = bytes(buf[start + 2:start + HEADER_LEN + length])
+            (crc,) = struct.unpack_from("<H", buf, end - CRC_LEN)
+            if crc != crc16(body):
+                self.rejected["crc"] += 1
+                rejects.append(("crc", body[0]))
+                self.skipped_bytes += 1
+                pos = start + 1  # the real next frame may start inside this one
+                continue
+            msg_type = body[2]
+            if msg_type not in PAYLOAD_LEN:
+                self.rejected["type"] += 1
+                rejects.append(("type", body[0]))
+            elif PAYLOAD_LEN[msg_type] != length:
+                self.rejected["length"] += 1
+                rejects.append(("length", body[0]))
+            else:
+                out.append(Frame(body[0], body[1], msg_type, body[4:]))
+                self.frames_ok += 1
+            pos = end
+        del buf[:pos]
+        return out
