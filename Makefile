@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test bench venv clean
+.PHONY: run test bench samples venv clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -24,6 +24,13 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/omniformation bench
+
+# The sample recordings in recordings/samples (each under 5 MB: one camera frame a second).
+samples: $(STAMP)
+	for s in paper_simulation experiment2; do \
+	  $(BIN)/omniformation simulate $$s --vision --frames-hz 1 --jpeg-quality 55 \
+	    --record recordings/samples/$$s-vision.mcap || exit 1; \
+	done
 
 clean:
 	rm -rf $(VENV) test-artifacts

@@ -77,12 +77,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if args.seed is not None:
         changes["seed"] = args.seed
     scenario = scenario.replace(**changes)
-    for out in (args.out, args.plot):
+    for out in (args.out, args.plot, args.record):
         if out is not None and not out.parent.exists():
             raise UserError(f"{out}: folder {out.parent} does not exist")
     import numpy as np
 
     tracked = None
+    frames: dict[int, bytes] = {}
+    vision = None
     if args.vision:
         from app.camera_files import load_camera
         from core.sim.vision_run import simulate_vision
@@ -93,7 +95,15 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             raise UserError(f"{display_path(args.camera)}: has no [model]: a synthetic rig is needed to render frames")
         if calibration.gamma is None:
             raise UserError(f"{display_path(args.calibration)}: has no [gamma]; make one with omniformation calibrate")
-        vision = simulate_vision(scenario, rig, calibration.gamma)
+        every = max(1, int(round(scenario.rate_hz / args.frames_hz))) if args.frames_hz > 0 else 0
+
+        def keep_frame(k: int, frame: np.ndarray) -> None:
+            if args.record is not None and every and k % every == 0:
+                import cv2
+
+                frames[k] = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, args.jpeg_quality])[1].tobytes()
+
+        vision = simulate_vision(scenario, rig, calibration.gamma, on_frame=keep_frame)
         log, tracked = vision.log, vision.tracked
         after = log.t >= 0
         lost = (~tracked[after]).sum(axis=0) / scenario.rate_hz
@@ -123,6 +133,24 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
         plot_simulation(log, args.plot)
         print(f"wrote {display_path(args.plot)}")
+    if args.record is not None:
+        from app.session_cli import session_metadata
+        from app.sim_record import record_simulation
+
+        meta = session_metadata(scenario_name=scenario.name, scenario_path=args.scenario,
+                                camera=(rig, calibration.gamma) if args.vision else None)
+        meta["scenario_start_s"] = f"{-float(log.t[0]):.6f}"
+        a_raw = None
+        if vision is not None:  # the eq. 34-37 measurements, held between them (as the live loop shows them)
+            a_raw = vision.heading_measured.copy()
+            for k in range(1, len(a_raw)):
+                a_raw[k] = np.where(np.isfinite(a_raw[k]), a_raw[k], a_raw[k - 1])
+            a_raw = np.where(np.isfinite(a_raw), a_raw, log.a_meas)
+        count = record_simulation(log, args.record, meta, tracked=tracked,
+                                  phases=vision.phase if vision is not None else None, frames=frames or None,
+                                  a_raw=a_raw, frame_rate_hz=args.frames_hz)
+        print(f"wrote {display_path(args.record)}: {count} ticks, {len(frames)} frames,"
+              f" {args.record.stat().st_size / 1e6:.1f} MB")
     return 0
 
 
@@ -135,28 +163,57 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     config = load_service_config(args.config, MAX_FOLLOWERS)
     scenario = load_scenario(args.scenario) if args.scenario else None
+    if args.record is not None and not args.record.parent.is_dir():
+        raise UserError(f"{args.record}: folder {args.record.parent} does not exist")
     feedback = args.feedback or config.feedback
     camera = config.camera() if feedback == "vision" else None
     if args.host not in LOOPBACK:
         print(f"warning: serving on {args.host}: anyone who can reach it can command the robots"
               " (there is no authentication)", file=sys.stderr)
+    n_followers = scenario.n if scenario is not None else args.followers or config.followers
+    link = None
+    if args.link != "sim":
+        from app.backends.serial_link import SerialLink, parse_link_spec
+        from core.types import Gains
+
+        try:
+            port = parse_link_spec(args.link)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        limits = scenario.gains if scenario is not None else Gains()
+        link = SerialLink(port, n_followers, baud=args.baud, v_max=limits.v_max, w_max=limits.w_max)
     try:
         service = Service(host=args.host, port=args.port, scenario=scenario,
-                          n_followers=args.followers or config.followers, rate_hz=args.rate or config.rate_hz,
+                          n_followers=n_followers, rate_hz=args.rate or config.rate_hz,
                           seed=config.seed if args.seed is None else args.seed, camera=camera,
-                          dynamics=config.dynamics, noise=config.measurement)
+                          dynamics=config.dynamics, noise=config.measurement, link=link)
     except OSError as exc:
+        if link is not None:
+            link.close()
         raise UserError(f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}") from None
-    signal.signal(signal.SIGTERM, lambda *_: service.loop.stop())
+    recorder = None
+    if not args.no_record:
+        from app.session_cli import start_recording
+
+        recorder = start_recording(service, config, scenario, args.scenario, camera, args.frames_hz, args.record)
+        print(f"omniformation: recording to {display_path(recorder.path)}", flush=True)
+    # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
+    # (even before the first tick ends), and the loop's own exit is what zeroes the robots.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: service.loop.stop())
     service.start()
     source = "the vision pipeline on the synthetic camera" if camera else "the simulator's poses plus noise"
-    print(f"omniformation: dashboard at {service.url}  (poses from {source}; Ctrl-C to stop)", flush=True)
+    via = f"; followers on serial {link.port_name}" if link is not None else ""
+    print(f"omniformation: dashboard at {service.url}  (poses from {source}{via}; Ctrl-C to stop)", flush=True)
     try:
         service.wait()
     except KeyboardInterrupt:
         pass
     finally:
         service.close()
+        if recorder is not None:
+            recorder.close()
+            print(f"omniformation: recording finished: {display_path(recorder.path)} ({recorder.ticks} ticks)", flush=True)
     print("omniformation: stopped; all followers commanded to zero", flush=True)
     return 0
 
@@ -191,6 +248,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="feed the controller from the vision pipeline on synthetic frames (default rate 30 Hz)")
     sim.add_argument("--camera", type=Path, default=SYNTHETIC_CAMERA, help="synthetic rig for --vision")
     sim.add_argument("--calibration", type=Path, default=SYNTHETIC_CALIBRATED, help="Γ for --vision (from calibrate)")
+    sim.add_argument("--record", type=Path, metavar="FILE.mcap", help="also write the run as a recording (replay, report)")
+    sim.add_argument("--frames-hz", type=_positive_float(0.0, 1000.0, "Hz", lo_inclusive=True), default=10.0,
+                     help="camera frames per second in the recording (--vision; default 10, 0 = none)")
+    sim.add_argument("--jpeg-quality", type=_int_in(1, 100), default=80, help="JPEG quality of recorded frames (default 80)")
     sim.set_defaults(func=_cmd_simulate)
 
     run = sub.add_parser(
@@ -208,11 +269,24 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--followers", type=_int_in(1, MAX_FOLLOWERS), help="simulated followers without --scenario (default: config)")
     run.add_argument("--rate", type=_positive_float(0.0, 200.0, "Hz"), help="loop rate (Hz, default: config)")
     run.add_argument("--seed", type=_seed, help="random seed of the simulated team")
+    run.add_argument("--link", default="sim", metavar="sim|serial:PATH",
+                     help="where commands go: the built-in simulated team (default) or followers on a serial port,"
+                          " e.g. serial:/dev/ttyUSB0 or the path `omniformation emulate-follower` prints")
+    run.add_argument("--baud", type=_int_in(1200, 4_000_000), default=115200, help="serial baud rate (default 115200)")
+    run.add_argument("--no-record", action="store_true", help="do not record the session (default: recordings/<UTC>_<name>.mcap)")
+    run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record to this file instead of recordings/")
+    run.add_argument("--frames-hz", type=_positive_float(0.0, 100.0, "Hz", lo_inclusive=True), default=10.0,
+                     help="camera frames per second in the recording (default 10, 0 = none)")
     run.set_defaults(func=_cmd_run)
 
     from app.camera_cli import add_parsers as add_camera_parsers
+    from app.session_cli import add_parsers as add_session_parsers
 
     add_camera_parsers(sub, _positive_float, _int_in, _seed)
+    from app.emulator import add_parser as add_emulator_parser
+
+    add_emulator_parser(sub, _int_in, _positive_float(0.0, 1.0, "(a probability)", lo_inclusive=True))
+    add_session_parsers(sub, _int_in)
 
     bench = sub.add_parser("bench", help="measure controller and simulator speed")
     bench.set_defaults(func=_cmd_bench)

@@ -28,7 +28,7 @@ from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
 from core.types import Commands, FloatArray, Gains, IntArray
 
-from app.backends.sim import SimTeam, spread_start
+from app.backends.sim import OdometryLink, SimTeam, spread_start
 from app.feedback import Observation, TruthFeedback, VisionFeedback
 from app.params import Params, ParamsStore
 
@@ -70,6 +70,8 @@ class TickState:
     frame: np.ndarray | None = None  # the camera image (BGR) this tick, vision only
     windows: np.ndarray | None = None  # (n, 4) CAMSHIFT windows, pixels
     hues_deg: FloatArray | None = None  # (n,) learned marker colours
+    link_detail: str = ""  # per follower: round trip, lost replies, CRC errors, battery (serial link)
+    fault: str = ""  # the last exception inside a tick, if the loop caught one
 
     @property
     def n(self) -> int:
@@ -103,9 +105,12 @@ class ServiceLoop:
         heading_noise_rad: float = math.radians(1.0),
         initial_poses: tuple[FloatArray, FloatArray] | None = None,
         camera: tuple[CameraConfig, Gamma] | None = None,
+        link: OdometryLink | None = None,
     ) -> None:
         """``camera``: the synthetic rig and its calibrated Γ; with it the controller is fed
-        by the vision pipeline on rendered frames, without it by ground truth plus noise."""
+        by the vision pipeline on rendered frames, without it by ground truth plus noise.
+        ``link``: a real follower link (serial); the simulated followers then move by what
+        the robots on it report (see app.backends.sim)."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
@@ -115,6 +120,9 @@ class ServiceLoop:
         self.heading_noise_rad = heading_noise_rad
         self._initial_poses = initial_poses
         self.camera = camera
+        self.link = link
+        self.faults = 0
+        self.fault = ""
         self._subscribers: list[Callable[[TickState], None]] = []
         self._stop = threading.Event()
         self.tick_count = 0
@@ -123,6 +131,7 @@ class ServiceLoop:
         self._steps_done = store.get().step_requests
         self._mode = ("", 0.0)
         self.achieved_rate_hz = 0.0
+        self._publish_ms: dict[str, float] = {}
         self.last: TickState | None = None
         self._world = self._make_world(store.get())
 
@@ -146,7 +155,7 @@ class ServiceLoop:
         else:
             p0, a0 = spread_start(n, rng)
         team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
-                       self.seed + 1000 + self._resets)
+                       self.seed + 1000 + self._resets, link=self.link)
         feedback: TruthFeedback | VisionFeedback
         if self.camera is not None:
             feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets)
@@ -173,7 +182,7 @@ class ServiceLoop:
 
     # -- one tick -------------------------------------------------------------------------
     def tick(self) -> TickState:
-        stage: dict[str, float] = {}
+        stage: dict[str, float] = dict(self._publish_ms)
         t0 = time.perf_counter()
         params = self.store.get()
         if params.reset_requests != self._resets or params.n_followers != self._world.team.state.n:
@@ -181,6 +190,8 @@ class ServiceLoop:
             self._world = self._make_world(params)
             self._mode = ("", 0.0)
         world = self._world
+        if self.fault and not params.stop:  # the operator saw the fault and released STOP
+            self.fault = ""
         advance = not params.paused or params.step_requests != self._steps_done
         self._steps_done = params.step_requests
 
@@ -239,20 +250,34 @@ class ServiceLoop:
             stopped=params.stop, paused=params.paused and not advance, link_state=world.team.link_state,
             rate_hz=self.achieved_rate_hz, stage_ms=stage, phase=obs.phase, probing=obs.probing,
             a_raw=obs.a_raw, frame=obs.frame, windows=obs.windows, hues_deg=obs.hues_deg,
+            link_detail=world.team.link_detail(), fault=self.fault,
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)
             self.t += self.dt
         self.tick_count += 1
         self.last = state
+        publish: dict[str, float] = {}
         for fn in self._subscribers:
             t_pub = time.perf_counter()
             try:
                 fn(state)
             except Exception:  # a broken view must not stop the robots' loop
                 log.exception("subscriber failed")
-            stage[f"publish:{getattr(fn, '__qualname__', 'fn')}"] = (time.perf_counter() - t_pub) * 1e3
+            publish[f"publish:{getattr(fn, '__qualname__', 'fn')}"] = (time.perf_counter() - t_pub) * 1e3
+        self._publish_ms = publish  # shown with the next tick: a published state is never changed
         return state
+
+    def _on_fault(self, exc: Exception) -> None:
+        """An exception inside a tick: every follower to zero at once, STOP engaged (the
+        operator sees why and releases it), the loop goes on observing."""
+        self.halt_followers()
+        self.faults += 1
+        self.fault = f"{type(exc).__name__}: {exc}"[:200]
+        if self.faults <= 3 or self.faults % 100 == 0:
+            log.exception("loop fault %d; every follower stopped", self.faults)
+        if not self.store.get().stop:
+            self.store.update("loop", stop=True)
 
     def halt_followers(self) -> None:
         """Command every follower to zero now (used on stop and on errors)."""
@@ -269,7 +294,10 @@ class ServiceLoop:
         try:
             while not self._stop.is_set():
                 start = time.monotonic()
-                self.tick()
+                try:
+                    self.tick()
+                except Exception as exc:  # noqa: BLE001 - the robots must stop, the service must live
+                    self._on_fault(exc)
                 window.append(start)
                 if len(window) >= 2 and window[-1] > window[0]:
                     self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])

@@ -62,9 +62,14 @@ class Notice:
 class ParamsStore:
     """Thread-safe holder of the current :class:`Params`; atomic swaps, validation, notices."""
 
-    def __init__(self, initial: Params | None = None) -> None:
+    def __init__(self, initial: Params | None = None, fixed_followers: int | None = None) -> None:
+        """``fixed_followers``: a real team's size (e.g. the robots on a serial link); the
+        follower count then cannot be changed from the page."""
         self._lock = threading.Lock()
+        self.fixed_followers = fixed_followers
         self._params = initial or Params()
+        if fixed_followers is not None and self._params.n_followers != fixed_followers:
+            self._params = self._params.replace(n_followers=fixed_followers)
         self._listeners: list[Callable[[Params, str, tuple[Notice, ...]], None]] = []
 
     def get(self) -> Params:
@@ -118,7 +123,11 @@ class ParamsStore:
                     new_values["slots"] = clipped
                 elif key == "n_followers":
                     n = int(value)
-                    if not 1 <= n <= MAX_FOLLOWERS:
+                    if self.fixed_followers is not None and n != self.fixed_followers:
+                        notices.append(Notice(key, f"followers = {value}: the team on the link has"
+                                                   f" {self.fixed_followers}; the count is fixed"))
+                        n = self.fixed_followers
+                    elif not 1 <= n <= MAX_FOLLOWERS:
                         notices.append(Notice(key, f"followers = {value}: allowed 1..{MAX_FOLLOWERS}, set to {min(max(n, 1), MAX_FOLLOWERS)}"))
                         n = min(max(n, 1), MAX_FOLLOWERS)
                     new_values[key] = n

@@ -19,6 +19,7 @@ from core.config import MeasurementNoise, Scenario
 from core.sim.team import FollowerDynamics
 from core.sim.profiles import ConstantProfile, Eq39Profile
 
+from app.backends.sim import OdometryLink
 from app.dashboard import Dashboard
 from app.dashboard.camera_panel import Overlay
 from app.loop import ServiceLoop
@@ -49,8 +50,10 @@ class Service:
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, scenario: Scenario | None = None,
                  n_followers: int = 3, rate_hz: float = 30.0, seed: int = 0,
                  camera: tuple[CameraConfig, Gamma] | None = None,
-                 dynamics: FollowerDynamics | None = None, noise: MeasurementNoise | None = None) -> None:
-        self.store = ParamsStore(params_for(scenario, n_followers))
+                 dynamics: FollowerDynamics | None = None, noise: MeasurementNoise | None = None,
+                 link: OdometryLink | None = None) -> None:
+        fixed = getattr(link, "n", None)
+        self.store = ParamsStore(params_for(scenario, fixed or n_followers), fixed_followers=fixed)
         kwargs: dict[str, object] = {}
         if noise is not None:
             kwargs.update(position_noise_m=noise.position_noise_m, heading_noise_rad=noise.heading_noise_rad)
@@ -61,7 +64,7 @@ class Service:
             dynamics = scenario.dynamics
             seed = scenario.seed
         self.loop = ServiceLoop(self.store, rate_hz=rate_hz, seed=seed, dynamics=dynamics, camera=camera,
-                                **kwargs)  # type: ignore[arg-type]
+                                link=link, **kwargs)  # type: ignore[arg-type]
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         overlay = None
         if camera is not None:
@@ -86,7 +89,9 @@ class Service:
             self._thread.join(0.2)
 
     def close(self) -> None:
+        """Stop the loop (it zeroes every follower as it ends), then the server. Waits for the
+        tick in progress: the first one can take seconds while compiled code loads."""
         self.loop.stop()
         if self._thread is not None:
-            self._thread.join(5.0)
+            self._thread.join(60.0)
         self.server.stop()

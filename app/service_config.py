@@ -20,6 +20,7 @@ FEEDBACKS = ("vision", "truth")
 
 @dataclass(frozen=True)
 class ServiceConfig:
+    path: Path
     source: str
     rate_hz: float
     followers: int
@@ -68,4 +69,4 @@ def load_service_config(path: Path, max_followers: int) -> ServiceConfig:
         top.finish()
     except ConfigError as exc:
         raise UserError(str(exc)) from None
-    return ServiceConfig(source, rate, followers, seed, feedback, rig, calibration, dynamics, measurement)
+    return ServiceConfig(path, source, rate, followers, seed, feedback, rig, calibration, dynamics, measurement)

@@ -1,6 +1,14 @@
-"""The built-in simulated team: world state, ground-truth observation, a follower link into it."""
+"""The built-in simulated team: world state, ground-truth observation, a follower link into it.
+
+With a real follower link (``link``, e.g. the serial link to emulated followers) the commands
+go over the wire instead, and the simulated followers move by what their wheel encoders
+report back (the robots' own lag and limits are theirs, so the world uses ideal dynamics):
+the camera then renders robots that the serial link really drives.
+"""
 
 from __future__ import annotations
+
+from typing import Protocol
 
 import numpy as np
 
@@ -14,6 +22,20 @@ from core.sim.team import (
 from core.types import Commands, FloatArray
 
 
+class OdometryLink(Protocol):
+    """A follower link that also reports each follower's measured (v, w)."""
+
+    link_state: str
+
+    def send(self, commands: Commands) -> None: ...
+
+    def measured(self) -> tuple[FloatArray, FloatArray]: ...
+
+    def detail(self) -> str: ...
+
+    def close(self) -> None: ...
+
+
 class SimTeam:
     """A simulated leader and followers. The loop measures them, commands them, moves them."""
 
@@ -25,14 +47,22 @@ class SimTeam:
         position_noise_m: float,
         heading_noise_rad: float,
         seed: int,
+        link: OdometryLink | None = None,
     ) -> None:
         self.state: TeamState = make_team_state(p0, a0)
-        self.dynamics = dynamics
+        self.link = link
+        self.dynamics = dynamics if link is None else FollowerDynamics()
         self.position_noise_m = position_noise_m
         self.heading_noise_rad = heading_noise_rad
         self.rng = np.random.default_rng(seed)
         self.commands = Commands.zeros(len(a0))
-        self.link_state = "simulated"
+
+    @property
+    def link_state(self) -> str:
+        return "simulated" if self.link is None else self.link.link_state
+
+    def link_detail(self) -> str:
+        return "" if self.link is None else self.link.detail()
 
     # TeamObservation
     def observe(self) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -45,12 +75,17 @@ class SimTeam:
     # FollowerLink
     def send(self, commands: Commands) -> None:
         self.commands = commands
+        if self.link is not None:
+            self.link.send(commands)
 
     def close(self) -> None:
         self.commands = Commands.zeros(self.state.n)
+        if self.link is not None:
+            self.link.close()
 
     def advance(self, leader_twist: tuple[float, float], dt: float, t: float) -> None:
-        self.state = step_team(self.state, self.commands, leader_twist, dt, t, self.rng, self.dynamics)
+        moved = self.commands if self.link is None else Commands(*self.link.measured())
+        self.state = step_team(self.state, moved, leader_twist, dt, t, self.rng, self.dynamics)
 
 
 def spread_start(n: int, rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:

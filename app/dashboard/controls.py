@@ -38,6 +38,8 @@ class Controls:
         gui = server.gui
         p = store.get()
         self.notice = ""
+        self.recording = "off"  # what the status says about recording (set by the service)
+        self.replay = False
 
         self.stop_button = gui.add_button("STOP", color="red", hint="Command every follower to zero now. The loop keeps observing.")
         self.release_button = gui.add_button("Release STOP", color="gray", disabled=True)
@@ -77,6 +79,18 @@ class Controls:
         self._wire()
         store.subscribe(self._on_params)
 
+    def set_replay(self, name: str) -> None:
+        """Replay mode: nothing here may command robots; every such control says why."""
+        self.replay = True
+        self.recording = name
+        why = "replay: a recording cannot command robots"
+        handles = [self.stop_button, self.release_button, self.pause_button, self.step_button, self.reset_button,
+                   self.n_slider, self.mode, self.speed, self.turn, self.preset, self.apply_preset,
+                   *self.gains.values(), *(h for pair in self.slot_inputs for h in pair)]
+        for h in handles:
+            h.disabled = True
+            h.hint = why
+
     # -- building -------------------------------------------------------------------------
     def _build_slot_inputs(self, p: Params) -> None:
         for x_in, y_in in self.slot_inputs:
@@ -103,9 +117,12 @@ class Controls:
                 y_in.on_update(make_cb(j))
                 self.slot_inputs.append((x_in, y_in))
 
-    def _update(self, event: viser.GuiEvent, **changes: Any) -> None:
+    def _update(self, event: viser.GuiEvent, what: str = "", **changes: Any) -> None:
+        """Write to the store; ``what`` names the action in the source (e.g. a preset), for the record."""
+        if self.replay:
+            return
         try:
-            _, notices = self.store.update(f"browser:{event.client_id}", **changes)
+            _, notices = self.store.update(f"browser:{event.client_id}" + (f" {what}" if what else ""), **changes)
         except ValueError as exc:
             notices = (Notice("input", str(exc)),)
         if notices and event.client is not None:
@@ -144,7 +161,7 @@ class Controls:
         @self.apply_preset.on_click
         def _(event: viser.GuiEvent) -> None:
             p = self.store.get()
-            self._update(event, slots=formation_preset(self.preset.value, p.n_followers))
+            self._update(event, slots=formation_preset(self.preset.value, p.n_followers), what=f"preset {self.preset.value}")
 
     # -- store -> widgets -----------------------------------------------------------------
     @staticmethod
@@ -186,9 +203,13 @@ class Controls:
             f"stages (ms): {stages}",
             f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
             f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
-            f" · link: {s.link_state} · recording: off (not built yet)",
+            f" · link: {s.link_state} · " + (f"replaying {self.recording}" if self.replay else f"recording: {self.recording}"),
             "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" for i, e in enumerate(err)),
         ]
+        if s.link_detail:
+            lines.append(f"link detail: {s.link_detail}")
+        if s.fault:
+            lines.append(f"**loop fault: {s.fault}** · every follower was stopped; release STOP to go on")
         if self.notice:
             lines.append(f"notice: {self.notice}")
         self.status.content = "  \n".join(lines)

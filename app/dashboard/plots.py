@@ -66,7 +66,13 @@ class Plots:
         self._n = n
         self._rows, self._t = [], []
 
-    def update(self, s: TickState) -> None:
+    def reset(self) -> None:
+        """Forget the history (replay: after a jump on the timeline)."""
+        self._rows, self._t = [], []
+        self._last_draw = 0.0
+
+    def add(self, s: TickState) -> None:
+        """Append one tick to the 60 s window, without drawing."""
         n = s.n
         if n != self._n:
             self._build(n)
@@ -80,6 +86,11 @@ class Plots:
         while self._t and self._t[0] < s.t - WINDOW_S:
             self._t.pop(0)
             self._rows.pop(0)
+
+    def update(self, s: TickState) -> None:
+        """Append one tick and redraw at most every REDRAW_S."""
+        self.add(s)
+        n = s.n
         now = time.monotonic()
         if now - self._last_draw < REDRAW_S or len(self._t) < 2:
             return

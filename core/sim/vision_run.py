@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -47,8 +48,11 @@ def simulate_vision(
     gamma: Gamma,
     settings: PipelineSettings = PipelineSettings(),
     max_startup_s: float = 60.0,
+    on_frame: Callable[[int, np.ndarray], None] | None = None,
 ) -> VisionLog:
-    """Run ``scenario`` with the controller fed by the vision pipeline on rendered frames."""
+    """Run ``scenario`` with the controller fed by the vision pipeline on rendered frames.
+
+    ``on_frame(k, frame)`` sees every rendered frame (row k of the log), e.g. to record it."""
     if rig.model is None:
         raise ValueError(f"{rig.source}: a vision simulation needs the rig's [model]")
     dt = 1.0 / scenario.rate_hz
@@ -82,6 +86,8 @@ def simulate_vision(
         a_true = np.asarray(heading_world_to_leader(state.followers[:, 2], theta))
         hidden = disturbance_mask(scenario.disturbances, n, t_scn, "hidden")[0] if t_ready is not None else None
         frame = renderer.render(state.leader, np.column_stack([p_true, a_true]), t_wall, rng, hidden=hidden)
+        if on_frame is not None:
+            on_frame(k, frame)
         odo = leader_displacement(prev_leader, state.leader)
         out = pipeline.step(frame, dt, odo, last_cmd, err_norm)
         prev_leader = state.leader.copy()

@@ -84,7 +84,8 @@ def test_page_shows_scene_plots_and_camera_and_is_screenshotted(page, service):
              "the vision start-up to finish")
     time.sleep(3.0)  # let trails and plots fill
     assert service.loop.last.tracked.all()
-    page.get_by_text("poses from: vision, tracking").first.wait_for(timeout=10_000)
+    # the software-rendered page can lag the server by seconds on a loaded two-core machine
+    page.get_by_text("poses from: vision, tracking").first.wait_for(timeout=30_000)
     img = page.locator("img[src^='blob:']").first  # viser sends GUI images as blobs (the logo is an SVG data URI)
     img.wait_for(timeout=10_000)
     box = img.bounding_box()

@@ -1,0 +1,180 @@
+"""The follower link over a real pseudo-terminal: emulated followers, the serial link, the safety rules."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import serial
+
+from app.backends.serial_link import SerialLink, parse_link_spec
+from app.emulator import FollowerEmulator, PtyEndpoint, serve
+from core.link import protocol as p
+from core.types import Commands
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def wait_for(pred, timeout: float, what: str) -> float:
+    start = time.monotonic()
+    while time.monotonic() - start < timeout:
+        if pred():
+            return time.monotonic() - start
+        time.sleep(0.01)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+class EmulatorThread:
+    """Emulated followers on a real pty, in this process so a test can look at the robots."""
+
+    def __init__(self, n: int = 3, drop: float = 0.0, corrupt: float = 0.0) -> None:
+        self.emulator = FollowerEmulator(list(range(1, n + 1)), drop=drop, corrupt=corrupt, seed=3)
+        self.endpoint = PtyEndpoint()
+        self.path = self.endpoint.path
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=serve, args=(self.emulator, self.endpoint, self._stop), daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.endpoint.close()
+
+
+@pytest.fixture
+def emulated():
+    em = EmulatorThread()
+    yield em
+    em.close()
+
+
+def start_emulator_process(link_path: Path, *extra: str) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "emulate-follower", "--pty", "--link-path", str(link_path),
+                             *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    assert "emulating followers 1..3" in line, line + proc.stderr.read()
+    return proc
+
+
+def test_link_spec_is_checked_in_one_line():
+    assert parse_link_spec("serial:/dev/ttyUSB0") == "/dev/ttyUSB0"
+    assert parse_link_spec("sim") == ""
+    for bad in ("serial:", "tcp:1234", "/dev/ttyUSB0"):
+        with pytest.raises(ValueError, match="must be 'sim' or 'serial:PATH'"):
+            parse_link_spec(bad)
+
+
+def test_commands_reach_the_robots_and_odometry_comes_back(emulated):
+    link = SerialLink(emulated.path, 3, v_max=0.3, w_max=2.0)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        for _ in range(30):  # 1 s at 30 Hz
+            link.send(Commands(np.array([0.1, 5.0, math.nan]), np.array([0.5, 0.0, 0.0])))
+            time.sleep(1 / 30)
+        robots = emulated.emulator.snapshot()
+        v1, w1 = robots[1].measured(emulated.emulator.hw)
+        assert v1 == pytest.approx(0.1, abs=0.01) and w1 == pytest.approx(0.5, abs=0.05)
+        assert robots[2].target_l_mps == pytest.approx(0.3)  # 5 m/s was clamped to v_max on the way out
+        assert robots[3].target_l_mps == 0.0  # NaN became zero
+        v, w = link.measured()
+        assert v[0] == pytest.approx(0.1, abs=0.01) and w[0] == pytest.approx(0.5, abs=0.05)
+        s1 = link.stats[0]
+        assert s1.acks >= 29 and s1.lost == 0 and s1.crc_errors == 0 and 0 < s1.rtt_mean_ms < 100
+        assert s1.battery_mv == 7400  # from a STATUS answering a PING
+        assert link.link_state.endswith(": ok")
+    finally:
+        link.close()
+    robots = emulated.emulator.snapshot()
+    assert all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps for r in robots.values())
+
+
+def test_lost_replies_and_crc_errors_are_counted_per_follower():
+    em = EmulatorThread(drop=0.2, corrupt=0.1)
+    link = SerialLink(em.path, 3)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        for _ in range(90):
+            link.send(Commands(np.full(3, 0.05), np.zeros(3)))
+            time.sleep(1 / 30)
+        time.sleep(0.4)
+        link.send(Commands.zeros(3))  # expires what is older than the reply timeout
+        sent = sum(s.sent for s in link.stats)
+        lost = sum(s.lost for s in link.stats)
+        crc = sum(s.crc_errors for s in link.stats)
+        assert em.emulator.stats.dropped > 0 and em.emulator.stats.corrupted > 0
+        # a dropped or corrupted reply is a lost one; corrupted ones are also CRC errors
+        assert 0.15 * sent < lost < 0.45 * sent
+        assert crc >= 0.5 * em.emulator.stats.corrupted
+        assert link.parser.rejected_total >= crc
+        assert "lost" in link.detail() and link.link_state.endswith(": ok")
+    finally:
+        link.close()
+        em.close()
+
+
+def test_a_follower_stops_by_itself_when_commands_stop_coming(emulated):
+    """The watchdog, through the real pty: one command, then silence (a hung service)."""
+    port = serial.Serial(emulated.path, 115200, timeout=0.1)
+    try:
+        port.write(p.encode_frame(p.set_velocity(1, 1, 0.2, 0.0)))
+        t_cmd = time.monotonic()
+        hw = emulated.emulator.hw
+        wait_for(lambda: emulated.emulator.snapshot()[1].measured(hw)[0] > 0.1, 1, "the follower to move")
+        wait_for(lambda: emulated.emulator.snapshot()[1].flags & p.FLAG_WATCHDOG, 2, "the watchdog")
+        assert 0.45 < time.monotonic() - t_cmd < 1.0  # 0.5 s after the last command, not before
+        wait_for(lambda: not emulated.emulator.snapshot()[1].moving, 2, "the wheels to stop")
+    finally:
+        port.close()
+
+
+def test_a_missing_port_never_blocks_the_loop():
+    link = SerialLink("/nonexistent/ttyFOLLOWERS", 2)
+    try:
+        t0 = time.perf_counter()
+        for _ in range(10):
+            link.send(Commands(np.full(2, 0.1), np.zeros(2)))
+        assert time.perf_counter() - t0 < 0.05
+        wait_for(lambda: "cannot open" in link.link_state, 2, "the reason")
+        assert link.link_state.startswith("link lost (cannot open /nonexistent/ttyFOLLOWERS")
+        assert np.all(link.measured()[0] == 0)
+    finally:
+        link.close()
+
+
+def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth", "--no-record",
+                             "--link", f"serial:{emulated.path}"], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        hw = emulated.emulator.hw
+        wait_for(lambda: any(r.moving for r in emulated.emulator.snapshot().values()), 60, "the followers to move")
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "all followers commanded to zero" in out
+    robots = emulated.emulator.snapshot()
+    assert all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps for r in robots.values())
+    wait_for(lambda: not any(r.moving for r in emulated.emulator.snapshot().values()), 2, "the wheels to stop")
+    assert all(abs(r.measured(hw)[0]) < 1e-3 for r in emulated.emulator.snapshot().values())
+
+
+def test_bad_link_arguments_exit_2():
+    from tests.app.test_cli import run_cli
+
+    out = run_cli("run", "--port", "0", "--link", "tcp:9", "--no-record")
+    assert out.returncode == 2 and "must be 'sim' or 'serial:PATH'" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+    out = run_cli("emulate-follower", "--port", "/nonexistent/tty")
+    assert out.returncode == 2 and "cannot open serial port /nonexistent/tty" in out.stderr
+    out = run_cli("emulate-follower", "--drop", "1.5")
+    assert out.returncode == 2 and "--drop" in out.stderr
