@@ -7,15 +7,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from app.paths import STATIC_CONFIG, UserError, display_path
+from app.paths import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, UserError, display_path
 from core.camera.config import CameraConfig, parse_camera
 from core.camera.gamma import CalibrationError, MatchingTable, parse_table
 from core.config import ConfigError
 
-CAMERA_DIR = STATIC_CONFIG / "camera"
-SYNTHETIC_CAMERA = CAMERA_DIR / "synthetic.toml"
-# Γ of the built-in synthetic rig, made by `omniformation calibrate --synthetic` (see README)
-SYNTHETIC_CALIBRATED = CAMERA_DIR / "synthetic_calibrated.toml"
+__all__ = ["SYNTHETIC_CALIBRATED", "SYNTHETIC_CAMERA", "load_camera", "load_table", "write_table", "read_image",
+           "check_out_path"]
 
 
 def _read_text(path: Path, what: str) -> str:

@@ -12,10 +12,8 @@ import sys
 from pathlib import Path
 from typing import NoReturn, Sequence
 
-from app.camera_files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA
 from app.params import MAX_FOLLOWERS
-from app.service_config import DEFAULT_CONFIG
-from app.paths import UserError, display_path, scenario_names
+from app.paths import DEFAULT_CONFIG, SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, UserError, display_path, scenario_names
 
 EXIT_USAGE = 2
 VISION_RATE_HZ = 30.0  # the synthetic camera's frame rate
@@ -64,7 +62,6 @@ _seed = _int_in(0, 2**32 - 1)
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from app.scenarios import load_scenario
-    from core.sim.run import simulate
 
     scenario = load_scenario(args.scenario)
     changes: dict[str, object] = {}
@@ -82,12 +79,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             raise UserError(f"{out}: folder {out.parent} does not exist")
     import numpy as np
 
-    tracked = None
-    frames: dict[int, bytes] = {}
-    vision = None
+    from app.sim_record import record_run, run_simulation
+
+    camera = None
     if args.vision:
         from app.camera_files import load_camera
-        from core.sim.vision_run import simulate_vision
 
         rig = load_camera(args.camera)
         calibration = load_camera(args.calibration)
@@ -95,18 +91,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             raise UserError(f"{display_path(args.camera)}: has no [model]: a synthetic rig is needed to render frames")
         if calibration.gamma is None:
             raise UserError(f"{display_path(args.calibration)}: has no [gamma]; make one with omniformation calibrate")
-        every = max(1, int(round(scenario.rate_hz / args.frames_hz))) if args.frames_hz > 0 else 0
-
-        def keep_frame(k: int, frame: np.ndarray) -> None:
-            if args.record is not None and every and k % every == 0:
-                import cv2
-
-                frames[k] = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, args.jpeg_quality])[1].tobytes()
-
-        vision = simulate_vision(scenario, rig, calibration.gamma, on_frame=keep_frame)
-        log, tracked = vision.log, vision.tracked
+        camera = (rig, calibration.gamma)
+    run = run_simulation(scenario, camera, frames_hz=args.frames_hz if args.record is not None else 0.0,
+                         jpeg_quality=args.jpeg_quality)
+    log, vision = run.log, run.vision
+    tracked = vision.tracked if vision is not None else None
+    if vision is not None:
         after = log.t >= 0
-        lost = (~tracked[after]).sum(axis=0) / scenario.rate_hz
+        lost = (~vision.tracked[after]).sum(axis=0) / scenario.rate_hz
         est = np.linalg.norm(log.p_meas - log.p, axis=-1)[after]
         from core.geometry import wrap_angle
 
@@ -117,8 +109,6 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         for i in range(log.n):
             print(f"  f{i + 1}: position estimate RMS {np.sqrt(np.nanmean(est[:, i] ** 2)) * 100:.2f} cm,"
                   f" heading RMS {np.sqrt(np.nanmean(head[:, i] ** 2)):.2f} deg, not tracked {lost[i]:.2f} s")
-    else:
-        log = simulate(scenario)
 
     err = np.linalg.norm(log.error, axis=-1)
     final = ", ".join(f"f{i + 1} {err[-1, i] * 100:.2f} cm" for i in range(log.n))
@@ -135,21 +125,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         print(f"wrote {display_path(args.plot)}")
     if args.record is not None:
         from app.session_cli import session_metadata
-        from app.sim_record import record_simulation
 
-        meta = session_metadata(scenario_name=scenario.name, scenario_path=args.scenario,
-                                camera=(rig, calibration.gamma) if args.vision else None)
-        meta["scenario_start_s"] = f"{-float(log.t[0]):.6f}"
-        a_raw = None
-        if vision is not None:  # the eq. 34-37 measurements, held between them (as the live loop shows them)
-            a_raw = vision.heading_measured.copy()
-            for k in range(1, len(a_raw)):
-                a_raw[k] = np.where(np.isfinite(a_raw[k]), a_raw[k], a_raw[k - 1])
-            a_raw = np.where(np.isfinite(a_raw), a_raw, log.a_meas)
-        count = record_simulation(log, args.record, meta, tracked=tracked,
-                                  phases=vision.phase if vision is not None else None, frames=frames or None,
-                                  a_raw=a_raw, frame_rate_hz=args.frames_hz)
-        print(f"wrote {display_path(args.record)}: {count} ticks, {len(frames)} frames,"
+        meta = session_metadata(scenario_name=scenario.name, scenario_path=args.scenario, camera=camera)
+        meta.update(duration_s=f"{scenario.duration_s:g}", rate_hz=f"{scenario.rate_hz:g}", seed=str(scenario.seed))
+        count = record_run(run, args.record, meta, args.frames_hz)
+        print(f"wrote {display_path(args.record)}: {count} ticks, {len(run.frames)} frames,"
               f" {args.record.stat().st_size / 1e6:.1f} MB")
     return 0
 
@@ -165,31 +145,69 @@ def _cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario) if args.scenario else None
     if args.record is not None and not args.record.parent.is_dir():
         raise UserError(f"{args.record}: folder {args.record.parent} does not exist")
-    feedback = args.feedback or config.feedback
-    camera = config.camera() if feedback == "vision" else None
+    if args.camera is None and config.frames != "synthetic":
+        args.camera = config.frames  # the config names a real camera; the command line wins
+    real = args.camera is not None  # a real rig: real camera, real robots, no simulator
+    configured_link = config.link if config.link != "sim" or not real else None
+    link_spec = args.link or configured_link or ("none" if real else "sim")
+    if real and (scenario is not None or args.feedback == "truth" or link_spec == "sim"):
+        raise UserError("--camera runs a real rig: it cannot be combined with --scenario, --feedback truth"
+                        " or --link sim (give --link serial:PATH, or none to only observe)")
+    if not real and (link_spec == "none" or args.leader is not None):
+        raise UserError("--link none and --leader need --camera: the simulated team has its own leader and link")
+    if args.calibration is not None and not real:
+        raise UserError("--calibration goes with --camera (the synthetic camera's is set in the config)")
+    from app.backends.serial_link import SerialLink, parse_link_spec
+
+    try:
+        link_port = "" if link_spec == "none" else parse_link_spec(link_spec)
+        leader_port = parse_link_spec(args.leader) if args.leader is not None else ""
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if leader_port == "" and args.leader is not None:
+        raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
+    feedback = "vision" if real else args.feedback or config.feedback
+    if real:
+        from app.camera_files import load_camera
+
+        calibration_path = args.calibration or config.calibration_path
+        rig = load_camera(calibration_path)
+        if rig.gamma is None:
+            raise UserError(f"{display_path(calibration_path)}: has no [gamma]; make one with omniformation calibrate")
+        camera = (rig, rig.gamma)
+    else:
+        camera = config.camera() if feedback == "vision" else None
     if args.host not in LOOPBACK:
         print(f"warning: serving on {args.host}: anyone who can reach it can command the robots"
               " (there is no authentication)", file=sys.stderr)
     n_followers = scenario.n if scenario is not None else args.followers or config.followers
-    link = None
-    if args.link != "sim":
-        from app.backends.serial_link import SerialLink, parse_link_spec
-        from core.types import Gains
+    from core.types import Gains
+
+    limits = scenario.gains if scenario is not None else Gains()
+    frames = hardware = None
+    if real:
+        from app.backends.camera_cv import open_frame_source
 
         try:
-            port = parse_link_spec(args.link)
+            frames = open_frame_source(args.camera, args.camera_fps)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-        limits = scenario.gains if scenario is not None else Gains()
-        link = SerialLink(port, n_followers, baud=args.baud, v_max=limits.v_max, w_max=limits.w_max)
+    link = SerialLink(link_port, n_followers, baud=args.baud, v_max=limits.v_max, w_max=limits.w_max) if link_port else None
+    if real:
+        from app.backends.hardware import HardwareTeam
+
+        leader = SerialLink(leader_port, 1, baud=args.baud, addresses=[0]) if leader_port else None
+        hardware = HardwareTeam(n_followers, link, leader)
     try:
         service = Service(host=args.host, port=args.port, scenario=scenario,
                           n_followers=n_followers, rate_hz=args.rate or config.rate_hz,
                           seed=config.seed if args.seed is None else args.seed, camera=camera,
-                          dynamics=config.dynamics, noise=config.measurement, link=link)
+                          dynamics=config.dynamics, noise=config.measurement,
+                          link=None if real else link, frames=frames, hardware=hardware)
     except OSError as exc:
-        if link is not None:
-            link.close()
+        for closable in (hardware or link, frames):
+            if closable is not None:
+                closable.close()
         raise UserError(f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}") from None
     recorder = None
     if not args.no_record:
@@ -202,8 +220,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: service.loop.stop())
     service.start()
-    source = "the vision pipeline on the synthetic camera" if camera else "the simulator's poses plus noise"
-    via = f"; followers on serial {link.port_name}" if link is not None else ""
+    if real:
+        source = f"the vision pipeline on camera {args.camera}"
+    else:
+        source = "the vision pipeline on the synthetic camera" if camera else "the simulator's poses plus noise"
+    via = f"; followers on serial {link.port_name}" if link is not None else "; observe only (no link)" if real else ""
     print(f"omniformation: dashboard at {service.url}  (poses from {source}{via}; Ctrl-C to stop)", flush=True)
     try:
         service.wait()
@@ -269,9 +290,19 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--followers", type=_int_in(1, MAX_FOLLOWERS), help="simulated followers without --scenario (default: config)")
     run.add_argument("--rate", type=_positive_float(0.0, 200.0, "Hz"), help="loop rate (Hz, default: config)")
     run.add_argument("--seed", type=_seed, help="random seed of the simulated team")
-    run.add_argument("--link", default="sim", metavar="sim|serial:PATH",
+    run.add_argument("--link", metavar="sim|serial:PATH|none",
                      help="where commands go: the built-in simulated team (default) or followers on a serial port,"
-                          " e.g. serial:/dev/ttyUSB0 or the path `omniformation emulate-follower` prints")
+                          " e.g. serial:/dev/ttyUSB0 or the path `omniformation emulate-follower` prints;"
+                          " with --camera: serial:PATH, or none (the default) to only observe")
+    run.add_argument("--camera", metavar="0|/dev/videoN|VIDEO|FOLDER",
+                     help="a real rig: frames from a camera (index or device), a video file or a folder of images")
+    run.add_argument("--calibration", type=Path, metavar="CAMERA.toml",
+                     help="with --camera: the rig's calibration from `omniformation calibrate` (default: config's)")
+    run.add_argument("--camera-fps", type=_positive_float(0.0, 240.0, "Hz"),
+                     help="with --camera: play a video file or folder at this rate (default: the file's, or 30)")
+    run.add_argument("--leader", metavar="serial:PATH",
+                     help="with --camera: the leader base's port (its wheel odometry, for eq. 38); without it the"
+                          " leader is taken to stand still")
     run.add_argument("--baud", type=_int_in(1200, 4_000_000), default=115200, help="serial baud rate (default 115200)")
     run.add_argument("--no-record", action="store_true", help="do not record the session (default: recordings/<UTC>_<name>.mcap)")
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record to this file instead of recordings/")
@@ -296,8 +327,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    func = args.func
+    if isinstance(func, str):  # "module:function": imported only for the command that runs
+        import importlib
+
+        module, _, name = func.partition(":")
+        func = getattr(importlib.import_module(module), name)
     try:
-        return int(args.func(args))
+        return int(func(args))
     except UserError as exc:
         print(f"omniformation: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

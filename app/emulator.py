@@ -176,7 +176,7 @@ def _link(path: Path, target: str) -> None:
 def cmd_emulate(args) -> int:  # type: ignore[no-untyped-def]
     from app.paths import UserError
 
-    addresses = list(range(1, args.followers + 1))
+    addresses = [p.LEADER_ADDRESS] if args.leader else list(range(1, args.followers + 1))
     emulator = FollowerEmulator(addresses, drop=args.drop, corrupt=args.corrupt, seed=args.seed)
     endpoint: PtyEndpoint | SerialEndpoint
     if args.port:
@@ -195,8 +195,10 @@ def cmd_emulate(args) -> int:  # type: ignore[no-untyped-def]
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     shown = f"{endpoint.path}" + (f" (also {args.link_path})" if args.link_path else "")
-    print(f"omniformation: emulating followers {addresses[0]}..{addresses[-1]} on {shown}", flush=True)
-    print(f"omniformation: drive them with: omniformation run --link serial:{args.link_path or endpoint.path}",
+    what = "the leader base (address 0)" if args.leader else f"followers {addresses[0]}..{addresses[-1]}"
+    print(f"omniformation: emulating {what} on {shown}", flush=True)
+    flag = "--leader" if args.leader else "--link"
+    print(f"omniformation: drive them with: omniformation run {flag} serial:{args.link_path or endpoint.path}",
           flush=True)
     try:
         serve(emulator, endpoint, stop)
@@ -224,6 +226,8 @@ def add_parser(sub, int_in, prob) -> None:  # type: ignore[no-untyped-def]
     em.add_argument("--link-path", type=Path, help="keep a symlink to the port at this path (stable across restarts)")
     em.add_argument("--followers", type=int_in(1, p.MAX_FOLLOWER_ADDRESS), default=3,
                     help="how many followers, at addresses 1..N (default 3)")
+    em.add_argument("--leader", action="store_true",
+                    help="emulate the leader base instead (address 0: its wheel odometry for eq. 38)")
     em.add_argument("--baud", type=int_in(1200, 4_000_000), default=115200, help="baud rate for --port (default 115200)")
     em.add_argument("--drop", type=prob, default=0.0, help="probability of dropping a reply (default 0)")
     em.add_argument("--corrupt", type=prob, default=0.0, help="probability of flipping a bit in a reply (default 0)")

@@ -4,12 +4,19 @@ controller alone).
 
 Both answer ``observe()`` with an :class:`Observation`; the vision one also asks for the
 start-up manoeuvres of paper §3.1–3.2 and carries the frame for the camera panel.
+
+The vision feedback takes its frames from the synthetic camera rendering the simulated team,
+or from a real :class:`~app.backends.camera_cv.FrameSource`. A real camera is asynchronous:
+a tick with no new frame keeps the last estimates (the pipeline steps once per frame, with
+the time and leader motion since the frame before), and a camera with no fresh frame for
+``STALE_FRAME_S`` makes every follower untracked — the loop then commands zero.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -17,10 +24,14 @@ from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
 from core.camera.render import Renderer
 from core.geometry import leader_displacement
+from core.sim.team import TeamState
 from core.types import BoolArray, FloatArray
 from core.vision.pipeline import VisionPipeline
 
+from app.backends.camera_cv import FrameSource
 from app.backends.sim import SimTeam
+
+STALE_FRAME_S = 0.3  # a camera frame older than this is no ground for moving a robot
 
 
 @dataclass(frozen=True)
@@ -36,6 +47,7 @@ class Observation:
     hues_deg: FloatArray | None = None
     probing: int = -1
     stage_ms: dict[str, float] = field(default_factory=dict)  # camera and pipeline times
+    camera_state: str = ""  # a real camera's state for people ("" for the synthetic one)
 
     @property
     def ready(self) -> bool:
@@ -53,44 +65,96 @@ class TruthFeedback:
         return Observation(p, a, a.copy(), tracked, "truth")
 
 
+class TeamLike(Protocol):
+    """What the vision feedback needs of the team: its size and the leader's pose (the
+    simulator's truth, or the dead-reckoned pose of a real leader), for eq. 38."""
+
+    @property
+    def state(self) -> TeamState: ...
+
+    def truth(self) -> tuple[FloatArray, FloatArray]: ...
+
+
 @dataclass
 class VisionFeedback:
-    """A camera (here the simulated team seen through the synthetic rig) and the pipeline."""
+    """A camera and the pipeline: the synthetic rig rendering ``team`` (no ``source``), or a
+    real frame source (camera, video, folder)."""
 
-    team: SimTeam
+    team: TeamLike
     rig: CameraConfig
     gamma: Gamma
     seed: int
-    renderer: Renderer = field(init=False)
-    pipeline: VisionPipeline = field(init=False)
+    source: FrameSource | None = None
+    clock: Callable[[], float] = time.monotonic
+    renderer: Renderer | None = field(init=False, default=None)
+    pipeline: VisionPipeline | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
-        model = self.rig.model
-        if model is None:
-            raise ValueError(f"{self.rig.source}: the simulated camera needs a [model]")
-        self.renderer = Renderer(model, self.rig.render)
-        self.pipeline = VisionPipeline(self.team.state.n, self.gamma, self.rig.working_area, self.rig.detect,
-                                       (model.width, model.height), np.random.default_rng(self.seed))
+        n = self.team.state.n
+        if self.source is None:
+            model = self.rig.model
+            if model is None:
+                raise ValueError(f"{self.rig.source}: the simulated camera needs a [model]")
+            self.renderer = Renderer(model, self.rig.render)
+            self._make_pipeline((model.width, model.height))
         self._rng = np.random.default_rng(self.seed + 1)
         self._prev_leader = self.team.state.leader.copy()
-        self._a_raw = np.full(self.team.state.n, np.nan)
+        self._a_raw = np.full(n, np.nan)
         self._t = 0.0
+        self._since_frame = 0.0
+        self._frame_count = 0
+        self._last: Observation | None = None
+
+    def _make_pipeline(self, size: tuple[int, int]) -> None:
+        self.pipeline = VisionPipeline(self.team.state.n, self.gamma, self.rig.working_area, self.rig.detect,
+                                       size, np.random.default_rng(self.seed))
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
         state = self.team.state
         t0 = time.perf_counter()
-        p_true, a_true = self.team.truth()
-        frame = self.renderer.render(state.leader, np.column_stack([p_true, a_true]), self._t, self._rng)
-        t1 = time.perf_counter()
-        odometry = leader_displacement(self._prev_leader, state.leader)  # the LeaderOdometry of the sim
-        self._prev_leader = state.leader.copy()
-        out = self.pipeline.step(frame, dt, odometry, commands, error_norm)
-        t2 = time.perf_counter()
         self._t += dt
+        self._since_frame += dt
+        camera_state = ""
+        if self.source is None:
+            assert self.renderer is not None
+            p_true, a_true = self.team.truth()
+            frame: np.ndarray | None = self.renderer.render(state.leader, np.column_stack([p_true, a_true]),
+                                                            self._t - dt, self._rng)
+        else:
+            frame, t_frame, count = self.source.latest()
+            camera_state = self.source.state
+            age = self.clock() - t_frame
+            if frame is None or age > STALE_FRAME_S:
+                why = "no frame yet" if frame is None else f"no fresh frame for {age:.1f} s"
+                return self._stale(f"camera: {why} ({camera_state})", camera_state)
+            if count == self._frame_count and self._last is not None:
+                return self._last  # no new frame this tick: the estimates of the newest one stand
+            self._frame_count = count
+            if self.pipeline is None:
+                self._make_pipeline((frame.shape[1], frame.shape[0]))
+        t1 = time.perf_counter()
+        odometry = leader_displacement(self._prev_leader, state.leader)  # the leader's motion since the last frame
+        self._prev_leader = state.leader.copy()
+        assert self.pipeline is not None and frame is not None
+        out = self.pipeline.step(frame, self._since_frame, odometry, commands, error_norm)
+        self._since_frame = 0.0
+        t2 = time.perf_counter()
         fresh = np.isfinite(out.heading_measured)
         self._a_raw[fresh] = out.heading_measured[fresh]
         raw = np.where(np.isfinite(self._a_raw), self._a_raw, out.headings)
-        return Observation(out.positions, out.headings, raw, out.tracked, out.phase, out.manoeuvre, frame,
-                           out.windows, out.hues_deg, out.probing,
-                           {"camera": (t1 - t0) * 1e3, "vision": (t2 - t1) * 1e3})
+        self._last = Observation(out.positions, out.headings, raw, out.tracked, out.phase, out.manoeuvre, frame,
+                                 out.windows, out.hues_deg, out.probing,
+                                 {"camera": (t1 - t0) * 1e3, "vision": (t2 - t1) * 1e3}, camera_state)
+        return self._last
+
+    def _stale(self, phase: str, camera_state: str) -> Observation:
+        """No usable frame: nobody is tracked and nothing moves (a zero manoeuvre keeps the
+        loop from taking this for the end of the start-up)."""
+        n = self.team.state.n
+        last = self._last
+        p = last.p if last is not None else np.full((n, 2), np.nan)
+        a = last.a if last is not None else np.full(n, np.nan)
+        raw = last.a_raw if last is not None else np.full(n, np.nan)
+        return Observation(p, a, raw, np.zeros(n, dtype=bool), phase, np.zeros((n, 2)),
+                           last.frame if last is not None else None, None, None, -1, {}, camera_state)
 

@@ -28,6 +28,8 @@ from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
 from core.types import Commands, FloatArray, Gains, IntArray
 
+from app.backends.camera_cv import FrameSource
+from app.backends.hardware import HardwareTeam
 from app.backends.sim import OdometryLink, SimTeam, spread_start
 from app.feedback import Observation, TruthFeedback, VisionFeedback
 from app.params import Params, ParamsStore
@@ -72,6 +74,7 @@ class TickState:
     hues_deg: FloatArray | None = None  # (n,) learned marker colours
     link_detail: str = ""  # per follower: round trip, lost replies, CRC errors, battery (serial link)
     fault: str = ""  # the last exception inside a tick, if the loop caught one
+    camera_state: str = ""  # a real camera's state ("" for the synthetic camera)
 
     @property
     def n(self) -> int:
@@ -80,7 +83,7 @@ class TickState:
 
 @dataclass
 class _World:
-    team: SimTeam
+    team: SimTeam | HardwareTeam
     feedback: TruthFeedback | VisionFeedback
     controller: ControllerState
     slots: SlotMotion
@@ -106,11 +109,15 @@ class ServiceLoop:
         initial_poses: tuple[FloatArray, FloatArray] | None = None,
         camera: tuple[CameraConfig, Gamma] | None = None,
         link: OdometryLink | None = None,
+        frames: FrameSource | None = None,
+        hardware: HardwareTeam | None = None,
     ) -> None:
         """``camera``: the synthetic rig and its calibrated Γ; with it the controller is fed
         by the vision pipeline on rendered frames, without it by ground truth plus noise.
         ``link``: a real follower link (serial); the simulated followers then move by what
-        the robots on it report (see app.backends.sim)."""
+        the robots on it report (see app.backends.sim).
+        ``frames`` and ``hardware``: a real camera and real robots (no simulator); ``camera``
+        then holds the rig's calibration file (working area, detection, Γ)."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
@@ -121,6 +128,10 @@ class ServiceLoop:
         self._initial_poses = initial_poses
         self.camera = camera
         self.link = link
+        self.frames = frames
+        self.hardware = hardware
+        if frames is not None and (hardware is None or camera is None):
+            raise ValueError("a real frame source needs the real team (hardware) and the rig's calibration (camera)")
         self.faults = 0
         self.fault = ""
         self._subscribers: list[Callable[[TickState], None]] = []
@@ -150,18 +161,27 @@ class ServiceLoop:
     def _make_world(self, params: Params) -> _World:
         n = params.n_followers
         rng = np.random.default_rng(self.seed + self._resets)
-        if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
-            p0, a0 = self._initial_poses
-        else:
-            p0, a0 = spread_start(n, rng)
-        team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
-                       self.seed + 1000 + self._resets, link=self.link)
         feedback: TruthFeedback | VisionFeedback
-        if self.camera is not None:
-            feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets)
+        team: SimTeam | HardwareTeam
+        if self.hardware is not None:  # real robots: the same team after a reset, the start-up runs again
+            assert self.camera is not None
+            team = self.hardware
+            n = team.state.n
+            feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
+                                      source=self.frames)
+            assignment = np.arange(n) % params.slots.shape[0]  # eq. 33 runs once the poses are known
         else:
-            feedback = TruthFeedback(team)
-        assignment = assign_slots(p0, params.slots)
+            if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
+                p0, a0 = self._initial_poses
+            else:
+                p0, a0 = spread_start(n, rng)
+            team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
+                           self.seed + 1000 + self._resets, link=self.link)
+            if self.camera is not None:
+                feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets)
+            else:
+                feedback = TruthFeedback(team)
+            assignment = assign_slots(p0, params.slots)
         self.t = 0.0
         return _World(team, feedback, ControllerState.initial(n), SlotMotion.at_rest(params.slots[assignment]),
                       assignment, params.slots.tobytes(), ready=self.camera is None,
@@ -250,7 +270,7 @@ class ServiceLoop:
             stopped=params.stop, paused=params.paused and not advance, link_state=world.team.link_state,
             rate_hz=self.achieved_rate_hz, stage_ms=stage, phase=obs.phase, probing=obs.probing,
             a_raw=obs.a_raw, frame=obs.frame, windows=obs.windows, hues_deg=obs.hues_deg,
-            link_detail=world.team.link_detail(), fault=self.fault,
+            link_detail=world.team.link_detail(), fault=self.fault, camera_state=obs.camera_state,
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)
@@ -271,13 +291,13 @@ class ServiceLoop:
     def _on_fault(self, exc: Exception) -> None:
         """An exception inside a tick: every follower to zero at once, STOP engaged (the
         operator sees why and releases it), the loop goes on observing."""
-        self.halt_followers()
-        self.faults += 1
+        self.halt_followers()  # first: the robots
         self.fault = f"{type(exc).__name__}: {exc}"[:200]
-        if self.faults <= 3 or self.faults % 100 == 0:
-            log.exception("loop fault %d; every follower stopped", self.faults)
         if not self.store.get().stop:
             self.store.update("loop", stop=True)
+        self.faults += 1
+        if self.faults <= 3 or self.faults % 100 == 0:
+            log.exception("loop fault %d; every follower stopped", self.faults)
 
     def halt_followers(self) -> None:
         """Command every follower to zero now (used on stop and on errors)."""

@@ -8,6 +8,11 @@ PROJECT_ROOT = Path(__file__).resolve().parent.parent
 STATIC_CONFIG = PROJECT_ROOT / "static_config"
 SCENARIOS = STATIC_CONFIG / "scenarios"
 RECORDINGS = PROJECT_ROOT / "recordings"
+DEFAULT_CONFIG = STATIC_CONFIG / "default.toml"
+CAMERA_DIR = STATIC_CONFIG / "camera"
+SYNTHETIC_CAMERA = CAMERA_DIR / "synthetic.toml"
+# Γ of the built-in synthetic rig, made by `omniformation calibrate --synthetic` (see README)
+SYNTHETIC_CALIBRATED = CAMERA_DIR / "synthetic_calibrated.toml"
 
 
 class UserError(Exception):

@@ -406,3 +406,15 @@ def tick_from_payload(d: dict[str, Any], frame: np.ndarray | None = None) -> Tic
         windows=np.array(d["windows"], dtype=np.int64).reshape(n, 4) if d.get("windows") is not None else None,
         hues_deg=_arr(d["hues_deg"]) if d.get("hues_deg") is not None else None,
     )
+
+
+def params_from_recording(rec: Recording) -> Params:
+    """The parameter set in force when the recording started."""
+    if not rec.params:
+        return Params()
+    from core.types import Gains
+
+    d = rec.params[0][1]
+    return Params(gains=Gains(**d["gains"]), leader_mode=d["leader_mode"], leader_speed_mps=d["leader_speed_mps"],
+                  leader_turn_deg_s=d["leader_turn_deg_s"], slots=np.array(d["slots"], dtype=float).reshape(-1, 2),
+                  n_followers=int(d["n_followers"]))

@@ -17,21 +17,11 @@ import viser
 
 from app.dashboard import Dashboard
 from app.loop import TickState
-from app.params import Params, ParamsStore
-from app.recorder import Recording, tick_from_payload
-from core.types import Gains
+from app.params import ParamsStore
+from app.recorder import Recording, params_from_recording, tick_from_payload
 
 SPEEDS = ("0.25", "0.5", "1", "2", "4", "8")
 PLAYBACK_HZ = 30.0
-
-
-def _params_from(rec: Recording) -> Params:
-    if not rec.params:
-        return Params()
-    d = rec.params[0][1]
-    return Params(gains=Gains(**d["gains"]), leader_mode=d["leader_mode"], leader_speed_mps=d["leader_speed_mps"],
-                  leader_turn_deg_s=d["leader_turn_deg_s"], slots=np.array(d["slots"], dtype=float).reshape(-1, 2),
-                  n_followers=int(d["n_followers"]))
 
 
 class ReplayService:
@@ -41,7 +31,7 @@ class ReplayService:
         self.frame_t = [ft for ft, _ in rec.frames]
         self.event_t = sorted(float(e["t"]) for e in rec.events)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self.store = ParamsStore(_params_from(rec))
+        self.store = ParamsStore(params_from_recording(rec))
         self.dashboard = Dashboard(self.server, self.store, overlay=_overlay(rec))
         self.dashboard.controls.set_replay(rec.path.name)
         gui = self.server.gui
@@ -55,7 +45,7 @@ class ReplayService:
         with gui.add_folder("Replay", order=self.dashboard.controls.status.order + 0.25):
             self.timeline = gui.add_slider("Time (s)", min=round(t0, 3), max=round(max(t1, t0 + 1e-3), 3),
                                            step=1.0 / PLAYBACK_HZ, initial_value=round(t0, 3))
-            self.play_button = gui.add_button("Play")
+            self.play_button = gui.add_button("Play replay")
             self.speed_menu = gui.add_dropdown("Speed", options=SPEEDS, initial_value="1")
             self.step_button = gui.add_button("Step")
             self.prev_event = gui.add_button("Previous event")
@@ -85,7 +75,7 @@ class ReplayService:
                 if not self.playing and self.index >= len(self.t) - 1:
                     self._seek(0)
                 self.playing = not self.playing
-            self.play_button.label = "Pause" if self.playing else "Play"
+            self.play_button.label = "Pause replay" if self.playing else "Play replay"
 
         @self.speed_menu.on_update
         def _(event: viser.GuiEvent) -> None:
@@ -96,7 +86,7 @@ class ReplayService:
             with self._lock:
                 self.playing = False
                 self._seek(min(self.index + 1, len(self.t) - 1))
-            self.play_button.label = "Play"
+            self.play_button.label = "Play replay"
 
         @self.timeline.on_update
         def _(event: viser.GuiEvent) -> None:
@@ -133,8 +123,8 @@ class ReplayService:
         return tick_from_payload(self.rec.ticks[k], frame)
 
     def _seek(self, k: int) -> None:
-        """Show tick k; the plots get the 60 s before it again."""
-        self.index = k
+        """Show tick k; the plots get the 60 s before it again. ``index`` changes only once
+        the state of tick k is published."""
         plots = self.dashboard.plots
         plots.reset()
         t_now = float(self.t[k])
@@ -142,6 +132,7 @@ class ReplayService:
         for j in range(start, k):
             plots.add(self.state_at(j, with_frame=False))
         self._publish(k)
+        self.index = k
 
     def _publish(self, k: int) -> None:
         state = self.state_at(k)
@@ -162,10 +153,10 @@ class ReplayService:
                     if k >= len(self.t) - 1:
                         k = len(self.t) - 1
                         self.playing = False
-                        self.play_button.label = "Play"
+                        self.play_button.label = "Play replay"
                     if k != self.index:
-                        self.index = k
                         self._publish(k)
+                        self.index = k
                 else:
                     clock = float(self.t[self.index])
             self._stop.wait(max(0.0, period - (time.monotonic() - t_start)))

@@ -19,9 +19,12 @@ from core.config import MeasurementNoise, Scenario
 from core.sim.team import FollowerDynamics
 from core.sim.profiles import ConstantProfile, Eq39Profile
 
+from app.backends.camera_cv import FrameSource
+from app.backends.hardware import HardwareTeam
 from app.backends.sim import OdometryLink
 from app.dashboard import Dashboard
 from app.dashboard.camera_panel import Overlay
+from app.dashboard.recordings_panel import RecordingsPanel
 from app.loop import ServiceLoop
 from app.params import Params, ParamsStore, default_slots
 
@@ -51,8 +54,9 @@ class Service:
                  n_followers: int = 3, rate_hz: float = 30.0, seed: int = 0,
                  camera: tuple[CameraConfig, Gamma] | None = None,
                  dynamics: FollowerDynamics | None = None, noise: MeasurementNoise | None = None,
-                 link: OdometryLink | None = None) -> None:
-        fixed = getattr(link, "n", None)
+                 link: OdometryLink | None = None, frames: FrameSource | None = None,
+                 hardware: HardwareTeam | None = None) -> None:
+        fixed = hardware.state.n if hardware is not None else getattr(link, "n", None)
         self.store = ParamsStore(params_for(scenario, fixed or n_followers), fixed_followers=fixed)
         kwargs: dict[str, object] = {}
         if noise is not None:
@@ -64,13 +68,14 @@ class Service:
             dynamics = scenario.dynamics
             seed = scenario.seed
         self.loop = ServiceLoop(self.store, rate_hz=rate_hz, seed=seed, dynamics=dynamics, camera=camera,
-                                link=link, **kwargs)  # type: ignore[arg-type]
+                                link=link, frames=frames, hardware=hardware, **kwargs)  # type: ignore[arg-type]
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         overlay = None
         if camera is not None:
             wa = camera[0].working_area
             overlay = Overlay((camera[1].cx, camera[1].cy), wa.inner_px, wa.outer_px)
         self.dashboard = Dashboard(self.server, self.store, overlay)
+        self.recordings = RecordingsPanel(self.server, host)
         self.loop.subscribe(self.dashboard.publish)
         self._thread: threading.Thread | None = None
 
@@ -89,9 +94,12 @@ class Service:
             self._thread.join(0.2)
 
     def close(self) -> None:
-        """Stop the loop (it zeroes every follower as it ends), then the server. Waits for the
-        tick in progress: the first one can take seconds while compiled code loads."""
+        """Stop the loop (it zeroes every follower as it ends), then the server and the camera.
+        Waits for the tick in progress: the first one can take seconds while compiled code loads."""
         self.loop.stop()
         if self._thread is not None:
             self._thread.join(60.0)
+        self.recordings.close()
         self.server.stop()
+        if self.loop.frames is not None:
+            self.loop.frames.close()

@@ -12,9 +12,9 @@ from core.config import ConfigError, MeasurementNoise, Table, parse_dynamics, pa
 from core.sim.team import FollowerDynamics
 
 from app.camera_files import load_camera
-from app.paths import STATIC_CONFIG, UserError, display_path
+from app.paths import DEFAULT_CONFIG, UserError, display_path
 
-DEFAULT_CONFIG = STATIC_CONFIG / "default.toml"
+__all__ = ["DEFAULT_CONFIG", "FEEDBACKS", "ServiceConfig", "load_service_config"]
 FEEDBACKS = ("vision", "truth")
 
 
@@ -26,6 +26,8 @@ class ServiceConfig:
     followers: int
     seed: int
     feedback: str
+    link: str  # "sim" or "serial:PATH" (a real rig: also "none")
+    frames: str  # "synthetic", or a real camera: an index, a device, a video file or a folder
     rig_path: Path
     calibration_path: Path
     dynamics: FollowerDynamics
@@ -59,8 +61,12 @@ def load_service_config(path: Path, max_followers: int) -> ServiceConfig:
         followers = svc.integer("followers", 1, max_followers, default=3)
         seed = svc.integer("seed", 0, 2**32 - 1, default=0)
         feedback = svc.text("feedback", default="vision", choices=FEEDBACKS)
+        link = svc.text("link", default="sim")
+        if link not in ("sim", "none") and not (link.startswith("serial:") and len(link) > 7):
+            raise svc.fail("link", link, "'sim', 'none' or 'serial:PATH' (e.g. serial:/dev/ttyUSB0)")
         svc.finish()
         cam = top.table("camera")
+        frames = cam.text("source", default="synthetic")
         rig = path.parent / cam.text("rig", default="camera/synthetic.toml")
         calibration = path.parent / cam.text("calibration", default="camera/synthetic_calibrated.toml")
         cam.finish()
@@ -69,4 +75,8 @@ def load_service_config(path: Path, max_followers: int) -> ServiceConfig:
         top.finish()
     except ConfigError as exc:
         raise UserError(str(exc)) from None
-    return ServiceConfig(path, source, rate, followers, seed, feedback, rig, calibration, dynamics, measurement)
+    if frames != "synthetic" and link == "sim":
+        raise UserError(f"{source}: camera.source = {frames!r} is a real rig: service.link must be 'serial:PATH' or"
+                        " 'none', not 'sim'")
+    return ServiceConfig(path, source, rate, followers, seed, feedback, link, frames, rig, calibration, dynamics,
+                         measurement)

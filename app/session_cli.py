@@ -11,9 +11,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.paths import RECORDINGS, UserError, display_path, resolve_scenario_path
-from app.recorder import Recorder, RecordingError, read_recording
 
 if TYPE_CHECKING:
+    from app.recorder import Recorder, Recording
     from app.service import Service
     from app.service_config import ServiceConfig
     from core.camera.config import CameraConfig
@@ -35,6 +35,9 @@ def session_metadata(scenario_name: str, scenario_path: str | None, camera: "tup
         wa = rig.working_area
         meta["working_area"] = f"{gamma.cx},{gamma.cy},{wa.inner_px},{wa.outer_px}"
         meta["camera"] = rig.source
+        from core.camera.config import gamma_toml
+
+        meta["calibration_toml"] = gamma_toml(gamma, wa, rig.detect, header=f"the calibration recorded with {rig.source}")
     return meta
 
 
@@ -53,18 +56,24 @@ def recording_path(name: str, now: _dt.datetime | None = None) -> Path:
 
 def start_recording(service: "Service", config: "ServiceConfig", scenario: "Scenario | None",
                     scenario_arg: str | None, camera: "tuple[CameraConfig, Gamma] | None",
-                    frames_hz: float, path: Path | None = None) -> Recorder:
+                    frames_hz: float, path: Path | None = None) -> "Recorder":
     name = scenario.name if scenario is not None else "sim"
     meta = session_metadata(name, scenario_arg, camera, config.path)
     path = path or recording_path(name)
+    from app.recorder import Recorder
+
     recorder = Recorder(path, meta, service.store.get(), frame_rate_hz=frames_hz)
     service.loop.subscribe(recorder.on_tick)
     service.store.subscribe(recorder.on_params)
     service.dashboard.controls.recording = display_path(path)
+    service.recordings.current = display_path(path)  # not offered for replay while it is being written
+    service.recordings.rescan()
     return recorder
 
 
-def _load(path: Path):  # type: ignore[no-untyped-def]
+def _load(path: Path) -> "Recording":
+    from app.recorder import RecordingError, read_recording
+
     try:
         rec = read_recording(path)
     except RecordingError as exc:
@@ -131,3 +140,16 @@ def add_parsers(sub: Any, int_in: Any) -> None:
     rep.add_argument("file", type=Path, help="a recording (.mcap)")
     rep.add_argument("--out", type=Path, required=True, help="folder for the figures and summary")
     rep.set_defaults(func=cmd_report)
+
+    rr = sub.add_parser("rerun", help="re-run a recording's frames (or its simulation) with other settings",
+                        description="Feed a recording's camera frames through the vision pipeline again with other"
+                                    " settings (--pipeline-config), or re-simulate a simulated session with other"
+                                    " controller gains (--gains); writes a new recording and prints what changed.")
+    rr.add_argument("file", type=Path, help="a recording (.mcap)")
+    rr.add_argument("--out", type=Path, required=True, metavar="NEW.mcap", help="the new recording")
+    rr.add_argument("--gains", metavar="k_f1=0.12,...", help="re-simulate with these controller gains")
+    rr.add_argument("--pipeline-config", type=Path, metavar="PIPELINE.toml",
+                    help="a [pipeline] table of vision settings (see core/vision/pipeline.py, PIPELINE_BOUNDS)")
+    rr.add_argument("--calibration", type=Path, metavar="CAMERA.toml",
+                    help="Γ to use instead of the one recorded with the session")
+    rr.set_defaults(func="app.rerun:cmd_rerun")

@@ -64,15 +64,17 @@ def parse_link_spec(spec: str) -> str:
 
 
 class SerialLink:
-    """A FollowerLink to ``n`` followers at addresses 1..n on one serial port."""
+    """A FollowerLink to ``n`` followers at addresses 1..n on one serial port (or to the
+    leader base at address 0: the LeaderOdometry port, see app.backends.hardware)."""
 
     def __init__(self, port: str, n: int, baud: int = 115200, v_max: float = 0.3, w_max: float = 2.0,
                  clock: Callable[[], float] = time.monotonic,
-                 opener: Callable[..., Any] | None = None) -> None:
+                 opener: Callable[..., Any] | None = None, addresses: list[int] | None = None) -> None:
+        """``addresses``: instead of 1..n, e.g. [0] for the leader base (docs/follower-protocol.md)."""
         self.port_name = port
         self.baud = baud
         self.v_max, self.w_max = v_max, w_max
-        self.addresses = list(range(1, n + 1))
+        self.addresses = list(addresses) if addresses is not None else list(range(1, n + 1))
         self.stats = [FollowerLinkStats(a) for a in self.addresses]
         self._by_addr = {s.address: s for s in self.stats}
         self.parser = p.FrameParser()
@@ -119,7 +121,7 @@ class SerialLink:
             for s in self.stats:
                 age = now - s.last_reply
                 flags = ("watchdog " if s.flags & p.FLAG_WATCHDOG else "") + ("stopped " if s.flags & p.FLAG_STOPPED else "")
-                parts.append(f"F{s.address} rtt {s.rtt_mean_ms:.1f} ms, lost {s.lost}/{s.sent}, crc {s.crc_errors}, "
+                parts.append(f"{'F' if s.address else 'leader '}{s.address or ''} rtt {s.rtt_mean_ms:.1f} ms, lost {s.lost}/{s.sent}, crc {s.crc_errors}, "
                              f"{s.battery_mv / 1000:.2f} V" + (f", {flags.strip()}" if flags else "")
                              + (f", silent {age:.1f} s" if age > SILENT_S and math.isfinite(age) else ""))
         return "; ".join(parts)

@@ -196,7 +196,8 @@ class Controls:
         if s.tick % 6:
             return
         stages = " · ".join(f"{k.split(':')[0]} {v:.2f}" for k, v in s.stage_ms.items() if not k.startswith("publish"))
-        err = np.nan_to_num(np.linalg.norm(s.p_true - s.p_d, axis=1) * 100)
+        pose = np.where(np.isfinite(s.p_true), s.p_true, s.p_est)  # real robots: the estimate is all we have
+        err = np.linalg.norm(pose - s.p_d, axis=1) * 100
         lines = [
             f"**{'STOPPED — all followers at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
             f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz",
@@ -204,8 +205,10 @@ class Controls:
             f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
             f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
             f" · link: {s.link_state} · " + (f"replaying {self.recording}" if self.replay else f"recording: {self.recording}"),
-            "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" for i, e in enumerate(err)),
+            "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
         ]
+        if s.camera_state:
+            lines.append(f"camera: {s.camera_state}")
         if s.link_detail:
             lines.append(f"link detail: {s.link_detail}")
         if s.fault:

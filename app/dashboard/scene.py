@@ -131,8 +131,9 @@ class Scene:
             self.followers[i].wxyz = yaw_wxyz(float(state.a_est[i]) + phi if known[i] else phi + math.pi / 2)
             self.followers[i].visible = bool(state.tracked[i]) and bool(known[i])
             tw = state.followers_world[i]
-            self.ghosts[i].visible = show_truth
-            if show_truth:
+            has_truth = show_truth and bool(np.all(np.isfinite(tw)))  # real robots: no ground truth
+            self.ghosts[i].visible = has_truth
+            if has_truth:
                 self.ghosts[i].position = (float(tw[0]), float(tw[1]), 0.0)
                 self.ghosts[i].wxyz = yaw_wxyz(float(tw[2]))
         if state.tick % 3 == 0:

@@ -22,7 +22,7 @@ from core.control.formation import ControllerState, compute_commands
 from core.geometry import heading_world_to_leader, leader_displacement, world_to_leader
 from core.sim.run import SimulationLog
 from core.sim.team import disturbance_mask, make_team_state, step_team
-from core.types import BoolArray, Commands, FloatArray
+from core.types import BoolArray, Commands, FloatArray, IntArray
 from core.vision.pipeline import PipelineSettings, VisionPipeline
 
 
@@ -36,6 +36,8 @@ class VisionLog:
     heading_measured: FloatArray  # (T, n) eq. 34–37 measurements, NaN between them
     phase: tuple[str, ...]  # (T,)
     startup_s: float  # simulated time the start-up manoeuvres took
+    windows: IntArray | None = None  # (T, n, 4) CAMSHIFT windows, pixels
+    hues_deg: FloatArray | None = None  # (T, n) learned marker colours
 
     @property
     def n(self) -> int:
@@ -67,7 +69,8 @@ def simulate_vision(
     assignment = np.arange(n)
 
     rows: dict[str, list[object]] = {k: [] for k in (
-        "t", "leader", "twist", "fw", "p", "a", "pm", "am", "pd", "cmd", "aerr", "tracked", "meas", "phase")}
+        "t", "leader", "twist", "fw", "p", "a", "pm", "am", "pd", "cmd", "aerr", "tracked", "meas", "phase", "win",
+        "hue")}
     prev_leader = state.leader.copy()
     last_cmd = np.zeros((n, 2))
     err_norm = np.zeros(n)
@@ -127,6 +130,8 @@ def simulate_vision(
         rows["tracked"].append(out.tracked)
         rows["meas"].append(out.heading_measured)
         rows["phase"].append(out.phase)
+        rows["win"].append(out.windows)
+        rows["hue"].append(out.hues_deg)
 
         last_cmd = np.column_stack([v_cmd, w_cmd])
         state = step_team(state, Commands(np.asarray(v_cmd), np.asarray(w_cmd)), (v_l, w_l), dt,
@@ -151,4 +156,5 @@ def simulate_vision(
         a_err=np.array(rows["aerr"]),
         assignment=np.asarray(assignment),
     )
-    return VisionLog(log, np.array(rows["tracked"]), np.array(rows["meas"]), tuple(rows["phase"]), t_ready)
+    return VisionLog(log, np.array(rows["tracked"]), np.array(rows["meas"]), tuple(rows["phase"]), t_ready,
+                     np.array(rows["win"], dtype=np.int64), np.array(rows["hue"]))

@@ -24,6 +24,7 @@ and the commands that were sent. Slot assignment (eq. 33) is the caller's, once 
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import dataclass, field
 
 import cv2
@@ -32,7 +33,7 @@ import numpy as np
 from core.camera.config import DetectSettings, WorkingArea
 from core.camera.gamma import Gamma
 from core.geometry import reexpress_in_new_frame, wrap_angle
-from core.types import BoolArray, FloatArray
+from core.types import BoolArray, FloatArray, IntArray
 from core.vision.background import BackgroundAccumulator, motion_blob
 from core.vision.blobs import find_blobs, hue_distance_deg, saturated_mask
 from core.vision.heading import ArcAnchor, HeadingFilter, arc_measurement, fit_heading_line
@@ -281,6 +282,29 @@ class VisionPipeline:
             hues_deg=np.array([f.track.hue_deg if f.track is not None else np.nan for f in self.followers]),
         )
 
+    def resume_tracking(self, frame: np.ndarray, windows: IntArray, headings: FloatArray) -> BoolArray:
+        """Enter formation tracking (§3.3) from a known state instead of the start-up: each
+        follower's colour is learned again from ``frame`` at its window (pixels x, y, w, h)
+        and its Kalman filter starts at ``headings`` (rad). Used to re-run a recording's frames
+        with other settings. Returns which followers were found."""
+        s = self.settings
+        sigma0 = math.radians(s.kalman_sigma0_deg)
+        found = np.zeros(self.n, dtype=bool)
+        for i, f in enumerate(self.followers):
+            x, y, w, h = (int(v) for v in windows[i])
+            track = self._learn(frame, (x, y, w, h)) if w > 0 and h > 0 else None
+            if track is None or not math.isfinite(float(headings[i])):
+                continue
+            f.track, f.tracked = track, True
+            f.position = self._to_leader(track.u, track.v)
+            f.heading = HeadingFilter(float(headings[i]), sigma0, math.radians(s.kalman_process_deg),
+                                      math.radians(s.kalman_measurement_deg))
+            f.anchor = ArcAnchor(f.position.copy())
+            found[i] = True
+        self.phase, self.probing = "tracking", -1
+        self._next_stage("run")
+        return found
+
     def _next_stage(self, stage: str) -> None:
         self._stage = stage
         self._timer = 0.0
@@ -342,3 +366,49 @@ def _overlaps(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> boo
 
 def heading_error(estimate: FloatArray, truth: FloatArray) -> FloatArray:
     return np.asarray(wrap_angle(np.asarray(estimate) - np.asarray(truth)))
+
+
+# Allowed ranges of the settings a user may change (rerun --pipeline-config): (lo, hi, unit).
+PIPELINE_BOUNDS: dict[str, tuple[float, float, str]] = {
+    "background_frames": (1, 120, "frames"),
+    "settle_s": (0.0, 10.0, "s"),
+    "probe_speed_mps": (0.005, 0.5, "m/s"),
+    "probe_s": (0.05, 10.0, "s"),
+    "heading_speed_mps": (0.005, 0.5, "m/s"),
+    "heading_s": (0.1, 20.0, "s"),
+    "diff_threshold": (1.0, 255.0, "grey levels"),
+    "min_blob_px": (1, 100_000, "px"),
+    "lost_after_frames": (1, 1000, "frames"),
+    "min_mass_fraction": (0.0, 1.0, ""),
+    "roi_margin_px": (0, 400, "px"),
+    "hue_tolerance_deg": (0.5, 90.0, "deg"),
+    "ransac_tolerance_m": (0.0005, 0.2, "m"),
+    "kalman_sigma0_deg": (0.01, 180.0, "deg"),
+    "kalman_process_deg": (0.01, 180.0, "deg per sqrt(s)"),
+    "kalman_measurement_deg": (0.01, 180.0, "deg"),
+}
+
+
+def parse_pipeline_settings(text: str, source: str, base: PipelineSettings = PipelineSettings()) -> PipelineSettings:
+    """A ``[pipeline]`` TOML table over ``base``; ConfigError (one line) for anything else."""
+    import tomllib
+
+    from core.config import ConfigError, Table
+
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    top = Table(data, source, "")
+    table = top.table("pipeline", optional=False)
+    changes: dict[str, float | int] = {}
+    for name, (lo, hi, unit) in PIPELINE_BOUNDS.items():
+        if not table.has(name):
+            continue
+        if isinstance(getattr(base, name), int):
+            changes[name] = table.integer(name, int(lo), int(hi))
+        else:
+            changes[name] = table.number(name, lo, hi, unit=unit)
+    table.finish()
+    top.finish()
+    return dataclasses.replace(base, **changes)

@@ -3,6 +3,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -158,3 +159,48 @@ def test_other_hosts_warn_and_bad_ports_exit_2():
             proc.kill()
     assert "no authentication" in err
     assert proc.returncode == 0, err
+
+
+def test_an_exception_inside_a_tick_stops_every_follower_and_the_loop_lives_on():
+    store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=60.0, seed=1)
+    seen: list = []
+    loop.subscribe(seen.append)
+    th = threading.Thread(target=loop.run, daemon=True)
+    th.start()
+    try:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not (seen and np.abs(seen[-1].commands).max() > 1e-3):
+            time.sleep(0.01)
+        assert np.abs(seen[-1].commands).max() > 1e-3, "followers moving before the fault"
+        feedback = loop._world.feedback
+        healthy = feedback.observe
+        sent_at_fault = []
+
+        def broken(*args):  # a driver failing once, inside the real loop
+            feedback.observe = healthy
+            raise RuntimeError("camera driver crashed")
+
+        feedback.observe = broken
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and loop.faults == 0:
+            time.sleep(0.002)
+        sent_at_fault.append(loop._world.team.commands)
+        assert loop.faults == 1
+        assert np.all(sent_at_fault[0].v == 0) and np.all(sent_at_fault[0].w == 0)  # zeroed at once
+        assert store.get().stop  # STOP engaged: the operator sees why and releases it
+        ticks = len(seen)
+        time.sleep(0.3)
+        after = seen[ticks:]
+        assert len(after) > 5, "the loop goes on observing"
+        assert all(np.all(s.commands == 0) for s in after)
+        assert all("RuntimeError: camera driver crashed" in s.fault for s in after)
+        store.update("browser:1", stop=False)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not (seen[-1].fault == "" and np.abs(seen[-1].commands).max() > 1e-3):
+            time.sleep(0.01)
+        assert seen[-1].fault == "" and np.abs(seen[-1].commands).max() > 1e-3
+    finally:
+        loop.stop()
+        th.join(5)
+    assert np.all(loop._world.team.commands.v == 0.0)

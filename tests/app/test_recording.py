@@ -1,6 +1,7 @@
 """Recording to MCAP, reading back (also cut-off files), report, and the commands around them."""
 
 import json
+import re
 import os
 import signal
 import subprocess
@@ -179,3 +180,91 @@ def test_simulate_record_then_replay_reads_back(tmp_path):
     assert out.returncode == 0, out.stderr
     rec = read_recording(path)
     assert len(rec.ticks) == 5 * 30 + 1 and rec.frames == []
+
+
+@pytest.fixture(scope="module")
+def vision_recording(tmp_path_factory):
+    """A short vision-in-the-loop session with every camera frame kept (30 Hz)."""
+    path = tmp_path_factory.mktemp("rerun") / "e1.mcap"
+    out = run_cli("simulate", "experiment1", "--vision", "--duration", "12", "--frames-hz", "30", "--record", str(path))
+    assert out.returncode == 0, out.stderr
+    return path
+
+
+def test_rerun_the_frames_reproduces_the_recorded_estimates(vision_recording, tmp_path):
+    new = tmp_path / "again.mcap"
+    out = run_cli("rerun", str(vision_recording), "--out", str(new))
+    assert out.returncode == 0, out.stderr
+    rows = re.findall(r"F(\d): position ([\d.]+) cm, heading ([\d.]+) deg; tracked (\d+) %.*?error vs truth "
+                      r"([\d.]+) -> ([\d.]+) cm", out.stdout)
+    assert len(rows) == 2, out.stdout
+    for _, dp, da, tracked, err_old, err_new in rows:
+        # same settings: the same estimates up to the JPEG frames and the re-learned colours
+        assert float(dp) < 1.0 and float(da) < 5.0 and int(tracked) == 100
+        assert float(err_new) < 1.5 * float(err_old) + 0.2
+    rec, back = read_recording(vision_recording), read_recording(new)
+    assert back.complete and back.metadata["rerun_of"] == vision_recording.name
+    assert len(back.ticks) == len(back.frames) and len(back.frames) > 200
+    assert back.metadata["calibration_toml"] == rec.metadata["calibration_toml"]  # the Γ it was recorded with
+
+
+def test_rerun_with_other_pipeline_settings_changes_the_headings(vision_recording, tmp_path):
+    cfg = tmp_path / "pipeline.toml"
+    cfg.write_text("[pipeline]\nkalman_measurement_deg = 60.0\nkalman_process_deg = 0.5\n")
+    same, other = tmp_path / "same.mcap", tmp_path / "other.mcap"
+    assert run_cli("rerun", str(vision_recording), "--out", str(same)).returncode == 0
+    out = run_cli("rerun", str(vision_recording), "--pipeline-config", str(cfg), "--out", str(other))
+    assert out.returncode == 0, out.stderr
+    a_same = np.array([tk["a_est"] for tk in read_recording(same).ticks], dtype=float)
+    a_other = np.array([tk["a_est"] for tk in read_recording(other).ticks], dtype=float)
+    assert np.nanmax(np.abs(a_same - a_other)) > np.radians(0.5)  # a much slower filter: other headings
+    settings = json.loads(read_recording(other).metadata["pipeline_settings"])
+    assert settings["kalman_measurement_deg"] == 60.0
+
+
+def test_rerun_with_other_gains_resimulates_from_the_same_start(tmp_path):
+    rec_path, new = tmp_path / "truth.mcap", tmp_path / "fast.mcap"
+    assert run_cli("simulate", "experiment1", "--duration", "40", "--record", str(rec_path)).returncode == 0
+    out = run_cli("rerun", str(rec_path), "--gains", "k_f1=0.2", "--out", str(new))
+    assert out.returncode == 0, out.stderr
+    settle = [(float(a), float(b)) for a, b in re.findall(r"settling ([\d.]+) -> ([\d.]+)", out.stdout)]
+    assert len(settle) == 2 and all(b < a for a, b in settle), out.stdout  # a stiffer pose term settles sooner
+    old, back = read_recording(rec_path), read_recording(new)
+    assert back.ticks[0]["p_true"] == old.ticks[0]["p_true"]  # the same start
+    assert back.ticks[0]["gains"]["k_f1"] == 0.2 and len(back.ticks) == len(old.ticks)
+
+
+def test_rerun_settings_are_checked_with_one_clear_line():
+    from app.paths import UserError
+    from app.rerun import parse_gains
+    from core.config import ConfigError
+    from core.types import Gains
+    from core.vision.pipeline import parse_pipeline_settings
+
+    assert parse_gains("k_f1=0.12, k_w2=2", Gains()) == Gains(k_f1=0.12, k_w2=2.0)
+    for text, message in [("k_f9=1", "must be NAME=NUMBER"), ("k_f1", "must be NAME=NUMBER"),
+                          ("k_f1=fast", "'fast' is not a number"), ("k_f1=7", r"k_f1 = 7.0: must be a number in \(0, 1\] m/s")]:
+        with pytest.raises(UserError, match=message):
+            parse_gains(text, Gains())
+    assert parse_pipeline_settings("[pipeline]\nlost_after_frames = 5\n", "p.toml").lost_after_frames == 5
+    for text, message in [("[pipeline]\nkalman_measurement_deg = -3\n", r"p.toml: pipeline.kalman_measurement_deg = -3:"
+                                                                         r" must be a number in \[0.01, 180\] deg"),
+                          ("[pipeline]\nkalman = 3\n", "kalman"), ("[pipeline]\nlost_after_frames = 2.5\n", "lost_after_frames"),
+                          ("[other]\n", "pipeline"), ("[pipeline\n", "not valid TOML")]:
+        with pytest.raises(ConfigError, match=message):
+            parse_pipeline_settings(text, "p.toml")
+
+
+def test_rerun_refuses_bad_input_in_one_line(vision_recording, tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[pipeline]\nkalman_measurement_deg = -3\n")
+    truth = tmp_path / "t.mcap"
+    assert run_cli("simulate", "experiment1", "--duration", "2", "--record", str(truth)).returncode == 0
+    for args, message in [
+        ((str(vision_recording), "--pipeline-config", str(bad)), "kalman_measurement_deg = -3: must be a number"),
+        ((str(truth),), "has no camera frames"),
+        ((str(truth), "--gains", "k_f1=0.2", "--out", str(truth)), "would overwrite"),
+    ]:
+        extra = () if "--out" in args else ("--out", str(tmp_path / "x.mcap"))
+        out = run_cli("rerun", *args, *extra)
+        assert out.returncode == 2 and message in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr

@@ -62,13 +62,20 @@ def page(service):
         pg.goto(service.url)
         pg.wait_for_selector('canvas[data-engine^="three.js"]', timeout=30_000)
         pg.wait_for_selector(".uplot canvas", timeout=30_000)
+        settle(pg)
         yield pg
         browser.close()
 
 
+def settle(page) -> None:
+    """Wait until the page's main thread is free: right after loading, software WebGL compiles
+    its shaders there for seconds on these machines (no GPU)."""
+    page.evaluate("() => new Promise(r => requestAnimationFrame(() => r(true)))")
+
+
 def control_id(page, label: str) -> str:
     loc = page.locator("label", has_text=label).first
-    loc.wait_for(timeout=10_000)
+    loc.wait_for(timeout=30_000)
     ident = loc.get_attribute("for")
     assert ident, f"label {label!r} has no control id"
     return ident

@@ -173,3 +173,22 @@ def test_stop_broadcast_and_addressing():
     st_frame = handle_frame(stopped, HW, p.ping(2, 9))[1]
     status = p.decode_status(st_frame)
     assert status.flags & p.FLAG_STOPPED and status.battery_mv == HW.battery_mv and st_frame.seq == 9
+
+
+def test_every_example_frame_in_the_protocol_document_is_valid():
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "follower-protocol.md").read_text()
+    examples = re.findall(r"`(a5 5a(?: [0-9a-f]{2})+)`", doc)
+    assert len(examples) == 5
+    for hex_text in examples:
+        raw = bytes.fromhex(hex_text)
+        parser = p.FrameParser()
+        (frame,) = parser.feed(raw)
+        assert p.encode_frame(frame) == raw and parser.rejected_total == 0
+    ack = p.decode_ack(p.FrameParser().feed(bytes.fromhex(examples[3]))[0])
+    assert ack == p.Ack(1520, 1544, 0.098, -0.247, 0)
+    status = p.decode_status(p.FrameParser().feed(bytes.fromhex(examples[4]))[0])
+    assert status == p.Status(7400, p.FLAG_WATCHDOG, 0xFFFF, 123456)
+    assert "0x29B1" in doc and "0.5 s" in doc

@@ -1,0 +1,116 @@
+"""Replay in real Chromium: a sample recording, the timeline slider, the scene and plots at that
+time; and the live dashboard opening a recording from recordings/ in a new tab."""
+
+from __future__ import annotations
+
+import math
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.recorder import read_recording
+from app.replay import ReplayService
+from core.geometry import leader_to_world
+from tests.browser.test_dashboard import ARTIFACTS, control_id, settle, wait_for
+
+ROOT = Path(__file__).resolve().parents[2]
+SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+
+@pytest.fixture(scope="module")
+def browser():
+    chromium = shutil.which("chromium")
+    assert chromium, "Debian's chromium is missing: `make test` installs it (scripts/ensure-chromium)"
+    with playwright_api.sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+        yield b
+        b.close()
+
+
+def test_timeline_slider_shows_the_recorded_state_of_that_time(browser):
+    rec = read_recording(SAMPLE)
+    svc = ReplayService(rec, port=0)
+    svc.start()
+    try:
+        page = browser.new_page(viewport={"width": 1400, "height": 900})
+        page.goto(svc.url)
+        page.wait_for_selector('canvas[data-engine^="three.js"]', timeout=30_000)
+        page.wait_for_selector(".uplot canvas", timeout=30_000)
+        settle(page)
+        page.get_by_text("replaying experiment2-vision.mcap").first.wait_for(timeout=30_000)
+        # robot-commanding controls are disabled in replay, and say why
+        assert page.get_by_role("button", name="STOP", exact=True).is_disabled()
+
+        target = 60.0
+        box = page.locator(f'[id="{control_id(page, "Time (s)")}"] + div input').first
+        box.fill(f"{target:g}")
+        box.press("Enter")
+        wait_for(lambda: abs(float(svc.t[svc.index]) - target) < 0.05, 15, "the replay to jump to 60 s")
+        k = svc.index
+        tick = rec.ticks[k]
+        # the 3D scene: each follower where the recording had its estimate at that time
+        leader = np.array(tick["leader"], dtype=float)
+        est = leader_to_world(np.array(tick["p_est"], dtype=float), leader[:2], float(leader[2]))
+        for i, handle in enumerate(svc.dashboard.scene.followers):
+            assert np.allclose(handle.position[:2], est[i], atol=1e-4), (i, handle.position, est[i])
+        assert np.allclose(svc.dashboard.scene.leader.position[:2], leader[:2], atol=1e-4)
+        # the plots: the last 60 s up to that time
+        t_plot = np.asarray(svc.dashboard.plots.charts["ex"].data[0])
+        assert t_plot[-1] <= float(svc.t[k]) + 1e-6 and t_plot[-1] > float(svc.t[k]) - 0.5
+        assert t_plot[0] >= float(svc.t[k]) - 60.5 and len(t_plot) > 50
+        ex = np.asarray(svc.dashboard.plots.charts["ex"].data[1])
+        p_d, p_true = np.array(tick["p_d"], dtype=float), np.array(tick["p_true"], dtype=float)
+        assert math.isclose(ex[-1], (p_d - p_true)[0, 0], abs_tol=2e-3) or math.isclose(
+            ex[-1], (p_d - np.array(tick["p_est"], dtype=float))[0, 0], abs_tol=2e-3)
+        # and the page itself shows that moment
+        shown = f"t = {float(svc.t[k]):.1f} s"
+        page.get_by_text(shown).first.wait_for(timeout=30_000)
+        ARTIFACTS.mkdir(exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "replay.png"))
+
+        # play at 8x, then pause: time moved on by about 8x the wall time
+        page.get_by_role("button", name="Play replay").click()
+        page.get_by_role("button", name="Pause replay").wait_for(timeout=10_000)
+        start = float(svc.t[svc.index])
+        wait_for(lambda: float(svc.t[svc.index]) > start + 1.0, 20, "playback to advance")
+        page.get_by_role("button", name="Pause replay").click()
+        wait_for(lambda: not svc.playing, 10, "playback to pause")
+        # next event: experiment 2's follower 2 gets stuck at 58-62 s; events include the start-up phases
+        before = float(svc.t[svc.index])
+        page.get_by_role("button", name="Previous event").click()
+        wait_for(lambda: float(svc.t[svc.index]) < before, 10, "a jump to the previous event")
+        assert any(abs(float(e["t"]) - float(svc.t[svc.index])) < 0.05 for e in rec.events)
+    finally:
+        svc.close()
+
+
+def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
+    from app.service import Service
+
+    svc = Service(port=0, n_followers=2)  # truth feedback: light, this test is about the panel
+    svc.start()
+    try:
+        page = browser.new_page(viewport={"width": 1400, "height": 900})
+        page.goto(svc.url)
+        page.wait_for_selector(".uplot", state="attached", timeout=30_000)
+        settle(page)
+        page.get_by_text("Recordings", exact=True).first.click()  # the folder, collapsed by default
+        options = svc.recordings.menu.options
+        assert "recordings/samples/experiment2-vision.mcap" in options
+        svc.recordings.menu.value = "recordings/samples/experiment2-vision.mcap"
+        page.get_by_role("button", name="Replay in a new tab").click()
+        link = page.locator("a", has_text="experiment2-vision.mcap").first
+        link.wait_for(timeout=30_000)
+        url = link.get_attribute("href")
+        assert url and re.match(r"http://127\.0\.0\.1:\d+", url) and url != svc.url
+        replay = browser.new_page(viewport={"width": 1200, "height": 800})
+        replay.goto(url)
+        replay.get_by_text("replaying experiment2-vision.mcap").first.wait_for(timeout=30_000)
+        assert svc.loop.tick_count > 0 and not svc.loop.stopping  # the live run went on
+    finally:
+        svc.close()
+    assert svc.recordings.replays == []
