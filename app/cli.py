@@ -157,7 +157,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise UserError("--link none and --leader need --camera: the simulated team has its own leader and link")
     if args.calibration is not None and not real:
         raise UserError("--calibration goes with --camera (the synthetic camera's is set in the config)")
-    from app.backends.serial_link import SerialLink, parse_link_spec
+    from app.backends.serial_link import SerialLink, make_link, parse_link_spec
 
     try:
         link_port = "" if link_spec == "none" else parse_link_spec(link_spec)
@@ -192,7 +192,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
             frames = open_frame_source(args.camera, args.camera_fps)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-    link = SerialLink(link_port, n_followers, baud=args.baud, v_max=limits.v_max, w_max=limits.w_max) if link_port else None
+    link = None
+    if link_port:
+        try:
+            link = make_link(link_port, n_followers, baud=args.baud, v_max=limits.v_max, w_max=limits.w_max)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
     if real:
         from app.backends.hardware import HardwareTeam
 
@@ -292,7 +297,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=_seed, help="random seed of the simulated team")
     run.add_argument("--link", metavar="sim|serial:PATH|none",
                      help="where commands go: the built-in simulated team (default) or followers on a serial port,"
-                          " e.g. serial:/dev/ttyUSB0 or the path `omniformation emulate-follower` prints;"
+                          " e.g. serial:/dev/ttyUSB0 or the path `omniformation emulate-follower` prints"
+                          " (serial:PORT1,PORT2,... for one port per follower);"
                           " with --camera: serial:PATH, or none (the default) to only observe")
     run.add_argument("--camera", metavar="0|/dev/videoN|VIDEO|FOLDER",
                      help="a real rig: frames from a camera (index or device), a video file or a folder of images")

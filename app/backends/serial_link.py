@@ -121,7 +121,8 @@ class SerialLink:
             for s in self.stats:
                 age = now - s.last_reply
                 flags = ("watchdog " if s.flags & p.FLAG_WATCHDOG else "") + ("stopped " if s.flags & p.FLAG_STOPPED else "")
-                parts.append(f"{'F' if s.address else 'leader '}{s.address or ''} rtt {s.rtt_mean_ms:.1f} ms, lost {s.lost}/{s.sent}, crc {s.crc_errors}, "
+                name = f"F{s.address}" if s.address != p.LEADER_ADDRESS else "leader base"
+                parts.append(f"{name} rtt {s.rtt_mean_ms:.1f} ms, lost {s.lost}/{s.sent}, crc {s.crc_errors}, "
                              f"{s.battery_mv / 1000:.2f} V" + (f", {flags.strip()}" if flags else "")
                              + (f", silent {age:.1f} s" if age > SILENT_S and math.isfinite(age) else ""))
         return "; ".join(parts)
@@ -270,3 +271,57 @@ class SerialLink:
 def _short(exc: BaseException) -> str:
     text = str(exc).strip() or type(exc).__name__
     return text.splitlines()[0][:120]
+
+
+class PortPerFollowerLink:
+    """One serial port per follower: follower i on ``ports[i]``, at address i + 1. The same
+    FollowerLink as :class:`SerialLink`; each port has its own reader, back-off and stats."""
+
+    def __init__(self, ports: list[str], baud: int = 115200, v_max: float = 0.3, w_max: float = 2.0) -> None:
+        self.port_name = ",".join(ports)
+        self.links = [SerialLink(port, 1, baud, v_max, w_max, addresses=[i + 1]) for i, port in enumerate(ports)]
+
+    @property
+    def n(self) -> int:
+        return len(self.links)
+
+    @property
+    def connects(self) -> int:
+        return min(link.connects for link in self.links)
+
+    @property
+    def link_state(self) -> str:
+        lost = [f"F{i + 1} {link.link_state}" for i, link in enumerate(self.links) if not link.connected]
+        return f"serial {self.n} ports: ok" if not lost else "; ".join(lost)
+
+    def detail(self) -> str:
+        return "; ".join(link.detail() for link in self.links)
+
+    def measured(self) -> tuple[FloatArray, FloatArray]:
+        parts = [link.measured() for link in self.links]
+        return np.concatenate([v for v, _ in parts]), np.concatenate([w for _, w in parts])
+
+    def send(self, commands: Commands) -> None:
+        v, w = np.asarray(commands.v, dtype=float), np.asarray(commands.w, dtype=float)
+        for i, link in enumerate(self.links):
+            link.send(Commands(v[i:i + 1] if i < len(v) else np.zeros(1), w[i:i + 1] if i < len(w) else np.zeros(1)))
+
+    def close(self) -> None:
+        for link in self.links:
+            link.close()
+
+
+def make_link(port_spec: str, n: int, baud: int = 115200, v_max: float = 0.3,
+              w_max: float = 2.0) -> SerialLink | PortPerFollowerLink:
+    """One port for the whole team, or a comma-separated list: one port per follower.
+
+    ValueError (one line) when the number of ports is neither 1 nor n."""
+    ports = [p_.strip() for p_ in port_spec.split(",")]
+    if any(not p_ for p_ in ports):
+        raise ValueError(f"--link serial:{port_spec}: an empty port name in the list")
+    if len(ports) == 1:
+        return SerialLink(ports[0], n, baud, v_max, w_max)
+    if len(ports) != n:
+        raise ValueError(f"--link serial:{port_spec}: {len(ports)} ports for {n} followers; give one port for the"
+                         " whole team or one per follower")
+    return PortPerFollowerLink(ports, baud, v_max, w_max)

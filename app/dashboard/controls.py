@@ -193,14 +193,16 @@ class Controls:
             self.notice = "; ".join(n.message for n in notices)
 
     def update_status(self, s: TickState) -> None:
-        if s.tick % 6:
+        if s.tick % 6 and not self.replay:  # live: 5 Hz is plenty; a replay shows exactly the tick it jumped to
             return
         stages = " · ".join(f"{k.split(':')[0]} {v:.2f}" for k, v in s.stage_ms.items() if not k.startswith("publish"))
         pose = np.where(np.isfinite(s.p_true), s.p_true, s.p_est)  # real robots: the estimate is all we have
         err = np.linalg.norm(pose - s.p_d, axis=1) * 100
         lines = [
-            f"**{'STOPPED — all followers at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
-            f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz",
+            (f"**recorded{' (STOPPED)' if s.stopped else ''}** · t = {s.t:.1f} s · loop was {s.rate_hz:.1f} Hz"
+             if self.replay else
+             f"**{'STOPPED — all followers at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
+             f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz"),
             f"stages (ms): {stages}",
             f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
             f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"

@@ -11,7 +11,7 @@ import pytest
 from app.camera_files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
 from core.camera.synthetic import renderer_for
 from core.vision.blobs import find_blobs, hue_distance_deg
-from tests.app.test_cli import run_cli
+from tests.app.test_cli import main_cli, run_cli
 
 
 @pytest.fixture(scope="module")
@@ -133,6 +133,6 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
     (tmp_path / "notes.png").write_text("not a picture")
     args = [a.replace("BAD_TABLE", str(tmp_path / "bad.csv")).replace("NOT_IMAGE", str(tmp_path / "notes.png"))
             .replace("OUT/", str(tmp_path / "OUT") + "/").replace("X/", str(tmp_path) + "/") for a in args]
-    res = run_cli(*args)
+    res = main_cli(*args)
     assert res.returncode == 2, res.stdout + res.stderr
     assert message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr

@@ -20,7 +20,7 @@ from app.loop import ServiceLoop, TickState
 from app.params import Params, ParamsStore
 from core.camera.render import Renderer
 from core.link import protocol as p
-from tests.app.test_cli import run_cli
+from tests.app.test_cli import main_cli, run_cli
 from tests.app.test_serial_link import EmulatorThread, wait_for
 
 TEAM = np.array([[-0.6, -0.5, 1.6], [0.5, -0.6, 1.5], [0.1, 0.8, 1.2]])  # leader frame x, y, heading
@@ -83,7 +83,7 @@ def test_frame_source_arguments_are_checked(tmp_path):
         (("--camera", str(tmp_path), "--calibration", str(SYNTHETIC_CAMERA)), "has no [gamma]"),
         (("--camera", str(tmp_path), "--leader", "ttyUSB1"), "must be 'sim' or 'serial:PATH'"),
     ]:
-        out = run_cli("run", "--port", "0", "--no-record", *args)
+        out = main_cli("run", "--port", "0", "--no-record", *args)
         assert out.returncode == 2, (args, out.stderr)
         assert message in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
 
@@ -147,7 +147,7 @@ def test_the_config_chooses_frames_and_link_and_bad_values_are_refused(tmp_path)
         ('link = "tcp:9"', 'source = "synthetic"', "service.link = 'tcp:9': must be 'sim', 'none' or 'serial:PATH'"),
         ('link = "sim"', f'source = "{frames}"', "is a real rig: service.link must be"),
     ]:
-        out = run_cli("run", "--config", str(_config(tmp_path, service, camera)), "--port", "0", "--no-record")
+        out = main_cli("run", "--config", str(_config(tmp_path, service, camera)), "--port", "0", "--no-record")
         assert out.returncode == 2 and message in out.stderr, out.stderr
         assert len(out.stderr.strip().splitlines()) == 1
 
@@ -178,3 +178,31 @@ def test_a_real_rig_from_the_config_starts_observes_and_stops_cleanly(tmp_path):
             proc.kill()
     assert proc.returncode == 0, err
     assert "Traceback" not in err
+
+
+def test_the_leader_base_odometry_port_dead_reckons_the_leader():
+    """The LeaderOdometry port: the leader base at address 0 is sent the operator's (v, w) and
+    its encoder odometry integrates to the leader's pose (what eq. 38 uses)."""
+    base = EmulatorThread(addresses=[p.LEADER_ADDRESS])
+    leader = SerialLink(base.path, 1, addresses=[p.LEADER_ADDRESS])
+    team = HardwareTeam(2, None, leader)
+    try:
+        wait_for(lambda: leader.connects == 1, 5, "the leader base's port")
+        dt, seconds = 1 / 30, 3.0
+        t0 = time.monotonic()
+        for k in range(int(seconds / dt)):
+            team.advance((0.1, 0.2), dt, k * dt)
+            time.sleep(max(0.0, t0 + (k + 1) * dt - time.monotonic()))
+        x, y, theta = team.state.leader
+        turned = theta - np.pi / 2
+        # the motor lag (0.12 s) and one tick of odometry delay: a little less than 0.2 rad/s * 3 s
+        assert 0.2 * (seconds - 0.5) < turned < 0.2 * seconds + 0.02
+        r = 0.1 / 0.2
+        assert np.hypot(x, y) == pytest.approx(2 * r * np.sin(turned / 2), rel=0.05)  # on the arc of radius v/w
+        assert x < 0 < y  # started heading +y, turning counter-clockwise
+        assert "leader base: serial" in team.link_state and team.link_state.startswith("none (observe only)")
+        assert team.link_detail().startswith("leader base rtt")
+    finally:
+        team.close()
+        base.close()
+    assert base.emulator.snapshot()[p.LEADER_ADDRESS].flags & p.FLAG_STOPPED  # closing stops the base too

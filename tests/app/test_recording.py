@@ -15,7 +15,7 @@ import pytest
 from app.loop import ServiceLoop
 from app.params import Params, ParamsStore
 from app.recorder import CHUNK_BYTES, Recorder, RecordingError, read_recording, tick_from_payload, tick_payload
-from tests.app.test_cli import run_cli
+from tests.app.test_cli import main_cli, run_cli
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / "recordings" / "samples"
@@ -117,7 +117,7 @@ def test_garbage_gets_one_line_and_exit_2(tmp_path, content, message):
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(content)
     for cmd in (["report", str(bad), "--out", str(tmp_path / "r")], ["replay", str(bad), "--port", "0"]):
-        out = run_cli(*cmd)
+        out = main_cli(*cmd)
         assert out.returncode == 2
         assert message in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
 
@@ -128,7 +128,7 @@ def test_a_file_cut_in_its_first_chunk_is_refused_clearly(tmp_path):
     cut.write_bytes(sample.read_bytes()[:3000])
     with pytest.raises(RecordingError, match="no complete tick|not a readable|not an MCAP"):
         read_recording(cut)
-    out = run_cli("report", str(cut), "--out", str(tmp_path / "r"))
+    out = main_cli("report", str(cut), "--out", str(tmp_path / "r"))
     assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1
 
 
@@ -176,7 +176,7 @@ def test_report_writes_figures_and_summary(tmp_path):
 
 def test_simulate_record_then_replay_reads_back(tmp_path):
     path = tmp_path / "sim.mcap"
-    out = run_cli("simulate", "experiment1", "--duration", "5", "--record", str(path))
+    out = main_cli("simulate", "experiment1", "--duration", "5", "--record", str(path))
     assert out.returncode == 0, out.stderr
     rec = read_recording(path)
     assert len(rec.ticks) == 5 * 30 + 1 and rec.frames == []
@@ -186,14 +186,14 @@ def test_simulate_record_then_replay_reads_back(tmp_path):
 def vision_recording(tmp_path_factory):
     """A short vision-in-the-loop session with every camera frame kept (30 Hz)."""
     path = tmp_path_factory.mktemp("rerun") / "e1.mcap"
-    out = run_cli("simulate", "experiment1", "--vision", "--duration", "12", "--frames-hz", "30", "--record", str(path))
+    out = main_cli("simulate", "experiment1", "--vision", "--duration", "12", "--frames-hz", "30", "--record", str(path))
     assert out.returncode == 0, out.stderr
     return path
 
 
 def test_rerun_the_frames_reproduces_the_recorded_estimates(vision_recording, tmp_path):
     new = tmp_path / "again.mcap"
-    out = run_cli("rerun", str(vision_recording), "--out", str(new))
+    out = main_cli("rerun", str(vision_recording), "--out", str(new))
     assert out.returncode == 0, out.stderr
     rows = re.findall(r"F(\d): position ([\d.]+) cm, heading ([\d.]+) deg; tracked (\d+) %.*?error vs truth "
                       r"([\d.]+) -> ([\d.]+) cm", out.stdout)
@@ -212,8 +212,8 @@ def test_rerun_with_other_pipeline_settings_changes_the_headings(vision_recordin
     cfg = tmp_path / "pipeline.toml"
     cfg.write_text("[pipeline]\nkalman_measurement_deg = 60.0\nkalman_process_deg = 0.5\n")
     same, other = tmp_path / "same.mcap", tmp_path / "other.mcap"
-    assert run_cli("rerun", str(vision_recording), "--out", str(same)).returncode == 0
-    out = run_cli("rerun", str(vision_recording), "--pipeline-config", str(cfg), "--out", str(other))
+    assert main_cli("rerun", str(vision_recording), "--out", str(same)).returncode == 0
+    out = main_cli("rerun", str(vision_recording), "--pipeline-config", str(cfg), "--out", str(other))
     assert out.returncode == 0, out.stderr
     a_same = np.array([tk["a_est"] for tk in read_recording(same).ticks], dtype=float)
     a_other = np.array([tk["a_est"] for tk in read_recording(other).ticks], dtype=float)
@@ -224,8 +224,8 @@ def test_rerun_with_other_pipeline_settings_changes_the_headings(vision_recordin
 
 def test_rerun_with_other_gains_resimulates_from_the_same_start(tmp_path):
     rec_path, new = tmp_path / "truth.mcap", tmp_path / "fast.mcap"
-    assert run_cli("simulate", "experiment1", "--duration", "40", "--record", str(rec_path)).returncode == 0
-    out = run_cli("rerun", str(rec_path), "--gains", "k_f1=0.2", "--out", str(new))
+    assert main_cli("simulate", "experiment1", "--duration", "40", "--record", str(rec_path)).returncode == 0
+    out = main_cli("rerun", str(rec_path), "--gains", "k_f1=0.2", "--out", str(new))
     assert out.returncode == 0, out.stderr
     settle = [(float(a), float(b)) for a, b in re.findall(r"settling ([\d.]+) -> ([\d.]+)", out.stdout)]
     assert len(settle) == 2 and all(b < a for a, b in settle), out.stdout  # a stiffer pose term settles sooner
@@ -259,12 +259,12 @@ def test_rerun_refuses_bad_input_in_one_line(vision_recording, tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[pipeline]\nkalman_measurement_deg = -3\n")
     truth = tmp_path / "t.mcap"
-    assert run_cli("simulate", "experiment1", "--duration", "2", "--record", str(truth)).returncode == 0
+    assert main_cli("simulate", "experiment1", "--duration", "2", "--record", str(truth)).returncode == 0
     for args, message in [
         ((str(vision_recording), "--pipeline-config", str(bad)), "kalman_measurement_deg = -3: must be a number"),
         ((str(truth),), "has no camera frames"),
         ((str(truth), "--gains", "k_f1=0.2", "--out", str(truth)), "would overwrite"),
     ]:
         extra = () if "--out" in args else ("--out", str(tmp_path / "x.mcap"))
-        out = run_cli("rerun", *args, *extra)
+        out = main_cli("rerun", *args, *extra)
         assert out.returncode == 2 and message in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr

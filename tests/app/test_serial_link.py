@@ -34,8 +34,8 @@ def wait_for(pred, timeout: float, what: str) -> float:
 class EmulatorThread:
     """Emulated followers on a real pty, in this process so a test can look at the robots."""
 
-    def __init__(self, n: int = 3, drop: float = 0.0, corrupt: float = 0.0) -> None:
-        self.emulator = FollowerEmulator(list(range(1, n + 1)), drop=drop, corrupt=corrupt, seed=3)
+    def __init__(self, n: int = 3, drop: float = 0.0, corrupt: float = 0.0, addresses: list[int] | None = None) -> None:
+        self.emulator = FollowerEmulator(addresses or list(range(1, n + 1)), drop=drop, corrupt=corrupt, seed=3)
         self.endpoint = PtyEndpoint()
         self.path = self.endpoint.path
         self._stop = threading.Event()
@@ -169,12 +169,38 @@ def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
 
 
 def test_bad_link_arguments_exit_2():
-    from tests.app.test_cli import run_cli
+    from tests.app.test_cli import main_cli, run_cli
 
-    out = run_cli("run", "--port", "0", "--link", "tcp:9", "--no-record")
+    out = main_cli("run", "--port", "0", "--link", "tcp:9", "--no-record")
     assert out.returncode == 2 and "must be 'sim' or 'serial:PATH'" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
-    out = run_cli("emulate-follower", "--port", "/nonexistent/tty")
+    out = main_cli("emulate-follower", "--port", "/nonexistent/tty")
     assert out.returncode == 2 and "cannot open serial port /nonexistent/tty" in out.stderr
-    out = run_cli("emulate-follower", "--drop", "1.5")
+    out = main_cli("emulate-follower", "--drop", "1.5")
     assert out.returncode == 2 and "--drop" in out.stderr
+
+
+def test_one_port_per_follower():
+    from app.backends.serial_link import PortPerFollowerLink, make_link
+
+    robots = [EmulatorThread(addresses=[i + 1]) for i in range(2)]  # follower i alone on its own pty
+    link = make_link(f"{robots[0].path},{robots[1].path}", 2)
+    assert isinstance(link, PortPerFollowerLink)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "both ports to open")
+        for _ in range(20):
+            link.send(Commands(np.array([0.1, -0.05]), np.array([0.0, 0.3])))
+            time.sleep(1 / 30)
+        hw = robots[0].emulator.hw
+        assert robots[0].emulator.snapshot()[1].measured(hw)[0] == pytest.approx(0.1, abs=0.01)
+        assert robots[1].emulator.snapshot()[2].measured(hw)[1] == pytest.approx(0.3, abs=0.03)
+        v, w = link.measured()
+        assert v == pytest.approx([0.1, -0.05], abs=0.01) and w[1] == pytest.approx(0.3, abs=0.03)
+        assert link.link_state == "serial 2 ports: ok" and link.detail().count("rtt") == 2
+        robots[1].close()
+        wait_for(lambda: link.link_state.startswith("F2 link lost"), 3, "F2's port to be reported lost")
+    finally:
+        link.close()
+        robots[0].close()
+    with pytest.raises(ValueError, match="3 ports for 2 followers"):
+        make_link("a,b,c", 2)
