@@ -9,11 +9,11 @@ import numpy as np
 
 from app.paths import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, UserError, display_path
 from core.camera.config import CameraConfig, parse_camera
-from core.camera.gamma import CalibrationError, MatchingTable, parse_table
+from core.camera.gamma import CalibrationError, Gamma, MatchingTable, parse_table
 from core.config import ConfigError
 
-__all__ = ["SYNTHETIC_CALIBRATED", "SYNTHETIC_CAMERA", "load_camera", "load_table", "write_table", "read_image",
-           "check_out_path"]
+__all__ = ["SYNTHETIC_CALIBRATED", "SYNTHETIC_CAMERA", "load_camera", "load_synthetic_rig", "load_table",
+           "write_table", "read_image", "check_out_path"]
 
 
 def _read_text(path: Path, what: str) -> str:
@@ -30,6 +30,17 @@ def load_camera(path: Path) -> CameraConfig:
         return parse_camera(_read_text(path, "camera config"), display_path(path))
     except (ConfigError, CalibrationError) as exc:
         raise UserError(str(exc)) from None
+
+
+def load_synthetic_rig(rig_path: Path, calibration_path: Path) -> tuple[CameraConfig, Gamma]:
+    """A synthetic rig that renders frames and the Γ that reads them, each checked (one-line UserError)."""
+    rig = load_camera(rig_path)
+    calibration = load_camera(calibration_path)
+    if rig.model is None:
+        raise UserError(f"{display_path(rig_path)}: has no [model]: a synthetic rig is needed to render frames")
+    if calibration.gamma is None:
+        raise UserError(f"{display_path(calibration_path)}: has no [gamma]; make one with omniformation calibrate")
+    return rig, calibration.gamma
 
 
 def load_table(path: Path) -> MatchingTable:

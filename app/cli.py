@@ -83,15 +83,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     camera = None
     if args.vision:
-        from app.camera_files import load_camera
+        from app.camera_files import load_synthetic_rig
 
-        rig = load_camera(args.camera)
-        calibration = load_camera(args.calibration)
-        if rig.model is None:
-            raise UserError(f"{display_path(args.camera)}: has no [model]: a synthetic rig is needed to render frames")
-        if calibration.gamma is None:
-            raise UserError(f"{display_path(args.calibration)}: has no [gamma]; make one with omniformation calibrate")
-        camera = (rig, calibration.gamma)
+        camera = load_synthetic_rig(args.camera, args.calibration)
     run = run_simulation(scenario, camera, frames_hz=args.frames_hz if args.record is not None else 0.0,
                          jpeg_quality=args.jpeg_quality)
     log, vision = run.log, run.vision

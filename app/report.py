@@ -154,36 +154,39 @@ def _trajectory(s: Series, title: str, path: Path, instants: int = 6) -> None:
     plt.close(fig)
 
 
-def _errors(s: Series, path: Path) -> None:
+def _per_follower(s: Series, path: Path, ylabel: str, title: str,
+                  draw: Callable[[plt.Axes, int], None]) -> None:
+    """One panel per follower, stacked over a shared time axis (the paper's fig. 17/20 layout)."""
     n = s.p.shape[1]
     fig, axes = plt.subplots(n, 1, figsize=(9, 2.2 * n + 0.6), sharex=True, constrained_layout=True, squeeze=False)
-    err = s.p_d - s.p
     for i in range(n):
         ax = axes[i, 0]
-        ax.plot(s.t, err[:, i, 0], color="tab:blue", lw=1.0, label="x error")
-        ax.plot(s.t, err[:, i, 1], color="tab:red", lw=1.0, label="y error")
-        ax.set(ylabel="m", title=f"follower {i + 1}: position error")
+        draw(ax, i)
+        ax.set(ylabel=ylabel, title=f"follower {i + 1}: {title}")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("t (s)")
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _errors(s: Series, path: Path) -> None:
+    err = s.p_d - s.p
+
+    def draw(ax: plt.Axes, i: int) -> None:
+        ax.plot(s.t, err[:, i, 0], color="tab:blue", lw=1.0, label="x error")
+        ax.plot(s.t, err[:, i, 1], color="tab:red", lw=1.0, label="y error")
+
+    _per_follower(s, path, "m", "position error", draw)
 
 
 def _headings(s: Series, path: Path) -> None:
-    n = s.p.shape[1]
-    fig, axes = plt.subplots(n, 1, figsize=(9, 2.2 * n + 0.6), sharex=True, constrained_layout=True, squeeze=False)
-    for i in range(n):
-        ax = axes[i, 0]
+    def draw(ax: plt.Axes, i: int) -> None:
         ax.plot(s.t, np.degrees(s.a_raw[:, i]), color="tab:blue", lw=0.8, label="measured (eq. 34-37)")
         ax.plot(s.t, np.degrees(s.a_est[:, i]), color="tab:red", lw=1.2, label="Kalman-filtered")
         ax.axhline(90.0, color="k", lw=0.5, ls=":")
-        ax.set(ylabel="deg", title=f"follower {i + 1}: heading in the leader frame")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper right")
-    axes[-1, 0].set_xlabel("t (s)")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+
+    _per_follower(s, path, "deg", "heading in the leader frame", draw)
 
 
 def _lyapunov_commands(s: Series, path: Path) -> None:

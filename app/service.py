@@ -22,7 +22,7 @@ from core.sim.profiles import ConstantProfile, Eq39Profile
 from app.backends.camera_cv import FrameSource
 from app.backends.hardware import HardwareTeam
 from app.backends.sim import OdometryLink
-from app.dashboard import Dashboard
+from app.dashboard import Dashboard, LatestStatePublisher
 from app.dashboard.camera_panel import Overlay
 from app.dashboard.recordings_panel import RecordingsPanel
 from app.loop import ServiceLoop
@@ -76,7 +76,8 @@ class Service:
             overlay = Overlay((camera[1].cx, camera[1].cy), wa.inner_px, wa.outer_px)
         self.dashboard = Dashboard(self.server, self.store, overlay)
         self.recordings = RecordingsPanel(self.server, host)
-        self.loop.subscribe(self.dashboard.publish)
+        self.publisher = LatestStatePublisher(self.dashboard.publish)
+        self.loop.subscribe(self.publisher)
         self._thread: threading.Thread | None = None
 
     @property
@@ -99,6 +100,7 @@ class Service:
         self.loop.stop()
         if self._thread is not None:
             self._thread.join(60.0)
+        self.publisher.close()
         self.recordings.close()
         self.server.stop()
         if self.loop.frames is not None:

@@ -11,7 +11,7 @@ from core.camera.gamma import Gamma
 from core.config import ConfigError, MeasurementNoise, Table, parse_dynamics, parse_measurement
 from core.sim.team import FollowerDynamics
 
-from app.camera_files import load_camera
+from app.camera_files import load_synthetic_rig
 from app.paths import DEFAULT_CONFIG, UserError, display_path
 
 __all__ = ["DEFAULT_CONFIG", "FEEDBACKS", "ServiceConfig", "load_service_config"]
@@ -35,13 +35,7 @@ class ServiceConfig:
 
     def camera(self) -> tuple[CameraConfig, Gamma]:
         """The synthetic rig and its Γ, read and checked (one-line UserError otherwise)."""
-        rig = load_camera(self.rig_path)
-        cal = load_camera(self.calibration_path)
-        if rig.model is None:
-            raise UserError(f"{display_path(self.rig_path)}: has no [model]: the simulated camera needs one")
-        if cal.gamma is None:
-            raise UserError(f"{display_path(self.calibration_path)}: has no [gamma]; make one with omniformation calibrate")
-        return rig, cal.gamma
+        return load_synthetic_rig(self.rig_path, self.calibration_path)
 
 
 def load_service_config(path: Path, max_followers: int) -> ServiceConfig:

@@ -6,6 +6,10 @@ inside ``server.atomic()``. Controls only write to the ParamsStore.
 
 from __future__ import annotations
 
+import logging
+import threading
+from typing import Callable
+
 import viser
 
 from app.dashboard.camera_panel import CameraPanel, Overlay
@@ -33,3 +37,49 @@ class Dashboard:
             self.controls.update_status(state)
         self.camera.update(state)
         self.plots.update(state)
+
+
+class LatestStatePublisher:
+    """Publishes on its own thread, always the newest state; the loop only hands states over.
+
+    The robots' loop must never wait for the page server: drawing the scene, encoding the
+    camera JPEG and serialising plots for every connected browser happen here, and a state
+    that is superseded before it could be drawn is skipped (the plots keep their time axis).
+    """
+
+    def __init__(self, publish: Callable[[TickState], None]) -> None:
+        self._publish = publish
+        self._cv = threading.Condition()
+        self._state: TickState | None = None
+        self._closed = False
+        self.published = 0
+        self.skipped = 0
+        self._thread = threading.Thread(target=self._run, name="omniformation-dashboard", daemon=True)
+        self._thread.start()
+
+    def __call__(self, state: TickState) -> None:
+        with self._cv:
+            if self._state is not None:
+                self.skipped += 1
+            self._state = state
+            self._cv.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while self._state is None and not self._closed:
+                    self._cv.wait()
+                if self._closed:
+                    return
+                state, self._state = self._state, None
+            try:
+                self._publish(state)
+                self.published += 1
+            except Exception:  # a broken view must not take the page down with it
+                logging.getLogger(__name__).exception("dashboard publish failed")
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify()
+        self._thread.join(5.0)

@@ -5,6 +5,7 @@ every open browser. Callbacks ignore server-set values (event.client_id is None)
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -13,6 +14,8 @@ import viser
 from core.types import GAIN_BOUNDS
 
 from app.loop import TickState
+
+STATUS_S = 0.2  # the live status is redrawn at most this often
 from app.params import (
     FORMATION_PRESETS,
     LEADER_MODES,
@@ -39,6 +42,7 @@ class Controls:
         p = store.get()
         self.notice = ""
         self.recording = "off"  # what the status says about recording (set by the service)
+        self._status_at = -1.0
         self.replay = False
 
         self.stop_button = gui.add_button("STOP", color="red", hint="Command every follower to zero now. The loop keeps observing.")
@@ -193,8 +197,10 @@ class Controls:
             self.notice = "; ".join(n.message for n in notices)
 
     def update_status(self, s: TickState) -> None:
-        if s.tick % 6 and not self.replay:  # live: 5 Hz is plenty; a replay shows exactly the tick it jumped to
-            return
+        now = time.monotonic()
+        if now - self._status_at < STATUS_S and not self.replay:  # live: 5 Hz is plenty; a replay shows
+            return                                                 # exactly the tick it jumped to
+        self._status_at = now
         stages = " · ".join(f"{k.split(':')[0]} {v:.2f}" for k, v in s.stage_ms.items() if not k.startswith("publish"))
         pose = np.where(np.isfinite(s.p_true), s.p_true, s.p_est)  # real robots: the estimate is all we have
         err = np.linalg.norm(pose - s.p_d, axis=1) * 100

@@ -4,6 +4,7 @@ arrows, the desired formation polygon with draggable slot handles, trails, truth
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 
 import numpy as np
@@ -53,6 +54,7 @@ class Scene:
         self.trail_handles: list[viser.LineSegmentsHandle] = []
         self._n = 0
         self._slots_key = b""
+        self._trail_at = -1.0
         self._dragging = False
 
     def _rebuild(self, n: int, state: TickState) -> None:
@@ -136,7 +138,11 @@ class Scene:
             if has_truth:
                 self.ghosts[i].position = (float(tw[0]), float(tw[1]), 0.0)
                 self.ghosts[i].wxyz = yaw_wxyz(float(tw[2]))
-        if state.tick % 3 == 0:
+        now = time.monotonic()
+        every_tenth = now - self._trail_at >= 0.1  # trails and the camera follow at 10 Hz
+        if every_tenth:
+            self._trail_at = now
+        if every_tenth:
             for i in range(n):
                 if not known[i]:
                     continue
@@ -145,6 +151,6 @@ class Scene:
                 if len(pts) >= 2:
                     p3 = np.column_stack([pts, np.full(len(pts), 0.005)])
                     self.trail_handles[i].points = np.stack([p3[:-1], p3[1:]], axis=1)
-        if self.controls.follow_leader.value and state.tick % 3 == 0:
+        if self.controls.follow_leader.value and every_tenth:
             for client in self.server.get_clients().values():
                 client.camera.look_at = (float(lx), float(ly), 0.0)

@@ -1,8 +1,5 @@
-import os
 import re
 import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -11,6 +8,7 @@ import numpy as np
 
 from app.loop import ServiceLoop
 from app.params import Params, ParamsStore
+from tests.app.test_cli import main_cli, serve_then_signal
 
 
 def test_team_reaches_formation_in_the_live_loop():
@@ -107,29 +105,14 @@ def test_run_paces_ticks_and_halts_followers_on_stop():
 
 
 def test_the_service_stops_cleanly_on_sigterm():
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "run", "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True, cwd=Path(__file__).resolve().parents[2],
-    )
-    try:
-        line, lines = "", []
-        deadline = time.monotonic() + 60
-        while "dashboard at" not in line and time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            lines.append(line)
-        assert re.search(r"dashboard at http://127\.0\.0\.1:\d+", line), line
-        # every session is recorded by default, to recordings/<UTC timestamp>_<scenario>.mcap
-        recorded = re.search(r"recording to (recordings/\d{8}T\d{6}Z_sim(-\d+)?\.mcap)", "".join(lines))
-        assert recorded, lines
-        time.sleep(1.5)
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0, err
-    assert "all followers commanded to zero" in out
-    assert "Traceback" not in err
+    run = serve_then_signal("--port", "0", hold_s=1.5)
+    assert re.search(r"dashboard at http://127\.0\.0\.1:\d+", run.startup), run.startup + run.stderr
+    # every session is recorded by default, to recordings/<UTC timestamp>_<scenario>.mcap
+    recorded = re.search(r"recording to (recordings/\d{8}T\d{6}Z_sim(-\d+)?\.mcap)", run.startup)
+    assert recorded, run.startup
+    assert run.returncode == 0, run.stderr
+    assert "all followers commanded to zero" in run.stdout
+    assert "Traceback" not in run.stderr
     from app.recorder import read_recording
 
     path = Path(__file__).resolve().parents[2] / recorded.group(1)
@@ -141,25 +124,11 @@ def test_the_service_stops_cleanly_on_sigterm():
 
 
 def test_other_hosts_warn_and_bad_ports_exit_2():
-    root = Path(__file__).resolve().parents[2]
-    out = subprocess.run([sys.executable, "-m", "app.cli", "run", "--port", "99999"], capture_output=True,
-                         text=True, cwd=root, timeout=60)
+    out = main_cli("run", "--port", "99999")
     assert out.returncode == 2 and "99999 is outside 0..65535" in out.stderr
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--host", "0.0.0.0", "--port", "0", "--no-record"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=root)
-    try:
-        deadline = time.monotonic() + 60
-        line = ""
-        while "dashboard at" not in line and time.monotonic() < deadline:
-            line = proc.stdout.readline()
-        proc.send_signal(signal.SIGINT if os.name != "nt" else signal.SIGTERM)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert "no authentication" in err
-    assert proc.returncode == 0, err
-
+    run = serve_then_signal("--host", "0.0.0.0", "--port", "0", "--no-record", hold_s=0.0, sig=signal.SIGINT)
+    assert "no authentication" in run.stderr
+    assert run.returncode == 0, run.stderr
 
 def test_an_exception_inside_a_tick_stops_every_follower_and_the_loop_lives_on():
     store = ParamsStore(Params(n_followers=2, leader_mode="straight"))

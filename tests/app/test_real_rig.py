@@ -20,7 +20,7 @@ from app.loop import ServiceLoop, TickState
 from app.params import Params, ParamsStore
 from core.camera.render import Renderer
 from core.link import protocol as p
-from tests.app.test_cli import main_cli, run_cli
+from tests.app.test_cli import main_cli, serve_then_signal
 from tests.app.test_serial_link import EmulatorThread, wait_for
 
 TEAM = np.array([[-0.6, -0.5, 1.6], [0.5, -0.6, 1.5], [0.1, 0.8, 1.2]])  # leader frame x, y, heading
@@ -153,31 +153,14 @@ def test_the_config_chooses_frames_and_link_and_bad_values_are_refused(tmp_path)
 
 
 def test_a_real_rig_from_the_config_starts_observes_and_stops_cleanly(tmp_path):
-    import signal
-    import subprocess
-    import sys
-
     frames = tmp_path / "frames"
     frames.mkdir()
     render_frames(frames, 12)
     cfg = _config(tmp_path, 'link = "none"\nfollowers = 3', f'source = "{frames}"')
-    root = Path(__file__).resolve().parents[2]
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--config", str(cfg), "--port", "0", "--no-record"],
-                            cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = ""
-        deadline = time.monotonic() + 60
-        while "dashboard at" not in line and time.monotonic() < deadline:
-            line = proc.stdout.readline()
-        assert f"vision pipeline on camera {frames}; observe only" in line, line
-        time.sleep(1.0)
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0, err
-    assert "Traceback" not in err
+    run = serve_then_signal("--config", str(cfg), "--port", "0", "--no-record")
+    assert f"vision pipeline on camera {frames}; observe only" in run.startup, run.startup + run.stderr
+    assert run.returncode == 0, run.stderr
+    assert "Traceback" not in run.stderr
 
 
 def test_the_leader_base_odometry_port_dead_reckons_the_leader():

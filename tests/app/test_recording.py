@@ -2,7 +2,6 @@
 
 import json
 import re
-import os
 import signal
 import subprocess
 import sys
@@ -15,7 +14,7 @@ import pytest
 from app.loop import ServiceLoop
 from app.params import Params, ParamsStore
 from app.recorder import CHUNK_BYTES, Recorder, RecordingError, read_recording, tick_from_payload, tick_payload
-from tests.app.test_cli import main_cli, run_cli
+from tests.app.test_cli import main_cli, run_cli, serve_then_signal
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / "recordings" / "samples"
@@ -90,21 +89,9 @@ def test_a_recorder_killed_with_sigkill_still_replays_up_to_its_last_chunk(tmp_p
 
 def test_sigterm_finishes_the_file(tmp_path):
     path = tmp_path / "term.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
-                             "--record", str(path)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        end = time.monotonic() + 60
-        line = ""
-        while time.monotonic() < end and "dashboard at" not in line:
-            line = proc.stdout.readline()
-        time.sleep(2.0)
-        proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0
-    assert "recording finished" in out
+    run = serve_then_signal("--port", "0", "--feedback", "truth", "--record", str(path), hold_s=2.0)
+    assert run.returncode == 0, run.stderr
+    assert "recording finished" in run.stdout
     rec = read_recording(path)
     assert rec.complete and len(rec.ticks) > 30
 

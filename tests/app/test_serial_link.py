@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import signal
 import subprocess
 import sys
 import threading
@@ -149,19 +148,14 @@ def test_a_missing_port_never_blocks_the_loop():
 
 
 def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth", "--no-record",
-                             "--link", f"serial:{emulated.path}"], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    try:
-        hw = emulated.emulator.hw
-        wait_for(lambda: any(r.moving for r in emulated.emulator.snapshot().values()), 60, "the followers to move")
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0, err
-    assert "all followers commanded to zero" in out
+    from tests.app.test_cli import serve_then_signal
+
+    hw = emulated.emulator.hw
+    moving = lambda: any(r.moving for r in emulated.emulator.snapshot().values())  # noqa: E731
+    run = serve_then_signal("--port", "0", "--feedback", "truth", "--no-record", "--link", f"serial:{emulated.path}",
+                            until=moving)
+    assert run.returncode == 0, run.stderr
+    assert "all followers commanded to zero" in run.stdout
     robots = emulated.emulator.snapshot()
     assert all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps for r in robots.values())
     wait_for(lambda: not any(r.moving for r in emulated.emulator.snapshot().values()), 2, "the wheels to stop")

@@ -27,11 +27,12 @@ playwright_api = pytest.importorskip("playwright.sync_api")
 def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
     link_path = tmp_path / "followers"
     emulator = start_emulator_process(link_path)
-    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
-    link = SerialLink(str(link_path), 3)
-    svc = Service(port=0, n_followers=3, seed=4, camera=config.camera(), dynamics=config.dynamics, link=link)
-    svc.start()
+    svc = None
     try:
+        config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+        link = SerialLink(str(link_path), 3)
+        svc = Service(port=0, n_followers=3, seed=4, camera=config.camera(), dynamics=config.dynamics, link=link)
+        svc.start()
         # the vision start-up and the formation, driven over the wire
         wait_for(lambda: svc.loop.last is not None and svc.loop.last.phase == "tracking", 60, "vision start-up")
         err = lambda: np.linalg.norm(svc.loop.last.p_true - svc.loop.last.p_d, axis=1)  # noqa: E731
@@ -84,6 +85,7 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
             page.get_by_text(f"link: serial {link_path}: ok").first.wait_for(timeout=15_000)
             browser.close()
     finally:
-        svc.close()
+        if svc is not None:
+            svc.close()
         emulator.terminate()
         emulator.wait(10)
