@@ -26,7 +26,7 @@ from core.camera.render import Renderer
 from core.geometry import leader_displacement
 from core.sim.team import TeamState
 from core.types import BoolArray, FloatArray
-from core.vision.pipeline import VisionPipeline
+from core.vision.pipeline import PipelineSettings, VisionPipeline
 
 from app.backends.camera_cv import FrameSource
 from app.backends.sim import SimTeam
@@ -86,6 +86,7 @@ class VisionFeedback:
     seed: int
     source: FrameSource | None = None
     clock: Callable[[], float] = time.monotonic
+    settings: PipelineSettings = field(default_factory=PipelineSettings)
     renderer: Renderer | None = field(init=False, default=None)
     pipeline: VisionPipeline | None = field(init=False, default=None)
 
@@ -107,7 +108,7 @@ class VisionFeedback:
 
     def _make_pipeline(self, size: tuple[int, int]) -> None:
         self.pipeline = VisionPipeline(self.team.state.n, self.gamma, self.rig.working_area, self.rig.detect,
-                                       size, np.random.default_rng(self.seed))
+                                       size, np.random.default_rng(self.seed), self.settings)
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
         state = self.team.state

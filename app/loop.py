@@ -26,6 +26,7 @@ from core.control.formation import ControlOutput, ControllerState, compute_comma
 from core.control.targets import SlotMotion, step_slots
 from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
+from core.vision.pipeline import PipelineSettings
 from core.types import Commands, FloatArray, Gains, IntArray
 
 from app.backends.camera_cv import FrameSource
@@ -111,6 +112,7 @@ class ServiceLoop:
         link: OdometryLink | None = None,
         frames: FrameSource | None = None,
         hardware: HardwareTeam | None = None,
+        pipeline_settings: PipelineSettings | None = None,
     ) -> None:
         """``camera``: the synthetic rig and its calibrated Γ; with it the controller is fed
         by the vision pipeline on rendered frames, without it by ground truth plus noise.
@@ -130,6 +132,7 @@ class ServiceLoop:
         self.link = link
         self.frames = frames
         self.hardware = hardware
+        self.pipeline_settings = pipeline_settings or PipelineSettings()
         if frames is not None and (hardware is None or camera is None):
             raise ValueError("a real frame source needs the real team (hardware) and the rig's calibration (camera)")
         self.faults = 0
@@ -168,7 +171,7 @@ class ServiceLoop:
             team = self.hardware
             n = team.state.n
             feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
-                                      source=self.frames)
+                                      source=self.frames, settings=self.pipeline_settings)
             assignment = np.arange(n) % params.slots.shape[0]  # eq. 33 runs once the poses are known
         else:
             if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
@@ -178,7 +181,8 @@ class ServiceLoop:
             team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
                            self.seed + 1000 + self._resets, link=self.link)
             if self.camera is not None:
-                feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets)
+                feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
+                                          settings=self.pipeline_settings)
             else:
                 feedback = TruthFeedback(team)
             assignment = assign_slots(p0, params.slots)

@@ -20,6 +20,7 @@ from app.loop import ServiceLoop, TickState
 from app.params import Params, ParamsStore
 from core.camera.render import Renderer
 from core.link import protocol as p
+from core.vision.pipeline import PipelineSettings
 from tests.app.test_cli import main_cli, serve_then_signal
 from tests.app.test_serial_link import EmulatorThread, wait_for
 
@@ -100,7 +101,8 @@ def test_real_rig_loop_drives_robots_on_the_wire_and_stops_them_when_the_camera_
     store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]])),
                         fixed_followers=3)
     loop = ServiceLoop(store, rate_hz=30.0, camera=(calibration, calibration.gamma), frames=frames,
-                       hardware=HardwareTeam(3, link))
+                       hardware=HardwareTeam(3, link),
+                       pipeline_settings=PipelineSettings(probe_s=30.0))  # still probing when the frames end
     seen: list[TickState] = []
     loop.subscribe(seen.append)
     thread = threading.Thread(target=loop.run, daemon=True)

@@ -96,7 +96,7 @@ def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
     try:
         page = browser.new_page(viewport={"width": 1400, "height": 900})
         page.goto(svc.url)
-        page.wait_for_selector(".uplot", state="attached", timeout=30_000)
+        page.wait_for_selector(".uplot", state="attached", timeout=90_000)  # software WebGL under load: slow
         settle(page)
         page.get_by_text("Recordings", exact=True).first.click()  # the folder, collapsed by default
         options = svc.recordings.menu.options
