@@ -12,8 +12,8 @@ from core.camera.config import CameraConfig, parse_camera
 from core.camera.gamma import CalibrationError, Gamma, MatchingTable, parse_table
 from core.config import ConfigError
 
-__all__ = ["SYNTHETIC_CALIBRATED", "SYNTHETIC_CAMERA", "load_camera", "load_synthetic_rig", "load_table",
-           "write_table", "read_image", "check_out_path"]
+__all__ = ["SYNTHETIC_CALIBRATED", "SYNTHETIC_CAMERA", "load_camera", "load_calibration", "load_synthetic_rig",
+           "require_gamma", "load_table", "write_table", "read_image", "check_out_path"]
 
 
 def _read_text(path: Path, what: str) -> str:
@@ -32,15 +32,26 @@ def load_camera(path: Path) -> CameraConfig:
         raise UserError(str(exc)) from None
 
 
+def load_calibration(path: Path) -> tuple[CameraConfig, Gamma]:
+    """A rig's calibration file (working area, detection, Γ) and its Γ; one-line UserError without Γ."""
+    cfg = load_camera(path)
+    return cfg, require_gamma(cfg)
+
+
+def require_gamma(cfg: CameraConfig) -> Gamma:
+    """``cfg.require_gamma()`` with its one-line message as a UserError."""
+    try:
+        return cfg.require_gamma()
+    except ConfigError as exc:
+        raise UserError(str(exc)) from None
+
+
 def load_synthetic_rig(rig_path: Path, calibration_path: Path) -> tuple[CameraConfig, Gamma]:
     """A synthetic rig that renders frames and the Γ that reads them, each checked (one-line UserError)."""
     rig = load_camera(rig_path)
-    calibration = load_camera(calibration_path)
     if rig.model is None:
         raise UserError(f"{display_path(rig_path)}: has no [model]: a synthetic rig is needed to render frames")
-    if calibration.gamma is None:
-        raise UserError(f"{display_path(calibration_path)}: has no [gamma]; make one with omniformation calibrate")
-    return rig, calibration.gamma
+    return rig, load_calibration(calibration_path)[1]
 
 
 def load_table(path: Path) -> MatchingTable:

@@ -162,13 +162,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
     feedback = "vision" if real else args.feedback or config.feedback
     if real:
-        from app.camera_files import load_camera
+        from app.camera_files import load_calibration
 
-        calibration_path = args.calibration or config.calibration_path
-        rig = load_camera(calibration_path)
-        if rig.gamma is None:
-            raise UserError(f"{display_path(calibration_path)}: has no [gamma]; make one with omniformation calibrate")
-        camera = (rig, rig.gamma)
+        camera = load_calibration(args.calibration or config.calibration_path)
     else:
         camera = config.camera() if feedback == "vision" else None
     if args.host not in LOOPBACK:

@@ -381,7 +381,8 @@ def _take(rec: Recording, topic: str, data: bytes) -> None:
         rec.params.append((float(rec.ticks[-1]["t"]) if rec.ticks else 0.0, p))
 
 
-def _arr(x: Any, dtype: Any = np.float64) -> np.ndarray:
+def json_floats(x: Any, dtype: Any = np.float64) -> np.ndarray:
+    """A recorded JSON (nested) list as an array; JSON null (a NaN when written) back to NaN."""
     a = np.array(x if x is not None else [], dtype=object)
     a = np.where(a == None, np.nan, a)  # noqa: E711 - JSON null is NaN
     return a.astype(dtype)
@@ -393,18 +394,18 @@ def tick_from_payload(d: dict[str, Any], frame: np.ndarray | None = None) -> Tic
 
     n = len(d["a_est"])
     return TickState(
-        tick=int(d["tick"]), t=float(d["t"]), leader=_arr(d["leader"]), leader_twist=tuple(d["leader_twist"]),
-        followers_world=_arr(d["followers_world"]).reshape(n, 3), p_est=_arr(d["p_est"]).reshape(n, 2),
-        a_est=_arr(d["a_est"]), tracked=np.array(d["tracked"], dtype=bool),
-        p_true=_arr(d["p_true"]).reshape(n, 2), a_true=_arr(d["a_true"]), p_d=_arr(d["p_d"]).reshape(n, 2),
-        slot_targets=_arr(d["slot_targets"]).reshape(-1, 2), assignment=np.array(d["assignment"], dtype=np.intp),
-        commands=_arr(d["commands"]).reshape(n, 2), a_err=_arr(d["a_err"]), v_lyap=_arr(d["v_lyap"]),
+        tick=int(d["tick"]), t=float(d["t"]), leader=json_floats(d["leader"]), leader_twist=tuple(d["leader_twist"]),
+        followers_world=json_floats(d["followers_world"]).reshape(n, 3), p_est=json_floats(d["p_est"]).reshape(n, 2),
+        a_est=json_floats(d["a_est"]), tracked=np.array(d["tracked"], dtype=bool),
+        p_true=json_floats(d["p_true"]).reshape(n, 2), a_true=json_floats(d["a_true"]), p_d=json_floats(d["p_d"]).reshape(n, 2),
+        slot_targets=json_floats(d["slot_targets"]).reshape(-1, 2), assignment=np.array(d["assignment"], dtype=np.intp),
+        commands=json_floats(d["commands"]).reshape(n, 2), a_err=json_floats(d["a_err"]), v_lyap=json_floats(d["v_lyap"]),
         gains=Gains(**d["gains"]), params_version=int(d["params_version"]), stopped=bool(d["stopped"]),
         paused=bool(d["paused"]), link_state=str(d["link_state"]), rate_hz=float(d["rate_hz"]),
         stage_ms=dict(d.get("stage_ms") or {}), phase=str(d.get("phase", "truth")), probing=int(d.get("probing", -1)),
-        a_raw=_arr(d["a_raw"]) if d.get("a_raw") is not None else None, frame=frame,
+        a_raw=json_floats(d["a_raw"]) if d.get("a_raw") is not None else None, frame=frame,
         windows=np.array(d["windows"], dtype=np.int64).reshape(n, 4) if d.get("windows") is not None else None,
-        hues_deg=_arr(d["hues_deg"]) if d.get("hues_deg") is not None else None,
+        hues_deg=json_floats(d["hues_deg"]) if d.get("hues_deg") is not None else None,
     )
 
 

@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from app.figures import FOLLOWER_COLOURS  # noqa: E402
-from app.recorder import Recording  # noqa: E402
+from app.recorder import Recording, json_floats  # noqa: E402
 from core.geometry import leader_to_world  # noqa: E402
 
 SETTLED_M = 0.03  # settled: the error stays under 3 cm to the end
@@ -46,27 +46,22 @@ class Series:
     truth: bool
 
 
-def _nan(x: object) -> np.ndarray:
-    a = np.array(x, dtype=object)
-    return np.where(a == None, np.nan, a).astype(float)  # noqa: E711
-
-
 def series(rec: Recording) -> Series:
     ticks = rec.ticks
     start = float(rec.metadata.get("scenario_start_s", "0") or 0)
     t = np.array([tk["t"] for tk in ticks]) - start
-    p_true = np.array([_nan(tk["p_true"]) for tk in ticks])
+    p_true = np.array([json_floats(tk["p_true"]) for tk in ticks])
     truth = bool(np.isfinite(p_true).any())
-    p = p_true if truth else np.array([_nan(tk["p_est"]) for tk in ticks])
-    a_est = np.array([_nan(tk["a_est"]) for tk in ticks])
-    a_raw = np.array([_nan(tk["a_raw"]) if tk.get("a_raw") is not None else _nan(tk["a_est"]) for tk in ticks])
+    p = p_true if truth else np.array([json_floats(tk["p_est"]) for tk in ticks])
+    a_est = np.array([json_floats(tk["a_est"]) for tk in ticks])
+    a_raw = np.array([json_floats(tk["a_raw"]) if tk.get("a_raw") is not None else json_floats(tk["a_est"]) for tk in ticks])
     return Series(
-        t=t, leader=np.array([_nan(tk["leader"]) for tk in ticks]),
-        followers_world=np.array([_nan(tk["followers_world"]) for tk in ticks]),
-        p=p, p_d=np.array([_nan(tk["p_d"]) for tk in ticks]), a_est=a_est, a_raw=a_raw,
+        t=t, leader=np.array([json_floats(tk["leader"]) for tk in ticks]),
+        followers_world=np.array([json_floats(tk["followers_world"]) for tk in ticks]),
+        p=p, p_d=np.array([json_floats(tk["p_d"]) for tk in ticks]), a_est=a_est, a_raw=a_raw,
         tracked=np.array([tk["tracked"] for tk in ticks], dtype=bool),
-        v_lyap=np.array([np.nansum(_nan(tk["v_lyap"])) for tk in ticks]),
-        commands=np.array([_nan(tk["commands"]) for tk in ticks]), truth=truth,
+        v_lyap=np.array([np.nansum(json_floats(tk["v_lyap"])) for tk in ticks]),
+        commands=np.array([json_floats(tk["commands"]) for tk in ticks]), truth=truth,
     )
 
 

@@ -15,6 +15,7 @@ Two jobs, both written as a new recording (replay it, report it) and summed up p
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -24,9 +25,9 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from app.loop import TickState
 from app.paths import SYNTHETIC_CALIBRATED, UserError, display_path
-from app.recorder import Recorder, Recording, params_from_recording, read_recording, tick_from_payload
+from app.recorder import (Recorder, Recording, json_floats, params_from_recording, read_recording,
+                          tick_from_payload)
 from core.camera.config import CameraConfig, parse_camera
 from core.config import ConfigError, parse_scenario
 from core.geometry import leader_displacement, wrap_angle
@@ -58,20 +59,16 @@ def parse_gains(text: str, base: Gains) -> Gains:
 
 def recorded_calibration(rec: Recording, override: Path | None) -> CameraConfig:
     """The Γ the session used (kept in its metadata), or the one given, or the built-in one."""
-    from app.camera_files import load_camera
+    from app.camera_files import load_calibration, require_gamma
 
-    if override is not None:
-        cfg = load_camera(override)
-    elif "calibration_toml" in rec.metadata:
+    if override is None and "calibration_toml" in rec.metadata:
         try:
             cfg = parse_camera(rec.metadata["calibration_toml"], f"{rec.path.name} (its calibration)")
         except ConfigError as exc:
             raise UserError(str(exc)) from None
-    else:
-        cfg = load_camera(SYNTHETIC_CALIBRATED)
-    if cfg.gamma is None:
-        raise UserError(f"{cfg.source}: has no [gamma]; make one with omniformation calibrate")
-    return cfg
+        require_gamma(cfg)
+        return cfg
+    return load_calibration(override or SYNTHETIC_CALIBRATED)[0]
 
 
 @dataclass
@@ -88,11 +85,6 @@ class FrameRerun:
     p_true: np.ndarray
     a_true: np.ndarray
     resumed: np.ndarray  # (n,) followers found again at the first frame
-
-
-def _nan(x: Any) -> np.ndarray:
-    a = np.array(x if x is not None else [], dtype=object)
-    return np.where(a == None, np.nan, a).astype(float)  # noqa: E711
 
 
 def rerun_frames(rec: Recording, camera: CameraConfig, settings: PipelineSettings,
@@ -115,36 +107,33 @@ def rerun_frames(rec: Recording, camera: CameraConfig, settings: PipelineSetting
     first = cv2.imdecode(np.frombuffer(frames[0][1], np.uint8), cv2.IMREAD_COLOR)
     pipeline = VisionPipeline(n, camera.gamma, camera.working_area, camera.detect, (first.shape[1], first.shape[0]),
                               np.random.default_rng(0), settings)
-    tk0 = rec.ticks[index[0]]
-    resumed = pipeline.resume_tracking(first, np.array(tk0["windows"], dtype=np.int64).reshape(n, 4),
-                                       _nan(tk0["a_est"]))
+    tk0 = tick_from_payload(rec.ticks[index[0]])
+    assert tk0.windows is not None, "simulate --record and run keep the CAMSHIFT windows"
+    resumed = pipeline.resume_tracking(first, tk0.windows, tk0.a_est)
     F = len(frames)
     out = FrameRerun(np.array([t for t, _ in frames]), index, np.full((F, n, 2), np.nan), np.full((F, n), np.nan),
                      np.zeros((F, n), bool), np.zeros((F, n, 4), np.int64), np.full((F, n, 2), np.nan),
                      np.full((F, n), np.nan), np.zeros((F, n), bool), np.full((F, n, 2), np.nan),
                      np.full((F, n), np.nan), resumed)
-    prev = index[0]
+    prev, before = index[0], tk0
     for j, ((t, jpg), k) in enumerate(zip(frames, index)):
-        tk = rec.ticks[k]
+        tk = tick_from_payload(rec.ticks[k])
         if j == 0:
             positions = np.array([f.position for f in pipeline.followers])
             headings = np.array([f.heading.heading if f.heading else np.nan for f in pipeline.followers])
-            tracked, windows = resumed.copy(), np.array(tk["windows"], dtype=np.int64).reshape(n, 4)
+            tracked, windows = resumed.copy(), tk0.windows
         else:
             frame = cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR)
-            span = rec.ticks[prev + 1:k + 1] or [tk]
-            cmd = np.nanmean([_nan(s["commands"]).reshape(n, 2) for s in span], axis=0)
-            before = rec.ticks[prev]
-            err = np.linalg.norm(_nan(before["p_d"]).reshape(n, 2) - _nan(before["p_est"]).reshape(n, 2), axis=1)
-            odo = leader_displacement(_nan(before["leader"]), _nan(tk["leader"]))
+            span = rec.ticks[prev + 1:k + 1] or [rec.ticks[k]]
+            cmd = np.nanmean([json_floats(s["commands"]).reshape(n, 2) for s in span], axis=0)
+            err = np.linalg.norm(before.p_d - before.p_est, axis=1)
+            odo = leader_displacement(before.leader, tk.leader)
             res = pipeline.step(frame, float(t_ticks[k] - t_ticks[prev]), odo, np.nan_to_num(cmd), np.nan_to_num(err))
             positions, headings, tracked, windows = res.positions, res.headings, res.tracked, res.windows
         out.p_new[j], out.a_new[j], out.tracked_new[j], out.windows_new[j] = positions, headings, tracked, windows
-        out.p_old[j] = _nan(tk["p_est"]).reshape(n, 2)
-        out.a_old[j] = _nan(tk["a_est"])
-        out.tracked_old[j] = np.array(tk["tracked"], dtype=bool)
-        out.p_true[j] = _nan(tk["p_true"]).reshape(n, 2)
-        out.a_true[j] = _nan(tk["a_true"])
+        out.p_old[j], out.a_old[j], out.tracked_old[j] = tk.p_est, tk.a_est, tk.tracked
+        out.p_true[j], out.a_true[j] = tk.p_true, tk.a_true
+        before = tk
         prev = k
         if progress is not None:
             progress(j + 1, F)
@@ -184,10 +173,9 @@ def write_frame_rerun(rec: Recording, r: FrameRerun, path: Path, note: dict[str,
     frames = dict(rec.frames)
     try:
         for j, k in enumerate(r.ticks):
-            old = tick_from_payload(rec.ticks[k])
-            state = TickState(**{**old.__dict__, "tick": j, "p_est": r.p_new[j], "a_est": r.a_new[j],
-                                 "a_raw": r.a_new[j], "tracked": r.tracked_new[j], "windows": r.windows_new[j],
-                                 "stage_ms": {}})
+            state = dataclasses.replace(tick_from_payload(rec.ticks[k]), tick=j, p_est=r.p_new[j], a_est=r.a_new[j],
+                                        a_raw=r.a_new[j], tracked=r.tracked_new[j], windows=r.windows_new[j],
+                                        stage_ms={})
             out.on_tick(state)
             out.add_jpeg(float(r.t[j]), frames[float(r.t[j])])
     finally:
@@ -214,18 +202,15 @@ def resimulate(rec: Recording, gains: Gains, settings: PipelineSettings, out_pat
         if key in rec.metadata:
             changes[key] = cast(rec.metadata[key])
     scenario = scenario.replace(**changes)
-    vision = camera is not None and bool(rec.frames)
-    rig = None
-    if vision:
-        from app.camera_files import load_camera
+    sim_camera = None  # through the camera if the session was
+    if camera is not None and rec.frames:
+        from app.camera_files import load_camera, require_gamma
         from app.paths import SYNTHETIC_CAMERA
 
-        rig = load_camera(SYNTHETIC_CAMERA)
-    frames_hz = float(rec.metadata.get("frames_hz", "0") or 0) if vision else 0.0
-    assert camera is None or camera.gamma is not None
-    run = run_simulation(scenario, (rig, camera.gamma) if vision and rig and camera else None, settings,
-                         frames_hz=frames_hz or (1.0 if vision else 0.0))
-    meta = session_metadata(scenario.name, None, (rig, camera.gamma) if vision and rig and camera else None)
+        sim_camera = (load_camera(SYNTHETIC_CAMERA), require_gamma(camera))
+    frames_hz = float(rec.metadata.get("frames_hz", "0") or 0) if sim_camera else 0.0
+    run = run_simulation(scenario, sim_camera, settings, frames_hz=frames_hz or (1.0 if sim_camera else 0.0))
+    meta = session_metadata(scenario.name, None, sim_camera)
     meta.update(scenario_toml=text, duration_s=f"{scenario.duration_s:g}", rate_hz=f"{scenario.rate_hz:g}",
                 seed=str(scenario.seed), rerun_of=rec.path.name, gains=json.dumps(gains.as_dict()))
     record_run(run, out_path, meta, frames_hz)
@@ -276,7 +261,6 @@ def cmd_rerun(args: Any) -> int:
                   f" steady RMS {a['steady_error_rms_cm']} -> {b['steady_error_rms_cm']},"
                   f" max {a['steady_error_max_cm']} -> {b['steady_error_max_cm']}")
     else:
-        assert camera is not None or not rec.frames
         if camera is None:
             raise UserError(f"{rec.path.name}: has no camera frames to re-run (recorded with --frames-hz 0, or"
                             " without the camera); --gains re-simulates a simulated session")

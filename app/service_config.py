@@ -11,6 +11,7 @@ from core.camera.gamma import Gamma
 from core.config import ConfigError, MeasurementNoise, Table, parse_dynamics, parse_measurement
 from core.sim.team import FollowerDynamics
 
+from app.backends.serial_link import parse_link_spec
 from app.camera_files import load_synthetic_rig
 from app.paths import DEFAULT_CONFIG, UserError, display_path
 
@@ -56,8 +57,11 @@ def load_service_config(path: Path, max_followers: int) -> ServiceConfig:
         seed = svc.integer("seed", 0, 2**32 - 1, default=0)
         feedback = svc.text("feedback", default="vision", choices=FEEDBACKS)
         link = svc.text("link", default="sim")
-        if link not in ("sim", "none") and not (link.startswith("serial:") and len(link) > 7):
-            raise svc.fail("link", link, "'sim', 'none' or 'serial:PATH' (e.g. serial:/dev/ttyUSB0)")
+        if link != "none":
+            try:
+                parse_link_spec(link)
+            except ValueError:
+                raise svc.fail("link", link, "'sim', 'none' or 'serial:PATH' (e.g. serial:/dev/ttyUSB0)") from None
         svc.finish()
         cam = top.table("camera")
         frames = cam.text("source", default="synthetic")

@@ -287,8 +287,6 @@ class VisionPipeline:
         follower's colour is learned again from ``frame`` at its window (pixels x, y, w, h)
         and its Kalman filter starts at ``headings`` (rad). Used to re-run a recording's frames
         with other settings. Returns which followers were found."""
-        s = self.settings
-        sigma0 = math.radians(s.kalman_sigma0_deg)
         found = np.zeros(self.n, dtype=bool)
         for i, f in enumerate(self.followers):
             x, y, w, h = (int(v) for v in windows[i])
@@ -297,13 +295,21 @@ class VisionPipeline:
                 continue
             f.track, f.tracked = track, True
             f.position = self._to_leader(track.u, track.v)
-            f.heading = HeadingFilter(float(headings[i]), sigma0, math.radians(s.kalman_process_deg),
-                                      math.radians(s.kalman_measurement_deg))
-            f.anchor = ArcAnchor(f.position.copy())
+            self._start_heading(f, float(headings[i]))
             found[i] = True
+        self._enter_tracking()
+        return found
+
+    def _start_heading(self, f: _Follower, a0: float) -> None:
+        """The follower's Kalman filter on its heading starts at a0; eq. 34-37 measure from here."""
+        s = self.settings
+        f.heading = HeadingFilter(a0, math.radians(s.kalman_sigma0_deg), math.radians(s.kalman_process_deg),
+                                  math.radians(s.kalman_measurement_deg))
+        f.anchor = ArcAnchor(f.position.copy())
+
+    def _enter_tracking(self) -> None:
         self.phase, self.probing = "tracking", -1
         self._next_stage("run")
-        return found
 
     def _next_stage(self, stage: str) -> None:
         self._stage = stage
@@ -345,7 +351,6 @@ class VisionPipeline:
 
     def _finish_headings(self) -> None:
         s = self.settings
-        sigma0 = math.radians(s.kalman_sigma0_deg)
         for f in self.followers:
             if f.track is None:
                 continue
@@ -353,11 +358,9 @@ class VisionPipeline:
                 a0 = fit_heading_line(np.array(f.path), self.rng, tolerance_m=s.ransac_tolerance_m).heading
             else:
                 a0 = math.pi / 2  # not seen moving: assume aligned; the first arc will correct it
-            f.heading = HeadingFilter(a0, sigma0, math.radians(s.kalman_process_deg), math.radians(s.kalman_measurement_deg))
-            f.anchor = ArcAnchor(f.position.copy())
+            self._start_heading(f, a0)
             f.path = []
-        self.phase = "tracking"
-        self._next_stage("run")
+        self._enter_tracking()
 
 
 def _overlaps(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import pytest
@@ -52,19 +53,28 @@ def service():
     svc.close()
 
 
-@pytest.fixture(scope="module")
-def page(service):
+@contextlib.contextmanager
+def chromium_browser() -> Iterator[Any]:
+    """Debian's Chromium driven by Playwright (Playwright cannot download its own browsers here)."""
     chromium = shutil.which("chromium")
     assert chromium, "Debian's chromium is missing: `make test` installs it (scripts/ensure-chromium)"
-    with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+    with playwright_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+@pytest.fixture(scope="module")
+def page(service):
+    with chromium_browser() as browser:
         pg = browser.new_page(viewport={"width": 1500, "height": 950})
         pg.goto(service.url)
         pg.wait_for_selector('canvas[data-engine^="three.js"]', timeout=30_000)
         pg.wait_for_selector(".uplot canvas", timeout=30_000)
         settle(pg)
         yield pg
-        browser.close()
 
 
 def settle(page) -> None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import re
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,21 +13,16 @@ import pytest
 from app.recorder import read_recording
 from app.replay import ReplayService
 from core.geometry import leader_to_world
-from tests.browser.test_dashboard import ARTIFACTS, control_id, settle, wait_for
+from tests.browser.test_dashboard import ARTIFACTS, chromium_browser, control_id, settle, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
-playwright_api = pytest.importorskip("playwright.sync_api")
 
 
 @pytest.fixture(scope="module")
 def browser():
-    chromium = shutil.which("chromium")
-    assert chromium, "Debian's chromium is missing: `make test` installs it (scripts/ensure-chromium)"
-    with playwright_api.sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+    with chromium_browser() as b:
         yield b
-        b.close()
 
 
 def test_timeline_slider_shows_the_recorded_state_of_that_time(browser):

@@ -5,23 +5,21 @@ page within 1 s while the service keeps running; restarting it reconnects."""
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from app.backends.serial_link import SerialLink
 from app.params import MAX_FOLLOWERS
 from app.service import Service
 from app.service_config import DEFAULT_CONFIG, load_service_config
 from tests.app.test_serial_link import start_emulator_process, wait_for
+from tests.browser.test_dashboard import chromium_browser
 
 ROOT = Path(__file__).resolve().parents[2]
-playwright_api = pytest.importorskip("playwright.sync_api")
 
 
 def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
@@ -52,10 +50,7 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
         sent = sum(st.sent for st in link.stats)
         assert sum(st.acks for st in link.stats) > 0.95 * sent and sum(st.crc_errors for st in link.stats) == 0
 
-        chromium = shutil.which("chromium")
-        assert chromium, "Debian's chromium is missing: `make test` installs it (scripts/ensure-chromium)"
-        with playwright_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+        with chromium_browser() as browser:
             page = browser.new_page(viewport={"width": 1400, "height": 900})
             page.goto(svc.url)
             page.get_by_text(f"link: serial {link_path}: ok").first.wait_for(timeout=30_000)
@@ -83,7 +78,6 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
                             "the link to reconnect")
             print(f"reconnected {back:.2f} s after the emulator was back ({link.connects} opens)")
             # (the page follows when its software renderer catches up; the dashboard state above is what it shows)
-            browser.close()
     finally:
         if svc is not None:
             svc.close()
