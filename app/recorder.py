@@ -57,6 +57,7 @@ IMAGE_TOPIC = "/camera/image"
 EVENT_TOPIC = "/omniformation/events"
 PARAMS_TOPIC = "/omniformation/params"
 DEFAULT_FRAME_RATE_HZ = 10.0
+MAX_FRAMES_WAITING = 30  # raw frames queued for JPEG encoding on the writer thread (3 s at 10 Hz)
 
 _NUM_ARRAY = {"type": "array", "items": {"type": ["number", "null"]}}
 _TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
@@ -141,6 +142,11 @@ def _stamp(ns: int) -> dict[str, int]:
     return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
 
 
+def _image_payload(ns: int, jpeg: bytes) -> dict[str, Any]:
+    """A foxglove.CompressedImage message."""
+    return {"timestamp": _stamp(ns), "frame_id": "camera", "data": base64.b64encode(jpeg).decode(), "format": "jpeg"}
+
+
 def _yaw_quat(yaw: float) -> dict[str, float]:
     return {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}
 
@@ -221,7 +227,8 @@ class Recorder:
             sid = self._writer.register_schema(schema, "jsonschema", json.dumps(SCHEMAS[schema]).encode())
             self._channels[topic] = self._writer.register_channel(topic, "json", sid)
         self._writer.add_metadata("omniformation", {**metadata, "start_ns": str(self.start_ns)})
-        self._queue: queue.Queue[tuple[str, int, bytes] | None] = queue.Queue(maxsize=10_000)
+        self._queue: queue.Queue[tuple[str, int, dict[str, Any] | np.ndarray] | None] = queue.Queue(maxsize=10_000)
+        self._frame_slots = threading.Semaphore(MAX_FRAMES_WAITING)  # raw frames (~1 MB each) the writer may owe
         self._prev: TickState | None = None
         self._params = params
         self._last_t = 0.0
@@ -235,10 +242,10 @@ class Recorder:
     def _ns(self, t: float) -> int:
         return self.start_ns + max(0, int(round(t * 1e9)))
 
-    def _put(self, topic: str, t: float, payload: dict[str, Any] | bytes) -> None:
-        data = payload if isinstance(payload, bytes) else json.dumps(payload, separators=(",", ":")).encode()
+    def _put(self, topic: str, t: float, payload: dict[str, Any] | np.ndarray) -> None:
+        """Queue a message; JSON and JPEG encoding happen on the writer thread, not the loop's."""
         try:
-            self._queue.put_nowait((topic, self._ns(t), data))
+            self._queue.put_nowait((topic, self._ns(t), payload))
         except queue.Full:
             self.dropped += 1
 
@@ -251,16 +258,16 @@ class Recorder:
             self.event(s.t, kind, detail)
         if s.frame is not None and self.frame_rate_hz > 0 and s.t - self._last_frame_t >= 1.0 / self.frame_rate_hz - 1e-9:
             self._last_frame_t = s.t
-            ok, buf = cv2.imencode(".jpg", s.frame, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-            if ok:
-                self.add_jpeg(s.t, buf.tobytes())
+            if self._frame_slots.acquire(blocking=False):  # a stalled disk must not fill memory with frames
+                self._put(IMAGE_TOPIC, s.t, s.frame)  # a published frame is never changed: encoded later
+            else:
+                self.dropped += 1
         self._prev = s
         self.ticks += 1
 
     def add_jpeg(self, t: float, jpeg: bytes) -> None:
         """One camera frame, already JPEG-encoded."""
-        self._put(IMAGE_TOPIC, t, {"timestamp": _stamp(self._ns(t)), "frame_id": "camera",
-                                   "data": base64.b64encode(jpeg).decode(), "format": "jpeg"})
+        self._put(IMAGE_TOPIC, t, _image_payload(self._ns(t), jpeg))
 
     def on_params(self, p: Params, source: str, notices: tuple[Any, ...]) -> None:
         """The store's subscriber: the new parameter set and what changed."""
@@ -277,7 +284,14 @@ class Recorder:
             item = self._queue.get()
             if item is None:
                 return
-            topic, ns, data = item
+            topic, ns, payload = item
+            if isinstance(payload, np.ndarray):  # a camera frame
+                self._frame_slots.release()
+                ok, buf = cv2.imencode(".jpg", payload, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+                if not ok:
+                    continue
+                payload = _image_payload(ns, buf.tobytes())
+            data = json.dumps(payload, separators=(",", ":")).encode()
             self._writer.add_message(self._channels[topic], log_time=ns, data=data, publish_time=ns)
 
     def close(self) -> None:

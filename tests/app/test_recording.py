@@ -255,3 +255,29 @@ def test_rerun_refuses_bad_input_in_one_line(vision_recording, tmp_path):
         extra = () if "--out" in args else ("--out", str(tmp_path / "x.mcap"))
         out = main_cli("rerun", *args, *extra)
         assert out.returncode == 2 and message in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+
+
+def test_live_camera_frames_are_recorded_at_the_frame_rate(tmp_path):
+    from app.params import MAX_FOLLOWERS
+    from app.service_config import DEFAULT_CONFIG, load_service_config
+
+    import cv2
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    store = ParamsStore(Params(n_followers=2))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=2, camera=config.camera())
+    rec = Recorder(tmp_path / "v.mcap", {"scenario": "test"}, store.get(), frame_rate_hz=10.0)
+    published = []
+    loop.subscribe(rec.on_tick)
+    loop.subscribe(published.append)
+    for _ in range(21):
+        loop.tick()
+    rec.close()
+    back = read_recording(tmp_path / "v.mcap")
+    assert len(back.frames) == 7 and rec.dropped == 0  # every third tick at 30 Hz
+    by_t = {round(s.t, 6): s.frame for s in published}
+    for t, jpeg in back.frames:
+        img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        original = by_t[round(t, 6)]
+        assert img.shape == original.shape
+        assert np.abs(img.astype(int) - original.astype(int)).mean() < 6  # the same frame, JPEG-compressed
