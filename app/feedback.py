@@ -25,7 +25,7 @@ from core.camera.gamma import Gamma
 from core.camera.render import Renderer
 from core.geometry import leader_displacement
 from core.sim.team import TeamState
-from core.types import BoolArray, FloatArray
+from core.types import BoolArray, FloatArray, Image
 from core.vision.pipeline import PipelineSettings, VisionPipeline
 
 from app.backends.camera_cv import FrameSource
@@ -42,7 +42,7 @@ class Observation:
     tracked: BoolArray  # (n,)
     phase: str  # "truth" or the pipeline's phase
     manoeuvre: FloatArray | None = None  # start-up commands the pipeline needs sent
-    frame: np.ndarray | None = None  # BGR camera image
+    frame: Image | None = None  # BGR camera image (np.asarray for its pixels)
     windows: np.ndarray | None = None  # (n, 4) tracking windows (pixels)
     hues_deg: FloatArray | None = None
     probing: int = -1
@@ -119,8 +119,10 @@ class VisionFeedback:
         if self.source is None:
             assert self.renderer is not None
             p_true, a_true = self.team.truth()
-            frame: np.ndarray | None = self.renderer.render(state.leader, np.column_stack([p_true, a_true]),
-                                                            self._t - dt, self._rng)
+            # rendered where the pipeline looks; the whole frame only when the dashboard or the
+            # recorder asks for it, on their threads
+            frame: Image | None = self.renderer.frame(state.leader, np.column_stack([p_true, a_true]),
+                                                      self._t - dt, self._rng)
         else:
             frame, t_frame, count = self.source.latest()
             camera_state = self.source.state

@@ -27,7 +27,7 @@ from core.control.targets import SlotMotion, step_slots
 from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
 from core.vision.pipeline import PipelineSettings
-from core.types import Commands, FloatArray, Gains, IntArray
+from core.types import Commands, FloatArray, Gains, Image, IntArray
 
 from app.backends.camera_cv import FrameSource
 from app.backends.hardware import HardwareTeam
@@ -70,7 +70,7 @@ class TickState:
     phase: str = "truth"  # where poses come from: "truth", or the vision pipeline's phase
     probing: int = -1  # the follower the pipeline is probing (start-up), -1 otherwise
     a_raw: FloatArray | None = None  # (n,) last raw heading measurement (eq. 34-37), held
-    frame: np.ndarray | None = None  # the camera image (BGR) this tick, vision only
+    frame: Image | None = None  # the camera image (BGR) this tick, vision only; np.asarray(frame) for its pixels
     windows: np.ndarray | None = None  # (n, 4) CAMSHIFT windows, pixels
     hues_deg: FloatArray | None = None  # (n,) learned marker colours
     link_detail: str = ""  # per follower: round trip, lost replies, CRC errors, battery (serial link)

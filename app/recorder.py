@@ -285,9 +285,9 @@ class Recorder:
             if item is None:
                 return
             topic, ns, payload = item
-            if isinstance(payload, np.ndarray):  # a camera frame
+            if not isinstance(payload, dict):  # a camera frame (a synthetic one is rendered here, off the loop)
                 self._frame_slots.release()
-                ok, buf = cv2.imencode(".jpg", payload, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+                ok, buf = cv2.imencode(".jpg", np.asarray(payload), [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
                 if not ok:
                     continue
                 payload = _image_payload(ns, buf.tobytes())

@@ -119,8 +119,8 @@ def rerun_frames(rec: Recording, camera: CameraConfig, settings: PipelineSetting
     for j, ((t, jpg), k) in enumerate(zip(frames, index)):
         tk = tick_from_payload(rec.ticks[k])
         if j == 0:
-            positions = np.array([f.position for f in pipeline.followers])
-            headings = np.array([f.heading.heading if f.heading else np.nan for f in pipeline.followers])
+            positions = pipeline.positions.copy()
+            headings = pipeline.headings.headings
             tracked, windows = resumed.copy(), tk0.windows
         else:
             frame = cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR)

@@ -18,6 +18,7 @@ from core.camera.gamma import Gamma
 from core.config import Scenario
 from core.sim.run import SimulationLog, simulate
 from core.sim.vision_run import VisionLog, simulate_vision
+from core.types import Image
 from core.vision.pipeline import PipelineSettings
 
 
@@ -38,9 +39,9 @@ def run_simulation(scenario: Scenario, camera: tuple[CameraConfig, Gamma] | None
     every = max(1, int(round(scenario.rate_hz / frames_hz))) if frames_hz > 0 else 0
     frames: dict[int, bytes] = {}
 
-    def keep(k: int, frame: np.ndarray) -> None:
-        if every and k % every == 0:
-            frames[k] = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])[1].tobytes()
+    def keep(k: int, frame: Image) -> None:
+        if every and k % every == 0:  # only a kept frame is rendered whole
+            frames[k] = cv2.imencode(".jpg", np.asarray(frame), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])[1].tobytes()
 
     vision = simulate_vision(scenario, camera[0], camera[1], settings, on_frame=keep)
     return SimRun(vision.log, vision, frames)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +17,20 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 IntArray = NDArray[np.intp]
+
+
+class Image(Protocol):
+    """A BGR image (H, W, 3) uint8: a numpy array, or an image that makes its pixels when
+    looked at (core.camera.render.SyntheticFrame). Either gives a numpy array for a
+    rectangle, ``img[y0:y1, x0:x1]``, and for all of itself, ``np.asarray(img)``; code that
+    needs only rectangles asks only for those."""
+
+    @property
+    def shape(self) -> tuple[int, ...]: ...
+
+    def __getitem__(self, key: Any) -> Any: ...
+
+    def __array__(self, dtype: Any = ..., copy: Any = ...) -> NDArray[Any]: ...
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ class CameraPanel:
     def annotate(self, s: TickState) -> np.ndarray:
         """The downscaled frame with the overlays drawn on it (BGR)."""
         assert s.frame is not None
-        img = cv2.resize(s.frame, None, fx=SCALE, fy=SCALE, interpolation=cv2.INTER_AREA)
+        img = cv2.resize(np.asarray(s.frame), None, fx=SCALE, fy=SCALE, interpolation=cv2.INTER_AREA)
         if self.overlay is not None:
             c = (int(round(self.overlay.center[0] * SCALE)), int(round(self.overlay.center[1] * SCALE)))
             for r in (self.overlay.inner_px, self.overlay.outer_px):

@@ -2,13 +2,22 @@
 
 Everything that does not change from frame to frame is computed once in
 :class:`Renderer`: every pixel's view ray, where it meets the floor (leader frame) or
-the distant walls, the floor and wall textures and a bank of sensor noise. A frame is
-then one compiled pass over the pixels (floor texture moved by the leader's pose,
-lighting gain applied), the robots and boxes drawn as projected polygons (painter's
-order, far to near), a slight blur, sensor noise and, optionally, a JPEG round trip.
+the distant walls (kept as runs of one kind of pixel along each row), the floor and
+wall textures and a bank of sensor noise. A frame is then one compiled pass over the
+pixels (floor texture moved by the leader's pose, lighting applied), the robots and
+boxes drawn as projected polygons (painter's order, far to near; their outlines
+projected by one compiled pass for all of them), a slight blur, sensor noise and,
+optionally, a JPEG round trip.
+
+:meth:`Renderer.frame` gives a :class:`SyntheticFrame` that makes its pixels only
+where it is looked at: the vision pipeline, while tracking, reads a small rectangle
+around each follower, so a vision-in-the-loop simulation renders a few thousand pixels
+a frame instead of 307,200. Any rectangle is bit for bit what the whole frame has
+there (tested). :meth:`Renderer.render` gives the whole frame.
 
 Randomness only through the ``numpy.random.Generator`` the caller passes (noise, per
-frame) and ``texture_seed`` (the world's look, fixed at construction).
+frame, drawn when the frame is made) and ``texture_seed`` (the world's look, fixed at
+construction).
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ _WALL_COLS = 1024
 _WALL_ROWS = 128
 _SUBPIXEL_BITS = 4  # polygon vertices with 1/16 pixel precision
 _NOISE_SLACK_ROWS = 64
+_RECT_MARGIN = 4  # pixels drawn around a rectangle of a frame and cut off (see Renderer._render_rect)
 
 
 
@@ -74,18 +84,6 @@ def marker_bgr(hue_deg: float, saturation: float, value: float) -> tuple[float, 
     hsv = np.array([[[hue_deg / 2.0 % 180.0, saturation * 255.0, value * 255.0]]], dtype=np.float32)
     bgr = cv2.cvtColor(hsv.astype(np.uint8), cv2.COLOR_HSV2BGR)[0, 0]
     return float(bgr[0]), float(bgr[1]), float(bgr[2])
-
-
-@dataclass(frozen=True)
-class SceneObject:
-    """One box in the leader frame: centre (x, y), heading a (rad, from +x), colours."""
-
-    x: float
-    y: float
-    a: float
-    look: BoxLook
-    body_bgr: tuple[float, float, float]
-    top_bgr: tuple[float, float, float] | None
 
 
 def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], sigma: float, amplitude: float) -> FloatArray:
@@ -131,87 +129,328 @@ def _wall_texture(rng: np.random.Generator) -> np.ndarray:
 
 
 @kernel
-def _background_kernel(
-    floor_idx: np.ndarray, fx: np.ndarray, fy: np.ndarray,
-    wall_idx: np.ndarray, az: np.ndarray, wall_row: np.ndarray, body_idx: np.ndarray,
-    leader_x: float, leader_y: float, phi: float,
-    floor_tex: np.ndarray, wall_tex: np.ndarray, body: np.ndarray, ppm: float,
-    gain: float, offset: float, out: np.ndarray,
-) -> None:
-    """One pass over the pixels that change: floor texture under the leader's pose, walls, body.
+def _background_rect(
+    spans: np.ndarray, row_spans: np.ndarray, pa: np.ndarray, pb: np.ndarray, width: int,
+    y0: int, y1: int, x0: int, x1: int, leader_x: float, leader_y: float, phi: float,
+    floor_tex: np.ndarray, wall_tex: np.ndarray, colours: np.ndarray, ppm: float, lut: np.ndarray,
+) -> np.ndarray:
+    """The pixels of rows y0..y1, columns x0..x1 before any box is drawn: floor texture under
+    the leader's pose, distant walls, the leader's body, black beyond the mirror's rim.
 
-    ``out`` is the frame as (H*W, 3); pixels beyond the mirror's rim are left as they are.
-    The floor texture's side is a power of two, so wrapping is a bit mask.
+    Each image row is a few runs of one kind of pixel: ``spans`` rows are (x_start, x_end,
+    kind), those of image row y are ``spans[row_spans[y]:row_spans[y + 1]]``. Kinds: 0
+    beyond the rim and 1 the leader's body (``colours`` rows, before lighting), 2 floor
+    (pa, pb: where the pixel's ray meets the floor, leader frame, m), 3 wall (pa: azimuth in
+    texture columns, pb: texture row); pa and pb are flat (row-major, ``width`` per row).
+    The floor texture's side is a power of two, so wrapping is a bit mask; texel coordinates
+    are kept positive so truncation is floor. Flat unsigned indices spare the compiled loop
+    numpy's negative-index checks.
     """
-    lut = np.empty(256, np.uint8)
-    for v in range(256):
-        val = v * gain + offset
-        lut[v] = 255 if val > 255.0 else (0 if val < 0.0 else np.uint8(val))
-    c = math.cos(phi)
-    s = math.sin(phi)
-    mask = floor_tex.shape[0] - 1
-    # texel coordinates kept positive so truncation is floor and wrapping a bit mask
+    ow = x1 - x0
+    out = np.empty((y1 - y0) * ow * 3, np.uint8)
+    tw = floor_tex.shape[0]
+    mask = np.int64(tw - 1)
+    ftex = floor_tex.reshape(-1)
+    ww = wall_tex.shape[1]  # a power of two
+    wmask = np.int64(ww - 1)
+    wtex = wall_tex.reshape(-1)
     bias = float(1 << 24)
     ox = leader_x * ppm + bias
     oy = leader_y * ppm + bias
-    cp = c * ppm
-    sp = s * ppm
-    for k in range(floor_idx.shape[0]):
-        i = int(sp * fx[k] + cp * fy[k] + oy) & mask
-        j = int(cp * fx[k] - sp * fy[k] + ox) & mask
-        q = floor_idx[k]
-        out[q, 0] = lut[floor_tex[i, j, 0]]
-        out[q, 1] = lut[floor_tex[i, j, 1]]
-        out[q, 2] = lut[floor_tex[i, j, 2]]
-    wcols = wall_tex.shape[1]  # a power of two
-    wmask = wcols - 1
-    shift = (phi / (2.0 * math.pi)) % 1.0 * wcols
-    for k in range(wall_idx.shape[0]):
-        j = int(az[k] + shift) & wmask
-        i = wall_row[k]
-        q = wall_idx[k]
-        out[q, 0] = lut[wall_tex[i, j, 0]]
-        out[q, 1] = lut[wall_tex[i, j, 1]]
-        out[q, 2] = lut[wall_tex[i, j, 2]]
-    for k in range(body_idx.shape[0]):
-        q = body_idx[k]
-        out[q, 0] = lut[body[0]]
-        out[q, 1] = lut[body[1]]
-        out[q, 2] = lut[body[2]]
+    cp = math.cos(phi) * ppm
+    sp = math.sin(phi) * ppm
+    shift = (phi / (2.0 * math.pi)) % 1.0 * ww
+    one = np.uint64(1)
+    two = np.uint64(2)
+    for y in range(y0, y1):
+        base = y * width
+        obase = (y - y0) * ow - x0
+        for k in range(row_spans[y], row_spans[y + 1]):
+            a = max(spans[k, 0], x0)
+            b = min(spans[k, 1], x1)
+            if a >= b:
+                continue
+            kind = spans[k, 2]
+            if kind == 2:
+                for x in range(a, b):
+                    fx = pa[base + x]
+                    fy = pb[base + x]
+                    i = np.int64(sp * fx + cp * fy + oy) & mask
+                    j = np.int64(cp * fx - sp * fy + ox) & mask
+                    t = np.uint64((i * tw + j) * 3)
+                    o = np.uint64((obase + x) * 3)
+                    out[o] = lut[ftex[t]]
+                    out[o + one] = lut[ftex[t + one]]
+                    out[o + two] = lut[ftex[t + two]]
+            elif kind == 3:
+                for x in range(a, b):
+                    j = np.int64(pa[base + x] + shift) & wmask
+                    t = np.uint64((np.int64(pb[base + x]) * ww + j) * 3)
+                    o = np.uint64((obase + x) * 3)
+                    out[o] = lut[wtex[t]]
+                    out[o + one] = lut[wtex[t + one]]
+                    out[o + two] = lut[wtex[t + two]]
+            else:
+                c0 = colours[kind, 0]
+                c1 = colours[kind, 1]
+                c2 = colours[kind, 2]
+                if kind == 1:  # the body is lit; beyond the rim stays dark
+                    c0 = lut[c0]
+                    c1 = lut[c1]
+                    c2 = lut[c2]
+                for x in range(a, b):
+                    o = np.uint64((obase + x) * 3)
+                    out[o] = c0
+                    out[o + one] = c1
+                    out[o + two] = c2
+    return out.reshape(y1 - y0, ow, 3)
 
 
-def _box_outlines(objs: list[SceneObject]) -> tuple[FloatArray, FloatArray]:
-    """Leader-frame 3-D points along every object's body edges (bottom and top rectangle,
-    4 per edge) and its marker's edges (6 per edge), for all objects at once: (n, 32, 3), (n, 24, 3)."""
-    n = len(objs)
-    x = np.array([o.x for o in objs])
-    y = np.array([o.y for o in objs])
-    a = np.array([o.a for o in objs])
-    dims = np.array([(o.look.length_m, o.look.width_m, o.look.height_m, o.look.top_length_m, o.look.top_width_m)
-                     for o in objs]).reshape(n, 5)
-    fwd = np.stack([np.cos(a), np.sin(a)], axis=-1)  # (n, 2)
-    left = np.stack([-np.sin(a), np.cos(a)], axis=-1)
-    unit = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])  # (corner, (along, across))
+@kernel
+def _layout_boxes(
+    cx: np.ndarray, cy: np.ndarray, ca: np.ndarray, cdims: np.ndarray, cbody: np.ndarray, ctop: np.ndarray,
+    followers: np.ndarray, visible: np.ndarray, fdims: np.ndarray, fbody: np.ndarray, fcolours: np.ndarray,
+    leader_x: float, leader_y: float, leader_theta: float, period: float, reach: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every box of a frame in the leader frame, far to near (painter's order).
 
-    def outline(length: FloatArray, width: FloatArray, per_edge: int) -> FloatArray:
-        f = np.arange(per_edge) / per_edge
-        c0 = unit
-        c1 = np.roll(unit, -1, axis=0)
-        local = (c0[:, None, :] * (1 - f)[None, :, None] + c1[:, None, :] * f[None, :, None]).reshape(-1, 2)
-        along = local[None, :, 0] * length[:, None]
-        across = local[None, :, 1] * width[:, None]
-        px = x[:, None] + along * fwd[:, None, 0] + across * left[:, None, 0]
-        py = y[:, None] + along * fwd[:, None, 1] + across * left[:, None, 1]
-        return np.stack([px, py], axis=-1)
+    Clutter: the world-fixed boxes of one cell (cx, cy world, m; ca world heading), the
+    cell repeating every ``period`` metres; the instances of the 5 x 5 cells around the
+    leader that lie between 0.6 m and ``reach`` - 0.3 m from it and at least 0.45 m from
+    every follower (the simulator has no collisions, so a robot would drive into them).
+    Followers: (x, y, a) leader frame, the visible ones, marker colour i mod len(fcolours).
+    Returns x, y, a, dims (m, 5), body colour (m, 3), marker colour (m, 3; NaN: none).
+    """
+    phi = leader_theta - math.pi / 2
+    c = math.cos(phi)
+    s = math.sin(phi)
+    n = followers.shape[0]
+    k = cx.shape[0]
+    cap = 25 * k + n
+    x = np.empty(cap)
+    y = np.empty(cap)
+    a = np.empty(cap)
+    dims = np.empty((cap, 5))
+    body = np.empty((cap, 3))
+    top = np.empty((cap, 3))
+    m = 0
+    gx = math.floor(leader_x / period)
+    gy = math.floor(leader_y / period)
+    for i in range(-2, 3):
+        for j in range(-2, 3):
+            for q in range(k):
+                wx = (gx + i) * period + cx[q] - leader_x
+                wy = (gy + j) * period + cy[q] - leader_y
+                bx = c * wx + s * wy
+                by = -s * wx + c * wy
+                d = math.hypot(bx, by)
+                if not (0.6 < d < reach - 0.3):
+                    continue
+                clear = True
+                for f in range(n):
+                    if math.hypot(followers[f, 0] - bx, followers[f, 1] - by) < 0.45:
+                        clear = False
+                        break
+                if not clear:
+                    continue
+                x[m] = bx
+                y[m] = by
+                a[m] = ca[q] - phi
+                dims[m] = cdims[q]
+                body[m] = cbody[q]
+                top[m] = ctop[q]
+                m += 1
+    for f in range(n):
+        if not visible[f]:
+            continue
+        x[m] = followers[f, 0]
+        y[m] = followers[f, 1]
+        a[m] = followers[f, 2]
+        dims[m] = fdims
+        body[m] = fbody
+        top[m] = fcolours[f % fcolours.shape[0]]
+        m += 1
+    order = np.argsort(-np.hypot(x[:m], y[:m]), kind="mergesort")
+    return x[order], y[order], a[order], dims[order], body[order], top[order]
 
-    body2 = outline(dims[:, 0], dims[:, 1], 4)  # (n, 16, 2)
-    zeros = np.zeros(body2.shape[:2] + (1,))
-    heights = np.broadcast_to(dims[:, 2, None, None], zeros.shape)
-    body = np.concatenate([np.concatenate([body2, zeros], axis=-1),
-                           np.concatenate([body2, heights], axis=-1)], axis=1)
-    top2 = outline(dims[:, 3], dims[:, 4], 6)
-    top = np.concatenate([top2, np.broadcast_to(dims[:, 2, None, None] + 0.002, top2.shape[:2] + (1,))], axis=-1)
-    return body, top
+
+def _row_spans(kind: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Runs of equal kind along each row of a (H, W) kind image: (runs (m, 3) of
+    x_start, x_end, kind; (H + 1,) index of each row's first run)."""
+    h, w = kind.shape
+    runs: list[tuple[int, int, int]] = []
+    first = [0]
+    for y in range(h):
+        row = kind[y]
+        cuts = np.flatnonzero(row[1:] != row[:-1]) + 1
+        starts = np.concatenate([[0], cuts])
+        ends = np.concatenate([cuts, [w]])
+        runs.extend((int(a), int(b), int(row[a])) for a, b in zip(starts, ends))
+        first.append(len(runs))
+    return np.array(runs, np.int64).reshape(-1, 3), np.array(first, np.int64)
+
+
+@kernel
+def _box_polygons(
+    x: np.ndarray, y: np.ndarray, a: np.ndarray, dims: np.ndarray,
+    to_mirror: np.ndarray, xi: float, gamma_px: float, cx: float, cy: float, mirror_height: float,
+    scale: float, limit: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every box projected into the image, for all boxes at once (eq. of core.camera.model).
+
+    Per box: its body outline (bottom and top rectangle, 4 points per edge: 32 points) and
+    its marker's outline (6 points per edge: 24 points), as pixels times ``scale`` (fixed
+    point, rounded); its pixel bounding box (x0, y0, x1, y1, wide enough for anti-aliasing);
+    and whether it projects at all (every point in front of the mirror and within ``limit``).
+    dims per box: length, width, height, marker length, marker width (m).
+    """
+    m = x.shape[0]
+    body = np.zeros((m, 32, 2), np.int32)
+    top = np.zeros((m, 24, 2), np.int32)
+    bbox = np.zeros((m, 4), np.int64)
+    ok = np.ones(m, np.bool_)
+    ua = np.array([0.5, -0.5, -0.5, 0.5])
+    uc = np.array([0.5, 0.5, -0.5, -0.5])
+    for b in range(m):
+        ca = math.cos(a[b])
+        sa = math.sin(a[b])
+        lo_u = lo_v = 1e18
+        hi_u = hi_v = -1e18
+        for part in range(3):  # body bottom, body top, marker
+            if part < 2:
+                length, width, per = dims[b, 0], dims[b, 1], 4
+                z = 0.0 if part == 0 else dims[b, 2]
+            else:
+                length, width, per = dims[b, 3], dims[b, 4], 6
+                z = dims[b, 2] + 0.002
+            for corner in range(4):
+                nxt = (corner + 1) % 4
+                for e in range(per):
+                    f = e / per
+                    along = (ua[corner] * (1.0 - f) + ua[nxt] * f) * length
+                    across = (uc[corner] * (1.0 - f) + uc[nxt] * f) * width
+                    px = x[b] + along * ca - across * sa
+                    py = y[b] + along * sa + across * ca
+                    pz = z - mirror_height
+                    mx = to_mirror[0, 0] * px + to_mirror[0, 1] * py + to_mirror[0, 2] * pz
+                    my = to_mirror[1, 0] * px + to_mirror[1, 1] * py + to_mirror[1, 2] * pz
+                    mz = to_mirror[2, 0] * px + to_mirror[2, 1] * py + to_mirror[2, 2] * pz
+                    denom = mz + xi * math.sqrt(mx * mx + my * my + mz * mz)
+                    if denom <= 1e-12:
+                        ok[b] = False
+                        continue
+                    u = (gamma_px * mx / denom + cx) * scale
+                    v = (gamma_px * my / denom + cy) * scale
+                    if not (abs(u) < limit and abs(v) < limit):
+                        ok[b] = False
+                        continue
+                    k = corner * per + e
+                    ui = np.int32(round(u))
+                    vi = np.int32(round(v))
+                    if part == 2:
+                        top[b, k, 0] = ui
+                        top[b, k, 1] = vi
+                    else:
+                        body[b, part * 16 + k, 0] = ui
+                        body[b, part * 16 + k, 1] = vi
+                    lo_u = min(lo_u, u)
+                    hi_u = max(hi_u, u)
+                    lo_v = min(lo_v, v)
+                    hi_v = max(hi_v, v)
+        if ok[b]:
+            # anti-aliasing reaches a pixel beyond the outline
+            bbox[b, 0] = int(math.floor(lo_u / scale)) - 2
+            bbox[b, 1] = int(math.floor(lo_v / scale)) - 2
+            bbox[b, 2] = int(math.ceil(hi_u / scale)) + 3
+            bbox[b, 3] = int(math.ceil(hi_v / scale)) + 3
+    return body, top, bbox, ok
+
+
+@dataclass(frozen=True)
+class Boxes:
+    """Boxes in the leader frame, one row each: centre (x, y), heading a (rad, from +x),
+    size (length, width, height, marker length, marker width; m), body and marker colour
+    (BGR 0..255; a marker colour of NaN: no marker)."""
+
+    x: FloatArray
+    y: FloatArray
+    a: FloatArray
+    dims: FloatArray  # (m, 5)
+    body_bgr: FloatArray  # (m, 3)
+    top_bgr: FloatArray  # (m, 3)
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+    @staticmethod
+    def empty() -> "Boxes":
+        z = np.zeros(0)
+        return Boxes(z, z, z, np.zeros((0, 5)), np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+def _look_dims(look: BoxLook) -> tuple[float, float, float, float, float]:
+    return (look.length_m, look.width_m, look.height_m, look.top_length_m, look.top_width_m)
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """One frame's worth of everything that varies: lighting, the leader's pose, the boxes
+    projected (far to near), the sensor noise's offsets in the noise bank."""
+
+    lut: np.ndarray  # (256,) uint8 lighting: grey level -> lit grey level
+    gain: float
+    offset: float
+    leader: tuple[float, float, float]  # x, y, phi (the floor's rotation)
+    boxes: Boxes
+    body_px: np.ndarray  # (m, 32, 2) int32, fixed point
+    top_px: np.ndarray  # (m, 24, 2) int32, fixed point
+    bbox_list: list[tuple[int, int, int, int]]  # per box x0, y0, x1, y1 pixels; empty where it does not project
+    noise_rows: tuple[int, int]
+    draw_cache: dict[int, tuple[np.ndarray, list[float], np.ndarray | None, list[float]]]  # see Renderer._box_look
+
+
+class SyntheticFrame:
+    """A rendered frame whose pixels are made when they are first looked at.
+
+    ``frame[y0:y1, x0:x1]`` renders just that rectangle (a new array, the very pixels the
+    whole frame has there); ``np.asarray(frame)`` renders the whole frame once and keeps
+    it. Everything random was drawn when the frame was made, so what is looked at, and in
+    which order, never changes a pixel. A JPEG round trip mixes whole 8x8 blocks, so with
+    JPEG on the whole frame is rendered at the first look.
+    """
+
+    def __init__(self, renderer: "Renderer", scene: _Scene) -> None:
+        self._renderer = renderer
+        self._scene = scene
+        self._full: np.ndarray | None = None
+        self.shape: tuple[int, int, int] = renderer.shape
+        self.dtype = np.dtype(np.uint8)
+        self.ndim = 3
+        self.pixels_rendered = 0  # how many pixels were made (a region's and the whole frame's)
+
+    def __array__(self, dtype: object = None, copy: object = None) -> np.ndarray:
+        if self._full is None:
+            h, w = self.shape[:2]
+            self._full = self._renderer._render_rect(self._scene, 0, h, 0, w)
+            self.pixels_rendered += h * w
+            q = self._renderer.settings.jpeg_quality
+            if q > 0:
+                ok, buf = cv2.imencode(".jpg", self._full, [cv2.IMWRITE_JPEG_QUALITY, int(q)])
+                if ok:
+                    self._full = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        return self._full if dtype is None else self._full.astype(dtype)
+
+    def __getitem__(self, key: object) -> np.ndarray:
+        if self._full is None and self._renderer.settings.jpeg_quality <= 0 and isinstance(key, tuple) \
+                and len(key) == 2 and all(isinstance(k, slice) and k.step in (None, 1) for k in key):
+            h, w = self.shape[:2]
+            y0, y1, _ = key[0].indices(h)
+            x0, x1, _ = key[1].indices(w)
+            if y1 <= y0 or x1 <= x0:
+                return np.empty((max(0, y1 - y0), max(0, x1 - x0), 3), np.uint8)
+            self.pixels_rendered += (y1 - y0) * (x1 - x0)
+            return self._renderer._render_rect(self._scene, y0, y1, x0, x1)
+        return np.asarray(self)[key]  # type: ignore[index]
 
 
 class Renderer:
@@ -240,75 +479,70 @@ class Renderer:
         horiz = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
         wall_z = model.mirror_height_m + settings.floor_far_m * d[:, 2] / horiz
         row = np.clip(wall_z / _WALL_HEIGHT_M * _WALL_ROWS, 0, _WALL_ROWS - 1).astype(np.int32)
-        self._floor_idx = np.flatnonzero(floor_px).astype(np.int32)
-        self._fx = fx[floor_px].astype(np.float32)
-        self._fy = fy[floor_px].astype(np.float32)
-        self._wall_idx = np.flatnonzero(wall_px).astype(np.int32)
         # azimuth in wall-texture columns, in [0, cols)
-        self._az = ((np.arctan2(d[:, 1], d[:, 0])[wall_px] % (2 * np.pi)) * (_WALL_COLS / (2 * np.pi))).astype(np.float32)
-        self._wall_row = row[wall_px].copy()
-        self._body_idx = np.flatnonzero(body_px).astype(np.int32)
-        self._template = np.full(self.shape, 6, np.uint8)  # beyond the rim: (nearly) black
+        az = (np.arctan2(d[:, 1], d[:, 0]) % (2 * np.pi)) * (_WALL_COLS / (2 * np.pi))
+        kind = np.zeros(h * w, np.uint8)
+        kind[body_px] = 1
+        kind[floor_px] = 2
+        kind[wall_px] = 3
+        self._spans, self._row_spans = _row_spans(kind.reshape(h, w))
+        self._pa = np.where(floor_px, fx, np.where(wall_px, az, 0.0)).astype(np.float32)
+        self._pb = np.where(floor_px, fy, np.where(wall_px, row, 0)).astype(np.float32)
         tex_rng = np.random.default_rng(settings.texture_seed)
         self._floor_tex = _floor_texture(tex_rng)
         self._wall_tex = _wall_texture(tex_rng)
-        self._body = np.array([52, 50, 48], np.uint8)
+        self._colours = np.array([[6, 6, 6], [52, 50, 48]], np.uint8)  # beyond the rim; the leader's body
         # sensor noise: two non-negative banks (added, subtracted) with spare rows to shift
         sigma = settings.noise_sigma
         bank = tex_rng.normal(0.0, sigma, (h + _NOISE_SLACK_ROWS, w, 3)) if sigma > 0 else np.zeros((h + _NOISE_SLACK_ROWS, w, 3))
         self._noise_pos = np.clip(bank, 0, 255).astype(np.uint8)
         self._noise_neg = np.clip(-bank, 0, 255).astype(np.uint8)
         self._clutter = self._make_clutter(tex_rng)
-        self._marker_colours = [marker_bgr(h, settings.marker_saturation, settings.marker_value) for h in settings.hues_deg]
+        self._marker_colours = np.array([marker_bgr(hue, settings.marker_saturation, settings.marker_value)
+                                         for hue in settings.hues_deg]).reshape(-1, 3)
+        self._follower_dims = np.array(_look_dims(settings.follower))
+        self._follower_body = np.array([40.0, 40.0, 44.0])
 
     # -- the world's furniture ---------------------------------------------------------
 
-    def _make_clutter(self, rng: np.random.Generator) -> list[tuple[float, float, float, BoxLook, tuple[float, float, float], tuple[float, float, float] | None]]:
-        """World-fixed boxes inside one clutter cell; the cell repeats over the floor."""
+    def _make_clutter(self, rng: np.random.Generator) -> Boxes:
+        """World-fixed boxes inside one clutter cell (world frame); the cell repeats over the floor."""
         s = self.settings
-        items: list[tuple[float, float, float, BoxLook, tuple[float, float, float], tuple[float, float, float] | None]] = []
+        rows: list[tuple[float, float, float, tuple[float, float, float, float, float], tuple[float, float, float],
+                         tuple[float, float, float]]] = []
+        nan3 = (math.nan, math.nan, math.nan)
         if s.clutter:
             for _ in range(2):
                 size = float(rng.uniform(0.2, 0.4))
                 grey = float(rng.uniform(70, 190))
                 look = BoxLook(size, float(rng.uniform(0.15, 0.3)), float(rng.uniform(0.1, 0.35)), 0.0, 0.0)
-                items.append((float(rng.uniform(0, s.clutter_period_m)), float(rng.uniform(0, s.clutter_period_m)),
-                              float(rng.uniform(-math.pi, math.pi)), look, (grey, grey + 3, grey + 6), None))
+                rows.append((float(rng.uniform(0, s.clutter_period_m)), float(rng.uniform(0, s.clutter_period_m)),
+                             float(rng.uniform(-math.pi, math.pi)), _look_dims(look), (grey, grey + 3, grey + 6), nan3))
         if s.distractor:
             look = BoxLook(0.12, 0.12, 0.12, 0.10, 0.10)
-            items.append((float(rng.uniform(0, s.clutter_period_m)), float(rng.uniform(0, s.clutter_period_m)),
-                          0.0, look, marker_bgr(s.distractor_hue_deg, 0.8, 0.7),
-                          marker_bgr(s.distractor_hue_deg, 0.8, 0.8)))
-        return items
+            rows.append((float(rng.uniform(0, s.clutter_period_m)), float(rng.uniform(0, s.clutter_period_m)),
+                         0.0, _look_dims(look), marker_bgr(s.distractor_hue_deg, 0.8, 0.7),
+                         marker_bgr(s.distractor_hue_deg, 0.8, 0.8)))
+        if not rows:
+            return Boxes.empty()
+        return Boxes(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
+                     np.array([r[3] for r in rows]), np.array([r[4] for r in rows]), np.array([r[5] for r in rows]))
 
-    def _clutter_objects(self, leader_pose: FloatArray, robots: FloatArray | None = None) -> list[SceneObject]:
-        """Clutter instances within the floor's reach, in the leader frame.
-
-        The simulator has no collisions, so an instance a robot would drive into is left
-        out: none within 0.6 m of the leader or 0.45 m of a follower (``robots``, (n, 2)+).
-        """
-        if not self._clutter:
-            return []
-        period = self.settings.clutter_period_m
-        lx, ly, lth = float(leader_pose[0]), float(leader_pose[1]), float(leader_pose[2])
-        phi = lth - math.pi / 2
-        c, s = math.cos(phi), math.sin(phi)
-        reach = self.settings.floor_far_m
-        objs: list[SceneObject] = []
-        cells = range(-2, 3)
-        cx0, cy0 = math.floor(lx / period), math.floor(ly / period)
-        for wx0, wy0, wa, look, body, top in self._clutter:
-            for i in cells:
-                for j in cells:
-                    wx = (cx0 + i) * period + wx0 - lx
-                    wy = (cy0 + j) * period + wy0 - ly
-                    x, y = c * wx + s * wy, -s * wx + c * wy
-                    if not 0.6 < math.hypot(x, y) < reach - 0.3:
-                        continue
-                    if robots is not None and len(robots) and np.min(np.hypot(robots[:, 0] - x, robots[:, 1] - y)) < 0.45:
-                        continue
-                    objs.append(SceneObject(x, y, wa - phi, look, body, top))
-        return objs
+    def boxes(self, leader_pose: FloatArray, followers_leader: FloatArray, hidden: BoolArray | None = None,
+              clutter_only: bool = False) -> Boxes:
+        """The frame's boxes in the leader frame, far to near: clutter within the floor's reach
+        (none within 0.6 m of the leader or 0.45 m of a follower: the simulator has no
+        collisions) and the followers' boxes, (n, 3) rows (x, y, a), not the hidden ones."""
+        cl = self._clutter
+        fol = np.ascontiguousarray(np.asarray(followers_leader, dtype=np.float64).reshape(-1, 3))
+        visible = np.ones(len(fol), dtype=np.bool_) if hidden is None else ~np.asarray(hidden, dtype=np.bool_)[: len(fol)]
+        if clutter_only:
+            visible = np.zeros(len(fol), dtype=np.bool_)
+        lp = np.asarray(leader_pose, dtype=np.float64)
+        return Boxes(*_layout_boxes(
+            cl.x, cl.y, cl.a, cl.dims, cl.body_bgr, cl.top_bgr, fol, visible, self._follower_dims,
+            self._follower_body, self._marker_colours, float(lp[0]), float(lp[1]), float(lp[2]),
+            self.settings.clutter_period_m, self.settings.floor_far_m))
 
     # -- a frame -----------------------------------------------------------------------
 
@@ -320,17 +554,34 @@ class Renderer:
         w = 2 * math.pi / s.drift_period_s
         return 1.0 + s.drift_gain * math.sin(w * t), s.drift_offset * math.sin(0.61 * w * t + 1.0)
 
-    def follower_objects(self, followers_leader: FloatArray, hidden: BoolArray | None = None) -> list[SceneObject]:
-        """Followers as boxes with their marker colours; (n, 3) rows are (x, y, a) in the leader frame."""
-        s = self.settings
-        objs = []
-        body = (40.0, 40.0, 44.0)
-        for i, (x, y, a) in enumerate(np.asarray(followers_leader, dtype=np.float64)):
-            if hidden is not None and bool(hidden[i]):
-                continue
-            objs.append(SceneObject(float(x), float(y), float(a), s.follower, body,
-                                    self._marker_colours[i % len(self._marker_colours)]))
-        return objs
+    def frame(
+        self,
+        leader_pose: FloatArray,
+        followers_leader: FloatArray,
+        t: float,
+        rng: np.random.Generator,
+        hidden: BoolArray | None = None,
+    ) -> SyntheticFrame:
+        """The frame at time t, its pixels made when first looked at (see SyntheticFrame).
+
+        leader_pose: the leader's world pose (x, y, theta) (moves the floor and clutter);
+        followers_leader: (n, 3) follower poses (x, y, a) in the leader frame;
+        hidden: followers not drawn (occluded).
+        """
+        gain, offset = self.lighting(t)
+        lut = np.clip(np.arange(256) * gain + offset, 0, 255).astype(np.uint8)
+        lp = np.asarray(leader_pose, dtype=np.float64)
+        boxes = self.boxes(lp, followers_leader, hidden)
+        mdl = self.model
+        scale = float(1 << _SUBPIXEL_BITS)
+        body_px, top_px, bbox, ok = _box_polygons(
+            boxes.x, boxes.y, boxes.a, boxes.dims, mdl._to_mirror, mdl.xi, mdl.gamma_px, mdl.cx, mdl.cy,
+            mdl.mirror_height_m, scale, 4 * scale * max(mdl.width, mdl.height))
+        rows = (int(rng.integers(0, _NOISE_SLACK_ROWS)), int(rng.integers(0, _NOISE_SLACK_ROWS)))
+        bbox[~ok] = (0, 0, 0, 0)  # never drawn
+        scene = _Scene(lut, gain, offset, (float(lp[0]), float(lp[1]), float(lp[2]) - math.pi / 2), boxes,
+                       body_px, top_px, [tuple(b) for b in bbox.tolist()], rows, {})
+        return SyntheticFrame(self, scene)
 
     def render(
         self,
@@ -340,56 +591,58 @@ class Renderer:
         rng: np.random.Generator,
         hidden: BoolArray | None = None,
     ) -> np.ndarray:
-        """One BGR frame (H, W, 3) uint8.
+        """One whole BGR frame (H, W, 3) uint8 (arguments as for :meth:`frame`)."""
+        return np.asarray(self.frame(leader_pose, followers_leader, t, rng, hidden))
 
-        leader_pose: the leader's world pose (x, y, theta) (moves the floor and clutter);
-        followers_leader: (n, 3) follower poses (x, y, a) in the leader frame;
-        hidden: followers not drawn (occluded).
-        """
-        gain, offset = self.lighting(t)
-        out = self._template.copy()
-        lp = np.asarray(leader_pose, dtype=np.float64)
-        _background_kernel(
-            self._floor_idx, self._fx, self._fy, self._wall_idx, self._az, self._wall_row, self._body_idx,
-            float(lp[0]), float(lp[1]), float(lp[2]) - math.pi / 2,
-            self._floor_tex, self._wall_tex, self._body, _TEX_PPM, gain, offset,
-            out.reshape(-1, 3),
-        )
-        robots = np.asarray(followers_leader, dtype=np.float64).reshape(-1, 3)[:, :2]
-        objs = self._clutter_objects(lp, robots) + self.follower_objects(followers_leader, hidden)
-        objs.sort(key=lambda o: -math.hypot(o.x, o.y))
-        if objs:
-            self._draw_boxes(out, objs, gain, offset)
+    def _render_rect(self, scene: _Scene, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        """Rows y0..y1, columns x0..x1 of the scene's frame, exactly as in the whole frame.
+
+        The blur needs one pixel around the rectangle, and OpenCV's anti-aliased polygons
+        come out differently in the last rows before a clipping edge, so a margin of
+        ``_RECT_MARGIN`` pixels is drawn too (inside the image: at the image's edges both the
+        clipping and the blur's border rule are the whole frame's) and cut off."""
         s = self.settings
+        h, w = self.shape[:2]
+        m = _RECT_MARGIN
+        ey0, ey1, ex0, ex1 = max(0, y0 - m), min(h, y1 + m), max(0, x0 - m), min(w, x1 + m)
+        lx, ly, phi = scene.leader
+        img = _background_rect(self._spans, self._row_spans, self._pa, self._pb, w, ey0, ey1, ex0, ex1, lx, ly, phi,
+                               self._floor_tex, self._wall_tex, self._colours, _TEX_PPM, scene.lut)
+        self._draw_boxes(img, scene, ex0, ey0, ex1, ey1)
         if s.blur_sigma_px > 0:
-            out = cv2.GaussianBlur(out, (3, 3), s.blur_sigma_px)
+            img = cv2.GaussianBlur(img, (3, 3), s.blur_sigma_px)
+        if (ey0, ey1, ex0, ex1) != (y0, y1, x0, x1):
+            img = np.ascontiguousarray(img[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0])
         if s.noise_sigma > 0:
-            r0 = int(rng.integers(0, _NOISE_SLACK_ROWS))
-            h = self.shape[0]
-            cv2.add(out, self._noise_pos[r0:r0 + h], dst=out)
-            r1 = int(rng.integers(0, _NOISE_SLACK_ROWS))
-            cv2.subtract(out, self._noise_neg[r1:r1 + h], dst=out)
-        if s.jpeg_quality > 0:
-            ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(s.jpeg_quality)])
-            if ok:
-                out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-        return out
+            r0, r1 = scene.noise_rows
+            cv2.add(img, self._noise_pos[r0 + y0:r0 + y1, x0:x1], dst=img)
+            cv2.subtract(img, self._noise_neg[r1 + y0:r1 + y1, x0:x1], dst=img)
+        return img
 
-    def _draw_boxes(self, img: np.ndarray, objs: list[SceneObject], gain: float, offset: float) -> None:
-        """Draw boxes in the given order (far to near): dark body silhouette, then the marker."""
-        body3, top3 = _box_outlines(objs)
-        scale = float(1 << _SUBPIXEL_BITS)
-        body_px = (self.model.project(body3) * scale).round()
-        top_px = (self.model.project(top3) * scale).round()
-        limit = 4 * scale * max(self.model.width, self.model.height)
-        ok = np.all(np.isfinite(body_px) & (np.abs(body_px) < limit), axis=(1, 2))
-        body_i = np.where(ok[:, None, None], body_px, 0).astype(np.int32)
-        top_i = np.where(ok[:, None, None], top_px, 0).astype(np.int32)
-        lut = np.clip(np.array([[o.body_bgr for o in objs]]) * gain + offset, 0, 255)[0]
-        for i, obj in enumerate(objs):
-            if not ok[i]:
+    def _draw_boxes(self, img: np.ndarray, scene: _Scene, x0: int, y0: int, x1: int, y1: int) -> None:
+        """Draw, far to near, the boxes that reach into the rectangle ``img`` covers (its top
+        left pixel is (x0, y0)): dark body silhouette, then the marker. Vertices move by whole
+        pixels, so every pixel is drawn exactly as in the whole frame."""
+        shift = None
+        for i, (bx0, by0, bx1, by1) in enumerate(scene.bbox_list):
+            if bx0 >= x1 or bx1 <= x0 or by0 >= y1 or by1 <= y0:
                 continue
-            cv2.fillConvexPoly(img, cv2.convexHull(body_i[i]), lut[i].tolist(), cv2.LINE_AA, _SUBPIXEL_BITS)
-            if obj.top_bgr is not None and obj.look.top_length_m > 0:
-                colour = [min(255.0, max(0.0, c * gain + offset)) for c in obj.top_bgr]
-                cv2.fillPoly(img, [top_i[i]], colour, cv2.LINE_AA, _SUBPIXEL_BITS)
+            look = scene.draw_cache.get(i)
+            if look is None:
+                look = scene.draw_cache[i] = self._box_look(scene, i)
+            hull, body_colour, top, top_colour = look
+            if shift is None:
+                shift = np.array([x0 << _SUBPIXEL_BITS, y0 << _SUBPIXEL_BITS], np.int32)
+            cv2.fillConvexPoly(img, hull - shift, body_colour, cv2.LINE_AA, _SUBPIXEL_BITS)
+            if top is not None:
+                cv2.fillPoly(img, [top - shift], top_colour, cv2.LINE_AA, _SUBPIXEL_BITS)
+
+    @staticmethod
+    def _box_look(scene: _Scene, i: int) -> tuple[np.ndarray, list[float], np.ndarray | None, list[float]]:
+        """Box i's body outline (convex hull), lit body colour, marker outline (None: no
+        marker) and lit marker colour, made when the box is first drawn."""
+        boxes = scene.boxes
+        body = np.clip(boxes.body_bgr[i] * scene.gain + scene.offset, 0, 255).tolist()
+        has_top = boxes.dims[i, 3] > 0 and not math.isnan(float(boxes.top_bgr[i, 0]))
+        top = np.clip(boxes.top_bgr[i] * scene.gain + scene.offset, 0, 255).tolist() if has_top else []
+        return cv2.convexHull(scene.body_px[i]), body, scene.top_px[i] if has_top else None, top

@@ -22,7 +22,7 @@ from core.control.formation import ControllerState, compute_commands
 from core.geometry import heading_world_to_leader, leader_displacement, world_to_leader
 from core.sim.run import SimulationLog
 from core.sim.team import disturbance_mask, make_team_state, step_team
-from core.types import BoolArray, Commands, FloatArray, IntArray
+from core.types import BoolArray, Commands, FloatArray, Image, IntArray
 from core.vision.pipeline import PipelineSettings, VisionPipeline
 
 
@@ -50,11 +50,12 @@ def simulate_vision(
     gamma: Gamma,
     settings: PipelineSettings = PipelineSettings(),
     max_startup_s: float = 60.0,
-    on_frame: Callable[[int, np.ndarray], None] | None = None,
+    on_frame: Callable[[int, Image], None] | None = None,
 ) -> VisionLog:
     """Run ``scenario`` with the controller fed by the vision pipeline on rendered frames.
 
-    ``on_frame(k, frame)`` sees every rendered frame (row k of the log), e.g. to record it."""
+    ``on_frame(k, frame)`` sees every frame (row k of the log), e.g. to record it;
+    ``np.asarray(frame)`` renders the whole of it."""
     if rig.model is None:
         raise ValueError(f"{rig.source}: a vision simulation needs the rig's [model]")
     dt = 1.0 / scenario.rate_hz
@@ -88,7 +89,8 @@ def simulate_vision(
         p_true = world_to_leader(state.followers[:, :2], state.leader[:2], theta)
         a_true = np.asarray(heading_world_to_leader(state.followers[:, 2], theta))
         hidden = disturbance_mask(scenario.disturbances, n, t_scn, "hidden")[0] if t_ready is not None else None
-        frame = renderer.render(state.leader, np.column_stack([p_true, a_true]), t_wall, rng, hidden=hidden)
+        # pixels are made only where the pipeline looks (bit for bit the whole frame's there)
+        frame = renderer.frame(state.leader, np.column_stack([p_true, a_true]), t_wall, rng, hidden=hidden)
         if on_frame is not None:
             on_frame(k, frame)
         odo = leader_displacement(prev_leader, state.leader)

@@ -22,7 +22,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
+from filterpy.kalman import predict as kf_predict
+from filterpy.kalman import update as kf_update
 
 from core.geometry import reexpress_in_new_frame, wrap_angle
 from core.types import FloatArray
@@ -85,53 +86,72 @@ def fit_heading_line(
     return LineFit(math.atan2(direction[1], direction[0]), best, float(np.sqrt(np.mean(perp**2))))
 
 
-class HeadingFilter:
-    """One follower's heading: a 1-D Kalman filter (filterpy) fed by eq. 34–37 measurements."""
+class HeadingBank:
+    """Every follower's heading: independent 1-D Kalman filters (filterpy's predict and
+    update), held together so a frame costs one predict and one update for the whole team.
 
-    def __init__(self, a0: float, sigma0_rad: float, process_rad_per_sqrt_s: float, measurement_rad: float) -> None:
-        kf = KalmanFilter(dim_x=1, dim_z=1, dim_u=1)
-        kf.x = np.array([[a0]])
-        kf.F = np.array([[1.0]])
-        kf.B = np.array([[1.0]])
-        kf.H = np.array([[1.0]])
-        kf.P = np.array([[sigma0_rad**2]])
-        kf.R = np.array([[measurement_rad**2]])
-        self._kf = kf
+    The state is one heading per follower (rad); the covariance is diagonal (the filters
+    do not interact). Residuals are taken on the circle. Only started filters move.
+    """
+
+    def __init__(self, n: int, process_rad_per_sqrt_s: float, measurement_rad: float) -> None:
+        self.x = np.full(n, np.nan)
+        self.var = np.zeros(n)
+        self.active = np.zeros(n, dtype=bool)
         self._q = process_rad_per_sqrt_s**2
-        self._rejected = 0
+        self._r = measurement_rad**2
+        self._rejected = np.zeros(n, dtype=np.int64)
+
+    def start(self, i: int, a0: float, sigma0_rad: float) -> None:
+        self.x[i] = float(wrap_angle(a0))
+        self.var[i] = sigma0_rad**2
+        self.active[i] = True
+        self._rejected[i] = 0
 
     @property
-    def heading(self) -> float:
-        return float(self._kf.x[0, 0])
+    def headings(self) -> FloatArray:
+        """Filtered headings (rad); NaN where not started."""
+        return np.where(self.active, self.x, np.nan)
 
     @property
-    def sigma(self) -> float:
-        return math.sqrt(float(self._kf.P[0, 0]))
+    def sigmas(self) -> FloatArray:
+        return np.where(self.active, np.sqrt(self.var), np.nan)
 
-    def predict(self, turn: float, dt: float) -> None:
-        """Rotate by ``turn`` (rad): the follower's own commanded turn minus the leader's γ."""
-        self._kf.Q = np.array([[self._q * dt]])
-        self._kf.predict(u=np.array([[turn]]))
-        self._kf.x[0, 0] = float(wrap_angle(self._kf.x[0, 0]))
+    def predict(self, turns: FloatArray, dt: float) -> None:
+        """Rotate each heading by its ``turns`` (rad): the follower's own commanded turn minus
+        the leader's γ; the variance grows by the process noise over dt."""
+        a = self.active
+        if not a.any():
+            return
+        x, var = kf_predict(self.x[a], self.var[a], F=1.0, Q=self._q * dt, u=np.asarray(turns, dtype=np.float64)[a], B=1.0)
+        self.x[a] = wrap_angle(x)
+        self.var[a] = var
 
-    def update(self, measured: float, gate_sigmas: float = 4.0, max_rejections: int = 2) -> bool:
-        """Fuse a heading measurement; the residual is taken on the circle.
+    def update(self, which: np.ndarray, measured: FloatArray, gate_sigmas: float = 4.0,
+               max_rejections: int = 2) -> np.ndarray:
+        """Fuse heading measurements ``measured`` of followers ``which`` (indices).
 
         A measurement further than ``gate_sigmas`` innovation sigmas from the prediction is
         rejected (a window disturbed by an occlusion gives a wild chord), unless it is the
         (max_rejections + 1)-th in a row: then the filter trusts the camera again.
-        Returns whether it was fused.
+        Returns, per measurement, whether it was fused.
         """
-        x = self.heading
-        residual = float(wrap_angle(measured - x))
-        s2 = float(self._kf.P[0, 0] + self._kf.R[0, 0])
-        if residual * residual > gate_sigmas * gate_sigmas * s2 and self._rejected < max_rejections:
-            self._rejected += 1
-            return False
-        self._rejected = 0
-        self._kf.update(np.array([[x + residual]]))
-        self._kf.x[0, 0] = float(wrap_angle(self._kf.x[0, 0]))
-        return True
+        idx = np.asarray(which, dtype=np.int64)
+        z = np.asarray(measured, dtype=np.float64)
+        residual = np.asarray(wrap_angle(z - self.x[idx]))
+        s2 = self.var[idx] + self._r
+        reject = (residual * residual > gate_sigmas * gate_sigmas * s2) & (self._rejected[idx] < max_rejections)
+        self._rejected[idx[reject]] += 1
+        ok = idx[~reject]
+        self._rejected[ok] = 0
+        m = len(ok)
+        if m:
+            eye = np.eye(m)
+            x, cov = kf_update(self.x[ok].reshape(m, 1), np.diag(self.var[ok]),
+                               (self.x[ok] + residual[~reject]).reshape(m, 1), self._r * eye, eye)
+            self.x[ok] = wrap_angle(np.asarray(x).reshape(m))
+            self.var[ok] = np.diag(cov)
+        return ~reject
 
 
 @dataclass
@@ -151,15 +171,26 @@ class ArcAnchor:
         self.travel += v * dt
 
 
-def arc_measurement(anchor: ArcAnchor, position: FloatArray, error_norm: float) -> float | None:
-    """A heading measurement if the follower has moved far enough since the anchor (eq. 34), else None.
+def arc_measurements(anchors: FloatArray, turns: FloatArray, travels: FloatArray, positions: FloatArray,
+                     error_norms: FloatArray) -> FloatArray:
+    """Eq. 34–37 for many followers at once: the heading measured at each position from its
+    anchor (an ``ArcAnchor``'s point, turn and travel per row), NaN where the follower has
+    not yet moved Δs_min (eq. 34) or a value is missing.
 
     A follower driving backwards moves against its heading: the chord is then turned by π.
     """
-    d = np.asarray(position, dtype=np.float64) - anchor.point
-    if math.hypot(float(d[0]), float(d[1])) < float(min_displacement(error_norm)):
-        return None
-    a = chord_heading(anchor.point, position, anchor.turn)
-    if anchor.travel < 0:
-        a = float(wrap_angle(a + math.pi))
-    return a
+    d = np.asarray(positions, dtype=np.float64) - np.asarray(anchors, dtype=np.float64)
+    far = np.hypot(d[:, 0], d[:, 1]) >= min_displacement(error_norms)
+    a = np.arctan2(d[:, 1], d[:, 0]) + 0.5 * np.asarray(turns, dtype=np.float64)
+    a = np.where(np.asarray(travels) < 0, a + math.pi, a)
+    out = np.full(a.shape, np.nan)
+    far &= np.isfinite(a)
+    out[far] = wrap_angle(a[far])
+    return out
+
+
+def arc_measurement(anchor: ArcAnchor, position: FloatArray, error_norm: float) -> float | None:
+    """A heading measurement if the follower has moved far enough since the anchor (eq. 34), else None."""
+    z = arc_measurements(anchor.point.reshape(1, 2), np.array([anchor.turn]), np.array([anchor.travel]),
+                         np.asarray(position, dtype=np.float64).reshape(1, 2), np.array([error_norm]))[0]
+    return None if math.isnan(z) else float(z)

@@ -18,7 +18,9 @@ Phases
               controller stops it) and it is searched for by colour until it is found.
 
 Nothing here knows whether frames are synthetic: it sees BGR images, the leader's odometry
-and the commands that were sent. Slot assignment (eq. 33) is the caller's, once ``ready``.
+and the commands that were sent. It asks a frame for the rectangles it needs (CAMSHIFT's
+regions of interest) and for the whole image only where §3 needs it (backgrounds, the
+search for a lost follower), so an image that makes its pixels on demand is cheap to follow. Slot assignment (eq. 33) is the caller's, once ``ready``.
 """
 
 from __future__ import annotations
@@ -33,10 +35,10 @@ import numpy as np
 from core.camera.config import DetectSettings, WorkingArea
 from core.camera.gamma import Gamma
 from core.geometry import reexpress_in_new_frame, wrap_angle
-from core.types import BoolArray, FloatArray, IntArray
+from core.types import BoolArray, FloatArray, Image, IntArray
 from core.vision.background import BackgroundAccumulator, motion_blob
 from core.vision.blobs import find_blobs, hue_distance_deg, saturated_mask
-from core.vision.heading import ArcAnchor, HeadingFilter, arc_measurement, fit_heading_line
+from core.vision.heading import HeadingBank, arc_measurements, fit_heading_line
 from core.vision.tracking import Track, camshift, hue_histogram
 
 PHASES = ("base", "probe", "heading", "tracking")
@@ -82,10 +84,7 @@ class VisionOutput:
 @dataclass
 class _Follower:
     track: Track | None = None
-    position: FloatArray = field(default_factory=lambda: np.full(2, np.nan))
     tracked: bool = False
-    heading: HeadingFilter | None = None
-    anchor: ArcAnchor | None = None
     path: list[FloatArray] = field(default_factory=list)  # heading phase positions
 
 
@@ -112,6 +111,15 @@ class VisionPipeline:
         self.center = (gamma.cx, gamma.cy)
         self.mask = working_area.mask(width, height, self.center)
         self.followers = [_Follower() for _ in range(n)]
+        # per follower, one row each, so a frame's arithmetic is done for the team at once:
+        self.positions = np.full((n, 2), np.nan)  # leader frame, m; NaN until first seen
+        self.headings = HeadingBank(n, math.radians(settings.kalman_process_deg),
+                                    math.radians(settings.kalman_measurement_deg))
+        # eq. 34-37 anchors: the point of the last heading measurement (current leader frame),
+        # and the follower's commanded turn and travel since then
+        self._anchor = np.full((n, 2), np.nan)
+        self._anchor_turn = np.zeros(n)
+        self._anchor_travel = np.zeros(n)
         self.phase = "base"
         self.probing = -1
         self._timer = 0.0
@@ -124,10 +132,12 @@ class VisionPipeline:
     def _to_leader(self, u: float, v: float) -> FloatArray:
         return self.gamma.pixel_to_leader(np.array(u), np.array(v))
 
-    def _in_area(self, u: float, v: float) -> bool:
-        return bool(self.area.contains(np.array(u), np.array(v), self.center))
+    def _set_anchor(self, i: int) -> None:
+        self._anchor[i] = self.positions[i]
+        self._anchor_turn[i] = 0.0
+        self._anchor_travel[i] = 0.0
 
-    def _learn(self, frame: np.ndarray, bbox: tuple[int, int, int, int]) -> Track | None:
+    def _learn(self, frame: Image, bbox: tuple[int, int, int, int]) -> Track | None:
         """The follower's rectangle at the motion blob: its window and hue histogram.
 
         The blob is where the robot was and now is; a dark-blue rectangle on a dark body can
@@ -157,28 +167,44 @@ class VisionPipeline:
         return Track(hist, best.hue_deg, (x0 + bx - 2, y0 + by - 2, bw + 4, bh + 4), float(best.area_px),
                      u=x0 + best.u, v=y0 + best.v, mass_px=float(best.area_px))
 
-    def _track_all(self, frame: np.ndarray) -> None:
-        """CAMSHIFT every follower that has a colour; update position and tracked."""
-        s = self.settings
-        for f in self.followers:
-            t = f.track
-            if t is None or not f.tracked:
-                continue
-            seen = camshift(frame, t, self.mask, self.detect, s.roi_margin_px)
-            if seen and t.mass_px >= s.min_mass_fraction * t.area_px and self._in_area(t.u, t.v):
-                t.misses = 0
-                f.position = self._to_leader(t.u, t.v)
-            else:
-                t.misses += 1
-                if t.misses >= s.lost_after_frames or (seen and not self._in_area(t.u, t.v)):
-                    f.tracked = False
+    def _track_all(self, frame: Image) -> None:
+        """CAMSHIFT every follower that has a colour; update position and tracked.
 
-    def _search_lost(self, frame: np.ndarray) -> None:
+        The image work is per follower; the checks and Γ run once for all of them."""
+        s = self.settings
+        idx = [i for i, f in enumerate(self.followers) if f.track is not None and f.tracked]
+        if not idx:
+            return
+        seen = np.zeros(len(idx), dtype=bool)
+        uv = np.zeros((len(idx), 2))
+        strong = np.zeros(len(idx), dtype=bool)
+        for k, i in enumerate(idx):
+            t = self.followers[i].track
+            assert t is not None
+            seen[k] = camshift(frame, t, self.mask, self.detect, s.roi_margin_px)
+            uv[k] = (t.u, t.v)
+            strong[k] = t.mass_px >= s.min_mass_fraction * t.area_px
+        inside = self.area.contains(uv[:, 0], uv[:, 1], self.center)
+        good = seen & strong & inside
+        rows = np.asarray(idx)[good]
+        if len(rows):
+            self.positions[rows] = self.gamma.pixel_to_leader(uv[good, 0], uv[good, 1])
+        for k, i in enumerate(idx):
+            t = self.followers[i].track
+            assert t is not None
+            if good[k]:
+                t.misses = 0
+                continue
+            t.misses += 1
+            if t.misses >= s.lost_after_frames or (seen[k] and not inside[k]):
+                self.followers[i].tracked = False
+
+    def _search_lost(self, frame: Image) -> None:
         """Look for lost followers by colour in the whole working area (§3.3, recovery)."""
         lost = [f for f in self.followers if f.track is not None and not f.tracked]
         if not lost:
             return
-        blobs = find_blobs(frame, self.mask, self.detect)
+        blobs = find_blobs(np.asarray(frame), self.mask, self.detect)
         taken = [f.track.window for f in self.followers if f.track is not None and f.tracked]
         for f in lost:
             t = f.track
@@ -193,16 +219,17 @@ class VisionPipeline:
             t.window = (bx - 2, by - 2, bw + 4, bh + 4)
             t.u, t.v, t.misses = best.u, best.v, 0
             f.tracked = True
-            f.position = self._to_leader(best.u, best.v)
-            if f.anchor is not None:
-                f.anchor = ArcAnchor(f.position.copy())
+            i = self.followers.index(f)
+            self.positions[i] = self._to_leader(best.u, best.v)
+            if self.headings.active[i]:
+                self._set_anchor(i)
             taken.append(t.window)
 
     # -- the state machine ---------------------------------------------------------------
 
     def step(
         self,
-        frame: np.ndarray,
+        frame: Image,
         dt: float,
         odometry: tuple[float, float, float] = (0.0, 0.0, 0.0),
         commands: FloatArray | None = None,
@@ -217,12 +244,12 @@ class VisionPipeline:
         err = np.zeros(n) if error_norm is None else np.asarray(error_norm, dtype=np.float64)
         dx, dy, gamma = odometry
         # everything remembered in the leader frame moves with the leader (eq. 38)
-        moved = dx != 0.0 or dy != 0.0 or gamma != 0.0
-        for f in self.followers:
-            if moved and np.all(np.isfinite(f.position)):
-                f.position = reexpress_in_new_frame(f.position, dx, dy, gamma)[0]
-            if moved and f.path:
-                f.path = list(reexpress_in_new_frame(np.array(f.path), dx, dy, gamma))
+        if dx != 0.0 or dy != 0.0 or gamma != 0.0:
+            self.positions = reexpress_in_new_frame(self.positions, dx, dy, gamma)  # NaN stays NaN
+            self._anchor = reexpress_in_new_frame(self._anchor, dx, dy, gamma)
+            for f in self.followers:
+                if f.path:
+                    f.path = list(reexpress_in_new_frame(np.array(f.path), dx, dy, gamma))
         self._timer += dt
         manoeuvre: FloatArray | None = np.zeros((n, 2))
         measured = np.full(n, np.nan)
@@ -239,9 +266,9 @@ class VisionPipeline:
                 self._collect_background(frame, first=False)
         elif self.phase == "heading":
             self._track_all(frame)
-            for f in self.followers:
+            for i, f in enumerate(self.followers):
                 if f.tracked:
-                    f.path.append(f.position.copy())
+                    f.path.append(self.positions[i].copy())
             if self._stage == "move":
                 for i, f in enumerate(self.followers):
                     if f.track is not None:
@@ -254,35 +281,34 @@ class VisionPipeline:
             manoeuvre = None
             self._track_all(frame)
             self._search_lost(frame)
-            for i, f in enumerate(self.followers):
-                if f.heading is None or f.anchor is None:
-                    continue
-                v, w = cmd[i]
-                f.anchor.move_leader(dx, dy, gamma)
-                f.anchor.add_command(v, w, dt)
-                f.heading.predict(w * dt - gamma, dt)
-                if f.tracked:
-                    z = arc_measurement(f.anchor, f.position, float(err[i]))
-                    if z is not None:
-                        f.heading.update(z)
-                        measured[i] = z  # shown raw, fused or not (paper fig. 20: raw vs filtered)
-                        f.anchor = ArcAnchor(f.position.copy())
+            started = self.headings.active
+            self._anchor_turn += np.where(started, cmd[:, 1] * dt, 0.0)
+            self._anchor_travel += np.where(started, cmd[:, 0] * dt, 0.0)
+            self.headings.predict(cmd[:, 1] * dt - gamma, dt)
+            tracked = started & np.array([f.tracked for f in self.followers], dtype=bool)
+            z = arc_measurements(self._anchor, self._anchor_turn, self._anchor_travel, self.positions, err)
+            new = np.flatnonzero(tracked & np.isfinite(z))
+            if len(new):
+                self.headings.update(new, z[new])
+                measured[new] = z[new]  # shown raw, fused or not (paper fig. 20: raw vs filtered)
+                for i in new:
+                    self._set_anchor(int(i))
 
         return VisionOutput(
             phase=self.phase,
             probing=self.probing if self.phase == "probe" else -1,
-            positions=np.array([f.position for f in self.followers]).reshape(n, 2),
-            headings=np.array([f.heading.heading if f.heading is not None else np.nan for f in self.followers]),
+            positions=self.positions.copy(),
+            headings=self.headings.headings,
             heading_measured=measured,
-            tracked=np.array([f.tracked and f.heading is not None for f in self.followers], dtype=bool)
-            if self.phase == "tracking" else np.array([f.tracked for f in self.followers], dtype=bool),
+            tracked=np.array([f.tracked for f in self.followers], dtype=bool)
+            & (self.headings.active if self.phase == "tracking" else True),
             manoeuvre=manoeuvre,
             windows=np.array([f.track.window if f.track is not None else (0, 0, 0, 0) for f in self.followers],
                              dtype=np.int64).reshape(n, 4),
             hues_deg=np.array([f.track.hue_deg if f.track is not None else np.nan for f in self.followers]),
         )
 
-    def resume_tracking(self, frame: np.ndarray, windows: IntArray, headings: FloatArray) -> BoolArray:
+    def resume_tracking(self, frame: Image, windows: IntArray, headings: FloatArray) -> BoolArray:
         """Enter formation tracking (§3.3) from a known state instead of the start-up: each
         follower's colour is learned again from ``frame`` at its window (pixels x, y, w, h)
         and its Kalman filter starts at ``headings`` (rad). Used to re-run a recording's frames
@@ -294,18 +320,16 @@ class VisionPipeline:
             if track is None or not math.isfinite(float(headings[i])):
                 continue
             f.track, f.tracked = track, True
-            f.position = self._to_leader(track.u, track.v)
-            self._start_heading(f, float(headings[i]))
+            self.positions[i] = self._to_leader(track.u, track.v)
+            self._start_heading(i, float(headings[i]))
             found[i] = True
         self._enter_tracking()
         return found
 
-    def _start_heading(self, f: _Follower, a0: float) -> None:
-        """The follower's Kalman filter on its heading starts at a0; eq. 34-37 measure from here."""
-        s = self.settings
-        f.heading = HeadingFilter(a0, math.radians(s.kalman_sigma0_deg), math.radians(s.kalman_process_deg),
-                                  math.radians(s.kalman_measurement_deg))
-        f.anchor = ArcAnchor(f.position.copy())
+    def _start_heading(self, i: int, a0: float) -> None:
+        """Follower i's Kalman filter on its heading starts at a0; eq. 34-37 measure from here."""
+        self.headings.start(i, a0, math.radians(self.settings.kalman_sigma0_deg))
+        self._set_anchor(i)
 
     def _enter_tracking(self) -> None:
         self.phase, self.probing = "tracking", -1
@@ -315,7 +339,7 @@ class VisionPipeline:
         self._stage = stage
         self._timer = 0.0
 
-    def _collect_background(self, frame: np.ndarray, first: bool) -> None:
+    def _collect_background(self, frame: Image, first: bool) -> None:
         s = self.settings
         if self._stage == "settle":
             if self._timer >= s.settle_s:
@@ -323,7 +347,7 @@ class VisionPipeline:
                 self._acc = BackgroundAccumulator(self.mask)
             return
         assert self._acc is not None
-        self._acc.add(frame)
+        self._acc.add(np.asarray(frame))
         if self._acc.count < s.background_frames:
             return
         background = self._acc.mean()
@@ -338,7 +362,7 @@ class VisionPipeline:
                     f = self.followers[i]
                     f.track = track
                     f.tracked = True
-                    f.position = self._to_leader(track.u, track.v)
+                    self.positions[i] = self._to_leader(track.u, track.v)
         self._base = background  # the discriminant is the next follower's base
         if self.probing + 1 < self.n:
             self.phase = "probe"
@@ -351,14 +375,14 @@ class VisionPipeline:
 
     def _finish_headings(self) -> None:
         s = self.settings
-        for f in self.followers:
+        for i, f in enumerate(self.followers):
             if f.track is None:
                 continue
             if len(f.path) >= 3:
                 a0 = fit_heading_line(np.array(f.path), self.rng, tolerance_m=s.ransac_tolerance_m).heading
             else:
                 a0 = math.pi / 2  # not seen moving: assume aligned; the first arc will correct it
-            self._start_heading(f, a0)
+            self._start_heading(i, a0)
             f.path = []
         self._enter_tracking()
 

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from core.camera.config import DetectSettings
+from core.types import Image
 
 HUE_BINS = 30  # 6 degrees per bin
 _CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.5)
@@ -48,7 +49,7 @@ def _roi(window: tuple[int, int, int, int], margin: int, width: int, height: int
     return x0, y0, x1, y1
 
 
-def camshift(frame_bgr: np.ndarray, track: Track, area_mask: np.ndarray, detect: DetectSettings,
+def camshift(frame_bgr: Image, track: Track, area_mask: np.ndarray, detect: DetectSettings,
              margin_px: int = 16) -> bool:
     """Move the track's window with CAMSHIFT on the hue back-projection; True if the colour was seen.
 

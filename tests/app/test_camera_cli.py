@@ -96,7 +96,8 @@ def test_grey_clutter_is_never_reported(calibrated, tmp_path):
     boxes_in_view = 0
     for k in range(40):
         leader = np.array([rng.uniform(-8, 8), rng.uniform(-8, 8), rng.uniform(-math.pi, math.pi)])
-        boxes_in_view += sum(1 for o in renderer._clutter_objects(leader) if math.hypot(o.x, o.y) < 2.0)
+        boxes = renderer.boxes(leader, np.zeros((0, 3)))
+        boxes_in_view += int(np.sum(np.hypot(boxes.x, boxes.y) < 2.0))
         frame = renderer.render(leader, np.zeros((0, 3)), 0.5 * k, rng)
         assert find_blobs(frame, area, cam.detect) == []
     assert boxes_in_view >= 20  # the boxes really were in the working area

@@ -278,6 +278,6 @@ def test_live_camera_frames_are_recorded_at_the_frame_rate(tmp_path):
     by_t = {round(s.t, 6): s.frame for s in published}
     for t, jpeg in back.frames:
         img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
-        original = by_t[round(t, 6)]
+        original = np.asarray(by_t[round(t, 6)])
         assert img.shape == original.shape
         assert np.abs(img.astype(int) - original.astype(int)).mean() < 6  # the same frame, JPEG-compressed

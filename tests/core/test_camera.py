@@ -230,3 +230,29 @@ def test_blobs_merge_same_colour_pieces_and_ignore_grey():
     red = min(blobs, key=lambda b: hue_distance_deg(b.hue_deg, 0.0))
     assert hue_distance_deg(red.hue_deg, 0.0) < 3 and red.area_px == 2 * 21 * 11
     assert abs(red.v - 52.0) < 0.6 and abs(red.u - 50.0) < 1e-9
+
+
+def test_a_frame_rendered_by_rectangles_is_the_whole_frame_bit_for_bit(camera_config):
+    """SyntheticFrame makes only the rectangles looked at, and each is exactly the whole
+    frame's pixels there: boxes cut by the rectangle's edge, the blur's neighbours, noise."""
+    r = Renderer(camera_config.model, camera_config.render)
+    rng = np.random.default_rng(8)
+    followers = np.array([[-0.6, 0.4, 0.3], [0.8, -0.2, 2.0], [0.1, -1.2, -1.0], [0.3, 0.5, 1.1]])
+    for k in range(6):
+        pose = np.array([0.4 * k, -0.3 * k, 0.7 * k])
+        whole = r.render(pose, followers, 2.0 * k, np.random.default_rng(k))
+        lazy = r.frame(pose, followers, 2.0 * k, np.random.default_rng(k))
+        h, w = whole.shape[:2]
+        # around each follower (where CAMSHIFT looks), plus random ones, plus the image's edges
+        u, v = camera_config.model.project(np.column_stack([followers[:, :2], np.full(len(followers), 0.1)])).T
+        rects = [(int(vv) - 20, int(vv) + 17, int(uu) - 23, int(uu) + 19) for uu, vv in zip(u, v)]
+        for _ in range(40):
+            y0, x0 = int(rng.integers(-5, h)), int(rng.integers(-5, w))
+            rects.append((y0, y0 + int(rng.integers(1, 90)), x0, x0 + int(rng.integers(1, 90))))
+        rects += [(0, 9, 0, w), (h - 7, h, 0, 33), (0, h, w - 3, w)]
+        for y0, y1, x0, x1 in rects:
+            y0, x0 = max(0, y0), max(0, x0)
+            assert np.array_equal(lazy[y0:y1, x0:x1], whole[y0:y1, x0:x1]), (k, y0, y1, x0, x1)
+        assert lazy.pixels_rendered < h * w  # only the rectangles were made
+        assert np.array_equal(np.asarray(lazy), whole)
+        assert np.array_equal(lazy[5:9, 7:600:3], whole[5:9, 7:600:3])  # any other index: the whole frame's

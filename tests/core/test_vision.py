@@ -12,7 +12,7 @@ from core.geometry import heading_world_to_leader, leader_displacement, world_to
 from core.sim.team import integrate_unicycle, make_team_state, step_team
 from core.types import Commands
 from core.vision.blobs import hue_distance_deg
-from core.vision.heading import ArcAnchor, HeadingFilter, arc_measurement, chord_heading, fit_heading_line, min_displacement
+from core.vision.heading import ArcAnchor, HeadingBank, arc_measurement, arc_measurements, chord_heading, fit_heading_line, min_displacement
 from core.vision.pipeline import VisionPipeline
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -119,12 +119,48 @@ def test_arc_measurement_with_the_leader_moving_uses_eq38():
 
 
 def test_kalman_heading_residual_wraps_around_pi():
-    kf = HeadingFilter(math.radians(178.0), math.radians(5), math.radians(10), math.radians(5))
+    kf = HeadingBank(3, math.radians(10), math.radians(5))
+    kf.start(1, math.radians(178.0), math.radians(5))
+    one = np.array([1])
     for _ in range(5):
-        kf.predict(0.0, 1 / 30)
-        assert kf.update(math.radians(-178.0))
-    assert abs(math.degrees(wrap_angle(kf.heading - math.pi))) < 2.5
+        kf.predict(np.zeros(3), 1 / 30)
+        assert kf.update(one, np.array([math.radians(-178.0)]))[0]
+    assert abs(math.degrees(wrap_angle(kf.headings[1] - math.pi))) < 2.5
+    assert np.isnan(kf.headings[0]) and np.isnan(kf.headings[2])  # never started: untouched
     # a wild measurement is gated out, but a persistent one is believed
-    assert not kf.update(0.0)
-    assert not kf.update(0.0)
-    assert kf.update(0.0)
+    assert not kf.update(one, np.array([0.0]))[0]
+    assert not kf.update(one, np.array([0.0]))[0]
+    assert kf.update(one, np.array([0.0]))[0]
+
+
+def test_heading_bank_is_independent_filters_fused_together():
+    """Filters of one bank do not interact: each matches a bank of its own, step for step."""
+    rng = np.random.default_rng(4)
+    together = HeadingBank(4, 0.1, 0.08)
+    alone = [HeadingBank(1, 0.1, 0.08) for _ in range(4)]
+    for i in range(4):
+        together.start(i, 0.5 * i, 0.2 + 0.05 * i)
+        alone[i].start(0, 0.5 * i, 0.2 + 0.05 * i)
+    for _ in range(30):
+        turns = rng.normal(0.0, 0.05, 4)
+        together.predict(turns, 1 / 30)
+        which = np.flatnonzero(rng.random(4) < 0.5)
+        z = together.headings[which] + rng.normal(0.0, 0.1, len(which))
+        together.update(which, z)
+        for i in range(4):
+            alone[i].predict(turns[i:i + 1], 1 / 30)
+        for k, i in enumerate(which):
+            alone[i].update(np.array([0]), z[k:k + 1])
+    assert np.allclose(together.headings, [b.headings[0] for b in alone])
+    assert np.allclose(together.sigmas, [b.sigmas[0] for b in alone])
+
+
+def test_arc_measurements_match_one_at_a_time():
+    rng = np.random.default_rng(5)
+    anchors = rng.uniform(-1, 1, (6, 2))
+    pos = anchors + rng.normal(0.0, 0.04, (6, 2))
+    turns, travel, err = rng.normal(0, 0.2, 6), rng.normal(0, 0.1, 6), rng.uniform(0, 0.5, 6)
+    z = arc_measurements(anchors, turns, travel, pos, err)
+    for i in range(6):
+        one = arc_measurement(ArcAnchor(anchors[i], float(turns[i]), float(travel[i])), pos[i], float(err[i]))
+        assert (one is None and np.isnan(z[i])) or one == pytest.approx(z[i])
