@@ -494,9 +494,11 @@ class Renderer:
         self._colours = np.array([[6, 6, 6], [52, 50, 48]], np.uint8)  # beyond the rim; the leader's body
         # sensor noise: two non-negative banks (added, subtracted) with spare rows to shift
         sigma = settings.noise_sigma
-        bank = tex_rng.normal(0.0, sigma, (h + _NOISE_SLACK_ROWS, w, 3)) if sigma > 0 else np.zeros((h + _NOISE_SLACK_ROWS, w, 3))
+        bank = tex_rng.standard_normal((h + _NOISE_SLACK_ROWS, w, 3), dtype=np.float32)
+        bank *= np.float32(sigma)
         self._noise_pos = np.clip(bank, 0, 255).astype(np.uint8)
-        self._noise_neg = np.clip(-bank, 0, 255).astype(np.uint8)
+        np.negative(bank, out=bank)
+        self._noise_neg = np.clip(bank, 0, 255).astype(np.uint8)
         self._clutter = self._make_clutter(tex_rng)
         self._marker_colours = np.array([marker_bgr(hue, settings.marker_saturation, settings.marker_value)
                                          for hue in settings.hues_deg]).reshape(-1, 3)
@@ -642,7 +644,9 @@ class Renderer:
         """Box i's body outline (convex hull), lit body colour, marker outline (None: no
         marker) and lit marker colour, made when the box is first drawn."""
         boxes = scene.boxes
-        body = np.clip(boxes.body_bgr[i] * scene.gain + scene.offset, 0, 255).tolist()
-        has_top = boxes.dims[i, 3] > 0 and not math.isnan(float(boxes.top_bgr[i, 0]))
-        top = np.clip(boxes.top_bgr[i] * scene.gain + scene.offset, 0, 255).tolist() if has_top else []
+        g, o = scene.gain, scene.offset
+        body = [min(255.0, max(0.0, c * g + o)) for c in boxes.body_bgr[i].tolist()]
+        top_bgr = boxes.top_bgr[i].tolist()
+        has_top = boxes.dims[i, 3] > 0 and not math.isnan(top_bgr[0])
+        top = [min(255.0, max(0.0, c * g + o)) for c in top_bgr] if has_top else []
         return cv2.convexHull(scene.body_px[i]), body, scene.top_px[i] if has_top else None, top

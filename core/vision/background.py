@@ -23,12 +23,14 @@ class BackgroundAccumulator:
         self._sum: np.ndarray | None = None
         self.count = 0
 
-    def add(self, frame_bgr: np.ndarray) -> None:
+    def add(self, frame_bgr: np.ndarray, origin: tuple[int, int] = (0, 0)) -> None:
+        """One frame, or the part of it at ``origin`` (x, y) that covers the mask (outside
+        the part the background is 0, as it is outside the mask)."""
         grey = cv2.cvtColor(frame_bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
         if self._sum is None:
-            self._sum = grey
-        else:
-            self._sum += grey
+            self._sum = np.zeros(self.mask.shape, np.float32)
+        x0, y0 = origin
+        self._sum[y0:y0 + grey.shape[0], x0:x0 + grey.shape[1]] += grey
         self.count += 1
 
     def mean(self) -> np.ndarray:

@@ -110,6 +110,8 @@ class VisionPipeline:
         width, height = image_size
         self.center = (gamma.cx, gamma.cy)
         self.mask = working_area.mask(width, height, self.center)
+        ys, xs = np.nonzero(self.mask)
+        self._area_box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1) if len(xs) else (0, 0, 0, 0)
         self.followers = [_Follower() for _ in range(n)]
         # per follower, one row each, so a frame's arithmetic is done for the team at once:
         self.positions = np.full((n, 2), np.nan)  # leader frame, m; NaN until first seen
@@ -347,7 +349,8 @@ class VisionPipeline:
                 self._acc = BackgroundAccumulator(self.mask)
             return
         assert self._acc is not None
-        self._acc.add(np.asarray(frame))
+        x0, y0, x1, y1 = self._area_box  # only the working area counts: no need for the rest
+        self._acc.add(frame[y0:y1, x0:x1], (x0, y0))
         if self._acc.count < s.background_frames:
             return
         background = self._acc.mean()
