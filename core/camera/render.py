@@ -190,6 +190,8 @@ def _background_rect(
                     out[o] = lut[wtex[t]]
                     out[o + one] = lut[wtex[t + one]]
                     out[o + two] = lut[wtex[t + two]]
+            elif kind == 0 and colours[0, 0] == colours[0, 1] == colours[0, 2]:  # beyond the rim: one grey, unlit
+                out[(obase + a) * 3:(obase + b) * 3] = colours[0, 0]
             else:
                 c0 = colours[kind, 0]
                 c1 = colours[kind, 1]
