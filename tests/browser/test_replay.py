@@ -92,13 +92,15 @@ def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
         page.goto(svc.url)
         page.wait_for_selector(".uplot", state="attached", timeout=90_000)  # software WebGL under load: slow
         settle(page)
-        page.get_by_text("Recordings", exact=True).first.click()  # the folder, collapsed by default
+        # the folder, collapsed by default; a software-WebGL page on a loaded machine can block
+        # its main thread for tens of seconds, hence the long timeouts
+        page.get_by_text("Recordings", exact=True).first.click(timeout=90_000)
         options = svc.recordings.menu.options
         assert "recordings/samples/experiment2-vision.mcap" in options
         svc.recordings.menu.value = "recordings/samples/experiment2-vision.mcap"
-        page.get_by_role("button", name="Replay in a new tab").click()
+        page.get_by_role("button", name="Replay in a new tab").click(timeout=90_000)
         link = page.locator("a", has_text="experiment2-vision.mcap").first
-        link.wait_for(timeout=30_000)
+        link.wait_for(timeout=90_000)
         url = link.get_attribute("href")
         assert url and re.match(r"http://127\.0\.0\.1:\d+", url) and url != svc.url
         # the replay is served there (its page is the same dashboard, exercised by the test above;
