@@ -90,8 +90,12 @@ def test_commands_reach_the_robots_and_odometry_comes_back(emulated):
         assert link.link_state.endswith(": ok")
     finally:
         link.close()
-    robots = emulated.emulator.snapshot()
-    assert all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps for r in robots.values())
+
+    def all_stopped() -> bool:  # the emulator's thread reads the STOP frames after close() returns
+        robots = emulated.emulator.snapshot()
+        return all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps for r in robots.values())
+
+    wait_for(all_stopped, 5, "every robot to be stopped after close")
 
 
 def test_lost_replies_and_crc_errors_are_counted_per_follower():
