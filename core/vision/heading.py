@@ -34,10 +34,16 @@ def min_displacement(error_norm: FloatArray | float) -> FloatArray:
     return 0.02 + 0.03 * np.tanh(2.0 * np.asarray(error_norm, dtype=np.float64))
 
 
+def chord_headings(p1: FloatArray, p2: FloatArray, turns: FloatArray) -> FloatArray:
+    """Eq. 35–37 for rows of points: heading at P₂ of an arc from P₁ that turned by
+    ``turns`` (rad, CCW), not wrapped."""
+    d = np.asarray(p2, dtype=np.float64) - np.asarray(p1, dtype=np.float64)
+    return np.arctan2(d[..., 1], d[..., 0]) + 0.5 * np.asarray(turns, dtype=np.float64)
+
+
 def chord_heading(p1: FloatArray, p2: FloatArray, turn: float) -> float:
     """Eq. 35–37: heading at P₂ of an arc from P₁ that turned by ``turn`` (rad, CCW)."""
-    d = np.asarray(p2, dtype=np.float64) - np.asarray(p1, dtype=np.float64)
-    return float(wrap_angle(math.atan2(float(d[1]), float(d[0])) + 0.5 * turn))
+    return float(wrap_angle(chord_headings(p1, p2, turn)))
 
 
 @dataclass(frozen=True)
@@ -181,7 +187,7 @@ def arc_measurements(anchors: FloatArray, turns: FloatArray, travels: FloatArray
     """
     d = np.asarray(positions, dtype=np.float64) - np.asarray(anchors, dtype=np.float64)
     far = np.hypot(d[:, 0], d[:, 1]) >= min_displacement(error_norms)
-    a = np.arctan2(d[:, 1], d[:, 0]) + 0.5 * np.asarray(turns, dtype=np.float64)
+    a = chord_headings(anchors, positions, turns)
     a = np.where(np.asarray(travels) < 0, a + math.pi, a)
     out = np.full(a.shape, np.nan)
     far &= np.isfinite(a)
