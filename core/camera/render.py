@@ -276,20 +276,81 @@ def _layout_boxes(
     return x[order], y[order], a[order], dims[order], body[order], top[order]
 
 
+@kernel
+def _pixel_tables(
+    to_mirror: np.ndarray, xi: float, gamma_px: float, cx: float, cy: float, mirror_height: float,
+    body_radius_px: float, rim_radius_px: float, floor_far: float, h: int, w: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What every pixel shows, from its centre's view direction (CameraModel.pixels_to_directions,
+    written out per pixel): kind (H, W) (0 beyond the mirror's rim, 1 the leader's body,
+    2 floor, 3 wall) and flat (H*W,) pa, pb: for floor where the ray meets it (leader frame,
+    m), for wall the azimuth in texture columns and the texture row, else 0."""
+    kind = np.zeros((h, w), np.uint8)
+    pa = np.zeros(h * w, np.float32)
+    pb = np.zeros(h * w, np.float32)
+    r = to_mirror
+    drop = -mirror_height
+    k1 = 1.0 - xi * xi
+    cols_per_rad = _WALL_COLS / (2.0 * math.pi)
+    rows_per_m = _WALL_ROWS / _WALL_HEIGHT_M
+    for y in range(h):
+        my = (y - cy) / gamma_px
+        for x in range(w):
+            mx = (x - cx) / gamma_px
+            r2 = mx * mx + my * my
+            eta = (xi + math.sqrt(1.0 + k1 * r2)) / (r2 + 1.0)
+            m0, m1, m2 = eta * mx, eta * my, eta - xi
+            d0 = m0 * r[0, 0] + m1 * r[1, 0] + m2 * r[2, 0]
+            d1 = m0 * r[0, 1] + m1 * r[1, 1] + m2 * r[2, 1]
+            d2 = m0 * r[0, 2] + m1 * r[1, 2] + m2 * r[2, 2]
+            radius = math.hypot(x - cx, y - cy)
+            if radius > rim_radius_px:
+                continue  # kind 0
+            if radius <= body_radius_px:
+                kind[y, x] = 1
+                continue
+            i = y * w + x
+            if d2 < -1e-6:
+                t = drop / d2
+                fx, fy = t * d0, t * d1
+                if math.hypot(fx, fy) < floor_far:
+                    kind[y, x] = 2
+                    pa[i] = fx
+                    pb[i] = fy
+                    continue
+            kind[y, x] = 3
+            horiz = max(math.hypot(d0, d1), 1e-9)
+            wall_z = mirror_height + floor_far * d2 / horiz
+            pa[i] = (math.atan2(d1, d0) % (2.0 * math.pi)) * cols_per_rad
+            pb[i] = np.int32(min(max(wall_z * rows_per_m, 0.0), _WALL_ROWS - 1.0))
+    return kind, pa, pb
+
+
+@kernel
 def _row_spans(kind: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Runs of equal kind along each row of a (H, W) kind image: (runs (m, 3) of
     x_start, x_end, kind; (H + 1,) index of each row's first run)."""
     h, w = kind.shape
-    runs: list[tuple[int, int, int]] = []
-    first = [0]
+    n = 0
     for y in range(h):
-        row = kind[y]
-        cuts = np.flatnonzero(row[1:] != row[:-1]) + 1
-        starts = np.concatenate([[0], cuts])
-        ends = np.concatenate([cuts, [w]])
-        runs.extend((int(a), int(b), int(row[a])) for a, b in zip(starts, ends))
-        first.append(len(runs))
-    return np.array(runs, np.int64).reshape(-1, 3), np.array(first, np.int64)
+        n += 1
+        for x in range(1, w):
+            n += kind[y, x] != kind[y, x - 1]
+    runs = np.empty((n, 3), np.int64)
+    first = np.empty(h + 1, np.int64)
+    k = 0
+    for y in range(h):
+        first[y] = k
+        start = 0
+        for x in range(1, w + 1):
+            if x == w or kind[y, x] != kind[y, x - 1]:
+                runs[k, 0] = start
+                runs[k, 1] = x
+                runs[k, 2] = kind[y, start]
+                k += 1
+                start = x
+    first[h] = k
+    return runs, first
 
 
 @kernel
@@ -463,33 +524,10 @@ class Renderer:
         self.settings = settings
         h, w = model.height, model.width
         self.shape = (h, w, 3)
-        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-        # sample each pixel at its centre
-        pix = np.stack([uu, vv], axis=-1).reshape(-1, 2)
-        d = model.pixels_to_directions(pix)
-        radius = np.hypot(pix[:, 0] - model.cx, pix[:, 1] - model.cy)
-        drop = -model.mirror_height_m
-        down = d[:, 2] < -1e-6
-        t = np.where(down, drop / np.where(down, d[:, 2], -1.0), np.inf)
-        fx = t * d[:, 0]
-        fy = t * d[:, 1]
-        on_floor = down & (np.hypot(fx, fy) < settings.floor_far_m)
-        body_px = radius <= model.body_radius_px()
-        dark_px = radius > model.rim_radius_px()
-        floor_px = on_floor & ~body_px & ~dark_px
-        wall_px = ~on_floor & ~body_px & ~dark_px
-        horiz = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-        wall_z = model.mirror_height_m + settings.floor_far_m * d[:, 2] / horiz
-        row = np.clip(wall_z / _WALL_HEIGHT_M * _WALL_ROWS, 0, _WALL_ROWS - 1).astype(np.int32)
-        # azimuth in wall-texture columns, in [0, cols)
-        az = (np.arctan2(d[:, 1], d[:, 0]) % (2 * np.pi)) * (_WALL_COLS / (2 * np.pi))
-        kind = np.zeros(h * w, np.uint8)
-        kind[body_px] = 1
-        kind[floor_px] = 2
-        kind[wall_px] = 3
-        self._spans, self._row_spans = _row_spans(kind.reshape(h, w))
-        self._pa = np.where(floor_px, fx, np.where(wall_px, az, 0.0)).astype(np.float32)
-        self._pb = np.where(floor_px, fy, np.where(wall_px, row, 0)).astype(np.float32)
+        kind, self._pa, self._pb = _pixel_tables(
+            model._to_mirror, model.xi, model.gamma_px, model.cx, model.cy, model.mirror_height_m,
+            model.body_radius_px(), model.rim_radius_px(), settings.floor_far_m, h, w)
+        self._spans, self._row_spans = _row_spans(kind)
         tex_rng = np.random.default_rng(settings.texture_seed)
         self._floor_tex = _floor_texture(tex_rng)
         self._wall_tex = _wall_texture(tex_rng)
