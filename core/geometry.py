@@ -19,13 +19,17 @@ from core.jit import kernel, ufunc
 FloatArray = NDArray[np.float64]
 
 
-@ufunc("float64(float64)")
-def wrap_angle(angle: float) -> float:
-    """Wrap angles (rad) to the half-open interval (-pi, pi]; a ufunc, usable in kernels."""
+def wrap_scalar(angle: float) -> float:
+    """Wrap one angle (rad) to the half-open interval (-pi, pi], in plain Python (cheaper
+    than a ufunc call for one number); :func:`wrap_angle` is this, compiled to a ufunc."""
     w = (angle + math.pi) % (2.0 * math.pi)  # Python semantics: in [0, 2 pi)
     if w == 0.0:
         w = 2.0 * math.pi
     return w - math.pi
+
+
+wrap_angle = ufunc("float64(float64)")(wrap_scalar)
+wrap_angle.__doc__ = "Wrap angles (rad) to the half-open interval (-pi, pi]; a ufunc, usable in kernels."
 
 
 def frame_yaw(leader_theta: ArrayLike) -> FloatArray:
@@ -91,10 +95,21 @@ def reexpress_in_new_frame(
     only if gamma is measured clockwise (PAPER-NOTES). Headings follow with
     a1 = alpha0 - gamma (see :func:`rotate_heading_into_new_frame`).
     """
-    p = np.atleast_2d(np.asarray(points_old, dtype=np.float64))
-    d = p - np.array([dx, dy], dtype=np.float64)
-    c, s = np.cos(gamma), np.sin(gamma)
-    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+    p = np.ascontiguousarray(np.atleast_2d(np.asarray(points_old, dtype=np.float64)))
+    out = np.empty_like(p)
+    _reexpress_kernel(p, float(dx), float(dy), float(gamma), out)
+    return out
+
+
+@kernel
+def _reexpress_kernel(p: FloatArray, dx: float, dy: float, gamma: float, out: FloatArray) -> None:
+    c = math.cos(gamma)
+    s = math.sin(gamma)
+    for i in range(p.shape[0]):
+        d0 = p[i, 0] - dx
+        d1 = p[i, 1] - dy
+        out[i, 0] = c * d0 + s * d1
+        out[i, 1] = -s * d0 + c * d1
 
 
 def rotate_heading_into_new_frame(a_old: ArrayLike, gamma: float) -> FloatArray:
@@ -106,8 +121,9 @@ def leader_displacement(
     pose_from: ArrayLike, pose_to: ArrayLike
 ) -> tuple[float, float, float]:
     """Leader odometry (dx, dy, gamma) between two world poses (x, y, theta), in the old frame."""
-    p0 = np.asarray(pose_from, dtype=np.float64)
-    p1 = np.asarray(pose_to, dtype=np.float64)
-    d = world_to_leader(p1[:2], p0[:2], float(p0[2]))[0]
-    gamma = float(wrap_angle(p1[2] - p0[2]))
-    return float(d[0]), float(d[1]), gamma
+    x0, y0, t0 = np.asarray(pose_from, dtype=np.float64)[:3].tolist()
+    x1, y1, t1 = np.asarray(pose_to, dtype=np.float64)[:3].tolist()
+    phi = t0 - 0.5 * math.pi  # as world_to_leader_kernel
+    c, s = math.cos(phi), math.sin(phi)
+    ddx, ddy = x1 - x0, y1 - y0
+    return c * ddx + s * ddy, -s * ddx + c * ddy, wrap_scalar(t1 - t0)

@@ -19,6 +19,17 @@ BoolArray = NDArray[np.bool_]
 IntArray = NDArray[np.intp]
 
 
+def numbers_in_field_order(obj: Any) -> FloatArray:
+    """A frozen dataclass of numbers as a float array in field order, for compiled kernels:
+    made on first use and kept on the object (it cannot change), read-only."""
+    cached = obj.__dict__.get("_numbers_in_field_order")
+    if cached is None:
+        cached = np.array([float(getattr(obj, f.name)) for f in dataclasses.fields(obj)])
+        cached.flags.writeable = False
+        object.__setattr__(obj, "_numbers_in_field_order", cached)
+    return cached  # type: ignore[no-any-return]
+
+
 class Image(Protocol):
     """A BGR image (H, W, 3) uint8: a numpy array, or an image that makes its pixels when
     looked at (core.camera.render.SyntheticFrame). Either gives a numpy array for a
@@ -131,7 +142,7 @@ class Gains:
 
     def as_array(self) -> FloatArray:
         """The gains in field order (see GAIN_INDEX), for compiled kernels."""
-        return np.array([float(getattr(self, f.name)) for f in dataclasses.fields(self)])
+        return numbers_in_field_order(self)
 
 
 GAIN_INDEX: dict[str, int] = {f.name: i for i, f in enumerate(dataclasses.fields(Gains))}

@@ -25,6 +25,7 @@ from numpy.polynomial import polynomial as npoly
 from scipy.optimize import least_squares
 
 from core.camera.model import bearing_range_to_xy, image_bearing
+from core.jit import kernel
 from core.types import FloatArray
 
 TABLE_COLUMNS = ("bearing_deg", "metres", "u", "v")
@@ -108,55 +109,80 @@ class Gamma:
     def degree(self) -> int:
         return int(self.range_coeffs.shape[1]) - 1
 
-    def polar(self, u: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """(radius px, uncorrected bearing rad) of pixels about the centre."""
+    def _apply(self, u: FloatArray, v: FloatArray) -> tuple[FloatArray, tuple[int, ...]]:
+        """(N, 4) rows of range, bearing, x, y for the pixels (flattened), and their shape."""
         uu = np.asarray(u, dtype=np.float64)
         vv = np.asarray(v, dtype=np.float64)
-        radius = np.hypot(uu - self.cx, vv - self.cy)
-        bearing = image_bearing(uu, vv, self.cx, self.cy, self.flip, self.bearing_offset)
-        return radius, bearing
-
-    def blend(self, bearing: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """For bearings: (index of the sector before, index after, weight of the one after)."""
-        k = self.n_sectors
-        b = np.asarray(bearing, dtype=np.float64)
-        centres = self.sector_bearings
-        if k == 1:
-            zero = np.zeros(b.shape, dtype=np.int64)
-            return zero, zero, np.zeros(b.shape)
-        # position relative to the first centre, in [0, 2 pi)
-        rel = np.mod(b - centres[0], 2 * np.pi)
-        rel_c = np.mod(centres - centres[0], 2 * np.pi)  # sorted, rel_c[0] = 0
-        after = np.searchsorted(rel_c, rel, side="right")  # 1..k
-        before = after - 1
-        nxt = np.where(after == k, 0, after)
-        span = np.where(after == k, 2 * np.pi - rel_c[before], rel_c[np.minimum(after, k - 1)] - rel_c[before])
-        w = (rel - rel_c[before]) / span
-        return before, nxt, w
+        if uu.shape != vv.shape:
+            uu, vv = np.broadcast_arrays(uu, vv)
+        shape = uu.shape
+        uu = np.ascontiguousarray(uu).reshape(-1)
+        vv = np.ascontiguousarray(vv).reshape(-1)
+        out = np.empty((uu.shape[0], 4))
+        _gamma_kernel(uu, vv, self.cx, self.cy, self.flip, self.bearing_offset, self.sector_bearings,
+                      self.range_coeffs, self.bearing_corrections, out)
+        return out, shape
 
     def range_bearing(self, u: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Pixels -> (range m, corrected leader-frame bearing rad)."""
-        radius, bearing = self.polar(u, v)
-        i0, i1, w = self.blend(bearing)
-        x = radius / RADIUS_UNIT_PX
-        r0 = _polyval_rows(x, self.range_coeffs[i0])
-        r1 = _polyval_rows(x, self.range_coeffs[i1])
-        rng = (1.0 - w) * r0 + w * r1
-        corr = (1.0 - w) * self.bearing_corrections[i0] + w * self.bearing_corrections[i1]
-        return rng, bearing + corr
+        """Pixels -> (range m, corrected leader-frame bearing rad); NaN for NaN pixels."""
+        out, shape = self._apply(u, v)
+        return out[:, 0].reshape(shape), out[:, 1].reshape(shape)
 
     def pixel_to_leader(self, u: FloatArray, v: FloatArray) -> FloatArray:
-        """Pixels -> leader-frame (x, y) in metres, shape (..., 2)."""
-        rng, bearing = self.range_bearing(u, v)
-        return bearing_range_to_xy(bearing, rng)
+        """Pixels -> leader-frame (x, y) in metres, shape (..., 2) (``bearing_range_to_xy``)."""
+        out, shape = self._apply(u, v)
+        return out[:, 2:].reshape(shape + (2,))
 
 
-def _polyval_rows(x: FloatArray, coeffs: FloatArray) -> FloatArray:
-    """Evaluate, per element, the polynomial whose coefficients are in the matching row."""
-    out = np.zeros(np.shape(x))
-    for c in range(coeffs.shape[-1] - 1, -1, -1):
-        out = out * x + coeffs[..., c]
-    return out
+@kernel
+def _gamma_kernel(u: FloatArray, v: FloatArray, cx: float, cy: float, flip: bool, offset: float,
+                  centres: FloatArray, coeffs: FloatArray, corrections: FloatArray, out: FloatArray) -> None:
+    """Γ per pixel: radius and image bearing about the centre (``image_bearing``); the two
+    sectors whose centres enclose the bearing (sorted centres, going round) and the weight
+    of the one after; each sector's range polynomial in radius / RADIUS_UNIT_PX (Horner);
+    range and bearing correction blended linearly between them. Rows of ``out``: range,
+    bearing, and the leader-frame (x, y) they give (``bearing_range_to_xy``)."""
+    k = centres.shape[0]
+    two_pi = 2.0 * math.pi
+    c0 = centres[0]
+    for n in range(u.shape[0]):
+        du = u[n] - cx
+        dv = v[n] - cy
+        if not (math.isfinite(du) and math.isfinite(dv)):
+            out[n, :] = math.nan
+            continue
+        radius = math.hypot(du, dv)
+        if flip:
+            du = -du
+        b = math.atan2(-du, -dv) + offset
+        i0 = 0
+        i1 = 0
+        w = 0.0
+        if k > 1:
+            rel = (b - c0) % two_pi  # from the first centre, in [0, 2 pi)
+            after = 1  # the first centre whose position is beyond rel (rel >= the first's 0)
+            while after < k and (centres[after] - c0) % two_pi <= rel:
+                after += 1
+            i0 = after - 1
+            start = (centres[i0] - c0) % two_pi
+            if after == k:
+                span = two_pi - start
+            else:
+                i1 = after
+                span = (centres[after] - c0) % two_pi - start
+            w = (rel - start) / span
+        x = radius / RADIUS_UNIT_PX
+        r0 = 0.0
+        r1 = 0.0
+        for c in range(coeffs.shape[1] - 1, -1, -1):
+            r0 = r0 * x + coeffs[i0, c]
+            r1 = r1 * x + coeffs[i1, c]
+        rng = (1.0 - w) * r0 + w * r1
+        bearing = b + ((1.0 - w) * corrections[i0] + w * corrections[i1])
+        out[n, 0] = rng
+        out[n, 1] = bearing
+        out[n, 2] = -rng * math.sin(bearing)
+        out[n, 3] = rng * math.cos(bearing)
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ _WALL_COLS = 1024
 _WALL_ROWS = 128
 _SUBPIXEL_BITS = 4  # polygon vertices with 1/16 pixel precision
 _NOISE_SLACK_ROWS = 64
+_RAMP = np.arange(256, dtype=np.float64)  # grey levels, for the lighting table
 _RECT_MARGIN = 4  # pixels drawn around a rectangle of a frame and cut off (see Renderer._render_rect)
 
 
@@ -172,24 +173,30 @@ def _background_rect(
                 continue
             kind = spans[k, 2]
             if kind == 2:
-                for x in range(a, b):
-                    fx = pa[base + x]
-                    fy = pb[base + x]
+                fxs = pa[base + a:base + b]
+                fys = pb[base + a:base + b]
+                run = out[(obase + a) * 3:(obase + b) * 3]
+                for x in range(b - a):
+                    fx = fxs[x]
+                    fy = fys[x]
                     i = np.int64(sp * fx + cp * fy + oy) & mask
                     j = np.int64(cp * fx - sp * fy + ox) & mask
                     t = np.uint64((i * tw + j) * 3)
-                    o = np.uint64((obase + x) * 3)
-                    out[o] = lut[ftex[t]]
-                    out[o + one] = lut[ftex[t + one]]
-                    out[o + two] = lut[ftex[t + two]]
+                    o = np.uint64(x * 3)
+                    run[o] = lut[ftex[t]]
+                    run[o + one] = lut[ftex[t + one]]
+                    run[o + two] = lut[ftex[t + two]]
             elif kind == 3:
-                for x in range(a, b):
-                    j = np.int64(pa[base + x] + shift) & wmask
-                    t = np.uint64((np.int64(pb[base + x]) * ww + j) * 3)
-                    o = np.uint64((obase + x) * 3)
-                    out[o] = lut[wtex[t]]
-                    out[o + one] = lut[wtex[t + one]]
-                    out[o + two] = lut[wtex[t + two]]
+                azs = pa[base + a:base + b]
+                rws = pb[base + a:base + b]
+                run = out[(obase + a) * 3:(obase + b) * 3]
+                for x in range(b - a):
+                    j = np.int64(azs[x] + shift) & wmask
+                    t = np.uint64((np.int64(rws[x]) * ww + j) * 3)
+                    o = np.uint64(x * 3)
+                    run[o] = lut[wtex[t]]
+                    run[o + one] = lut[wtex[t + one]]
+                    run[o + two] = lut[wtex[t + two]]
             elif kind == 0 and colours[0, 0] == colours[0, 1] == colours[0, 2]:  # beyond the rim: one grey, unlit
                 out[(obase + a) * 3:(obase + b) * 3] = colours[0, 0]
             else:
@@ -611,7 +618,11 @@ class Renderer:
         hidden: followers not drawn (occluded).
         """
         gain, offset = self.lighting(t)
-        lut = np.clip(np.arange(256) * gain + offset, 0, 255).astype(np.uint8)
+        lut = _RAMP * gain  # clip(i * gain + offset, 0, 255), truncated to grey levels
+        lut += offset
+        np.maximum(lut, 0.0, out=lut)
+        np.minimum(lut, 255.0, out=lut)
+        lut = lut.astype(np.uint8)
         lp = np.asarray(leader_pose, dtype=np.float64)
         boxes = self.boxes(lp, followers_leader, hidden)
         mdl = self.model

@@ -10,7 +10,6 @@ math is one compiled kernel shared with the whole-run simulator.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -25,7 +24,7 @@ from core.geometry import (
     wrap_angle,
 )
 from core.jit import kernel
-from core.types import BoolArray, Commands, FloatArray
+from core.types import BoolArray, Commands, FloatArray, numbers_in_field_order
 
 
 @dataclass(frozen=True)
@@ -41,7 +40,7 @@ class FollowerDynamics:
     wheel_base_m: float = 0.12  # distance between the wheels, for the noise model
 
     def as_array(self) -> FloatArray:
-        return np.array([float(getattr(self, f.name)) for f in dataclasses.fields(self)])
+        return numbers_in_field_order(self)
 
 
 DISTURBANCE_KINDS = ("stuck", "hidden")

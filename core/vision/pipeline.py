@@ -247,8 +247,8 @@ class VisionPipeline:
         dx, dy, gamma = odometry
         # everything remembered in the leader frame moves with the leader (eq. 38)
         if dx != 0.0 or dy != 0.0 or gamma != 0.0:
-            self.positions = reexpress_in_new_frame(self.positions, dx, dy, gamma)  # NaN stays NaN
-            self._anchor = reexpress_in_new_frame(self._anchor, dx, dy, gamma)
+            both = reexpress_in_new_frame(np.concatenate([self.positions, self._anchor]), dx, dy, gamma)
+            self.positions, self._anchor = both[:n], both[n:]  # NaN stays NaN
             for f in self.followers:
                 if f.path:
                     f.path = list(reexpress_in_new_frame(np.array(f.path), dx, dy, gamma))

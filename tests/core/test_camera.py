@@ -9,10 +9,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.camera.config import WorkingArea, parse_camera
-from core.camera.gamma import CalibrationError, MatchingTable, fit_gamma, parse_table
+from core.camera.gamma import CalibrationError, Gamma, MatchingTable, fit_gamma, parse_table
 from core.camera.model import CameraModel, bearing_range_to_xy, image_bearing
 from core.camera.render import Renderer, RenderSettings
 from core.config import ConfigError
+from core.geometry import wrap_angle
 from core.vision.blobs import DetectSettings, find_blobs, hue_distance_deg
 
 SYNTHETIC = "static_config/camera/synthetic.toml"
@@ -176,6 +177,33 @@ def test_gamma_fits_an_exact_table_and_blends_smoothly_across_sectors():
         assert err.max() < 0.02, (d, err.max())
         steps = np.linalg.norm(np.diff(got, axis=0), axis=1)
         assert steps.max() < 2.5 * np.median(steps)
+
+
+def test_gamma_blends_the_two_neighbouring_sectors_by_bearing():
+    """Γ's rule, from known sectors: at a sector's centre its own polynomial and correction;
+    between two centres (going round past ±180° too) the linear blend; NaN pixels give NaN;
+    any shape of pixels keeps its shape."""
+    g = Gamma(cx=320.0, cy=240.0, flip=False, bearing_offset=0.0,
+              sector_bearings=np.radians([-120.0, 0.0, 120.0]),
+              range_coeffs=np.array([[1.0, 0.1], [2.0, 0.2], [3.0, 0.3]]),  # metres = c0 + c1 (r / 100 px)
+              bearing_corrections=np.radians([1.0, 2.0, 3.0]), r_min_px=0.0, r_max_px=300.0)
+    r_px = 150.0
+    cases = {  # image bearing (deg) -> (range m, correction deg)
+        0.0: (2.0 + 0.2 * 1.5, 2.0),
+        120.0: (3.0 + 0.3 * 1.5, 3.0),
+        60.0: ((2.3 + 3.45) / 2, 2.5),
+        -30.0: ((2.3 * 3 + 1.15) / 4, 1.75),
+        180.0: ((3.45 + 1.15) / 2, 2.0),
+    }
+    for deg, (metres, corr) in cases.items():
+        b = math.radians(deg)
+        u, v = 320.0 - r_px * math.sin(b), 240.0 - r_px * math.cos(b)
+        rng, bearing = g.range_bearing(np.array([u]), np.array([v]))
+        assert rng[0] == pytest.approx(metres, abs=1e-12), deg
+        assert math.degrees(float(wrap_angle(bearing[0] - b))) == pytest.approx(corr, abs=1e-9), deg
+        np.testing.assert_allclose(g.pixel_to_leader(u, v), bearing_range_to_xy(b + math.radians(corr), metres), atol=1e-12)
+    assert np.isnan(g.pixel_to_leader(np.array([np.nan, 300.0]), np.array([200.0, np.nan]))).all()
+    assert g.pixel_to_leader(np.full((2, 3), 300.0), np.full((2, 3), 200.0)).shape == (2, 3, 2)
 
 
 def test_gamma_uses_the_given_centre_and_sector_count():

@@ -14,6 +14,7 @@ from core.geometry import (
     rotate_heading_into_new_frame,
     world_to_leader,
     wrap_angle,
+    wrap_scalar,
 )
 from core.sim.team import integrate_unicycle
 
@@ -26,6 +27,12 @@ def test_wrap_angle_lands_in_half_open_interval_and_keeps_the_direction(x):
     assert -math.pi < w <= math.pi
     assert math.isclose(math.cos(w), math.cos(x), abs_tol=1e-9)
     assert math.isclose(math.sin(w), math.sin(x), abs_tol=1e-9)
+
+
+def test_the_scalar_wrap_is_the_ufunc_number_for_number():
+    x = np.concatenate([np.random.default_rng(3).uniform(-50, 50, 2000),
+                        [math.pi, -math.pi, 3 * math.pi, 0.0, -0.0, 2 * math.pi, 1e-300]])
+    assert np.array_equal(wrap_angle(x), [wrap_scalar(float(v)) for v in x])
 
 
 def test_wrap_angle_maps_both_ends_to_plus_pi():
