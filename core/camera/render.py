@@ -303,6 +303,12 @@ def _pixel_tables(
     for y in range(h):
         my = (y - cy) / gamma_px
         for x in range(w):
+            radius = math.hypot(x - cx, y - cy)
+            if radius > rim_radius_px:
+                continue  # kind 0
+            if radius <= body_radius_px:
+                kind[y, x] = 1
+                continue
             mx = (x - cx) / gamma_px
             r2 = mx * mx + my * my
             eta = (xi + math.sqrt(1.0 + k1 * r2)) / (r2 + 1.0)
@@ -310,12 +316,6 @@ def _pixel_tables(
             d0 = m0 * r[0, 0] + m1 * r[1, 0] + m2 * r[2, 0]
             d1 = m0 * r[0, 1] + m1 * r[1, 1] + m2 * r[2, 1]
             d2 = m0 * r[0, 2] + m1 * r[1, 2] + m2 * r[2, 2]
-            radius = math.hypot(x - cx, y - cy)
-            if radius > rim_radius_px:
-                continue  # kind 0
-            if radius <= body_radius_px:
-                kind[y, x] = 1
-                continue
             i = y * w + x
             if d2 < -1e-6:
                 t = drop / d2
@@ -511,11 +511,13 @@ class SyntheticFrame:
         return self._full if dtype is None else self._full.astype(dtype)
 
     def __getitem__(self, key: object) -> np.ndarray:
-        if self._full is None and self._renderer.settings.jpeg_quality <= 0 and isinstance(key, tuple) \
-                and len(key) == 2 and all(isinstance(k, slice) and k.step in (None, 1) for k in key):
-            h, w = self.shape[:2]
-            y0, y1, _ = key[0].indices(h)
-            x0, x1, _ = key[1].indices(w)
+        rows = cols = None
+        if type(key) is tuple and len(key) == 2:
+            rows, cols = key
+        if self._full is None and type(rows) is slice and type(cols) is slice and rows.step in (None, 1) \
+                and cols.step in (None, 1) and self._renderer.settings.jpeg_quality <= 0:
+            y0, y1, _ = rows.indices(self.shape[0])
+            x0, x1, _ = cols.indices(self.shape[1])
             if y1 <= y0 or x1 <= x0:
                 return np.empty((max(0, y1 - y0), max(0, x1 - x0), 3), np.uint8)
             self.pixels_rendered += (y1 - y0) * (x1 - x0)

@@ -116,7 +116,7 @@ def simulate_vision(
             ctrl_state = c.state
             v_cmd, w_cmd = c.commands.v, c.commands.w
             a_err = c.a_err
-            err_norm = np.linalg.norm(p_d - pos, axis=1)
+            err_norm = np.hypot(p_d[:, 0] - pos[:, 0], p_d[:, 1] - pos[:, 1])
 
         rows["t"].append(t_wall)
         rows["leader"].append(state.leader.copy())
@@ -127,7 +127,8 @@ def simulate_vision(
         rows["pm"].append(out.positions)
         rows["am"].append(out.headings)
         rows["pd"].append(p_d.copy() if t_ready is not None else np.full((n, 2), np.nan))  # no target yet
-        rows["cmd"].append(np.column_stack([v_cmd, w_cmd]))
+        last_cmd = np.column_stack([v_cmd, w_cmd])
+        rows["cmd"].append(last_cmd)
         rows["aerr"].append(a_err)
         rows["tracked"].append(out.tracked)
         rows["meas"].append(out.heading_measured)
@@ -135,7 +136,6 @@ def simulate_vision(
         rows["win"].append(out.windows)
         rows["hue"].append(out.hues_deg)
 
-        last_cmd = np.column_stack([v_cmd, w_cmd])
         state = step_team(state, Commands(np.asarray(v_cmd), np.asarray(w_cmd)), (v_l, w_l), dt,
                           t_scn if t_ready is not None else -1.0, rng, scenario.dynamics,
                           scenario.disturbances if t_ready is not None else ())
