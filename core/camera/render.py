@@ -468,8 +468,6 @@ class _Scene:
     projected (far to near), the sensor noise's offsets in the noise bank."""
 
     lut: np.ndarray  # (256,) uint8 lighting: grey level -> lit grey level
-    gain: float
-    offset: float
     leader: tuple[float, float, float]  # x, y, phi (the floor's rotation)
     boxes: Boxes
     body_px: np.ndarray  # (m, 32, 2) int32, fixed point
@@ -477,6 +475,8 @@ class _Scene:
     bbox_list: list[tuple[int, int, int, int]]  # per box x0, y0, x1, y1 pixels; empty where it does not project
     noise_rows: tuple[int, int]
     draw_cache: dict[int, tuple[np.ndarray, list[float], np.ndarray | None, list[float]]]  # see Renderer._box_look
+    lit_bgr: list[list[float]]  # per box: lit body colour, then lit marker colour (6 numbers)
+    has_top: list[bool]  # per box: it has a marker
 
 
 class SyntheticFrame:
@@ -634,8 +634,13 @@ class Renderer:
             mdl.mirror_height_m, scale, 4 * scale * max(mdl.width, mdl.height))
         rows = (int(rng.integers(0, _NOISE_SLACK_ROWS)), int(rng.integers(0, _NOISE_SLACK_ROWS)))
         bbox[~ok] = (0, 0, 0, 0)  # never drawn
-        scene = _Scene(lut, gain, offset, (float(lp[0]), float(lp[1]), float(lp[2]) - math.pi / 2), boxes,
-                       body_px, top_px, [tuple(b) for b in bbox.tolist()], rows, {})
+        lit = np.concatenate([boxes.body_bgr, boxes.top_bgr], axis=1) * gain  # clip(c * gain + offset, 0, 255)
+        lit += offset
+        np.maximum(lit, 0.0, out=lit)
+        np.minimum(lit, 255.0, out=lit)
+        has_top = (boxes.dims[:, 3] > 0) & ~np.isnan(boxes.top_bgr[:, 0])
+        scene = _Scene(lut, (float(lp[0]), float(lp[1]), float(lp[2]) - math.pi / 2), boxes,
+                       body_px, top_px, [tuple(b) for b in bbox.tolist()], rows, {}, lit.tolist(), has_top.tolist())
         return SyntheticFrame(self, scene)
 
     def render(
@@ -696,10 +701,7 @@ class Renderer:
     def _box_look(scene: _Scene, i: int) -> tuple[np.ndarray, list[float], np.ndarray | None, list[float]]:
         """Box i's body outline (convex hull), lit body colour, marker outline (None: no
         marker) and lit marker colour, made when the box is first drawn."""
-        boxes = scene.boxes
-        g, o = scene.gain, scene.offset
-        body = [min(255.0, max(0.0, c * g + o)) for c in boxes.body_bgr[i].tolist()]
-        top_bgr = boxes.top_bgr[i].tolist()
-        has_top = boxes.dims[i, 3] > 0 and not math.isnan(top_bgr[0])
-        top = [min(255.0, max(0.0, c * g + o)) for c in top_bgr] if has_top else []
-        return cv2.convexHull(scene.body_px[i]), body, scene.top_px[i] if has_top else None, top
+        lit = scene.lit_bgr[i]
+        if scene.has_top[i]:
+            return cv2.convexHull(scene.body_px[i]), lit[:3], scene.top_px[i], lit[3:]
+        return cv2.convexHull(scene.body_px[i]), lit[:3], None, []
