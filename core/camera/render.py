@@ -42,7 +42,6 @@ _WALL_COLS = 1024
 _WALL_ROWS = 128
 _SUBPIXEL_BITS = 4  # polygon vertices with 1/16 pixel precision
 _NOISE_SLACK_ROWS = 64
-_RAMP = np.arange(256, dtype=np.float64)  # grey levels, for the lighting table
 _RECT_MARGIN = 4  # pixels drawn around a rectangle of a frame and cut off (see Renderer._render_rect)
 
 
@@ -436,6 +435,39 @@ def _box_polygons(
     return body, top, bbox, ok
 
 
+@kernel
+def _frame_layout(
+    cx: np.ndarray, cy: np.ndarray, ca: np.ndarray, cdims: np.ndarray, cbody: np.ndarray, ctop: np.ndarray,
+    followers: np.ndarray, visible: np.ndarray, fdims: np.ndarray, fbody: np.ndarray, fcolours: np.ndarray,
+    leader_x: float, leader_y: float, leader_theta: float, period: float, reach: float,
+    to_mirror: np.ndarray, xi: float, gamma_px: float, ccx: float, ccy: float, mirror_height: float,
+    scale: float, limit: float, gain: float, offset: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+           np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A frame's geometry and lighting in one call: the boxes (``_layout_boxes``), their
+    outlines and pixel bounds (``_box_polygons``; bounds zero where a box does not project),
+    their lit colours (m, 6: body then marker, clip(c * gain + offset, 0, 255)), whether
+    each has a marker, and the lighting table for grey levels (the same clip, truncated)."""
+    x, y, a, dims, body, top = _layout_boxes(cx, cy, ca, cdims, cbody, ctop, followers, visible, fdims, fbody,
+                                             fcolours, leader_x, leader_y, leader_theta, period, reach)
+    body_px, top_px, bbox, ok = _box_polygons(x, y, a, dims, to_mirror, xi, gamma_px, ccx, ccy, mirror_height,
+                                              scale, limit)
+    m = x.shape[0]
+    lit = np.empty((m, 6))
+    has_top = np.empty(m, np.bool_)
+    for b in range(m):
+        if not ok[b]:
+            bbox[b, :] = 0  # never drawn
+        for c in range(3):
+            lit[b, c] = min(max(body[b, c] * gain + offset, 0.0), 255.0)
+            lit[b, 3 + c] = min(max(top[b, c] * gain + offset, 0.0), 255.0)
+        has_top[b] = dims[b, 3] > 0 and not math.isnan(top[b, 0])
+    lut = np.empty(256, np.uint8)
+    for i in range(256):
+        lut[i] = np.uint8(min(max(i * gain + offset, 0.0), 255.0))
+    return x, y, a, dims, body, top, body_px, top_px, bbox, lit, has_top, lut
+
+
 @dataclass(frozen=True)
 class Boxes:
     """Boxes in the leader frame, one row each: centre (x, y), heading a (rad, from +x),
@@ -584,16 +616,23 @@ class Renderer:
         """The frame's boxes in the leader frame, far to near: clutter within the floor's reach
         (none within 0.6 m of the leader or 0.45 m of a follower: the simulator has no
         collisions) and the followers' boxes, (n, 3) rows (x, y, a), not the hidden ones."""
+        return Boxes(*_layout_boxes(*self._layout_args(leader_pose, followers_leader, hidden, clutter_only)))
+
+    def _layout_args(self, leader_pose: FloatArray, followers_leader: FloatArray, hidden: BoolArray | None,
+                     clutter_only: bool = False) -> tuple[object, ...]:
+        """The arguments of ``_layout_boxes`` for a frame."""
         cl = self._clutter
         fol = np.ascontiguousarray(np.asarray(followers_leader, dtype=np.float64).reshape(-1, 3))
-        visible = np.ones(len(fol), dtype=np.bool_) if hidden is None else ~np.asarray(hidden, dtype=np.bool_)[: len(fol)]
         if clutter_only:
             visible = np.zeros(len(fol), dtype=np.bool_)
-        lp = np.asarray(leader_pose, dtype=np.float64)
-        return Boxes(*_layout_boxes(
-            cl.x, cl.y, cl.a, cl.dims, cl.body_bgr, cl.top_bgr, fol, visible, self._follower_dims,
-            self._follower_body, self._marker_colours, float(lp[0]), float(lp[1]), float(lp[2]),
-            self.settings.clutter_period_m, self.settings.floor_far_m))
+        elif hidden is None:
+            visible = np.ones(len(fol), dtype=np.bool_)
+        else:
+            visible = ~np.asarray(hidden, dtype=np.bool_)[: len(fol)]
+        x, y, theta = np.asarray(leader_pose, dtype=np.float64)[:3].tolist()
+        return (cl.x, cl.y, cl.a, cl.dims, cl.body_bgr, cl.top_bgr, fol, visible, self._follower_dims,
+                self._follower_body, self._marker_colours, x, y, theta, self.settings.clutter_period_m,
+                self.settings.floor_far_m)
 
     # -- a frame -----------------------------------------------------------------------
 
@@ -620,27 +659,17 @@ class Renderer:
         hidden: followers not drawn (occluded).
         """
         gain, offset = self.lighting(t)
-        lut = _RAMP * gain  # clip(i * gain + offset, 0, 255), truncated to grey levels
-        lut += offset
-        np.maximum(lut, 0.0, out=lut)
-        np.minimum(lut, 255.0, out=lut)
-        lut = lut.astype(np.uint8)
-        lp = np.asarray(leader_pose, dtype=np.float64)
-        boxes = self.boxes(lp, followers_leader, hidden)
+        layout = self._layout_args(leader_pose, followers_leader, hidden)
         mdl = self.model
         scale = float(1 << _SUBPIXEL_BITS)
-        body_px, top_px, bbox, ok = _box_polygons(
-            boxes.x, boxes.y, boxes.a, boxes.dims, mdl._to_mirror, mdl.xi, mdl.gamma_px, mdl.cx, mdl.cy,
-            mdl.mirror_height_m, scale, 4 * scale * max(mdl.width, mdl.height))
+        x, y, a, dims, body, top, body_px, top_px, bbox, lit, has_top, lut = _frame_layout(
+            *layout, mdl._to_mirror, mdl.xi, mdl.gamma_px, mdl.cx, mdl.cy, mdl.mirror_height_m, scale,
+            4 * scale * max(mdl.width, mdl.height), gain, offset)
         rows = (int(rng.integers(0, _NOISE_SLACK_ROWS)), int(rng.integers(0, _NOISE_SLACK_ROWS)))
-        bbox[~ok] = (0, 0, 0, 0)  # never drawn
-        lit = np.concatenate([boxes.body_bgr, boxes.top_bgr], axis=1) * gain  # clip(c * gain + offset, 0, 255)
-        lit += offset
-        np.maximum(lit, 0.0, out=lit)
-        np.minimum(lit, 255.0, out=lit)
-        has_top = (boxes.dims[:, 3] > 0) & ~np.isnan(boxes.top_bgr[:, 0])
-        scene = _Scene(lut, (float(lp[0]), float(lp[1]), float(lp[2]) - math.pi / 2), boxes,
-                       body_px, top_px, [tuple(b) for b in bbox.tolist()], rows, {}, lit.tolist(), has_top.tolist())
+        lx, ly, theta = np.asarray(leader_pose, dtype=np.float64)[:3].tolist()
+        scene = _Scene(lut, (lx, ly, theta - math.pi / 2),
+                       Boxes(x, y, a, dims, body, top), body_px, top_px, [tuple(b) for b in bbox.tolist()], rows,
+                       {}, lit.tolist(), has_top.tolist())
         return SyntheticFrame(self, scene)
 
     def render(
