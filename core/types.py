@@ -19,6 +19,15 @@ BoolArray = NDArray[np.bool_]
 IntArray = NDArray[np.intp]
 
 
+def float_rows(x: Any, shape: tuple[int, ...]) -> FloatArray:
+    """``x`` as a C-contiguous float64 array of ``shape``, broadcast if it is smaller; no
+    copy (and no broadcasting machinery) when it already is one."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.shape != shape:
+        a = np.broadcast_to(a, shape)
+    return np.ascontiguousarray(a)
+
+
 def numbers_in_field_order(obj: Any) -> FloatArray:
     """A frozen dataclass of numbers as a float array in field order, for compiled kernels:
     made on first use and kept on the object (it cannot change), read-only."""

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike
 from core.control.limits import clamp_command
 from core.geometry import wrap_angle
 from core.jit import kernel, ufunc
-from core.types import GAIN_INDEX, BoolArray, Commands, FloatArray, Gains
+from core.types import GAIN_INDEX, BoolArray, Commands, FloatArray, Gains, float_rows
 
 # Below this reference speed (m/s) the reference angle a_r is undefined: it is held.
 REFERENCE_SPEED_EPS = 1e-4
@@ -229,8 +229,8 @@ def compute_commands(
     p_arr = np.ascontiguousarray(np.atleast_2d(np.asarray(p, dtype=np.float64)))
     n = p_arr.shape[0]
     a_arr = np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(n))
-    pd_arr = np.ascontiguousarray(np.broadcast_to(np.asarray(p_d, dtype=np.float64), (n, 2)))
-    pdd_arr = np.ascontiguousarray(np.broadcast_to(np.asarray(p_d_dot, dtype=np.float64), (n, 2)))
+    pd_arr = float_rows(p_d, (n, 2))
+    pdd_arr = float_rows(p_d_dot, (n, 2))
     act = np.ones(n, dtype=np.bool_) if active is None else np.asarray(active, dtype=np.bool_).reshape(n)
     memory = state.memory.copy()
     out = np.empty((n, 8))

@@ -24,7 +24,7 @@ from core.geometry import (
     wrap_angle,
 )
 from core.jit import kernel
-from core.types import BoolArray, Commands, FloatArray, numbers_in_field_order
+from core.types import BoolArray, Commands, FloatArray, float_rows, numbers_in_field_order
 
 
 @dataclass(frozen=True)
@@ -119,8 +119,8 @@ def integrate_unicycle(pose: ArrayLike, v: ArrayLike, w: ArrayLike, dt: float) -
     """Poses (m, 3) after dt at constant (v, w) each: see :func:`arc_kernel`."""
     q = np.ascontiguousarray(np.atleast_2d(np.asarray(pose, dtype=np.float64)))
     m = q.shape[0]
-    v_arr = np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=np.float64), (m,)))
-    w_arr = np.ascontiguousarray(np.broadcast_to(np.asarray(w, dtype=np.float64), (m,)))
+    v_arr = float_rows(v, (m,))
+    w_arr = float_rows(w, (m,))
     out = np.empty_like(q)
     arc_kernel(q, v_arr, w_arr, float(dt), out)
     return out
