@@ -4,16 +4,71 @@ interest around its window so the cost does not grow with the image size."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from core.camera.config import DetectSettings
+from core.jit import kernel
 from core.types import Image
 
 HUE_BINS = 30  # 6 degrees per bin
 _CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.5)
+
+# OpenCV's 8-bit BGR->HSV (hue 0..179) is integer arithmetic with 12-bit fixed-point
+# reciprocals; these are its tables, so the kernel below gives its bytes exactly (the tests
+# compare it with OpenCV on all 2^24 colours).
+_HSV_SHIFT = 12
+_I = np.arange(256, dtype=np.float64)
+_SDIV = np.where(_I > 0, np.rint((255 << _HSV_SHIFT) / np.maximum(_I, 1.0)), 0.0).astype(np.int64)
+_HDIV = np.where(_I > 0, np.rint((180 << _HSV_SHIFT) / (6.0 * np.maximum(_I, 1.0))), 0.0).astype(np.int64)
+del _I
+
+
+@kernel
+def _backproject_kernel(bgr: np.ndarray, area: np.ndarray, lut: np.ndarray, min_s: int, min_v: int,
+                        sdiv: np.ndarray, hdiv: np.ndarray, out: np.ndarray) -> None:
+    half = 1 << (_HSV_SHIFT - 1)
+    for y in range(bgr.shape[0]):
+        for x in range(bgr.shape[1]):
+            b = np.int64(bgr[y, x, 0])
+            g = np.int64(bgr[y, x, 1])
+            r = np.int64(bgr[y, x, 2])
+            v = max(b, g, r)
+            diff = v - min(b, g, r)
+            if v < min_v or (diff * sdiv[v] + half) >> _HSV_SHIFT < min_s:  # value, saturation floors
+                out[y, x] = 0
+                continue
+            if v == r:
+                h = g - b
+            elif v == g:
+                h = b - r + 2 * diff
+            else:
+                h = r - g + 4 * diff
+            h = (h * hdiv[diff] + half) >> _HSV_SHIFT
+            if h < 0:
+                h += 180
+            out[y, x] = lut[h] & area[y, x]
+
+
+def hue_lookup(hist: np.ndarray) -> np.ndarray:
+    """(256,) uint8: what ``cv2.calcBackProject`` gives a pixel of each hue byte under
+    ``hist`` (asked of OpenCV itself, on a ramp of every hue byte)."""
+    ramp = np.zeros((1, 256, 3), np.uint8)
+    ramp[0, :, 0] = np.arange(256)
+    return np.ascontiguousarray(cv2.calcBackProject([ramp], [0], hist, [0, 180], 1).reshape(256))
+
+
+def back_projection(bgr: Image, lut: np.ndarray, area_mask: np.ndarray, detect: DetectSettings) -> np.ndarray:
+    """The CAMSHIFT input of a BGR region in one pass: the hue histogram's back-projection
+    (``lut`` from :func:`hue_lookup`) where saturation and value pass ``detect``'s floors,
+    ANDed with the working-area mask. Byte for byte what cvtColor → calcBackProject →
+    inRange → bitwise_and gives, without the four intermediate images."""
+    a = np.asarray(bgr)
+    out = np.empty(a.shape[:2], np.uint8)
+    _backproject_kernel(a, area_mask, lut, int(detect.min_saturation), int(detect.min_value), _SDIV, _HDIV, out)
+    return out
 
 
 def hue_histogram(hsv: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -38,6 +93,10 @@ class Track:
     v: float = math.nan
     mass_px: float = 0.0  # back-projection mass in the last window (pixels' worth)
     misses: int = 0
+    lut: np.ndarray = field(init=False, repr=False)  # hue byte -> back-projection, from hist
+
+    def __post_init__(self) -> None:
+        self.lut = hue_lookup(self.hist)
 
 
 def _roi(window: tuple[int, int, int, int], margin: int, width: int, height: int) -> tuple[int, int, int, int]:
@@ -60,11 +119,7 @@ def camshift(frame_bgr: Image, track: Track, area_mask: np.ndarray, detect: Dete
     if x1 - x0 < 2 or y1 - y0 < 2:
         track.mass_px = 0.0
         return False
-    hsv = cv2.cvtColor(frame_bgr[y0:y1, x0:x1], cv2.COLOR_BGR2HSV)
-    prob = cv2.calcBackProject([hsv], [0], track.hist, [0, 180], 1)
-    sat = cv2.inRange(hsv, (0, detect.min_saturation, detect.min_value), (180, 255, 255))
-    cv2.bitwise_and(prob, sat, dst=prob)
-    cv2.bitwise_and(prob, area_mask[y0:y1, x0:x1], dst=prob)
+    prob = back_projection(frame_bgr[y0:y1, x0:x1], track.lut, area_mask[y0:y1, x0:x1], detect)
     x, y, w, h = track.window
     local = (max(0, x - x0), max(0, y - y0), max(1, min(w, x1 - x0)), max(1, min(h, y1 - y0)))
     _, win = cv2.CamShift(prob, local, _CRITERIA)
