@@ -117,12 +117,18 @@ def rotate_heading_into_new_frame(a_old: ArrayLike, gamma: float) -> FloatArray:
     return wrap_angle(np.asarray(a_old, dtype=np.float64) - gamma)
 
 
+def pose_floats(pose: ArrayLike) -> tuple[float, float, float]:
+    """A pose (x, y, theta) as three Python floats, for scalar arithmetic and kernel arguments."""
+    x, y, theta = np.asarray(pose, dtype=np.float64)[:3].tolist()
+    return x, y, theta
+
+
 def leader_displacement(
     pose_from: ArrayLike, pose_to: ArrayLike
 ) -> tuple[float, float, float]:
     """Leader odometry (dx, dy, gamma) between two world poses (x, y, theta), in the old frame."""
-    x0, y0, t0 = np.asarray(pose_from, dtype=np.float64)[:3].tolist()
-    x1, y1, t1 = np.asarray(pose_to, dtype=np.float64)[:3].tolist()
+    x0, y0, t0 = pose_floats(pose_from)
+    x1, y1, t1 = pose_floats(pose_to)
     phi = t0 - 0.5 * math.pi  # as world_to_leader_kernel
     c, s = math.cos(phi), math.sin(phi)
     ddx, ddy = x1 - x0, y1 - y0

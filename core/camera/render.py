@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from core.camera.model import CameraModel
+from core.geometry import pose_floats
 from core.jit import kernel
 from core.types import BoolArray, FloatArray
 
@@ -436,6 +437,12 @@ def _box_polygons(
 
 
 @kernel
+def _lit(c: float, gain: float, offset: float) -> float:
+    """A colour channel under the frame's lighting: clip(c * gain + offset, 0, 255)."""
+    return min(max(c * gain + offset, 0.0), 255.0)
+
+
+@kernel
 def _frame_layout(
     cx: np.ndarray, cy: np.ndarray, ca: np.ndarray, cdims: np.ndarray, cbody: np.ndarray, ctop: np.ndarray,
     followers: np.ndarray, visible: np.ndarray, fdims: np.ndarray, fbody: np.ndarray, fcolours: np.ndarray,
@@ -459,12 +466,12 @@ def _frame_layout(
         if not ok[b]:
             bbox[b, :] = 0  # never drawn
         for c in range(3):
-            lit[b, c] = min(max(body[b, c] * gain + offset, 0.0), 255.0)
-            lit[b, 3 + c] = min(max(top[b, c] * gain + offset, 0.0), 255.0)
+            lit[b, c] = _lit(body[b, c], gain, offset)
+            lit[b, 3 + c] = _lit(top[b, c], gain, offset)
         has_top[b] = dims[b, 3] > 0 and not math.isnan(top[b, 0])
     lut = np.empty(256, np.uint8)
     for i in range(256):
-        lut[i] = np.uint8(min(max(i * gain + offset, 0.0), 255.0))
+        lut[i] = np.uint8(_lit(float(i), gain, offset))
     return x, y, a, dims, body, top, body_px, top_px, bbox, lit, has_top, lut
 
 
@@ -616,11 +623,12 @@ class Renderer:
         """The frame's boxes in the leader frame, far to near: clutter within the floor's reach
         (none within 0.6 m of the leader or 0.45 m of a follower: the simulator has no
         collisions) and the followers' boxes, (n, 3) rows (x, y, a), not the hidden ones."""
-        return Boxes(*_layout_boxes(*self._layout_args(leader_pose, followers_leader, hidden, clutter_only)))
+        return Boxes(*_layout_boxes(*self._layout_args(pose_floats(leader_pose), followers_leader, hidden,
+                                                       clutter_only)))
 
-    def _layout_args(self, leader_pose: FloatArray, followers_leader: FloatArray, hidden: BoolArray | None,
-                     clutter_only: bool = False) -> tuple[object, ...]:
-        """The arguments of ``_layout_boxes`` for a frame."""
+    def _layout_args(self, leader: tuple[float, float, float], followers_leader: FloatArray,
+                     hidden: BoolArray | None, clutter_only: bool = False) -> tuple[object, ...]:
+        """The arguments of ``_layout_boxes`` for a frame; ``leader`` is its world pose (x, y, theta)."""
         cl = self._clutter
         fol = np.ascontiguousarray(np.asarray(followers_leader, dtype=np.float64).reshape(-1, 3))
         if clutter_only:
@@ -629,9 +637,8 @@ class Renderer:
             visible = np.ones(len(fol), dtype=np.bool_)
         else:
             visible = ~np.asarray(hidden, dtype=np.bool_)[: len(fol)]
-        x, y, theta = np.asarray(leader_pose, dtype=np.float64)[:3].tolist()
         return (cl.x, cl.y, cl.a, cl.dims, cl.body_bgr, cl.top_bgr, fol, visible, self._follower_dims,
-                self._follower_body, self._marker_colours, x, y, theta, self.settings.clutter_period_m,
+                self._follower_body, self._marker_colours, *leader, self.settings.clutter_period_m,
                 self.settings.floor_far_m)
 
     # -- a frame -----------------------------------------------------------------------
@@ -659,14 +666,14 @@ class Renderer:
         hidden: followers not drawn (occluded).
         """
         gain, offset = self.lighting(t)
-        layout = self._layout_args(leader_pose, followers_leader, hidden)
+        lx, ly, theta = pose_floats(leader_pose)
+        layout = self._layout_args((lx, ly, theta), followers_leader, hidden)
         mdl = self.model
         scale = float(1 << _SUBPIXEL_BITS)
         x, y, a, dims, body, top, body_px, top_px, bbox, lit, has_top, lut = _frame_layout(
             *layout, mdl._to_mirror, mdl.xi, mdl.gamma_px, mdl.cx, mdl.cy, mdl.mirror_height_m, scale,
             4 * scale * max(mdl.width, mdl.height), gain, offset)
         rows = (int(rng.integers(0, _NOISE_SLACK_ROWS)), int(rng.integers(0, _NOISE_SLACK_ROWS)))
-        lx, ly, theta = np.asarray(leader_pose, dtype=np.float64)[:3].tolist()
         scene = _Scene(lut, (lx, ly, theta - math.pi / 2),
                        Boxes(x, y, a, dims, body, top), body_px, top_px, [tuple(b) for b in bbox.tolist()], rows,
                        {}, lit.tolist(), has_top.tolist())
