@@ -28,6 +28,10 @@ from core.types import Commands, FloatArray
 
 REPLY_TIMEOUT_S = 0.25  # a SET_VELOCITY not answered by then counts as a lost reply
 SILENT_S = 0.5  # no reply at all for this long: "link lost"
+# pyserial raises its write timeout whenever a write call took longer than the timeout, even
+# when every byte went out (a thread held off the CPU for 50 ms): one timed-out write is not
+# a dead port. This many in a row is (the port takes no bytes): closed and reopened.
+STALLED_WRITES_LOST = 3
 ODOMETRY_STALE_S = 0.2  # measured velocities older than this are taken as zero
 PING_PERIOD_S = 1.0  # each follower's STATUS (battery, watchdog) is asked for this often
 BACKOFF_S = (0.25, 2.0)
@@ -90,6 +94,7 @@ class SerialLink:
         self._opened_at = -math.inf
         self.reason = "connecting"
         self.connects = 0
+        self._stalled_writes = 0  # timed-out writes in a row (see STALLED_WRITES_LOST)
         self._thread = threading.Thread(target=self._read_loop, name="omniformation-serial", daemon=True)
         self._thread.start()
 
@@ -189,8 +194,18 @@ class SerialLink:
     def _write(self, port: Any, data: bytes) -> None:
         try:
             port.write(data)
+        except serial.SerialTimeoutException as exc:
+            with self._lock:
+                self._stalled_writes += 1
+                stalled = self._stalled_writes
+            if stalled >= STALLED_WRITES_LOST:
+                self._lost(port, f"write failed: {exc} {stalled} times in a row")
+            return
         except (serial.SerialException, OSError) as exc:
             self._lost(port, f"write failed: {exc}")
+            return
+        with self._lock:
+            self._stalled_writes = 0
 
     def _lost(self, port: Any, reason: str) -> None:
         with self._lock:
@@ -227,6 +242,7 @@ class SerialLink:
                     self._opened_at = self._clock()
                     self.parser = p.FrameParser()
                     self.connects += 1
+                    self._stalled_writes = 0
                     self.reason = "no reply yet"
                 backoff = BACKOFF_S[0]
             try:

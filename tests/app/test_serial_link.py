@@ -116,10 +116,40 @@ def test_lost_replies_and_crc_errors_are_counted_per_follower():
         assert 0.15 * sent < lost < 0.45 * sent
         assert crc >= 0.5 * em.emulator.stats.corrupted
         assert link.parser.rejected_total >= crc
-        assert "lost" in link.detail() and link.link_state.endswith(": ok")
+        assert "lost" in link.detail()
+
+        def answered() -> bool:  # the loop keeps sending at 30 Hz; replies come back after the pause
+            link.send(Commands.zeros(3))
+            time.sleep(1 / 30)
+            return link.link_state.endswith(": ok")
+
+        wait_for(answered, 2, "the link to be answered again after the 0.4 s pause")
     finally:
         link.close()
         em.close()
+
+
+def test_a_port_that_takes_no_bytes_is_reopened_after_three_stalled_writes():
+    """Nobody reads the robots' end of this pty, so its buffer fills and writes time out.
+    One timed-out write does not close the port (pyserial also times out a write that went
+    out whole when the thread was held off the CPU); three in a row do, and it is reopened."""
+    end = PtyEndpoint()
+    link = SerialLink(end.path, 3)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        t0 = time.monotonic()
+        while link._stalled_writes == 0:
+            assert time.monotonic() - t0 < 20, "the pty's buffer never filled"
+            link.send(Commands(np.full(3, 0.05), np.zeros(3)))
+        assert link.connects == 1 and link._port is not None  # one stall: still open
+        link.send(Commands(np.full(3, 0.05), np.zeros(3)))
+        assert link._stalled_writes == 2 and link._port is not None
+        link.send(Commands(np.full(3, 0.05), np.zeros(3)))
+        assert link._port is None or link.connects == 2  # the third: closed ...
+        wait_for(lambda: link.connects == 2, 5, "the port to be reopened")  # ... and opened again
+    finally:
+        link.close()
+        end.close()
 
 
 def test_a_follower_stops_by_itself_when_commands_stop_coming(emulated):
