@@ -18,7 +18,10 @@ venv: $(STAMP)
 run: $(STAMP)
 	$(BIN)/omniformation run
 
+# lint and type checks first: a finding fails the run before the long suite starts
 test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/mypy
 	scripts/ensure-chromium
 	$(BIN)/python -m pytest -q
 
@@ -28,7 +31,7 @@ bench: $(STAMP)
 # The sample recordings in recordings/samples (each under 5 MB: one camera frame a second).
 samples: $(STAMP)
 	for s in paper_simulation experiment2; do \
-	  $(BIN)/omniformation simulate $$s --vision --frames-hz 1 --jpeg-quality 55 \
+	  rm -f recordings/samples/$$s-vision.mcap; $(BIN)/omniformation simulate $$s --vision --frames-hz 1 --jpeg-quality 55 \
 	    --record recordings/samples/$$s-vision.mcap || exit 1; \
 	done
 

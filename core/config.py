@@ -154,6 +154,7 @@ class Table:
             )
 
 
+MIN_SLOT_SPACING_M = 0.05  # two slots closer than this would put two robots in one place
 WORKSPACE_LIMIT_M = 10.0
 
 
@@ -219,7 +220,7 @@ _DYNAMICS_BOUNDS = {
 
 def parse_dynamics(t: Table) -> FollowerDynamics:
     """A [dynamics] table: the simulated followers' lag, limits and wheel noise."""
-    return _parse_dataclass(t, FollowerDynamics, _DYNAMICS_BOUNDS)  # type: ignore[no-any-return]
+    return _parse_dataclass(t, FollowerDynamics, _DYNAMICS_BOUNDS)
 
 
 def parse_measurement(t: Table) -> MeasurementNoise:
@@ -272,6 +273,11 @@ def parse_scenario(text: str, source: str) -> Scenario:
              for i, s in enumerate(slots_raw)]
     if len(slots) < len(p0):
         raise formation.fail("slots", slots_raw, f"at least as many points as followers ({len(p0)})")
+    for i in range(len(slots)):
+        for j in range(i):
+            if math.dist(slots[i], slots[j]) < MIN_SLOT_SPACING_M:
+                raise formation.fail("slots", slots_raw, f"points at least {MIN_SLOT_SPACING_M * 100:g} cm apart"
+                                     f" (slots {j + 1} and {i + 1} are not: two robots cannot stand in one place)")
     formation.finish()
 
     gains = parse_gains(top.table("gains"))

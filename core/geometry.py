@@ -1,6 +1,6 @@
 """Angles and frame changes shared by the controller, simulator and vision.
 
-Frames (see PAPER-NOTES): the leader frame has x to the right, y forward; a
+Frames (see docs/paper-notes.md): the leader frame has x to the right, y forward; a
 follower's heading ``a`` is measured in the leader frame from +x, so 90° means
 aligned with the leader. The world frame has x east, y north; the leader's
 world heading ``theta`` is measured from +x, so a leader heading north has
@@ -29,7 +29,7 @@ def wrap_scalar(angle: float) -> float:
 
 
 wrap_angle = ufunc("float64(float64)")(wrap_scalar)
-wrap_angle.__doc__ = "Wrap angles (rad) to the half-open interval (-pi, pi]; a ufunc, usable in kernels."
+wrap_angle.__doc__ = "Wrap angles (rad) to the half-open interval (-pi, pi]; a ufunc, usable in kernels."  # type: ignore[misc]  # numba ufuncs take a docstring; numpy stubs call it read-only
 
 
 def frame_yaw(leader_theta: ArrayLike) -> FloatArray:
@@ -92,7 +92,7 @@ def reexpress_in_new_frame(
     The leader moved by (dx, dy), expressed in its OLD frame, and turned
     counter-clockwise by ``gamma``. A world-fixed point p0 then has new
     coordinates R(-gamma) (p0 - d). The paper prints R(+gamma), which matches
-    only if gamma is measured clockwise (PAPER-NOTES). Headings follow with
+    only if gamma is measured clockwise (docs/paper-notes.md). Headings follow with
     a1 = alpha0 - gamma (see :func:`rotate_heading_into_new_frame`).
     """
     p = np.ascontiguousarray(np.atleast_2d(np.asarray(points_old, dtype=np.float64)))

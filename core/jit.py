@@ -9,22 +9,25 @@ simulator both call these same kernels. Compiled code is cached on disk.
 
 from __future__ import annotations
 
-from typing import Any, Callable, TypeVar
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
 
 import numba
+import numpy as np
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
 def kernel(fn: F) -> F:
     """Compile a numeric kernel (no Python objects inside), cached between runs."""
-    return numba.njit(cache=True, nogil=True)(fn)  # type: ignore[no-any-return]
+    return cast(F, numba.njit(cache=True, nogil=True)(fn))
 
 
-def ufunc(signature: str) -> Callable[[F], F]:
-    """Compile a scalar function to a NumPy ufunc, callable from Python and from kernels."""
+def ufunc(signature: str) -> Callable[[Callable[..., float]], np.ufunc]:
+    """Compile a scalar function to a NumPy ufunc, callable from Python (on scalars and
+    arrays alike, so it is typed as a ufunc) and from kernels."""
 
-    def wrap(fn: F) -> F:
-        return numba.vectorize([signature], cache=True)(fn)  # type: ignore[no-any-return]
+    def wrap(fn: Callable[..., float]) -> np.ufunc:
+        return cast(np.ufunc, numba.vectorize([signature], cache=True)(fn))  # type: ignore[no-untyped-call]  # numba ships no type hints
 
     return wrap

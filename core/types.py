@@ -36,7 +36,7 @@ def numbers_in_field_order(obj: Any) -> FloatArray:
         cached = np.array([float(getattr(obj, f.name)) for f in dataclasses.fields(obj)])
         cached.flags.writeable = False
         object.__setattr__(obj, "_numbers_in_field_order", cached)
-    return cached  # type: ignore[no-any-return]
+    return cached
 
 
 class Image(Protocol):
@@ -50,7 +50,7 @@ class Image(Protocol):
 
     def __getitem__(self, key: Any) -> Any: ...
 
-    def __array__(self, dtype: Any = ..., copy: Any = ...) -> NDArray[Any]: ...
+    def __array__(self, dtype: Any = ..., /, *, copy: Any = ...) -> NDArray[Any]: ...
 
 
 @dataclass(frozen=True)

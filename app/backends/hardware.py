@@ -22,11 +22,11 @@ import numpy as np
 from core.sim.team import TeamState, integrate_unicycle
 from core.types import Commands, FloatArray
 
-from app.backends.sim import OdometryLink
+from app.contracts import FollowerLink
 
 
 class HardwareTeam:
-    def __init__(self, n: int, link: OdometryLink | None = None, leader: OdometryLink | None = None) -> None:
+    def __init__(self, n: int, link: FollowerLink | None = None, leader: FollowerLink | None = None) -> None:
         self.link = link
         self.leader_link = leader
         self.state = TeamState(np.array([0.0, 0.0, math.pi / 2]), np.full((n, 3), np.nan), np.zeros((n, 2)))
@@ -37,6 +37,10 @@ class HardwareTeam:
         follower = "none (observe only)" if self.link is None else self.link.link_state
         leader = "" if self.leader_link is None else f" · leader base: {self.leader_link.link_state}"
         return follower + leader
+
+    @property
+    def link_lost(self) -> bool:
+        return self.link is not None and self.link.lost
 
     def link_detail(self) -> str:
         parts = [x.detail() for x in (self.link, self.leader_link) if x is not None]

@@ -4,9 +4,23 @@ One port serves every follower (addressed frames, as on a shared radio); give on
 ``SerialLink`` per port for one port per follower. ``send`` is called by the loop once
 per tick: it writes one SET_VELOCITY per follower (zero when stopped, which also feeds
 their watchdogs) and returns at once; a reader thread parses the replies and keeps, per
-follower, the round-trip time, lost replies, CRC errors, the encoder odometry and the
-status (battery, watchdog). When the port fails or goes silent the link says "link lost"
-and reopens the port with back-off (0.25 s doubling to 2 s) without ever blocking the loop.
+follower, the round-trip time, the encoder odometry and the status (battery, watchdog).
+
+The link tells the truth. A reply counts only when it matches a frame we sent: the same
+address and sequence, and the type that answers it (ACK for SET_VELOCITY and STOP, STATUS for
+PING). Our own frames coming back (an echoing line or a loopback plug) are recognised as
+echoes, and a well-formed reply that answers nothing we sent is counted as unmatched; neither
+makes the link "ok". Per follower, every SET_VELOCITY written is exactly one of: answered
+(in time), late (answered after ``REPLY_TIMEOUT_S``), lost (never answered) or still pending,
+so ``sent == answered + late + lost + pending`` at every moment. A frame that could not be
+written is not sent.
+
+State for people and for the loop: "ok" while every follower answers; "degraded" when one
+is silent or loses more than ``DEGRADED_LOSS`` of its recent replies; "link lost" when the
+port is closed or no follower has answered for ``SILENT_S``. While the link is lost the
+link commands zero whatever it is given (the loop does too), and a reopened port gets STOP
+for every follower before anything else. A port that fails is reopened with back-off (0.25 s
+doubling to 2 s) without ever blocking the loop.
 
 Every command is clamped again here to the limits given (defence in depth: the controller
 already clamps), NaN becomes 0, and ``close`` sends STOP to every follower.
@@ -17,8 +31,10 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
-from typing import Any, Callable
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 import serial
@@ -35,15 +51,26 @@ STALLED_WRITES_LOST = 3
 ODOMETRY_STALE_S = 0.2  # measured velocities older than this are taken as zero
 PING_PERIOD_S = 1.0  # each follower's STATUS (battery, watchdog) is asked for this often
 BACKOFF_S = (0.25, 2.0)
+DEGRADED_LOSS = 0.2  # more than this share of a follower's recent commands unanswered: "degraded"
+QUALITY_WINDOW = 30  # recent commands a follower's loss share is taken over (1 s at 30 Hz)
+EXPIRED_KEPT = 1024  # unanswered (address, sequence) pairs remembered, so a late reply is known as late
+REPLY_TO = {p.MSG_SET_VELOCITY: p.MSG_ACK, p.MSG_STOP: p.MSG_ACK, p.MSG_PING: p.MSG_STATUS}
 
 
 @dataclass
 class FollowerLinkStats:
+    """One follower's counts: ``sent == answered + late + lost + pending`` (pending: written and
+    not yet answered nor given up, see SerialLink.pending)."""
+
     address: int
-    sent: int = 0
-    acks: int = 0
-    lost: int = 0
+    sent: int = 0  # SET_VELOCITY frames written to the port
+    answered: int = 0  # ... answered by a matching ACK within REPLY_TIMEOUT_S
+    late: int = 0  # ... answered after it
+    lost: int = 0  # ... never answered (so far)
     crc_errors: int = 0  # refused frames (bad CRC, length, type) whose address byte named this follower
+    echoes: int = 0  # our own frames to this address that came back (an echoing line)
+    unmatched: int = 0  # well-formed replies from this address that answer nothing we sent
+    recent: deque[bool] = field(default_factory=lambda: deque(maxlen=QUALITY_WINDOW))  # answered in time?
     rtt_ms: float = math.nan  # last round trip
     rtt_mean_ms: float = math.nan  # running mean
     last_reply: float = -math.inf  # monotonic time
@@ -86,8 +113,10 @@ class SerialLink:
         self._opener = opener or (lambda: serial.serial_for_url(port, baudrate=baud, timeout=0.02, write_timeout=0.05))
         self._port: Any = None
         self._lock = threading.Lock()  # guards _port, _pending, stats
-        self._pending: dict[tuple[int, int], float] = {}
+        self._pending: dict[tuple[int, int, int], float] = {}  # (address, sequence, request type) -> time written
+        self._expired: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # given up on: a reply now is late
         self._seq = 0
+        self._stop_first = True  # a fresh port gets STOP for everyone before anything else
         self._next_ping = 0.0
         self._ping_index = 0
         self._stop = threading.Event()
@@ -105,18 +134,57 @@ class SerialLink:
     # -- state for people ---------------------------------------------------------------
     @property
     def connected(self) -> bool:
+        """The port is open and some follower answered a frame of ours within ``SILENT_S``."""
         now = self._clock()
         with self._lock:
             if self._port is None:
                 return False
             last = max((s.last_reply for s in self.stats), default=-math.inf)
-        return now - max(last, self._opened_at) < SILENT_S
+        return now - last < SILENT_S
+
+    @property
+    def lost(self) -> bool:
+        """No follower answers (or the port is closed): the loop commands zero."""
+        return not self.connected
+
+    @property
+    def pending(self) -> int:
+        with self._lock:
+            return sum(1 for key in self._pending if key[2] == p.MSG_SET_VELOCITY)
+
+    def quality(self) -> list[str]:
+        """Per follower: "" when it answers well, else why not ("silent 1.2 s", "37 % lost")."""
+        now = self._clock()
+        out = []
+        with self._lock:
+            for s in self.stats:
+                age = now - s.last_reply
+                recent = list(s.recent)
+                loss = 1.0 - sum(recent) / len(recent) if recent else 0.0
+                if age >= SILENT_S:
+                    out.append("never answered" if not math.isfinite(age) else f"silent {age:.1f} s")
+                elif len(recent) >= QUALITY_WINDOW // 2 and loss > DEGRADED_LOSS:
+                    out.append(f"{loss * 100:.0f} % lost")
+                else:
+                    out.append("")
+        return out
 
     @property
     def link_state(self) -> str:
-        if self.connected:
-            return f"serial {self.port_name}: ok"
-        return f"link lost ({self.reason})"
+        if not self.connected:
+            with self._lock:
+                echoes = sum(s.echoes for s in self.stats)
+                unmatched = sum(s.unmatched for s in self.stats)
+                reason = self.reason
+            if self._port is not None and echoes:
+                reason += f"; {echoes} of our own frames came back: an echoing line, no robot answers"
+            elif self._port is not None and unmatched:
+                reason += f"; {unmatched} replies answered nothing we sent"
+            return f"link lost ({reason})"
+        bad = [f"{_name(s.address)} {why}" for s, why in zip(self.stats, self.quality()) if why]
+        if bad:
+            return f"serial {self.port_name}: degraded ({', '.join(bad)})"
+        return f"serial {self.port_name}: ok"
 
     def detail(self) -> str:
         """Per follower: round trip, lost replies, CRC errors, battery, watchdog."""
@@ -126,8 +194,8 @@ class SerialLink:
             for s in self.stats:
                 age = now - s.last_reply
                 flags = ("watchdog " if s.flags & p.FLAG_WATCHDOG else "") + ("stopped " if s.flags & p.FLAG_STOPPED else "")
-                name = f"F{s.address}" if s.address != p.LEADER_ADDRESS else "leader base"
-                parts.append(f"{name} rtt {s.rtt_mean_ms:.1f} ms, lost {s.lost}/{s.sent}, crc {s.crc_errors}, "
+                parts.append(f"{_name(s.address)} rtt {s.rtt_mean_ms:.1f} ms, answered {s.answered}/{s.sent},"
+                             f" late {s.late}, lost {s.lost}, crc {s.crc_errors}, "
                              f"{s.battery_mv / 1000:.2f} V" + (f", {flags.strip()}" if flags else "")
                              + (f", silent {age:.1f} s" if age > SILENT_S and math.isfinite(age) else ""))
         return "; ".join(parts)
@@ -143,36 +211,64 @@ class SerialLink:
 
     # -- FollowerLink ---------------------------------------------------------------------
     def send(self, commands: Commands) -> None:
-        """One SET_VELOCITY per follower (clamped), written without blocking the loop."""
+        """One SET_VELOCITY per follower (clamped; zero while the link is lost), written without
+        blocking the loop. A fresh port gets STOP for everyone first."""
         v = np.clip(np.nan_to_num(np.asarray(commands.v, dtype=float)), -self.v_max, self.v_max)
         w = np.clip(np.nan_to_num(np.asarray(commands.w, dtype=float)), -self.w_max, self.w_max)
+        if self.lost:  # nobody answers: nothing but zero goes out (it also asks for replies)
+            v, w = np.zeros_like(v), np.zeros_like(w)
         now = self._clock()
         with self._lock:
-            self._seq = (self._seq + 1) & 0xFF
-            seq = self._seq
+            port = self._port
+            if port is None:
+                return  # nothing written, nothing sent
             out = bytearray()
+            if self._stop_first:
+                self._stop_first = False
+                out += self._stop_frames()
+            seq = self._next_seq()
+            keys = []
             for i, s in enumerate(self.stats):
                 vi = float(v[i]) if i < len(v) else 0.0
                 wi = float(w[i]) if i < len(w) else 0.0
                 out += p.encode_frame(p.set_velocity(s.address, seq, vi, wi))
-                s.sent += 1
-                self._pending[(s.address, seq)] = now
+                keys.append((s.address, seq, p.MSG_SET_VELOCITY))
             if now >= self._next_ping and self.stats:
                 s = self.stats[self._ping_index % len(self.stats)]
                 self._ping_index += 1
                 out += p.encode_frame(p.ping(s.address, seq))
+                keys.append((s.address, seq, p.MSG_PING))
                 self._next_ping = now + PING_PERIOD_S / len(self.stats)
+            for key in keys:  # registered before the write: a reply can beat the write's return
+                self._pending[key] = now
             self._expire(now)
-            port = self._port
-        if port is not None:
-            self._write(port, bytes(out))
+        if self._write(port, bytes(out)):
+            with self._lock:
+                for key in keys:
+                    if key[2] == p.MSG_SET_VELOCITY:
+                        self._by_addr[key[0]].sent += 1
+        else:
+            with self._lock:
+                for key in keys:
+                    self._pending.pop(key, None)
+
+    def _next_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFF
+        return self._seq
+
+    def _stop_frames(self) -> bytes:
+        """STOP to every follower, addressed (answered) and broadcast (for robots we do not know)."""
+        seq = self._next_seq()
+        now = self._clock()
+        for a in self.addresses:
+            self._pending[(a, seq, p.MSG_STOP)] = now  # its ACK is an answer, not a stranger
+        data = b"".join(p.encode_frame(p.stop(a, seq)) for a in self.addresses)
+        return data + p.encode_frame(p.stop(p.BROADCAST, seq))
 
     def stop_all(self) -> None:
-        """STOP to every follower, addressed (answered) and broadcast (for robots we do not know)."""
+        """STOP to every follower now."""
         with self._lock:
-            self._seq = (self._seq + 1) & 0xFF
-            data = b"".join(p.encode_frame(p.stop(a, self._seq)) for a in self.addresses)
-            data += p.encode_frame(p.stop(p.BROADCAST, self._seq))
+            data = self._stop_frames()
             port = self._port
         if port is not None:
             self._write(port, data)
@@ -191,7 +287,9 @@ class SerialLink:
             port.close()
 
     # -- internals ------------------------------------------------------------------------
-    def _write(self, port: Any, data: bytes) -> None:
+    def _write(self, port: Any, data: bytes) -> bool:
+        """Write ``data``; whether it went out (a timed-out write may have: pyserial cannot say,
+        so it counts as not written)."""
         try:
             port.write(data)
         except serial.SerialTimeoutException as exc:
@@ -200,12 +298,13 @@ class SerialLink:
                 stalled = self._stalled_writes
             if stalled >= STALLED_WRITES_LOST:
                 self._lost(port, f"write failed: {exc} {stalled} times in a row")
-            return
+            return False
         except (serial.SerialException, OSError) as exc:
             self._lost(port, f"write failed: {exc}")
-            return
+            return False
         with self._lock:
             self._stalled_writes = 0
+        return True
 
     def _lost(self, port: Any, reason: str) -> None:
         with self._lock:
@@ -221,7 +320,13 @@ class SerialLink:
         for key, t_sent in list(self._pending.items()):
             if now - t_sent > REPLY_TIMEOUT_S:
                 del self._pending[key]
-                self._by_addr[key[0]].lost += 1
+                if key[2] == p.MSG_SET_VELOCITY:
+                    s = self._by_addr[key[0]]
+                    s.lost += 1
+                    s.recent.append(False)
+                    self._expired[key] = None
+                    while len(self._expired) > EXPIRED_KEPT:
+                        self._expired.popitem(last=False)
 
     def _read_loop(self) -> None:
         backoff = BACKOFF_S[0]
@@ -243,6 +348,7 @@ class SerialLink:
                     self.parser = p.FrameParser()
                     self.connects += 1
                     self._stalled_writes = 0
+                    self._stop_first = True
                     self.reason = "no reply yet"
                 backoff = BACKOFF_S[0]
             try:
@@ -268,20 +374,40 @@ class SerialLink:
                 s = self._by_addr.get(f.address)
                 if s is None:
                     continue
+                if f.msg_type in REPLY_TO:  # a frame of the host's kind: our own, come back
+                    s.echoes += 1
+                    continue
+                request = next((key for key in ((f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type)
+                                if key in self._pending), None)
+                if request is None:
+                    late = (f.address, f.seq, p.MSG_SET_VELOCITY)
+                    if f.msg_type == p.MSG_ACK and late in self._expired:
+                        del self._expired[late]
+                        s.lost -= 1
+                        s.late += 1
+                        s.last_reply = now  # alive, but this odometry is old news
+                    else:
+                        s.unmatched += 1
+                    continue
+                t_sent = self._pending.pop(request)
                 s.last_reply = now
                 if f.msg_type == p.MSG_ACK:
                     a = p.decode_ack(f)
-                    s.acks += 1
                     s.v_meas, s.w_meas, s.flags = a.v_mps, a.w_rps, a.flags
                     s.left_ticks, s.right_ticks = a.left_ticks, a.right_ticks
-                    t_sent = self._pending.pop((f.address, f.seq), None)
-                    if t_sent is not None:
+                    if request[2] == p.MSG_SET_VELOCITY:
+                        s.answered += 1
+                        s.recent.append(True)
                         rtt = (now - t_sent) * 1e3
                         s.rtt_ms = rtt
                         s.rtt_mean_ms = rtt if math.isnan(s.rtt_mean_ms) else 0.9 * s.rtt_mean_ms + 0.1 * rtt
-                elif f.msg_type == p.MSG_STATUS:
+                else:
                     st = p.decode_status(f)
                     s.battery_mv, s.flags = st.battery_mv, st.flags
+
+
+def _name(address: int) -> str:
+    return f"F{address}" if address != p.LEADER_ADDRESS else "leader base"
 
 
 def _short(exc: BaseException) -> str:
@@ -306,9 +432,14 @@ class PortPerFollowerLink:
         return min(link.connects for link in self.links)
 
     @property
+    def lost(self) -> bool:
+        """No follower on any port answers."""
+        return all(link.lost for link in self.links)
+
+    @property
     def link_state(self) -> str:
-        lost = [f"F{i + 1} {link.link_state}" for i, link in enumerate(self.links) if not link.connected]
-        return f"serial {self.n} ports: ok" if not lost else "; ".join(lost)
+        bad = [f"F{i + 1} {link.link_state}" for i, link in enumerate(self.links) if not link.link_state.endswith(": ok")]
+        return f"serial {self.n} ports: ok" if not bad else "; ".join(bad)
 
     def detail(self) -> str:
         return "; ".join(link.detail() for link in self.links)

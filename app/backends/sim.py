@@ -8,8 +8,6 @@ the camera then renders robots that the serial link really drives.
 
 from __future__ import annotations
 
-from typing import Protocol
-
 import numpy as np
 
 from core.sim.team import (
@@ -19,21 +17,8 @@ from core.sim.team import (
     measure_followers,
     step_team,
 )
-from core.types import Commands, FloatArray
-
-
-class OdometryLink(Protocol):
-    """A follower link that also reports each follower's measured (v, w)."""
-
-    link_state: str
-
-    def send(self, commands: Commands) -> None: ...
-
-    def measured(self) -> tuple[FloatArray, FloatArray]: ...
-
-    def detail(self) -> str: ...
-
-    def close(self) -> None: ...
+from app.contracts import FollowerLink
+from core.types import BoolArray, Commands, FloatArray
 
 
 class SimTeam:
@@ -47,7 +32,7 @@ class SimTeam:
         position_noise_m: float,
         heading_noise_rad: float,
         seed: int,
-        link: OdometryLink | None = None,
+        link: FollowerLink | None = None,
     ) -> None:
         self.state: TeamState = make_team_state(p0, a0)
         self.link = link
@@ -61,18 +46,20 @@ class SimTeam:
     def link_state(self) -> str:
         return "simulated" if self.link is None else self.link.link_state
 
+    @property
+    def link_lost(self) -> bool:
+        return self.link is not None and self.link.lost
+
     def link_detail(self) -> str:
         return "" if self.link is None else self.link.detail()
 
-    # TeamObservation
-    def observe(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+    def observe(self) -> tuple[FloatArray, FloatArray, BoolArray]:
         p, a = measure_followers(self.state, self.rng, self.position_noise_m, self.heading_noise_rad)
         return p, a, np.ones(len(a), dtype=bool)
 
     def truth(self) -> tuple[FloatArray, FloatArray]:
         return measure_followers(self.state, self.rng)
 
-    # FollowerLink
     def send(self, commands: Commands) -> None:
         self.commands = commands
         if self.link is not None:

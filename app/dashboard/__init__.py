@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 import viser
 
@@ -16,8 +16,8 @@ from app.dashboard.camera_panel import CameraPanel, Overlay
 from app.dashboard.controls import Controls
 from app.dashboard.plots import Plots
 from app.dashboard.scene import Scene
-from app.loop import TickState
-from app.params import ParamsStore
+from app.live.tick import TickState
+from app.live.params import ParamsStore
 
 
 class Dashboard:
@@ -72,6 +72,7 @@ class LatestStatePublisher:
                 if self._closed:
                     return
                 state, self._state = self._state, None
+            assert state is not None  # the wait above ends with a state, or on close
             try:
                 self._publish(state)
                 self.published += 1

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import viser
 
-from app.dashboard.colours import follower_bgr
-from app.loop import TickState
+from core.camera.render.looks import follower_bgr
+from app.live.tick import TickState
 
 REDRAW_S = 0.1
 SCALE = 0.5  # 640x480 -> 320x240

@@ -13,14 +13,13 @@ import viser
 
 from core.types import GAIN_BOUNDS
 
-from app.loop import TickState
-
-STATUS_S = 0.2  # the live status is redrawn at most this often
-from app.params import (
+from app.live.tick import TickState
+from app.live.params import (
     FORMATION_PRESETS,
     LEADER_MODES,
     LEADER_SPEED,
     LEADER_TURN,
+    SAFETY_DISTANCE,
     MAX_FOLLOWERS,
     SLOT_LIMIT_M,
     Notice,
@@ -29,6 +28,7 @@ from app.params import (
     formation_preset,
 )
 
+STATUS_S = 0.2  # the live status is redrawn at most this often
 GAIN_LABELS = {"k_f1": "k_f1 (m/s)", "k_f2": "k_f2 (m/s)", "a": "a (m)", "k_w1": "k_w1 (rad/s)", "k_w2": "k_w2"}
 GAIN_SLIDERS = {"k_f1": (0.01, 0.5, 0.01), "k_f2": (0.0, 0.5, 0.01), "a": (0.02, 1.0, 0.01),
                 "k_w1": (0.05, 3.0, 0.05), "k_w2": (0.1, 10.0, 0.1)}
@@ -70,6 +70,13 @@ class Controls:
                     GAIN_LABELS[name], min=lo, max=hi, step=step,
                     initial_value=float(getattr(p.gains, name)), hint=GAIN_BOUNDS[name].meaning,
                 )
+        with gui.add_folder("Safety"):
+            self.safety = gui.add_checkbox("Safety filter", initial_value=p.safety,
+                                           hint="barrier certificates on every command: robots keep the distance below"
+                                                " from each other and from the leader (on by default)")
+            self.safety_distance = gui.add_slider("Min distance (m)", min=SAFETY_DISTANCE.lo, max=SAFETY_DISTANCE.hi,
+                                                  step=0.01, initial_value=p.safety_distance_m,
+                                                  hint=SAFETY_DISTANCE.meaning)
         with gui.add_folder("Formation"):
             self.preset = gui.add_dropdown("Preset", options=FORMATION_PRESETS, initial_value=FORMATION_PRESETS[0])
             self.apply_preset = gui.add_button("Apply preset")
@@ -89,7 +96,8 @@ class Controls:
         self.recording = name
         why = "replay: a recording cannot command robots"
         handles = [self.stop_button, self.release_button, self.pause_button, self.step_button, self.reset_button,
-                   self.n_slider, self.mode, self.speed, self.turn, self.preset, self.apply_preset,
+                   self.n_slider, self.mode, self.speed, self.turn, self.preset, self.apply_preset, self.safety,
+                   self.safety_distance,
                    *self.gains.values(), *(h for pair in self.slot_inputs for h in pair)]
         for h in handles:
             h.disabled = True
@@ -109,7 +117,7 @@ class Controls:
                                                   min=-SLOT_LIMIT_M, max=SLOT_LIMIT_M)
 
                 def make_cb(j: int) -> Any:
-                    def cb(event: viser.GuiEvent) -> None:
+                    def cb(event: viser.GuiEvent[Any]) -> None:
                         if event.client_id is None:
                             return
                         x_in_, y_in_ = self.slot_inputs[j]
@@ -121,23 +129,25 @@ class Controls:
                 y_in.on_update(make_cb(j))
                 self.slot_inputs.append((x_in, y_in))
 
-    def _update(self, event: viser.GuiEvent, what: str = "", **changes: Any) -> None:
+    def _update(self, event: viser.GuiEvent[Any], what: str = "", **changes: Any) -> None:
         """Write to the store; ``what`` names the action in the source (e.g. a preset), for the record."""
         if self.replay:
             return
         try:
             _, notices = self.store.update(f"browser:{event.client_id}" + (f" {what}" if what else ""), **changes)
-        except ValueError as exc:
+        except (ValueError, TypeError, OverflowError) as exc:
             notices = (Notice("input", str(exc)),)
+            self._on_params(self.store.get(), "server", ())  # the page shows what is in force, not what was refused
         if notices and event.client is not None:
             text = "; ".join(n.message for n in notices)
             event.client.add_notification("Value adjusted", text, auto_close_seconds=6.0, color="yellow")
 
     def _wire(self) -> None:
-        def on(handle: Any, **fixed: Any) -> None:
-            @handle.on_click
-            def _(event: viser.GuiEvent) -> None:
+        def on(handle: viser.GuiButtonHandle, **fixed: Any) -> None:
+            def _(event: viser.GuiEvent[Any]) -> None:
                 self._update(event, **fixed)
+
+            handle.on_click(_)
 
         on(self.stop_button, stop=True)
         on(self.release_button, stop=False)
@@ -145,25 +155,28 @@ class Controls:
         on(self.reset_button, reset_requests=1)
 
         @self.pause_button.on_click
-        def _(event: viser.GuiEvent) -> None:
+        def _(event: viser.GuiEvent[Any]) -> None:
             self._update(event, paused=not self.store.get().paused)
 
-        def on_value(handle: Any, key: str, convert: Any = float) -> None:
-            @handle.on_update
-            def _(event: viser.GuiEvent) -> None:
+        def on_value(handle: Any, key: str) -> None:
+            def _(event: viser.GuiEvent[Any]) -> None:
                 if event.client_id is None:  # the server's own echo
                     return
-                self._update(event, **{key: convert(handle.value)})
+                self._update(event, **{key: handle.value})  # as the browser sent it: the store checks it
 
-        on_value(self.n_slider, "n_followers", int)
-        on_value(self.mode, "leader_mode", str)
+            handle.on_update(_)
+
+        on_value(self.n_slider, "n_followers")
+        on_value(self.mode, "leader_mode")
         on_value(self.speed, "leader_speed_mps")
+        on_value(self.safety, "safety")
+        on_value(self.safety_distance, "safety_distance_m")
         on_value(self.turn, "leader_turn_deg_s")
         for name, handle in self.gains.items():
             on_value(handle, name)
 
         @self.apply_preset.on_click
-        def _(event: viser.GuiEvent) -> None:
+        def _(event: viser.GuiEvent[Any]) -> None:
             p = self.store.get()
             self._update(event, slots=formation_preset(self.preset.value, p.n_followers), what=f"preset {self.preset.value}")
 
@@ -183,6 +196,8 @@ class Controls:
         self._set(self.mode, p.leader_mode)
         self._set(self.speed, float(p.leader_speed_mps))
         self._set(self.turn, float(p.leader_turn_deg_s))
+        self._set(self.safety, bool(p.safety))
+        self._set(self.safety_distance, float(p.safety_distance_m))
         self._set(self.n_slider, int(p.n_followers))
         if len(self.slot_inputs) != p.slots.shape[0]:
             self._build_slot_inputs(p)
@@ -214,6 +229,8 @@ class Controls:
             f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
             f" · link: {s.link_state} · " + (f"replaying {self.recording}" if self.replay else f"recording: {self.recording}"),
             "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
+            f"safety filter: {s.safety or '-'}"
+            + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else ""),
         ]
         if s.camera_state:
             lines.append(f"camera: {s.camera_state}")

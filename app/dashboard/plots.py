@@ -12,8 +12,8 @@ import numpy as np
 import viser
 import viser.uplot as uplot
 
-from app.dashboard.colours import follower_rgb
-from app.loop import TickState
+from core.camera.render.looks import follower_rgb
+from app.live.tick import TickState
 
 WINDOW_S = 60.0
 REDRAW_S = 0.1
@@ -52,6 +52,9 @@ class Plots:
             with self.folder:
                 self.charts[key] = self.server.gui.add_uplot(
                     data=(empty,) + tuple(empty for _ in names), series=series, title=title, aspect=2.2,
+                    # x is seconds of the session, not a date (uPlot's default reads it as UNIX time);
+                    # one cursor key: hovering one chart shows the same instant on all of them
+                    scales={"x": {"time": False}}, cursor={"sync": {"key": "omniformation"}},
                 )
 
         follower_names = [f"F{i + 1}" for i in range(n)]

@@ -2,6 +2,8 @@
 
 The replay opens as its own dashboard on another port (a link appears here), not in place
 of the live page: the operator keeps the live view and the STOP button while robots move.
+A replay is opened only by a name this panel listed: a value the browser sends that is not
+one of them (a path, ``../`` anything) is refused and opens nothing.
 At most ``MAX_OPEN`` replays are served at once; opening another closes the oldest.
 """
 
@@ -13,27 +15,29 @@ from typing import TYPE_CHECKING
 
 import viser
 
-from app.paths import RECORDINGS, display_path
+from app.files import default_recordings, display_path
 
 if TYPE_CHECKING:
-    from app.replay import ReplayService
+    from app.recording.replay import ReplayService
 
 MAX_OPEN = 3
 NONE = "(no recordings yet)"
 
 
-def list_recordings(folder: Path = RECORDINGS) -> list[str]:
-    """Recordings under ``folder`` (samples included), newest first, as paths people read."""
-    files = [p for p in folder.rglob("*.mcap") if p.is_file()]
+def list_recordings(folder: Path) -> dict[str, Path]:
+    """Recordings under ``folder`` (samples included), newest first: the name people read -> file."""
+    files = [p for p in folder.rglob("*.mcap") if p.is_file() and not p.is_symlink()] if folder.is_dir() else []
     files.sort(key=lambda p: p.stat().st_mtime, reverse=True)
-    return [display_path(p) for p in files]
+    return {display_path(p): p for p in files}
 
 
 class RecordingsPanel:
-    def __init__(self, server: viser.ViserServer, host: str, folder: Path = RECORDINGS,
-                 current: str = "") -> None:
-        self.server, self.host, self.folder = server, host, folder
+    def __init__(self, server: viser.ViserServer, host: str, folder: Path | None = None,
+                 current: str = "", token: str | None = None) -> None:
+        """``host`` and ``token``: where replays are served, and what their clients present (the live page's)."""
+        self.server, self.host, self.folder, self.token = server, host, folder or default_recordings(), token
         self.current = current  # the file this live run records to: not offered while it is written
+        self._listed: dict[str, Path] = {}  # what the menu offers: the only files that can be opened
         self.replays: list[ReplayService] = []
         self._lock = threading.Lock()
         gui = server.gui
@@ -46,38 +50,44 @@ class RecordingsPanel:
                                        hint="serves the recording on another port; this live page keeps running")
             self.links = gui.add_markdown("")
         self.refresh.on_click(lambda _: self.rescan())
-        self.open.on_click(lambda _: self.open_selected())
+        self.open.on_click(lambda _: self._open_clicked())
 
     def _options(self) -> list[str]:
-        names = [n for n in list_recordings(self.folder) if n != self.current]
-        return names or [NONE]
+        self._listed = {n: f for n, f in list_recordings(self.folder).items() if n != self.current}
+        return list(self._listed) or [NONE]
 
     def rescan(self) -> None:
         options = self._options()
         keep = self.menu.value if self.menu.value in options else options[0]
         self.menu.options = options
-        self.menu.value = keep
+        self.menu.value = keep  # type: ignore[misc]  # viser's stubs: read-only on the base handle
         self.open.disabled = options == [NONE]
+
+    def _open_clicked(self) -> None:
+        self.open_selected()
 
     def open_selected(self) -> str:
         """Serve the selected recording; returns its URL (or the reason it could not)."""
-        from app.paths import PROJECT_ROOT
-        from app.recorder import RecordingError, read_recording
-        from app.replay import ReplayService
+        from app.recording.reader import RecordingError, check_ticks, read_recording
+        from app.recording.replay import ReplayService
 
         name = self.menu.value
         if name == NONE:
             return ""
-        path = Path(name) if Path(name).is_absolute() else PROJECT_ROOT / name
+        path = self._listed.get(str(name))
+        if path is None:
+            self._show("**cannot replay**: not one of the listed recordings")
+            return "not one of the listed recordings"
         try:
             rec = read_recording(path)
+            check_ticks(rec)
         except RecordingError as exc:
             self._show(f"**cannot replay**: {exc}")
             return str(exc)
         with self._lock:
             while len(self.replays) >= MAX_OPEN:
                 self.replays.pop(0).close()
-            replay = ReplayService(rec, host=self.host, port=0)
+            replay = ReplayService(rec, host=self.host, port=0, token=self.token)
             replay.start()
             self.replays.append(replay)
             lines = [f"- [{r.rec.path.name}]({r.url}) — {r.url}" for r in self.replays]

@@ -12,10 +12,10 @@ import viser
 
 from core.geometry import leader_to_world
 
-from app.dashboard.colours import follower_rgb
+from core.camera.render.looks import follower_rgb
 from app.dashboard.controls import Controls
-from app.loop import TickState
-from app.params import ParamsStore
+from app.live.tick import TickState
+from app.live.params import ParamsStore
 
 WORKING_RING_M = (0.3, 1.5)
 TRAIL_SECONDS = 20.0

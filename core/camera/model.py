@@ -65,7 +65,7 @@ class CameraModel:
     body_radius_m: float = 0.25  # the leader's own body hides the floor within this radius
 
     # derived, not part of the constructor
-    _to_mirror: FloatArray = field(init=False, repr=False, compare=False)
+    to_mirror: FloatArray = field(init=False, repr=False, compare=False)  # (3, 3) camera axes -> mirror axes
 
     def __post_init__(self) -> None:
         # leader-frame direction -> mirror-frame direction.
@@ -78,7 +78,7 @@ class CameraModel:
         axes = np.diag([1.0, -1.0, -1.0])
         # 4. the flip mirrors the image left/right.
         flip = np.diag([-1.0 if self.flip else 1.0, 1.0, 1.0])
-        object.__setattr__(self, "_to_mirror", flip @ axes @ turn @ tilt.T)
+        object.__setattr__(self, "to_mirror", flip @ axes @ turn @ tilt.T)
 
     def replace(self, **changes: Any) -> "CameraModel":
         return replace(self, **changes)
@@ -101,7 +101,7 @@ class CameraModel:
     def directions_to_pixels(self, d: FloatArray) -> FloatArray:
         """Leader-frame view directions (…, 3) (any length) -> pixels (…, 2) [u, v]."""
         d = np.asarray(d, dtype=np.float64)
-        m = d @ self._to_mirror.T
+        m = d @ self.to_mirror.T
         n = np.linalg.norm(m, axis=-1)
         with np.errstate(divide="ignore", invalid="ignore"):
             denom = m[..., 2] + self.xi * n
@@ -124,7 +124,7 @@ class CameraModel:
         xi = self.xi
         eta = (xi + np.sqrt(1.0 + (1.0 - xi * xi) * r2)) / (r2 + 1.0)
         m = np.stack([eta * mx, eta * my, eta - xi], axis=-1)
-        return m @ self._to_mirror  # orthonormal: inverse = transpose
+        return m @ self.to_mirror  # orthonormal: inverse = transpose
 
     def pixels_to_floor(self, pixels: FloatArray, height_m: float = 0.0) -> FloatArray:
         """Pixels (…, 2) -> leader-frame (x, y) where their rays meet the plane z = height_m.

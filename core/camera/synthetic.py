@@ -29,7 +29,7 @@ def require_model(config: CameraConfig) -> CameraModel:
 
 
 def renderer_for(config: CameraConfig, **render_changes: object) -> Renderer:
-    return Renderer(require_model(config), replace(config.render, **render_changes))
+    return Renderer(require_model(config), replace(config.render, **render_changes))  # type: ignore[arg-type]  # names and types are RenderSettings fields, as the callers give them
 
 
 def synthetic_table(config: CameraConfig, rng: np.random.Generator) -> MatchingTable:
@@ -43,8 +43,8 @@ def synthetic_table(config: CameraConfig, rng: np.random.Generator) -> MatchingT
     for b_deg in config.calibration.bearings_deg:
         for d in config.calibration.distances_m:
             b = math.radians(b_deg)
-            xy = bearing_range_to_xy(b, d)
-            expected = model.project([float(xy[0]), float(xy[1]), height])
+            xy = bearing_range_to_xy(np.array(b), np.array(d))
+            expected = model.project(np.array([float(xy[0]), float(xy[1]), height]))
             frame = renderer.render(np.array([0.0, 0.0, math.pi / 2]), np.array([[xy[0], xy[1], b + math.pi / 2]]),
                                     0.0, rng)
             blobs = [bl for bl in find_blobs(frame, area, config.detect) if abs(((bl.hue_deg - hue + 180) % 360) - 180) < 20]

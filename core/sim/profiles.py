@@ -32,7 +32,7 @@ class Eq39Profile:
     """Eq. 39: w_l(t) = k1 tanh(k2 (t1 - t)) for t_start <= t <= t_end, else 0; v constant.
 
     Paper §4: k1 = 1.5°/s, k2 = 0.2 1/s, t1 = 55 s, active 10-100 s. It starts
-    at about +k1 (left turn) and ends at about -k1 (PAPER-NOTES: the paper's
+    at about +k1 (left turn) and ends at about -k1 (docs/paper-notes.md: the paper's
     sentence says the reverse).
     """
 

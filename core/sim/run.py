@@ -130,7 +130,7 @@ def simulate(scenario: Scenario) -> SimulationLog:
     """Run a scenario with ground-truth (optionally noisy) feedback; deterministic given its seed."""
     dt = 1.0 / scenario.rate_hz
     steps = int(round(scenario.duration_s * scenario.rate_hz)) + 1
-    t = np.arange(steps) * dt
+    t = np.arange(steps, dtype=np.float64) * dt
     n = scenario.n
     rng = np.random.default_rng(scenario.seed)
     team = make_team_state(scenario.initial_p, scenario.initial_a)

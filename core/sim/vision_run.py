@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -158,5 +158,5 @@ def simulate_vision(
         a_err=np.array(rows["aerr"]),
         assignment=np.asarray(assignment),
     )
-    return VisionLog(log, np.array(rows["tracked"]), np.array(rows["meas"]), tuple(rows["phase"]), t_ready,
+    return VisionLog(log, np.array(rows["tracked"]), np.array(rows["meas"]), tuple(str(ph) for ph in rows["phase"]), t_ready,
                      np.array(rows["win"], dtype=np.int64), np.array(rows["hue"]))

@@ -52,7 +52,7 @@ def motion_blob(base: np.ndarray, discriminant: np.ndarray, mask: np.ndarray, th
     """Threshold |discriminant − base|, clean it with morphology, and keep the mover's blob:
     pieces close together are one blob (fig. 10), otherwise the largest is kept."""
     diff = cv2.absdiff(discriminant, base)
-    binary = ((diff > threshold) & (mask > 0)).astype(np.uint8) * 255
+    binary: np.ndarray = ((diff > threshold) & (mask > 0)).astype(np.uint8) * 255
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
     count, _, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)

@@ -34,7 +34,7 @@ def min_displacement(error_norm: FloatArray | float) -> FloatArray:
     return 0.02 + 0.03 * np.tanh(2.0 * np.asarray(error_norm, dtype=np.float64))
 
 
-def chord_headings(p1: FloatArray, p2: FloatArray, turns: FloatArray) -> FloatArray:
+def chord_headings(p1: FloatArray, p2: FloatArray, turns: FloatArray | float) -> FloatArray:
     """Eq. 35–37 for rows of points: heading at P₂ of an arc from P₁ that turned by
     ``turns`` (rad, CCW), not wrapped."""
     d = np.asarray(p2, dtype=np.float64) - np.asarray(p1, dtype=np.float64)

@@ -29,6 +29,8 @@ import math
 import dataclasses
 from dataclasses import dataclass, field
 
+from typing import Literal, get_args
+
 import cv2
 import numpy as np
 
@@ -40,8 +42,6 @@ from core.vision.background import BackgroundAccumulator, motion_blob
 from core.vision.blobs import find_blobs, hue_distance_deg, saturated_mask
 from core.vision.heading import HeadingBank, arc_measurements, fit_heading_line
 from core.vision.tracking import Track, camshift, hue_histogram
-
-PHASES = ("base", "probe", "heading", "tracking")
 
 
 @dataclass(frozen=True)
@@ -64,9 +64,18 @@ class PipelineSettings:
     kalman_measurement_deg: float = 6.0
 
 
+Phase = Literal["base", "probe", "heading", "tracking"]
+"""The pipeline's phases: base background (§3.1), probing each follower (§3.1), first
+headings (§3.2), tracking for formation control (§3.3)."""
+PHASES: tuple[Phase, ...] = get_args(Phase)
+Stage = Literal["settle", "collect", "move", "run"]
+"""Within a start-up phase: wait for stillness, collect background frames, make the manoeuvre;
+"run" while tracking."""
+
+
 @dataclass(frozen=True)
 class VisionOutput:
-    phase: str
+    phase: Phase
     probing: int  # follower being probed (0-based), -1 otherwise
     positions: FloatArray  # (n, 2) leader frame, m; NaN until first seen
     headings: FloatArray  # (n,) Kalman-filtered, rad; NaN until known
@@ -122,10 +131,10 @@ class VisionPipeline:
         self._anchor = np.full((n, 2), np.nan)
         self._anchor_turn = np.zeros(n)
         self._anchor_travel = np.zeros(n)
-        self.phase = "base"
+        self.phase: Phase = "base"
         self.probing = -1
         self._timer = 0.0
-        self._stage = "settle"  # within a phase: move | settle | collect
+        self._stage: Stage = "settle"
         self._acc: BackgroundAccumulator | None = None
         self._base: np.ndarray | None = None
 
@@ -253,7 +262,8 @@ class VisionPipeline:
                 if f.path:
                     f.path = list(reexpress_in_new_frame(np.array(f.path), dx, dy, gamma))
         self._timer += dt
-        manoeuvre: FloatArray | None = np.zeros((n, 2))
+        manoeuvre = np.zeros((n, 2))  # start-up commands (none once tracking)
+        tracking = False
         measured = np.full(n, np.nan)
 
         if self.phase == "base":
@@ -280,7 +290,7 @@ class VisionPipeline:
             elif self._timer >= s.settle_s:
                 self._finish_headings()
         else:
-            manoeuvre = None
+            tracking = True
             self._track_all(frame)
             self._search_lost(frame)
             started = self.headings.active
@@ -293,8 +303,8 @@ class VisionPipeline:
             if len(new):
                 self.headings.update(new, z[new])
                 measured[new] = z[new]  # shown raw, fused or not (paper fig. 20: raw vs filtered)
-                for i in new:
-                    self._set_anchor(int(i))
+                for k in new:
+                    self._set_anchor(int(k))
 
         return VisionOutput(
             phase=self.phase,
@@ -304,7 +314,7 @@ class VisionPipeline:
             heading_measured=measured,
             tracked=np.array([f.tracked for f in self.followers], dtype=bool)
             & (self.headings.active if self.phase == "tracking" else True),
-            manoeuvre=manoeuvre,
+            manoeuvre=None if tracking else manoeuvre,
             windows=np.array([f.track.window if f.track is not None else (0, 0, 0, 0) for f in self.followers],
                              dtype=np.int64).reshape(n, 4),
             hues_deg=np.array([f.track.hue_deg if f.track is not None else np.nan for f in self.followers]),
@@ -337,7 +347,7 @@ class VisionPipeline:
         self.phase, self.probing = "tracking", -1
         self._next_stage("run")
 
-    def _next_stage(self, stage: str) -> None:
+    def _next_stage(self, stage: Stage) -> None:
         self._stage = stage
         self._timer = 0.0
 
@@ -441,4 +451,4 @@ def parse_pipeline_settings(text: str, source: str, base: PipelineSettings = Pip
             changes[name] = table.number(name, lo, hi, unit=unit)
     table.finish()
     top.finish()
-    return dataclasses.replace(base, **changes)
+    return dataclasses.replace(base, **changes)  # type: ignore[arg-type]  # each value was read with its field's type and bounds above

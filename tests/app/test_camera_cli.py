@@ -1,17 +1,16 @@
-"""`render`, `calibrate`, `locate` as a user runs them, and the accuracy the issue asks for."""
+"""`render`, `calibrate`, `locate` as a user runs them, and the accuracy they reach (README, "Camera")."""
 
 import json
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from app.camera_files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
+from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
 from core.camera.synthetic import renderer_for
 from core.vision.blobs import find_blobs, hue_distance_deg
-from tests.app.test_cli import main_cli, run_cli
+from tests.helpers import main_cli, run_cli
 
 
 @pytest.fixture(scope="module")

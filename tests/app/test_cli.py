@@ -1,80 +1,14 @@
 """The command line as a user runs it: a real subprocess, real files."""
 
 import csv
-import signal
-import subprocess
-import sys
-import time
-from dataclasses import dataclass
-from typing import Callable
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-SCENARIO = Path(__file__).resolve().parents[2] / "static_config" / "scenarios" / "experiment2.toml"
+from tests.helpers import SCENARIOS
+from tests.helpers import main_cli, run_cli
 
-
-def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=300,
-        cwd=cwd or Path(__file__).resolve().parents[2],
-    )
-
-
-@dataclass
-class ServedRun:
-    returncode: int
-    startup: str  # stdout up to and including the "dashboard at" line
-    stdout: str  # the rest
-    stderr: str
-
-
-def serve_then_signal(*args: str, until: Callable[[], bool] | None = None, hold_s: float = 1.0,
-                      sig: int = signal.SIGTERM) -> ServedRun:
-    """`omniformation run ARGS` as a real process: wait for its dashboard line, then for ``until``
-    (or ``hold_s``), send ``sig`` and collect everything it printed."""
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", *args], cwd=Path(__file__).resolve().parents[2],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        lines: list[str] = []
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not (lines and "dashboard at" in lines[-1]):
-            line = proc.stdout.readline() if proc.stdout else ""
-            if not line and proc.poll() is not None:
-                break
-            lines.append(line)
-        if until is None:
-            time.sleep(hold_s)
-        else:
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline and not until():
-                time.sleep(0.02)
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-    return ServedRun(proc.returncode, "".join(lines), out, err)
-
-
-def main_cli(*args: str) -> subprocess.CompletedProcess[str]:
-    """The same ``omniformation`` entry point, called in this process: no interpreter start-up
-    (~3 s each with the compiled core), the same parsing, messages and exit codes. Only for
-    commands that end by themselves; signals and the console script are tested as subprocesses."""
-    import contextlib
-    import io
-
-    from app.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(list(args))
-        except SystemExit as exc:  # argparse's usage errors
-            code = exc.code if isinstance(exc.code, int) else 1
-    return subprocess.CompletedProcess(["omniformation", *args], code, out.getvalue(), err.getvalue())
+SCENARIO = SCENARIOS / "experiment2.toml"
 
 
 def test_help_lists_the_subcommands():

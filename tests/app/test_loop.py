@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from app.loop import ServiceLoop
-from app.params import Params, ParamsStore
-from tests.app.test_cli import main_cli, serve_then_signal
+from app.live.loop import ServiceLoop
+from app.live.params import Params, ParamsStore
+from tests.helpers import main_cli, serve_then_signal
 
 
 def test_team_reaches_formation_in_the_live_loop():
@@ -22,8 +22,8 @@ def test_team_reaches_formation_in_the_live_loop():
 
 
 def _default_camera():
-    from app.params import MAX_FOLLOWERS
-    from app.service_config import DEFAULT_CONFIG, load_service_config
+    from app.live.params import MAX_FOLLOWERS
+    from app.live.config import DEFAULT_CONFIG, load_service_config
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     return config, config.camera()
@@ -113,7 +113,7 @@ def test_the_service_stops_cleanly_on_sigterm():
     assert run.returncode == 0, run.stderr
     assert "all followers commanded to zero" in run.stdout
     assert "Traceback" not in run.stderr
-    from app.recorder import read_recording
+    from app.recording.reader import read_recording
 
     path = Path(__file__).resolve().parents[2] / recorded.group(1)
     try:
@@ -127,7 +127,9 @@ def test_other_hosts_warn_and_bad_ports_exit_2():
     out = main_cli("run", "--port", "99999")
     assert out.returncode == 2 and "99999 is outside 0..65535" in out.stderr
     run = serve_then_signal("--host", "0.0.0.0", "--port", "0", "--no-record", hold_s=0.0, sig=signal.SIGINT)
-    assert "no authentication" in run.stderr
+    assert "only browsers that open the URL below (it carries the token)" in run.stderr
+    assert "dashboard at http://127.0.0.1:" in run.startup and "?token=" in run.startup
+    assert "viser" not in run.startup  # viser's banner would show its own, unguarded port
     assert run.returncode == 0, run.stderr
 
 def test_an_exception_inside_a_tick_stops_every_follower_and_the_loop_lives_on():
@@ -173,3 +175,37 @@ def test_an_exception_inside_a_tick_stops_every_follower_and_the_loop_lives_on()
         loop.stop()
         th.join(5)
     assert np.all(loop._world.team.commands.v == 0.0)
+
+
+def _preset_swaps(safety: bool, switches: int = 16, seed: int = 5) -> tuple[float, int, float]:
+    """6 followers on the live loop (truth feedback, no noise), a random preset every 12 s:
+    (smallest centre distance between any two robots, ticks under 0.25 m, mean formation error)."""
+    from app.live.params import FORMATION_PRESETS, formation_preset
+    from core.control.safety import team_min_distance
+
+    rng = np.random.default_rng(seed)
+    store = ParamsStore(Params(n_followers=6, slots=formation_preset("ring", 6), leader_mode="straight",
+                               leader_speed_mps=0.03, safety=safety))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=seed, position_noise_m=0.0, heading_noise_rad=0.0)
+    closest, under, errors = np.inf, 0, []
+    for _ in range(switches):
+        name = FORMATION_PRESETS[int(rng.integers(len(FORMATION_PRESETS)))]
+        store.update("test", slots=formation_preset(name, 6))
+        for tick in range(12 * 30):
+            s = loop.tick()
+            d = team_min_distance(s.p_true)
+            closest = min(closest, d)
+            under += d < 0.25
+            if tick >= 10 * 30:
+                errors.append(float(np.linalg.norm(s.p_true - s.p_d, axis=1).mean()))
+    return closest, under, float(np.mean(errors))
+
+
+def test_preset_switches_with_the_safety_filter_keep_every_robot_apart():
+    closest_off, under_off, err_off = _preset_swaps(safety=False)
+    closest_on, under_on, err_on = _preset_swaps(safety=True)
+    print(f"\npreset swaps, 6 followers: without the filter {under_off} ticks under 0.25 m (closest"
+          f" {closest_off * 100:.1f} cm, settled error {err_off * 100:.1f} cm); with it {under_on} ticks (closest"
+          f" {closest_on * 100:.1f} cm, settled error {err_on * 100:.1f} cm)")
+    assert under_off > 0  # the switches do bring robots together: the test can fail
+    assert closest_on >= 0.25 - 0.005 and under_on == 0

@@ -3,7 +3,7 @@ import threading
 import numpy as np
 import pytest
 
-from app.params import FORMATION_PRESETS, Params, ParamsStore, formation_preset
+from app.live.params import FORMATION_PRESETS, Params, ParamsStore, formation_preset
 
 
 def test_gain_changes_are_validated_and_clamped_with_a_notice():
@@ -13,8 +13,17 @@ def test_gain_changes_are_validated_and_clamped_with_a_notice():
     p, notices = store.update("browser:1", k_f1=50.0)
     assert p.gains.k_f1 == 1.0
     assert "k_f1 = 50.0 is outside (0, 1] m/s: set to 1" in notices[0].message
-    p, notices = store.update("browser:1", k_f1=float("nan"))
-    assert 0.0 < p.gains.k_f1 <= 1.0 and notices
+    for bad in (float("nan"), float("-inf"), float("inf")):  # no value at all: refused, never clamped to a bound
+        with pytest.raises(ValueError, match=r"k_f1 = .*: must be a finite number in \(0, 1\] m/s; unchanged"):
+            store.update("browser:1", k_f1=bad)
+        assert store.get().gains.k_f1 == 1.0
+    p, notices = store.update("browser:1", k_f1=1e308)
+    assert p.gains.k_f1 == 1.0 and "k_f1 = 1e+308 is outside (0, 1] m/s: set to 1" in notices[0].message
+    for bad in (float("nan"), 2.5, "three"):
+        with pytest.raises(ValueError, match="n_followers = .*: must be a whole number"):
+            store.update("browser:1", n_followers=bad)
+    with pytest.raises(ValueError, match="slots: every x and y must be a finite number"):
+        store.update("browser:1", slots=[[0.0, float("nan")]])
 
 
 def test_wrong_kinds_and_unknown_keys_are_refused_and_nothing_changes():
@@ -66,7 +75,7 @@ def test_concurrent_writers_swap_whole_snapshots():
     errors = []
 
     def writer(k: int) -> None:
-        for i in range(200):
+        for _ in range(200):
             store.update(f"browser:{k}", k_f1=0.01 + 0.001 * k, a=0.02 + 0.001 * k)
 
     def reader() -> None:

@@ -11,18 +11,19 @@ import cv2
 import numpy as np
 import pytest
 
-from app.backends.camera_cv import CaptureSource, FolderSource, open_frame_source
+from app.backends.camera import CaptureSource, FolderSource, open_frame_source
 from app.backends.hardware import HardwareTeam
 from app.backends.serial_link import SerialLink
-from app.camera_files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
-from app.feedback import STALE_FRAME_S
-from app.loop import ServiceLoop, TickState
-from app.params import Params, ParamsStore
+from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
+from app.live.feedback import STALE_FRAME_S
+from app.live.loop import ServiceLoop
+from app.live.tick import TickState
+from app.live.params import Params, ParamsStore
 from core.camera.render import Renderer
 from core.link import protocol as p
 from core.vision.pipeline import PipelineSettings
-from tests.app.test_cli import main_cli, serve_then_signal
-from tests.app.test_serial_link import EmulatorThread, wait_for
+from tests.helpers import main_cli, serve_then_signal
+from tests.helpers import EmulatorThread, wait_for
 
 TEAM = np.array([[-0.6, -0.5, 1.6], [0.5, -0.6, 1.5], [0.1, 0.8, 1.2]])  # leader frame x, y, heading
 
@@ -128,7 +129,7 @@ def test_real_rig_loop_drives_robots_on_the_wire_and_stops_them_when_the_camera_
     assert all(np.all(s.commands == 0.0) for s in seen[first_stale:])
     assert "end of folder" in stale.camera_state
     assert np.all(np.isnan(stale.p_true)) and stale.link_state.endswith(": ok")
-    assert link_stats.acks > 30 and link_stats.lost == 0
+    assert link_stats.answered > 30 and link_stats.lost == 0
     robots = emulated.emulator.snapshot()
     assert all(r.target_l_mps == 0.0 == r.target_r_mps for r in robots.values())
     assert robots[1].flags & p.FLAG_STOPPED  # the loop's exit sent STOP

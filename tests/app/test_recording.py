@@ -6,18 +6,19 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from app.loop import ServiceLoop
-from app.params import Params, ParamsStore
-from app.recorder import CHUNK_BYTES, Recorder, RecordingError, read_recording, tick_from_payload, tick_payload
-from tests.app.test_cli import main_cli, run_cli, serve_then_signal
+from app.live.loop import ServiceLoop
+from app.live.params import Params, ParamsStore
+from app.recording.reader import RecordingError, read_recording
+from app.recording.schema import CHUNK_BYTES, tick_from_payload, tick_payload
+from app.recording.writer import Recorder
+from tests.helpers import main_cli, run_cli, serve_then_signal
 
-ROOT = Path(__file__).resolve().parents[2]
-SAMPLES = ROOT / "recordings" / "samples"
+from tests.helpers import ROOT
+from tests.helpers import SAMPLES
 
 
 def _close(a, b):
@@ -142,6 +143,10 @@ def test_report_writes_figures_and_summary(tmp_path):
     assert f1["settling_time_s"] is not None and f1["settling_time_s"] < 30
     assert f1["time_not_tracked_s"] == 0.0 and f2["time_not_tracked_s"] == 0.0
     assert summary["errors_from"] == "true poses"
+    safety = summary["safety"]  # experiment 2: followers 0.7 m before and behind the leader, never near each other
+    assert safety["collisions"] == 0 and safety["near_misses"] == 0 and safety["min_distance_cm"] > 50
+    assert safety["filter_acting_s"] is None  # recorded before the filter existed: said, not guessed
+    assert "safety (true poses): closest two robots" in (tmp_path / "rep" / "summary.md").read_text()
     # the numbers again, straight from the raw tick channel
     rec = read_recording(SAMPLES / "experiment2-vision.mcap")
     start = float(rec.metadata["scenario_start_s"])
@@ -222,8 +227,8 @@ def test_rerun_with_other_gains_resimulates_from_the_same_start(tmp_path):
 
 
 def test_rerun_settings_are_checked_with_one_clear_line():
-    from app.paths import UserError
-    from app.rerun import parse_gains
+    from app.files import UserError
+    from app.recording.rerun import parse_gains
     from core.config import ConfigError
     from core.types import Gains
     from core.vision.pipeline import parse_pipeline_settings
@@ -258,8 +263,8 @@ def test_rerun_refuses_bad_input_in_one_line(vision_recording, tmp_path):
 
 
 def test_live_camera_frames_are_recorded_at_the_frame_rate(tmp_path):
-    from app.params import MAX_FOLLOWERS
-    from app.service_config import DEFAULT_CONFIG, load_service_config
+    from app.live.params import MAX_FOLLOWERS
+    from app.live.config import DEFAULT_CONFIG, load_service_config
 
     import cv2
 
@@ -281,3 +286,25 @@ def test_live_camera_frames_are_recorded_at_the_frame_rate(tmp_path):
         original = np.asarray(by_t[round(t, 6)])
         assert img.shape == original.shape
         assert np.abs(img.astype(int) - original.astype(int)).mean() < 6  # the same frame, JPEG-compressed
+
+
+def test_the_safety_summary_counts_collisions_near_misses_and_limit_hits():
+    from types import SimpleNamespace
+
+    from app.recording.report import Series, safety_summary
+
+    T = 300
+    t = np.arange(T) / 30.0
+    gap = np.concatenate([np.linspace(1.0, 0.10, 100), np.full(50, 0.10), np.linspace(0.10, 1.0, 150)])
+    p = np.zeros((T, 2, 2))
+    p[:, 0] = np.column_stack([-gap / 2, np.full(T, 1.0)])
+    p[:, 1] = np.column_stack([gap / 2, np.full(T, 1.0)])
+    commands = np.zeros((T, 2, 2))
+    commands[10:20, 0, 0] = 0.3  # at v_max for a third of a second
+    s = Series(t, np.zeros((T, 3)), np.zeros((T, 2, 3)), p, p, np.zeros((T, 2)), np.zeros((T, 2)), np.ones((T, 2), bool),
+               np.zeros(T), commands, True, np.zeros(T, bool))
+    rec = SimpleNamespace(params=[(0.0, {"gains": {"v_max": 0.3, "w_max": 2.0}})])
+    out = safety_summary(rec, s, 1 / 30)["safety"]
+    assert out["collisions"] == 1 and out["near_misses"] == 1 and out["min_distance_cm"] == 10.0
+    assert out["actuator_limit_hits"] == 1 and out["filter_acting_s"] == 0.0
+    assert out["time_under_min_distance_s"] > 1.0

@@ -3,63 +3,18 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
-import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import serial
 
 from app.backends.serial_link import SerialLink, parse_link_spec
-from app.emulator import FollowerEmulator, PtyEndpoint, serve
+from app.backends.emulator import PtyEndpoint
 from core.link import protocol as p
 from core.types import Commands
 
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def wait_for(pred, timeout: float, what: str) -> float:
-    start = time.monotonic()
-    while time.monotonic() - start < timeout:
-        if pred():
-            return time.monotonic() - start
-        time.sleep(0.01)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-
-
-class EmulatorThread:
-    """Emulated followers on a real pty, in this process so a test can look at the robots."""
-
-    def __init__(self, n: int = 3, drop: float = 0.0, corrupt: float = 0.0, addresses: list[int] | None = None) -> None:
-        self.emulator = FollowerEmulator(addresses or list(range(1, n + 1)), drop=drop, corrupt=corrupt, seed=3)
-        self.endpoint = PtyEndpoint()
-        self.path = self.endpoint.path
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=serve, args=(self.emulator, self.endpoint, self._stop), daemon=True)
-        self._thread.start()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-        self.endpoint.close()
-
-
-@pytest.fixture
-def emulated():
-    em = EmulatorThread()
-    yield em
-    em.close()
-
-
-def start_emulator_process(link_path: Path, *extra: str) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "emulate-follower", "--pty", "--link-path", str(link_path),
-                             *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    line = proc.stdout.readline()
-    assert "emulating followers 1..3" in line, line + proc.stderr.read()
-    return proc
+from tests.helpers import EmulatorThread, wait_for
 
 
 def test_link_spec_is_checked_in_one_line():
@@ -85,7 +40,7 @@ def test_commands_reach_the_robots_and_odometry_comes_back(emulated):
         v, w = link.measured()
         assert v[0] == pytest.approx(0.1, abs=0.01) and w[0] == pytest.approx(0.5, abs=0.05)
         s1 = link.stats[0]
-        assert s1.acks >= 29 and s1.lost == 0 and s1.crc_errors == 0 and 0 < s1.rtt_mean_ms < 100
+        assert s1.answered >= 29 and s1.lost == 0 and s1.crc_errors == 0 and 0 < s1.rtt_mean_ms < 100
         assert s1.battery_mv == 7400  # from a STATUS answering a PING
         assert link.link_state.endswith(": ok")
     finally:
@@ -118,12 +73,25 @@ def test_lost_replies_and_crc_errors_are_counted_per_follower():
         assert link.parser.rejected_total >= crc
         assert "lost" in link.detail()
 
+        # every command written is answered, late, lost or still pending: the counts add up
+        assert sent == sum(s.answered + s.late + s.lost for s in link.stats) + link.pending
+
         def answered() -> bool:  # the loop keeps sending at 30 Hz; replies come back after the pause
             link.send(Commands.zeros(3))
             time.sleep(1 / 30)
-            return link.link_state.endswith(": ok")
+            return link.connected
 
         wait_for(answered, 2, "the link to be answered again after the 0.4 s pause")
+
+        def degraded() -> bool:  # about 28 % of replies dropped or corrupted: answered, but not "ok"
+            link.send(Commands.zeros(3))
+            time.sleep(1 / 30)
+            state = link.link_state
+            losses = [why for why in link.quality() if why]
+            assert state.endswith(": ok") == (not losses), state  # "ok" exactly when no follower loses > 20 %
+            return "degraded" in state and "% lost" in state
+
+        wait_for(degraded, 10, "the link to say degraded with about 28 % of replies lost")
     finally:
         link.close()
         em.close()
@@ -182,7 +150,7 @@ def test_a_missing_port_never_blocks_the_loop():
 
 
 def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
-    from tests.app.test_cli import serve_then_signal
+    from tests.helpers import serve_then_signal
 
     hw = emulated.emulator.hw
     moving = lambda: any(r.moving for r in emulated.emulator.snapshot().values())  # noqa: E731
@@ -197,7 +165,7 @@ def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
 
 
 def test_bad_link_arguments_exit_2():
-    from tests.app.test_cli import main_cli, run_cli
+    from tests.helpers import main_cli
 
     out = main_cli("run", "--port", "0", "--link", "tcp:9", "--no-record")
     assert out.returncode == 2 and "must be 'sim' or 'serial:PATH'" in out.stderr

@@ -5,17 +5,16 @@ from __future__ import annotations
 
 import math
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from app.recorder import read_recording
-from app.replay import ReplayService
+from app.recording.reader import read_recording
+from app.recording.replay import ReplayService
 from core.geometry import leader_to_world
-from tests.browser.test_dashboard import ARTIFACTS, chromium_browser, control_id, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_for
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.helpers import ROOT
 SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
 # A software-WebGL page on a loaded 2-core machine can block its main thread for tens of
 # seconds: the page's steps and the waits on the server get long limits (a passing run
@@ -88,7 +87,7 @@ def test_timeline_slider_shows_the_recorded_state_of_that_time(browser):
 
 
 def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
-    from app.service import Service
+    from app.live.service import Service
 
     svc = Service(port=0, n_followers=2)  # truth feedback: light, this test is about the panel
     svc.start()

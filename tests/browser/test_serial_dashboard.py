@@ -5,21 +5,17 @@ page within 1 s while the service keeps running; restarting it reconnects."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from app.backends.serial_link import SerialLink
-from app.params import MAX_FOLLOWERS
-from app.service import Service
-from app.service_config import DEFAULT_CONFIG, load_service_config
-from tests.app.test_serial_link import start_emulator_process, wait_for
-from tests.browser.test_dashboard import chromium_browser
+from app.live.params import MAX_FOLLOWERS
+from app.live.service import Service
+from app.live.config import DEFAULT_CONFIG, load_service_config
+from tests.helpers import start_emulator_process, wait_for
+from tests.helpers import chromium_browser
 
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
@@ -48,7 +44,7 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
         assert s.tracked.all() and err().max() < 0.03 and s.link_state.endswith(": ok")
         assert np.abs(s.commands).max() > 0.01, "the leader moves, so do the followers"
         sent = sum(st.sent for st in link.stats)
-        assert sum(st.acks for st in link.stats) > 0.95 * sent and sum(st.crc_errors for st in link.stats) == 0
+        assert sum(st.answered for st in link.stats) > 0.95 * sent and sum(st.crc_errors for st in link.stats) == 0
 
         with chromium_browser() as browser:
             page = browser.new_page(viewport={"width": 1400, "height": 900})

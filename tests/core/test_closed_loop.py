@@ -42,7 +42,7 @@ def test_experiment2_steady_headings_are_the_circle_tangents():
     r = v / w
     slots = log.p_d[-1]
     expected = np.degrees(np.arctan2(r + slots[:, 0], -slots[:, 1]))
-    assert_allclose(expected, [106.99, 73.02], atol=0.01)  # PAPER-NOTES' numbers
+    assert_allclose(expected, [106.99, 73.02], atol=0.01)  # the numbers of docs/paper-notes.md
     assert_allclose(np.degrees(log.a[-1]), expected, atol=1.0)
 
 

@@ -86,7 +86,7 @@ def test_literal_eq7_to_9_fail_where_documented():
     v, w = 0.06, math.radians(1.5)
     p = [[0.5, 0.7]]
     # w_l < 0: the literal form points the opposite way (r < 0 flips v_i = w_l r_i's
-    # sign and arctan's branch together): 0.15 m/s off at (-0.5, -0.3), PAPER-NOTES.
+    # sign and arctan's branch together): 0.15 m/s off at (-0.5, -0.3), docs/paper-notes.md.
     for q in ([[0.5, 0.7]], [[-0.5, -0.3]], [[0.0, -0.7]]):
         assert_allclose(compensation_velocity_paper(q, v, -w), -compensation_velocity(q, v, -w), atol=1e-12)
     assert np.abs(compensation_velocity_paper([[-0.5, -0.3]], v, -w)

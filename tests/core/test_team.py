@@ -51,7 +51,7 @@ def test_speed_and_acceleration_limits():
     s1 = step_team(s, Commands(np.array([5.0]), np.array([0.0])), (0.0, 0.0), 0.01, 0.0,
                    np.random.default_rng(0), dyn)
     assert_allclose(s1.follower_vel[0, 0], 0.01)
-    for k in range(50):
+    for _ in range(50):
         s1 = step_team(s1, Commands(np.array([5.0]), np.array([0.0])), (0.0, 0.0), 0.01, 0.0,
                        np.random.default_rng(0), dyn)
     assert_allclose(s1.follower_vel[0, 0], 0.1)
@@ -93,7 +93,7 @@ def test_profiles():
     assert eq39.twist(5.0) == (0.06, 0.0)
     assert_allclose(eq39.twist(10.0)[1], math.radians(1.5) * math.tanh(0.2 * 45), rtol=1e-12)
     assert_allclose(eq39.twist(55.0)[1], 0.0, atol=1e-15)
-    assert eq39.twist(99.0)[1] < 0  # ends turning clockwise (PAPER-NOTES)
+    assert eq39.twist(99.0)[1] < 0  # ends turning clockwise (docs/paper-notes.md)
     t = np.linspace(0, 120, 241)
     assert_allclose(eq39.twists(t)[:, 1], [eq39.twist(x)[1] for x in t])
     seg = SegmentsProfile((Segment(1.0, 0.1, 0.0), Segment(3.0, 0.05, 0.2)))

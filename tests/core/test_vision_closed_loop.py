@@ -1,7 +1,5 @@
 """Vision in the loop: simulator → synthetic frame → pipeline → controller → simulator."""
 
-import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +10,7 @@ from core.geometry import wrap_angle
 from core.sim.team import Disturbance
 from core.sim.vision_run import simulate_vision
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.helpers import ROOT
 
 
 def _camera(name):

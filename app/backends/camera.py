@@ -1,0 +1,188 @@
+"""Frame sources for a real rig: an OpenCV camera, a video file, a folder of images.
+
+Each source runs its own capture thread and keeps only the newest frame with the
+monotonic time it arrived, so the loop never waits for a camera: it asks ``latest()``
+once per tick and decides from the frame's age (no fresh frame for 0.3 s: every follower
+to zero, see app.live.feedback). A camera that disappears is reopened with back-off; a video
+file or folder that ends says so. Nothing here raises into the loop.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from pathlib import Path
+
+import os
+
+# FFmpeg's own log lines would stand beside our one-line messages (e.g. 'moov atom not found'):
+# quiet unless the user asked for them. Read when OpenCV's FFmpeg backend starts.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
+import cv2  # noqa: E402
+import numpy as np
+
+from app.contracts import FrameSource
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+class _Threaded:
+    """The newest frame, written by one capture thread, read by the loop."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._lock = threading.Lock()
+        self._frame: np.ndarray | None = None
+        self._t = -math.inf
+        self._count = 0
+        self._state = "starting"
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"omniformation-frames-{name}", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    @property
+    def state(self) -> str:
+        with self._lock:
+            return self._state
+
+    def _set_state(self, text: str) -> None:
+        with self._lock:
+            self._state = text
+
+    def _put(self, frame: np.ndarray) -> None:
+        with self._lock:
+            self._frame, self._t = frame, time.monotonic()
+            self._count += 1
+
+    def latest(self) -> tuple[np.ndarray | None, float, int]:
+        with self._lock:
+            return self._frame, self._t, self._count
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+
+    def _run(self) -> None:  # pragma: no cover - replaced by subclasses
+        raise NotImplementedError
+
+
+def _as_bgr(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return img
+
+
+class CaptureSource(_Threaded):
+    """``cv2.VideoCapture`` on a camera (index or device path) or a video file.
+
+    A camera is read as fast as it delivers and reopened (0.5 s doubling to 4 s) when it
+    stops; a file is paced at its own frame rate (or ``fps``) and ends with "end of file"."""
+
+    def __init__(self, target: int | str, is_file: bool, fps: float | None = None) -> None:
+        super().__init__(str(target))
+        self.target, self.is_file, self.fps = target, is_file, fps
+        self.start()
+
+    def _open(self) -> cv2.VideoCapture | None:
+        cap = cv2.VideoCapture(self.target)
+        if not cap.isOpened():
+            cap.release()
+            return None
+        return cap
+
+    def _run(self) -> None:
+        backoff = 0.5
+        while not self._stop.is_set():
+            cap = self._open()
+            if cap is None:
+                if self.is_file:
+                    self._set_state(f"cannot read video {self.name}")
+                    return
+                self._set_state(f"camera {self.name} not available; retrying in {backoff:.2g} s")
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, 4.0)
+                continue
+            backoff = 0.5
+            self._set_state(f"{'video' if self.is_file else 'camera'} {self.name}: ok")
+            fps = self.fps or (cap.get(cv2.CAP_PROP_FPS) if self.is_file else 0.0) or 30.0
+            next_t = time.monotonic()
+            try:
+                while not self._stop.is_set():
+                    ok, frame = cap.read()
+                    if not ok or frame is None:
+                        break
+                    self._put(_as_bgr(frame))
+                    if self.is_file:
+                        next_t += 1.0 / fps
+                        self._stop.wait(max(0.0, next_t - time.monotonic()))
+            finally:
+                cap.release()
+            if self.is_file:
+                self._set_state(f"end of file {self.name}")
+                return
+            self._set_state(f"camera {self.name} lost; reopening")
+
+
+class FolderSource(_Threaded):
+    """The images of a folder in name order, at ``fps``; says "end of folder" after the last."""
+
+    def __init__(self, folder: Path, fps: float = 30.0, loop: bool = False) -> None:
+        super().__init__(str(folder))
+        self.files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        self.fps, self.loop = fps, loop
+        self.unreadable = 0
+        self.start()
+
+    def _run(self) -> None:
+        if not self.files:
+            self._set_state(f"no images in {self.name}")
+            return
+        self._set_state(f"folder {self.name}: ok")
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            for path in self.files:
+                if self._stop.is_set():
+                    return
+                img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+                if img is None:
+                    self.unreadable += 1
+                    self._set_state(f"folder {self.name}: {self.unreadable} unreadable file(s), last {path.name}")
+                else:
+                    self._put(img)
+                next_t += 1.0 / self.fps
+                self._stop.wait(max(0.0, next_t - time.monotonic()))
+            if not self.loop:
+                self._set_state(f"end of folder {self.name}")
+                return
+
+
+def open_frame_source(spec: str, fps: float | None = None) -> FrameSource:
+    """``0`` (a camera index), a device path, a video file or a folder of images.
+
+    ValueError with one line naming what was given and what is allowed."""
+    if spec.isdigit():
+        return CaptureSource(int(spec), is_file=False)
+    path = Path(spec)
+    if path.is_dir():
+        return FolderSource(path, fps or 30.0)
+    if spec.startswith("/dev/"):
+        return CaptureSource(spec, is_file=False)
+    if path.is_file():
+        probe = cv2.VideoCapture(spec)
+        try:
+            ok = probe.isOpened() and probe.read()[0]
+        finally:
+            probe.release()
+        if not ok:
+            raise ValueError(f"--camera {spec!r}: OpenCV cannot read a frame from this file (not a video it knows:"
+                             " give a video, an image folder, a camera index or a /dev/video* device)")
+        return CaptureSource(spec, is_file=True, fps=fps)
+    raise ValueError(f"--camera {spec!r}: not a camera index (0, 1, ...), a /dev/video* device, a video file"
+                     " or a folder of images")

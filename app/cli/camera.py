@@ -1,0 +1,178 @@
+"""`omniformation render`, `calibrate` and `locate`: the camera commands."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from app.cli.args import Parser, float_in, int_in, seed
+from app.files import (SYNTHETIC_CAMERA, UserError, check_new_file, display_path, load_camera, load_scenario,
+                       load_table, read_image, require_gamma, write_table)
+
+if TYPE_CHECKING:
+    from core.camera.gamma import GammaFit
+
+
+def register(sub: "argparse._SubParsersAction[Parser]") -> None:
+    render = sub.add_parser("render", help="write one synthetic camera frame of a scenario",
+                            description="Simulate SCENARIO up to --t and write what the leader's camera sees.")
+    render.add_argument("scenario", help="scenario name or .toml path")
+    render.add_argument("--t", type=float_in(0.0, 86400.0, "s", lo_inclusive=True),
+                        default=0.0, help="time in the scenario (s, default 0)")
+    render.add_argument("--out", type=Path, required=True, help="image file (.png or .jpg)")
+    render.add_argument("--camera", type=Path, default=SYNTHETIC_CAMERA, help="synthetic camera config (default: the built-in rig)")
+    render.add_argument("--seed", type=seed, help="noise seed (default: the scenario's)")
+    render.set_defaults(func=cmd_render)
+
+    cal = sub.add_parser("calibrate", help="fit Γ (pixel -> metres) from a matching table or the synthetic rig",
+                         description="Fit the per-sector Γ polynomials and bearing corrections (paper §3). "
+                                     "TABLE.csv has the header bearing_deg,metres,u,v (docs/calibration.md).")
+    cal.add_argument("table", nargs="?", type=Path, help="matching table CSV: bearing_deg,metres,u,v")
+    cal.add_argument("--synthetic", type=Path, metavar="CAMERA.toml", help="measure the table on the synthetic rig instead")
+    cal.add_argument("--center", nargs=2, type=float_in(-100_000.0, 100_000.0, "px", lo_inclusive=True), metavar=("CX", "CY"),
+                     help="image centre (px); default: estimated")
+    cal.add_argument("--sectors", type=int_in(1, 360), help="number of sectors (default: one per table bearing)")
+    cal.add_argument("--degree", type=int_in(1, 7), help="polynomial degree (default 3)")
+    cal.add_argument("--bearing-offset", type=float_in(-360.0, 360.0, "deg", lo_inclusive=True), metavar="DEG",
+                     help="leader bearing that appears straight up (deg)")
+    cal.add_argument("--flip", action="store_true", help="the image is mirrored left/right")
+    cal.add_argument("--out", type=Path, required=True, help="camera.toml to write")
+    cal.add_argument("--save-table", type=Path, help="also write the matching table used (CSV)")
+    cal.add_argument("--seed", type=seed, default=0, help="noise seed for --synthetic (default 0)")
+    cal.set_defaults(func=cmd_calibrate)
+
+    loc = sub.add_parser("locate", help="find the coloured rectangles in one picture and print where they are",
+                         description="Print one JSON object per colour blob in the working area: hue, pixel, area, x, y (m, leader frame).")
+    loc.add_argument("image", type=Path, help="an omnidirectional picture (PNG, JPEG, ...)")
+    loc.add_argument("--camera", type=Path, required=True, help="calibrated camera.toml (from calibrate)")
+    loc.set_defaults(func=cmd_locate)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    import cv2
+    import numpy as np
+
+    from core.camera.gamma import CalibrationError
+    from core.camera.synthetic import renderer_for
+    from core.sim.run import simulate
+
+    scenario = load_scenario(args.scenario)
+    camera = load_camera(args.camera)
+    check_new_file(args.out, "image", ".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+    try:
+        renderer = renderer_for(camera)
+    except CalibrationError as exc:
+        raise UserError(str(exc)) from None
+    if args.t > scenario.duration_s:
+        raise UserError(f"--t {args.t:g}: the scenario {scenario.name} lasts {scenario.duration_s:g} s")
+    if args.t > 0:
+        log = simulate(scenario.replace(duration_s=args.t))
+        leader = log.leader[-1]
+        followers = np.column_stack([log.p[-1], log.a[-1]])
+        t = float(log.t[-1])
+    else:
+        leader = np.array([0.0, 0.0, math.pi / 2])
+        followers = np.column_stack([scenario.initial_p, scenario.initial_a])
+        t = 0.0
+    rng = np.random.default_rng(args.seed if args.seed is not None else scenario.seed)
+    frame = renderer.render(leader, followers, t, rng)
+    try:
+        written = cv2.imwrite(str(args.out), frame)
+    except cv2.error:
+        written = False
+    if not written:
+        raise UserError(f"{args.out}: OpenCV cannot write this file type (use .png or .jpg)")
+    print(f"wrote {display_path(args.out)}: {scenario.name} at t = {t:.2f} s, {len(followers)} followers,"
+          f" {frame.shape[1]}x{frame.shape[0]}")
+    return 0
+
+
+def _report(fit: "GammaFit") -> None:
+    g = fit.gamma
+    how = "estimated from the markers" if fit.center_estimated else "given"
+    print(f"image centre ({g.cx:.2f}, {g.cy:.2f}) px ({how}); {g.n_sectors} sectors, degree {g.degree};"
+          f" radii {g.r_min_px:.1f}..{g.r_max_px:.1f} px")
+    print("sector  markers  residual RMS  max      bearing correction")
+    for s in fit.sectors:
+        print(f"{s.bearing_deg:6.1f}  {s.points:7d}  {s.rms_cm:8.2f} cm  {s.max_cm:5.2f} cm  {s.bearing_correction_deg:+7.2f} deg")
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from core.camera.config import WorkingArea, gamma_toml
+    from core.camera.gamma import CalibrationError, fit_gamma
+    from core.camera.synthetic import synthetic_table
+
+    if (args.table is None) == (args.synthetic is None):
+        raise UserError("give either TABLE.csv or --synthetic CAMERA.toml (not both)")
+    check_new_file(args.out, "camera file", ".toml")
+    if args.save_table is not None:
+        check_new_file(args.save_table, "matching table", ".csv")
+    if args.synthetic is not None:
+        camera = load_camera(args.synthetic)
+        try:
+            table = synthetic_table(camera, np.random.default_rng(args.seed))
+        except CalibrationError as exc:
+            raise UserError(str(exc)) from None
+        model = camera.model
+        assert model is not None
+        source = display_path(args.synthetic)
+        working_area, detect = camera.working_area, camera.detect
+        degree = args.degree if args.degree is not None else camera.calibration.degree
+        flip = args.flip or model.flip
+        offset = args.bearing_offset if args.bearing_offset is not None else model.bearing_offset_deg
+        print(f"{source}: rendered {len(table)} markers at {len(camera.calibration.bearings_deg)} bearings")
+    else:
+        table = load_table(args.table)
+        source = display_path(args.table)
+        working_area, detect = None, None
+        degree = args.degree if args.degree is not None else 3
+        flip = args.flip
+        offset = args.bearing_offset if args.bearing_offset is not None else 0.0
+    try:
+        fit = fit_gamma(table, center=tuple(args.center) if args.center else None, sectors=args.sectors,
+                        degree=degree, bearing_offset_deg=offset, flip=flip, source=source)
+    except CalibrationError as exc:
+        raise UserError(str(exc)) from None
+    _report(fit)
+    if working_area is None:
+        # the calibrated radii, a little widened: outside them Γ extrapolates
+        working_area = WorkingArea(max(0.0, fit.gamma.r_min_px - 5.0), fit.gamma.r_max_px + 5.0)
+        from core.camera.config import DetectSettings
+
+        detect = DetectSettings()
+    assert detect is not None
+    header = (f"Camera calibration (Γ, paper §3) made by: omniformation calibrate from {source}\n"
+              f"{fit.gamma.n_sectors} sectors, degree {fit.gamma.degree}; worst sector residual RMS"
+              f" {max(s.rms_cm for s in fit.sectors):.2f} cm")
+    args.out.write_text(gamma_toml(fit.gamma, working_area, detect, header), encoding="utf-8")
+    print(f"wrote {display_path(args.out)}")
+    if args.save_table is not None:
+        write_table(table, args.save_table)
+        print(f"wrote {display_path(args.save_table)}")
+    return 0
+
+
+def cmd_locate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from core.vision.blobs import find_blobs
+
+    camera = load_camera(args.camera)
+    gamma = require_gamma(camera)
+    image = read_image(args.image)
+    h, w = image.shape[:2]
+    if not (0 <= gamma.cx < w and 0 <= gamma.cy < h):
+        raise UserError(f"{display_path(args.image)}: {w}x{h} does not contain the calibrated image centre"
+                        f" ({gamma.cx:.1f}, {gamma.cy:.1f}); wrong camera file?")
+    area = camera.working_area.mask(w, h, (gamma.cx, gamma.cy))
+    blobs = find_blobs(image, area, camera.detect)
+    for b in sorted(blobs, key=lambda b: -b.area_px):
+        xy = gamma.pixel_to_leader(np.array(b.u), np.array(b.v))
+        print(json.dumps({"hue_deg": round(b.hue_deg, 1), "pixel": [round(b.u, 2), round(b.v, 2)],
+                          "area_px": b.area_px, "x": round(float(xy[0]), 4), "y": round(float(xy[1]), 4)}))
+    return 0

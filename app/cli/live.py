@@ -1,0 +1,183 @@
+"""`omniformation run`: the live service on the simulated team or a real rig."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from typing import TYPE_CHECKING
+
+from app.cli.args import Parser, bind_error, float_in, int_in, port, seed, token_arg
+from app.files import DEFAULT_CONFIG, UserError, check_new_file, display_path
+from app.live.params import MAX_FOLLOWERS
+
+if TYPE_CHECKING:
+    from app.contracts import Rig
+
+
+def register(sub: "argparse._SubParsersAction[Parser]") -> None:
+    run = sub.add_parser(
+        "run",
+        help="serve the live dashboard on the simulated team",
+        description="Run the loop and serve the viser dashboard (default: 3 simulated followers).",
+    )
+    run.add_argument("--scenario", help="start from a scenario's team, formation and gains")
+    run.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; others warn)")
+    run.add_argument("--port", type=port, default=8080, help="port (default 8080, 0 = any free port)")
+    run.add_argument("--token", type=token_arg, help="the token browsers must present on a non-loopback --host"
+                                                      " (default: a new one each run, printed in the URL)")
+    run.add_argument("--config", type=Path, default=DEFAULT_CONFIG,
+                     help="service config (default static_config/default.toml)")
+    run.add_argument("--feedback", choices=("vision", "truth"),
+                     help="poses from the vision pipeline (default) or the simulator's truth plus noise")
+    run.add_argument("--followers", type=int_in(1, MAX_FOLLOWERS), help="simulated followers without --scenario (default: config)")
+    run.add_argument("--rate", type=float_in(0.0, 200.0, "Hz"), help="loop rate (Hz, default: config)")
+    run.add_argument("--seed", type=seed, help="random seed of the simulated team")
+    run.add_argument("--link", metavar="sim|serial:PATH|none",
+                     help="where commands go: the built-in simulated team (default) or followers on a serial port,"
+                          " e.g. serial:/dev/ttyUSB0 or the path `omniformation emulate-follower` prints"
+                          " (serial:PORT1,PORT2,... for one port per follower);"
+                          " with --camera: serial:PATH, or none (the default) to only observe")
+    run.add_argument("--camera", metavar="0|/dev/videoN|VIDEO|FOLDER",
+                     help="a real rig: frames from a camera (index or device), a video file or a folder of images")
+    run.add_argument("--calibration", type=Path, metavar="CAMERA.toml",
+                     help="with --camera: the rig's calibration from `omniformation calibrate` (default: config's)")
+    run.add_argument("--camera-fps", type=float_in(0.0, 240.0, "Hz"),
+                     help="with --camera: play a video file or folder at this rate (default: the file's, or 30)")
+    run.add_argument("--leader", metavar="serial:PATH",
+                     help="with --camera: the leader base's port (its wheel odometry, for eq. 38); without it the"
+                          " leader is taken to stand still")
+    run.add_argument("--baud", type=int_in(1200, 4_000_000), default=115200, help="serial baud rate (default 115200)")
+    run.add_argument("--no-record", action="store_true", help="do not record the session (default: recordings/<UTC>_<name>.mcap)")
+    run.add_argument("--recordings", type=Path, metavar="DIR",
+                     help="where sessions are recorded and listed for replay (default: recordings/ in the working folder)")
+    run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record to this file instead of recordings/")
+    run.add_argument("--frames-hz", type=float_in(0.0, 100.0, "Hz", lo_inclusive=True), default=10.0,
+                     help="camera frames per second in the recording (default 10, 0 = none)")
+    run.set_defaults(func=cmd_run)
+
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import signal
+
+    from app.files import load_scenario
+    from app.dashboard.gate import is_loopback
+    from app.live.service import Service
+    from app.live.config import load_service_config
+
+    config = load_service_config(args.config, MAX_FOLLOWERS)
+    scenario = load_scenario(args.scenario) if args.scenario else None
+    if scenario is not None and scenario.n > MAX_FOLLOWERS:
+        raise UserError(f"--scenario {args.scenario}: {scenario.n} followers; the live service drives 1..{MAX_FOLLOWERS}"
+                        " (simulate runs any number)")
+    if args.record is not None:
+        check_new_file(args.record, "recording", ".mcap")
+        if args.record.exists():
+            raise UserError(f"{args.record}: exists; a recording is never written over another (give a new name)")
+    if args.camera is None and config.frames != "synthetic":
+        args.camera = config.frames  # the config names a real camera; the command line wins
+    real = args.camera is not None  # a real rig: real camera, real robots, no simulator
+    configured_link = config.link if config.link != "sim" or not real else None
+    link_spec = args.link or configured_link or ("none" if real else "sim")
+    if real and (scenario is not None or args.feedback == "truth" or link_spec == "sim"):
+        raise UserError("--camera runs a real rig: it cannot be combined with --scenario, --feedback truth"
+                        " or --link sim (give --link serial:PATH, or none to only observe)")
+    if not real and (link_spec == "none" or args.leader is not None):
+        raise UserError("--link none and --leader need --camera: the simulated team has its own leader and link")
+    if args.calibration is not None and not real:
+        raise UserError("--calibration goes with --camera (the synthetic camera's is set in the config)")
+    from app.backends.serial_link import SerialLink, make_link, parse_link_spec
+
+    try:
+        link_port = "" if link_spec == "none" else parse_link_spec(link_spec)
+        leader_port = parse_link_spec(args.leader) if args.leader is not None else ""
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if leader_port == "" and args.leader is not None:
+        raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
+    feedback = "vision" if real else args.feedback or config.feedback
+    camera: Rig | None
+    if real:
+        from app.files import load_calibration
+
+        camera = load_calibration(args.calibration or config.calibration_path)
+    else:
+        camera = config.camera() if feedback == "vision" else None
+    if not is_loopback(args.host):
+        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
+              " token) may see and command the robots", file=sys.stderr)
+    n_followers = scenario.n if scenario is not None else args.followers or config.followers
+    from core.types import Gains
+
+    limits = scenario.gains if scenario is not None else Gains()
+    frames = hardware = None
+    if real:
+        from app.backends.camera import open_frame_source
+
+        try:
+            frames = open_frame_source(args.camera, args.camera_fps)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+    link = None
+    if link_port:
+        try:
+            link = make_link(link_port, n_followers, baud=args.baud, v_max=limits.v_max, w_max=limits.w_max)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+    if real:
+        from app.backends.hardware import HardwareTeam
+
+        leader = SerialLink(leader_port, 1, baud=args.baud, addresses=[0]) if leader_port else None
+        hardware = HardwareTeam(n_followers, link, leader)
+    try:
+        service = Service(host=args.host, port=args.port, scenario=scenario,
+                          n_followers=n_followers, rate_hz=args.rate or config.rate_hz,
+                          seed=config.seed if args.seed is None else args.seed, camera=camera,
+                          dynamics=config.dynamics, noise=config.measurement,
+                          link=None if real else link, frames=frames, hardware=hardware, recordings=args.recordings,
+                          token=args.token)
+    except OSError as exc:
+        for closable in (hardware or link, frames):
+            if closable is not None:
+                closable.close()
+        raise UserError(bind_error(args.host, args.port, exc)) from None
+    recorder = None
+    if not args.no_record:
+        from app.recording.session import start_recording
+
+        from app.recording.writer import RecordingRefused
+
+        try:
+            recorder = start_recording(service, config, scenario, args.scenario, camera, args.frames_hz, args.record,
+                                       args.recordings)
+        except (RecordingRefused, OSError) as exc:
+            service.close()
+            raise UserError(str(exc) if isinstance(exc, RecordingRefused) else
+                            f"cannot record: {exc.strerror or exc}") from None
+        print(f"omniformation: recording to {display_path(recorder.path)}", flush=True)
+    # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
+    # (even before the first tick ends), and the loop's own exit is what zeroes the robots.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: service.loop.stop())
+    service.start()
+    if real:
+        source = f"the vision pipeline on camera {args.camera}"
+    else:
+        source = "the vision pipeline on the synthetic camera" if camera else "the simulator's poses plus noise"
+    via = f"; followers on serial {link.port_name}" if link is not None else "; observe only (no link)" if real else ""
+    print(f"omniformation: dashboard at {service.url}  (poses from {source}{via}; Ctrl-C to stop)", flush=True)
+    try:
+        service.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        service.close()
+        if recorder is not None:
+            recorder.close()
+            print(f"omniformation: recording finished: {display_path(recorder.path)} ({recorder.ticks} ticks)", flush=True)
+    print("omniformation: stopped; all followers commanded to zero", flush=True)
+    return 0
+
+

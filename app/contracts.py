@@ -1,0 +1,123 @@
+"""The contracts the loop is typed against: what a team, a feedback, a camera's frame source
+and a follower link must offer, and the value a rig is (its camera config and Γ).
+
+The loop (app.live.loop) knows only these shapes; the simulated team and real robots
+(app.backends.sim, app.backends.hardware), the truth and vision feedbacks (app.live.feedback),
+the cameras (app.backends.camera) and the serial links (app.backends.serial_link) plug in
+behind them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple, Protocol
+
+import numpy as np
+
+from core.camera.config import CameraConfig
+from core.camera.gamma import Gamma
+from core.sim.team import TeamState
+from core.types import BoolArray, Commands, FloatArray, Image
+
+
+class Rig(NamedTuple):
+    """A camera rig: its config (model, working area, detection) and the Γ that reads it."""
+
+    camera: CameraConfig
+    gamma: Gamma
+
+
+class FrameSource(Protocol):
+    """Where the loop's camera frames come from (a device, a video, a folder of images)."""
+
+    name: str
+
+    @property
+    def state(self) -> str: ...
+
+    def latest(self) -> tuple[np.ndarray | None, float, int]:
+        """(newest BGR frame or None, monotonic time it arrived, its running number)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class FollowerLink(Protocol):
+    """Delivers each tick's commands to the robots on it and reports each robot's measured
+    (v, w) from its wheel encoders (docs/follower-protocol.md)."""
+
+    @property
+    def link_state(self) -> str: ...
+
+    @property
+    def lost(self) -> bool:
+        """No robot on the link answers: it commands zero whatever it is given."""
+        ...
+
+    def send(self, commands: Commands) -> None: ...
+
+    def measured(self) -> tuple[FloatArray, FloatArray]: ...
+
+    def detail(self) -> str: ...
+
+    def close(self) -> None: ...
+
+
+class Team(Protocol):
+    """The robots the loop commands: the simulated team or real ones."""
+
+    @property
+    def state(self) -> TeamState: ...
+
+    @property
+    def link_state(self) -> str: ...
+
+    @property
+    def link_lost(self) -> bool:
+        """The robots' link is lost: the loop commands zero until they answer again."""
+        ...
+
+    def link_detail(self) -> str: ...
+
+    def truth(self) -> tuple[FloatArray, FloatArray]:
+        """(p (n, 2), a (n,)) in the leader frame: the simulator's truth; NaN for real robots."""
+        ...
+
+    def send(self, commands: Commands) -> None: ...
+
+    def advance(self, leader_twist: tuple[float, float], dt: float, t: float) -> None:
+        """Move the world (simulation) or the dead-reckoned leader (real rig) by one tick."""
+        ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What a feedback saw this tick."""
+
+    p: FloatArray  # (n, 2) leader frame; NaN where never seen
+    a: FloatArray  # (n,) filtered heading; NaN where unknown
+    a_raw: FloatArray  # (n,) the last raw heading measurement (held), NaN before the first
+    tracked: BoolArray  # (n,)
+    phase: str  # "truth", the pipeline's phase (core.vision.pipeline.Phase), or a camera's trouble
+    manoeuvre: FloatArray | None = None  # start-up commands the pipeline needs sent
+    frame: Image | None = None  # BGR camera image (np.asarray for its pixels)
+    windows: np.ndarray | None = None  # (n, 4) tracking windows (pixels)
+    hues_deg: FloatArray | None = None
+    probing: int = -1
+    stage_ms: dict[str, float] = field(default_factory=dict)  # camera and pipeline times
+    camera_state: str = ""  # a real camera's state for people ("" for the synthetic one)
+
+    @property
+    def ready(self) -> bool:
+        return self.manoeuvre is None
+
+
+class Feedback(Protocol):
+    """Where the loop's follower poses come from: the truth plus noise, or the vision pipeline."""
+
+    def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
+        """This tick's poses; ``commands`` (n, 2) and ``error_norm`` (n,) are the last tick's
+        (the pipeline's heading update, eq. 34–37, and its Δs_min need them)."""
+        ...

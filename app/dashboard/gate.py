@@ -1,0 +1,321 @@
+"""The page's only door: who may open the dashboard and command the robots.
+
+viser serves its page and websocket with no check of ``Origin`` or ``Host`` and, when the
+port it is asked for is taken, silently takes the next one. It has no hook for either, so
+this layer stands in front of it (the `websockets` library viser itself is built on, not a
+fork): the :class:`Gate` binds the address the operator asked for (a taken port or an
+address this machine does not have is an :class:`OSError` at once, never another port) and
+forwards what it lets in to a viser server on a loopback port of its own.
+
+What it lets in:
+
+* every request's ``Host`` must name this server: on a loopback address, only
+  ``127.0.0.1``, ``localhost`` or ``[::1]`` with the served port (a DNS-rebinding page
+  arrives with its own host name and is refused); on another address, an IP literal, this
+  machine's names or ``localhost``;
+* a websocket must come from the page itself: its ``Origin`` is ``http://`` + its ``Host``
+  (any other web page open in the operator's browser is refused);
+* on any address other than loopback a token is required, generated unless given, handed
+  out as ``?token=…`` in the printed URL (as notebook servers do) and then kept by the
+  browser as an HttpOnly, SameSite=Strict cookie.
+
+viser's own loopback port would let a local page around the gate, so the gate marks its
+upstream connections with a per-process secret header and refuses, before viser's own
+handlers run, any websocket on that port that does not carry it. That check reads viser's
+table of live connections (``WebsockServer._live_connections``, present since viser 1.0):
+where it is missing the gate refuses to start rather than serve unguarded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import http
+import http.client
+import io
+import ipaddress
+import logging
+import secrets
+import socket
+import threading
+from dataclasses import dataclass
+from http.cookies import SimpleCookie
+from collections.abc import Callable
+from typing import Any, TypeVar
+from urllib.parse import parse_qs, urlsplit
+
+import viser
+import websockets.asyncio.client
+import websockets.asyncio.server
+import websockets.exceptions
+from websockets.datastructures import Headers
+from websockets.http11 import Request, Response
+from websockets.typing import Subprotocol
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+LOOPBACK = {"127.0.0.1", "localhost", "::1"}
+COOKIE = "omniformation_token"
+GATE_HEADER = "X-Omniformation-Gate"
+MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit
+_BIND_TIMEOUT_S = 30.0
+
+
+class NotThroughTheGate(ConnectionError):
+    """A websocket reached viser's loopback port without passing the gate."""
+
+
+class _QuietRefusals(logging.Filter):
+    """websockets logs a failed connection handler with its traceback; a refused one is not news."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        return not isinstance(exc, NotThroughTheGate)
+
+
+logging.getLogger("websockets.server").addFilter(_QuietRefusals())
+
+
+def _same(given: str, secret: str) -> bool:
+    """A constant-time comparison that takes any text a client sends (non-ASCII included)."""
+    return secrets.compare_digest(given.encode("utf-8", "surrogateescape"), secret.encode())
+
+
+def _is_upgrade(request: Request) -> bool:
+    return any(v.strip().lower() == "websocket" for v in request.headers.get_all("Upgrade"))
+
+
+def is_loopback(host: str) -> bool:
+    return host in LOOPBACK
+
+
+def new_token() -> str:
+    return secrets.token_urlsafe(18)
+
+
+@dataclass
+class GateCounts:
+    """What the gate refused, by reason (shown in tests and logs)."""
+
+    host: int = 0
+    origin: int = 0
+    token: int = 0
+    bypass: int = 0
+
+
+class Gate:
+    """Serves ``server`` (a viser server on a loopback port) at ``host``:``port``, checked.
+
+    ``token``: required from clients when given; ``None`` on a non-loopback host makes one.
+    """
+
+    def __init__(self, server: viser.ViserServer, host: str, port: int, token: str | None = None) -> None:
+        self.server = server
+        self.host = host
+        self.token = token if token is not None or is_loopback(host) else new_token()
+        self.refused = GateCounts()
+        self._secret = secrets.token_hex(16)
+        self._upstream = server.get_port()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._bound = threading.Event()
+        self._error: BaseException | None = None
+        self.port = 0
+        self._guard_upstream()
+        self._thread = threading.Thread(target=self._run, args=(port,), name="omniformation-gate", daemon=True)
+        self._thread.start()
+        if not self._bound.wait(_BIND_TIMEOUT_S):
+            raise OSError(f"could not bind {host}:{port} within {_BIND_TIMEOUT_S:g} s")
+        if self._error is not None:
+            raise self._error
+
+    # -- the URL people open -------------------------------------------------------------
+
+    @property
+    def url(self) -> str:
+        shown = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
+        if ":" in shown:
+            shown = f"[{shown}]"
+        base = f"http://{shown}:{self.port}/"
+        return base + (f"?token={self.token}" if self.token else "")
+
+    # -- viser's own port: only the gate may connect -------------------------------------
+
+    def _guard_upstream(self) -> None:
+        infra = getattr(self.server, "_websock_server", None)
+        table = getattr(infra, "_live_connections", None)
+        callbacks = getattr(infra, "_client_connect_cb", None)
+        if infra is None or not isinstance(table, dict) or not isinstance(callbacks, list):
+            raise RuntimeError(f"viser {viser.__version__} does not expose its connections; the dashboard's gate"
+                               " cannot guard viser's loopback port, so it will not serve")
+
+        async def check(client: Any) -> None:
+            connection = table.get(client.client_id)
+            request = getattr(connection, "request", None)
+            given = request.headers.get(GATE_HEADER, "") if request is not None else ""
+            if not _same(given, self._secret):
+                self.refused.bypass += 1
+                if connection is not None:
+                    await connection.close(1008, "connect through the dashboard's address")
+                raise NotThroughTheGate("a websocket on viser's loopback port without the gate's mark")
+
+        callbacks.insert(0, check)  # before viser's own handlers build anything for the client
+
+    # -- the checks ------------------------------------------------------------------------
+
+    def _allowed_host(self, host_header: str) -> bool:
+        try:
+            parts = urlsplit(f"//{host_header}")
+            name, port = parts.hostname, parts.port
+        except ValueError:
+            return False
+        if not name or port != self.port:
+            return False
+        if is_loopback(self.host):
+            return name in LOOPBACK
+        if name in LOOPBACK or name in (socket.gethostname().lower(), socket.getfqdn().lower()):
+            return True
+        try:
+            ipaddress.ip_address(name)
+        except ValueError:
+            return name == self.host.lower()
+        return True
+
+    def _token_from(self, request: Request) -> tuple[str, bool]:
+        """(the token the client gave, whether it came in the URL's query)."""
+        query = parse_qs(urlsplit(request.path).query).get("token", [""])[0]
+        if query:
+            return query, True
+        cookie: SimpleCookie = SimpleCookie()
+        for header in request.headers.get_all("Cookie"):
+            with contextlib.suppress(Exception):
+                cookie.load(header)
+        morsel = cookie.get(COOKIE)
+        return (morsel.value if morsel is not None else ""), False
+
+    def refusal(self, request: Request) -> str:
+        """Why this request may not pass ('' if it may)."""
+        hosts = request.headers.get_all("Host")
+        host_header = hosts[0] if len(hosts) == 1 else ""
+        if not self._allowed_host(host_header):
+            self.refused.host += 1
+            return f"Host {', '.join(hosts)!r} is not this server's address"
+        if _is_upgrade(request):
+            origins = request.headers.get_all("Origin")
+            origin = origins[0] if len(origins) == 1 else ""
+            if origin != f"http://{host_header}":
+                self.refused.origin += 1
+                return f"Origin {origin!r} is not this page"
+        if self.token:
+            given, _ = self._token_from(request)
+            if not _same(given, self.token):
+                self.refused.token += 1
+                return "a token is required: open the URL the service printed (…/?token=…)"
+        return ""
+
+    # -- serving ---------------------------------------------------------------------------
+
+    async def _process_request(self, connection: websockets.asyncio.server.ServerConnection,
+                               request: Request) -> Response | None:
+        why = self.refusal(request)
+        if why:
+            log.warning("dashboard: refused %s: %s", connection.remote_address, why)
+            return connection.respond(http.HTTPStatus.FORBIDDEN, f"omniformation: refused: {why}\n")
+        if _is_upgrade(request):
+            return None
+        response = await asyncio.to_thread(self._fetch, request)
+        given, from_query = self._token_from(request)
+        if self.token and from_query:
+            response.headers["Set-Cookie"] = f"{COOKIE}={given}; HttpOnly; SameSite=Strict; Path=/"
+        return response
+
+    def _fetch(self, request: Request) -> Response:
+        """The page's files from viser (plain GET on its loopback port)."""
+        conn = http.client.HTTPConnection("127.0.0.1", self._upstream, timeout=30)
+        try:
+            encodings = request.headers.get_all("Accept-Encoding")
+            headers = {"Accept-Encoding": encodings[0] if len(encodings) == 1 else "identity"}
+            conn.request("GET", request.path, headers=headers)
+            up = conn.getresponse()
+            body = up.read()
+            keep = {k: v for k, v in up.getheaders() if k.lower() in ("content-type", "content-encoding")}
+            keep["Content-Length"] = str(len(body))
+            keep["Cache-Control"] = "no-store"
+            return Response(up.status, up.reason, Headers(keep), body)
+        finally:
+            conn.close()
+
+    async def _handler(self, client: websockets.asyncio.server.ServerConnection) -> None:
+        sub = [client.subprotocol] if client.subprotocol else None
+        try:
+            async with websockets.asyncio.client.connect(
+                f"ws://127.0.0.1:{self._upstream}/", subprotocols=sub, max_size=MAX_MESSAGE, compression=None,
+                additional_headers={GATE_HEADER: self._secret}, open_timeout=30,
+            ) as upstream:
+                async def pump(src: Any, dst: Any) -> None:
+                    async for message in src:
+                        await dst.send(message)
+
+                tasks = {asyncio.create_task(pump(client, upstream)), asyncio.create_task(pump(upstream, client))}
+                _, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+                for task in pending:
+                    task.cancel()
+        except (websockets.exceptions.ConnectionClosed, OSError):
+            pass
+
+    def _run(self, port: int) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        self._stop = asyncio.Event()
+
+        async def main() -> None:
+            try:
+                server = await websockets.asyncio.server.serve(
+                    self._handler, self.host, port, process_request=self._process_request,
+                    max_size=MAX_MESSAGE, compression=None,
+                    select_subprotocol=lambda _, offered: next(
+                        (Subprotocol(p) for p in offered if p.startswith("viser-v")), None),
+                )
+            except OSError as exc:
+                self._error = exc
+                self._bound.set()
+                return
+            sockets = server.sockets
+            self.port = sockets[0].getsockname()[1] if sockets else port
+            self._bound.set()
+            assert self._stop is not None
+            await self._stop.wait()
+            server.close()
+            await server.wait_closed()
+
+        try:
+            loop.run_until_complete(main())
+        finally:
+            loop.close()
+
+    def close(self) -> None:
+        loop, stop = self._loop, self._stop
+        if loop is not None and stop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(stop.set)
+        self._thread.join(10.0)
+
+
+def quietly(fn: Callable[[], T]) -> T:
+    """``fn()`` with stdout swallowed: viser prints a banner with its own (loopback) address,
+    whatever ``verbose`` says, and people must see only the gate's."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return fn()
+
+
+def serve_gated(host: str, port: int, token: str | None = None) -> tuple[viser.ViserServer, Gate]:
+    """A viser server on a loopback port of its own, and the gate that serves it at host:port.
+    Raises OSError (port taken, address not on this machine) with the viser server stopped."""
+    server = quietly(lambda: viser.ViserServer(host="127.0.0.1", port=0, verbose=False))
+    try:
+        gate = Gate(server, host, port, token)
+    except BaseException:
+        quietly(server.stop)
+        raise
+    return server, gate

@@ -1,0 +1,132 @@
+"""Where the loop's follower poses come from: the vision pipeline on camera frames (the
+paper's way and the default), or the simulator's ground truth plus noise (to tune the
+controller alone).
+
+Both answer ``observe()`` with an :class:`Observation`; the vision one also asks for the
+start-up manoeuvres of paper §3.1–3.2 and carries the frame for the camera panel.
+
+The vision feedback takes its frames from the synthetic camera rendering the simulated team,
+or from a real :class:`~app.backends.camera.FrameSource`. A real camera is asynchronous:
+a tick with no new frame keeps the last estimates (the pipeline steps once per frame, with
+the time and leader motion since the frame before), and a camera with no fresh frame for
+``STALE_FRAME_S`` makes every follower untracked — the loop then commands zero.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from collections.abc import Callable
+
+import numpy as np
+
+from core.camera.config import CameraConfig
+from core.camera.gamma import Gamma
+from core.camera.render import Renderer
+from core.geometry import leader_displacement
+from core.types import FloatArray, Image
+from core.vision.pipeline import PipelineSettings, VisionPipeline
+
+from app.contracts import FrameSource, Observation, Team
+from app.backends.sim import SimTeam
+
+STALE_FRAME_S = 0.3  # a camera frame older than this is no ground for moving a robot
+
+
+class TruthFeedback:
+    """Ground truth plus the configured noise: no camera, no start-up."""
+
+    def __init__(self, team: SimTeam) -> None:
+        self.team = team
+
+    def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
+        p, a, tracked = self.team.observe()
+        return Observation(p, a, a.copy(), tracked, "truth")
+
+
+@dataclass
+class VisionFeedback:
+    """A camera and the pipeline: the synthetic rig rendering ``team`` (no ``source``), or a
+    real frame source (camera, video, folder)."""
+
+    team: Team
+    rig: CameraConfig
+    gamma: Gamma
+    seed: int
+    source: FrameSource | None = None
+    clock: Callable[[], float] = time.monotonic
+    settings: PipelineSettings = field(default_factory=PipelineSettings)
+    renderer: Renderer | None = field(init=False, default=None)
+    pipeline: VisionPipeline | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        n = self.team.state.n
+        if self.source is None:
+            model = self.rig.model
+            if model is None:
+                raise ValueError(f"{self.rig.source}: the simulated camera needs a [model]")
+            self.renderer = Renderer(model, self.rig.render)
+            self._make_pipeline((model.width, model.height))
+        self._rng = np.random.default_rng(self.seed + 1)
+        self._prev_leader = self.team.state.leader.copy()
+        self._a_raw = np.full(n, np.nan)
+        self._t = 0.0
+        self._since_frame = 0.0
+        self._frame_count = 0
+        self._last: Observation | None = None
+
+    def _make_pipeline(self, size: tuple[int, int]) -> None:
+        self.pipeline = VisionPipeline(self.team.state.n, self.gamma, self.rig.working_area, self.rig.detect,
+                                       size, np.random.default_rng(self.seed), self.settings)
+
+    def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
+        state = self.team.state
+        t0 = time.perf_counter()
+        self._t += dt
+        self._since_frame += dt
+        camera_state = ""
+        if self.source is None:
+            assert self.renderer is not None
+            p_true, a_true = self.team.truth()
+            # rendered where the pipeline looks; the whole frame only when the dashboard or the
+            # recorder asks for it, on their threads
+            frame: Image | None = self.renderer.frame(state.leader, np.column_stack([p_true, a_true]),
+                                                      self._t - dt, self._rng)
+        else:
+            frame, t_frame, count = self.source.latest()
+            camera_state = self.source.state
+            age = self.clock() - t_frame
+            if frame is None or age > STALE_FRAME_S:
+                why = "no frame yet" if frame is None else f"no fresh frame for {age:.1f} s"
+                return self._stale(f"camera: {why} ({camera_state})", camera_state)
+            if count == self._frame_count and self._last is not None:
+                return self._last  # no new frame this tick: the estimates of the newest one stand
+            self._frame_count = count
+            if self.pipeline is None:
+                self._make_pipeline((frame.shape[1], frame.shape[0]))
+        t1 = time.perf_counter()
+        odometry = leader_displacement(self._prev_leader, state.leader)  # the leader's motion since the last frame
+        self._prev_leader = state.leader.copy()
+        assert self.pipeline is not None and frame is not None
+        out = self.pipeline.step(frame, self._since_frame, odometry, commands, error_norm)
+        self._since_frame = 0.0
+        t2 = time.perf_counter()
+        fresh = np.isfinite(out.heading_measured)
+        self._a_raw[fresh] = out.heading_measured[fresh]
+        raw = np.where(np.isfinite(self._a_raw), self._a_raw, out.headings)
+        self._last = Observation(out.positions, out.headings, raw, out.tracked, out.phase, out.manoeuvre, frame,
+                                 out.windows, out.hues_deg, out.probing,
+                                 {"camera": (t1 - t0) * 1e3, "vision": (t2 - t1) * 1e3}, camera_state)
+        return self._last
+
+    def _stale(self, phase: str, camera_state: str) -> Observation:
+        """No usable frame: nobody is tracked and nothing moves (a zero manoeuvre keeps the
+        loop from taking this for the end of the start-up)."""
+        n = self.team.state.n
+        last = self._last
+        p = last.p if last is not None else np.full((n, 2), np.nan)
+        a = last.a if last is not None else np.full(n, np.nan)
+        raw = last.a_raw if last is not None else np.full(n, np.nan)
+        return Observation(p, a, raw, np.zeros(n, dtype=bool), phase, np.zeros((n, 2)),
+                           last.frame if last is not None else None, None, None, -1, {}, camera_state)
+

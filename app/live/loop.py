@@ -1,0 +1,329 @@
+"""THE loop: observe -> assign -> controller -> follower link -> publish, at a fixed rate.
+
+It owns time (monotonic clock, fixed tick dt); the dashboard and the recorder
+only read the :class:`TickState` it publishes, and operator controls reach it
+only through the :class:`ParamsStore`, read once per tick. On stop (Ctrl-C,
+SIGTERM, an exception inside a tick) every follower is commanded to zero
+before the loop returns.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from collections.abc import Callable
+
+import numpy as np
+
+from core.control.assignment import assign_slots
+from core.control.formation import ControlOutput, ControllerState, compute_commands
+from core.control.safety import SafetyResult, SafetySettings, filter_commands, team_min_distance
+from core.control.targets import SlotMotion, step_slots
+from core.config import MeasurementNoise
+from core.sim.profiles import Eq39Profile
+from core.sim.team import FollowerDynamics
+from core.vision.pipeline import PipelineSettings
+from core.types import Commands, FloatArray, IntArray
+
+from app.backends.hardware import HardwareTeam
+from app.backends.sim import SimTeam, spread_start
+from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
+from app.live.feedback import TruthFeedback, VisionFeedback
+from app.live.params import Params, ParamsStore
+from app.live.tick import TickState
+
+log = logging.getLogger(__name__)
+
+DEFAULT_NOISE = MeasurementNoise(0.003, math.radians(1.0))  # truth feedback's noise unless told
+REASSIGN_MARGIN_M2 = 0.05  # eq. 33 is re-solved when slots change; keep the old one unless this much cheaper
+
+
+@dataclass
+class _World:
+    team: Team
+    feedback: Feedback
+    controller: ControllerState
+    slots: SlotMotion
+    assignment: IntArray
+    slot_version: object
+    ready: bool = False  # the pipeline finished its start-up (always True for truth feedback)
+    last_obs: Observation | None = None
+    last_cmd: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) the last tick's commands
+    err_norm: FloatArray = field(default_factory=lambda: np.zeros(0))  # (n,) the last tick's position errors
+
+
+def safety_text(result: SafetyResult | None, on: bool) -> str:
+    """The filter's state for people: what it changed this tick, and by how much."""
+    if not on:
+        return "off"
+    if result is None or result.status == "inactive":
+        return "on, inactive"
+    if result.status == "filtered":
+        moved = [f"F{i + 1} {result.changed[i]:.2f} m/s" for i in np.nonzero(result.active)[0]]
+        return "on, changed " + (", ".join(moved) if moved else "no command noticeably")
+    stopped = ", ".join(f"F{i + 1}" for i in np.nonzero(result.active)[0])
+    return f"on, {result.status}: {stopped or 'nobody'} stopped ({result.message})"
+
+
+class ServiceLoop:
+    """The one loop. ``tick()`` does one step; ``run()`` paces ticks until stopped."""
+
+    def __init__(
+        self,
+        store: ParamsStore,
+        rate_hz: float = 30.0,
+        seed: int = 0,
+        dynamics: FollowerDynamics | None = None,
+        position_noise_m: float = DEFAULT_NOISE.position_noise_m,
+        heading_noise_rad: float = DEFAULT_NOISE.heading_noise_rad,
+        initial_poses: tuple[FloatArray, FloatArray] | None = None,
+        camera: Rig | None = None,
+        link: FollowerLink | None = None,
+        frames: FrameSource | None = None,
+        hardware: HardwareTeam | None = None,
+        pipeline_settings: PipelineSettings | None = None,
+    ) -> None:
+        """``camera``: the synthetic rig and its calibrated Γ; with it the controller is fed
+        by the vision pipeline on rendered frames, without it by ground truth plus noise.
+        ``link``: a real follower link (serial); the simulated followers then move by what
+        the robots on it report (see app.backends.sim).
+        ``frames`` and ``hardware``: a real camera and real robots (no simulator); ``camera``
+        then holds the rig's calibration file (working area, detection, Γ)."""
+        self.store = store
+        self.dt = 1.0 / rate_hz
+        self.rate_hz = rate_hz
+        self.seed = seed
+        self.dynamics = dynamics or FollowerDynamics()  # ideal followers unless told (default.toml tells)
+        self.position_noise_m = position_noise_m
+        self.heading_noise_rad = heading_noise_rad
+        self._initial_poses = initial_poses
+        self.camera = camera
+        self.link = link
+        self.frames = frames
+        self.hardware = hardware
+        self.pipeline_settings = pipeline_settings or PipelineSettings()
+        if frames is not None and (hardware is None or camera is None):
+            raise ValueError("a real frame source needs the real team (hardware) and the rig's calibration (camera)")
+        self.faults = 0
+        self.fault = ""
+        self._subscribers: list[Callable[[TickState], None]] = []
+        self._stop = threading.Event()
+        self.tick_count = 0
+        self.t = 0.0
+        self._resets = 0
+        self._steps_done = store.get().step_requests
+        self._mode = ("", 0.0)
+        self.achieved_rate_hz = 0.0
+        self._publish_ms: dict[str, float] = {}
+        self.last: TickState | None = None
+        self._safety: SafetySettings | None = None
+        self._world = self._make_world(store.get())
+
+    # -- wiring ---------------------------------------------------------------------------
+    def subscribe(self, fn: Callable[[TickState], None]) -> None:
+        self._subscribers.append(fn)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    # -- world ----------------------------------------------------------------------------
+    def _make_world(self, params: Params) -> _World:
+        n = params.n_followers
+        rng = np.random.default_rng(self.seed + self._resets)
+        feedback: Feedback
+        team: Team
+        if self.hardware is not None:  # real robots: the same team after a reset, the start-up runs again
+            assert self.camera is not None
+            team = self.hardware
+            n = team.state.n
+            feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
+                                      source=self.frames, settings=self.pipeline_settings)
+            assignment = np.arange(n) % params.slots.shape[0]  # eq. 33 runs once the poses are known
+        else:
+            if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
+                p0, a0 = self._initial_poses
+            else:
+                p0, a0 = spread_start(n, rng)
+            team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
+                           self.seed + 1000 + self._resets, link=self.link)
+            if self.camera is not None:
+                feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
+                                          settings=self.pipeline_settings)
+            else:
+                feedback = TruthFeedback(team)
+            assignment = assign_slots(p0, params.slots)
+        self.t = 0.0
+        return _World(team, feedback, ControllerState.initial(n), SlotMotion.at_rest(params.slots[assignment]),
+                      assignment, params.slots.tobytes(), ready=self.camera is None,
+                      last_cmd=np.zeros((n, 2)), err_norm=np.zeros(n))
+
+    def _safety_settings(self, params: Params) -> SafetySettings:
+        if self._safety is None or self._safety.min_distance_m != params.safety_distance_m:
+            self._safety = SafetySettings(min_distance_m=params.safety_distance_m,
+                                          activity_m=max(0.6, params.safety_distance_m + 0.35))
+        return self._safety
+
+    def _leader_twist(self, params: Params) -> tuple[float, float]:
+        if self._mode[0] != params.leader_mode:
+            self._mode = (params.leader_mode, self.t)
+        v, w = params.leader_speed_mps, math.radians(params.leader_turn_deg_s)
+        if params.leader_mode == "stop":
+            return 0.0, 0.0
+        if params.leader_mode == "straight":
+            return v, 0.0
+        if params.leader_mode == "circle":
+            return v, w
+        profile = Eq39Profile(speed_mps=v, k1_rps=w)
+        return profile.twist(self.t - self._mode[1])
+
+    # -- one tick -------------------------------------------------------------------------
+    def tick(self) -> TickState:
+        stage: dict[str, float] = dict(self._publish_ms)
+        t0 = time.perf_counter()
+        params = self.store.get()
+        if params.reset_requests != self._resets or params.n_followers != self._world.team.state.n:
+            self._resets = params.reset_requests
+            self._world = self._make_world(params)
+            self._mode = ("", 0.0)
+        world = self._world
+        if self.fault and not params.stop:  # the operator saw the fault and released STOP
+            self.fault = ""
+        advance = not params.paused or params.step_requests != self._steps_done
+        self._steps_done = params.step_requests
+
+        if advance or world.last_obs is None:
+            obs = world.feedback.observe(self.dt, world.last_cmd, world.err_norm)
+            world.last_obs = obs
+        else:
+            obs = world.last_obs  # paused: the world is frozen, so is what the camera sees
+        stage.update(obs.stage_ms)
+        p = np.where(np.isfinite(obs.p), obs.p, 0.0)
+        a = np.where(np.isfinite(obs.a), obs.a, math.pi / 2)
+        tracked = np.asarray(obs.tracked, dtype=bool)
+        t1 = time.perf_counter()
+        stage["observe"] = (t1 - t0) * 1e3
+
+        if obs.ready and not world.ready:  # the pipeline knows every pose: eq. 33 on its estimates
+            world.ready = True
+            world.assignment = assign_slots(p, params.slots)
+            world.slots = SlotMotion.at_rest(params.slots[world.assignment])
+            world.slot_version = params.slots.tobytes()
+            self._mode = ("", self.t)
+        slots_key = params.slots.tobytes()
+        if world.ready and slots_key != world.slot_version:
+            world.assignment = assign_slots(p, params.slots, current=world.assignment, margin_m2=REASSIGN_MARGIN_M2)
+            world.slot_version = slots_key
+        targets = params.slots[world.assignment]
+        if advance and world.ready:
+            world.slots = step_slots(world.slots, targets, self.dt)
+        twist = self._leader_twist(params) if advance and world.ready else (0.0, 0.0)
+        if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
+            move = advance and not params.stop
+            manoeuvre = obs.manoeuvre if move else np.zeros((params.n_followers, 2))
+            out = ControlOutput.idle(manoeuvre)
+        else:
+            active = tracked & (not params.stop) & advance
+            out = compute_commands(p, a, world.slots.p_d, world.slots.v_d, twist[0], twist[1],
+                                   params.gains, world.controller, self.dt, active)
+            world.controller = out.state
+        safety = None
+        if obs.manoeuvre is None and params.safety and not params.stop:
+            safety = filter_commands(p, a, out.commands, twist, None, self._safety_settings(params), known=tracked,
+                                     limits=(params.gains.v_max, params.gains.w_max))
+            if safety.status != "inactive":
+                out = dataclasses.replace(out, commands=safety.commands)
+        if world.team.link_lost:  # nobody answers: no command but zero until the robots do
+            out = ControlOutput.idle(np.zeros((len(a), 2)))
+            world.controller = ControllerState.initial(len(a))
+        world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
+        world.err_norm = np.linalg.norm(world.slots.p_d - p, axis=1)
+        t2 = time.perf_counter()
+        stage["control"] = (t2 - t1) * 1e3
+
+        world.team.send(out.commands)
+        t3 = time.perf_counter()
+        stage["link"] = (t3 - t2) * 1e3
+
+        p_true, a_true = world.team.truth()
+        state = TickState(
+            tick=self.tick_count, t=self.t, leader=world.team.state.leader.copy(), leader_twist=twist,
+            followers_world=world.team.state.followers.copy(), p_est=obs.p, a_est=obs.a, tracked=tracked,
+            p_true=p_true, a_true=a_true, p_d=world.slots.p_d.copy(), slot_targets=params.slots.copy(),
+            assignment=world.assignment.copy(),
+            commands=np.column_stack([out.commands.v, out.commands.w]), a_err=out.a_err,
+            v_lyap=out.v_lyap, gains=params.gains, params_version=params.version,
+            stopped=params.stop, paused=params.paused and not advance, link_state=world.team.link_state,
+            rate_hz=self.achieved_rate_hz, stage_ms=stage, phase=obs.phase, probing=obs.probing,
+            a_raw=obs.a_raw, frame=obs.frame, windows=obs.windows, hues_deg=obs.hues_deg,
+            link_detail=world.team.link_detail(), fault=self.fault, camera_state=obs.camera_state,
+            safety=safety_text(safety, params.safety), safety_changed=None if safety is None else safety.changed,
+            min_distance_m=(safety.min_distance_m if safety is not None  # the filter measured it already
+                            else team_min_distance(p[tracked]) if tracked.any() else float("nan")),
+        )
+        if advance:
+            world.team.advance(twist, self.dt, self.t)
+            self.t += self.dt
+        self.tick_count += 1
+        self.last = state
+        publish: dict[str, float] = {}
+        for fn in self._subscribers:
+            t_pub = time.perf_counter()
+            try:
+                fn(state)
+            except Exception:  # a broken view must not stop the robots' loop
+                log.exception("subscriber failed")
+            publish[f"publish:{getattr(fn, '__qualname__', 'fn')}"] = (time.perf_counter() - t_pub) * 1e3
+        self._publish_ms = publish  # shown with the next tick: a published state is never changed
+        return state
+
+    def _on_fault(self, exc: Exception) -> None:
+        """An exception inside a tick: every follower to zero at once, STOP engaged (the
+        operator sees why and releases it), the loop goes on observing."""
+        self.halt_followers()  # first: the robots
+        self.fault = f"{type(exc).__name__}: {exc}"[:200]
+        if not self.store.get().stop:
+            self.store.update("loop", stop=True)
+        self.faults += 1
+        if self.faults <= 3 or self.faults % 100 == 0:
+            log.exception("loop fault %d; every follower stopped", self.faults)
+
+    def halt_followers(self) -> None:
+        """Command every follower to zero now (used on stop and on errors)."""
+        n = self._world.team.state.n
+        self._world.team.send(Commands.zeros(n))
+        self._world.controller = ControllerState.initial(n)
+        self._world.last_cmd = np.zeros((n, 2))
+
+    # -- pacing ---------------------------------------------------------------------------
+    def run(self) -> None:
+        """Tick at the configured rate until stop(); always leaves the followers at zero."""
+        next_deadline = time.monotonic()
+        window: deque[float] = deque(maxlen=61)  # tick start times of the last 60 ticks
+        try:
+            while not self._stop.is_set():
+                start = time.monotonic()
+                try:
+                    self.tick()
+                except Exception as exc:  # noqa: BLE001 - the robots must stop, the service must live
+                    self._on_fault(exc)
+                window.append(start)
+                if len(window) >= 2 and window[-1] > window[0]:
+                    self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
+                next_deadline += self.dt
+                delay = next_deadline - time.monotonic()
+                if delay < -self.dt:  # fell behind: do not try to catch up in a burst
+                    next_deadline = time.monotonic()
+                elif delay > 0:
+                    self._stop.wait(delay)
+        finally:
+            self.halt_followers()
+            self._world.team.close()

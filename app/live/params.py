@@ -1,0 +1,239 @@
+"""The parameter store: what the operator sets, read by the loop once per tick.
+
+GUI callbacks run on viser's thread pool, concurrently with the loop. They
+only ever call :meth:`ParamsStore.update`, which validates, clamps (with a
+notice saying what was changed and why) and swaps in a new frozen
+:class:`Params` under a lock. The loop calls :meth:`ParamsStore.get` once per
+tick and sees either the old or the new set, never a mix.
+
+One-shot requests (single step, reset) are counters rather than flags, so
+that a request made while the loop is busy is never lost and never done twice.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Literal, get_args
+from collections.abc import Callable
+
+import numpy as np
+
+from core.types import GAIN_BOUNDS, Bound, FloatArray, Gains
+
+LeaderMode = Literal["stop", "straight", "circle", "eq39"]
+LEADER_MODES: tuple[LeaderMode, ...] = get_args(LeaderMode)
+MAX_FOLLOWERS = 8
+SLOT_LIMIT_M = 2.0  # desired positions must stay where the camera can see them
+
+LEADER_SPEED = Bound(-0.3, 0.3, "m/s", "leader forward speed", lo_inclusive=True)
+LEADER_TURN = Bound(-30.0, 30.0, "deg/s", "leader turn rate, counter-clockwise positive", lo_inclusive=True)
+SAFETY_DISTANCE = Bound(0.15, 1.0, "m", "the safety filter's minimum distance between robots, centre to centre",
+                        lo_inclusive=True)
+SLOT_COORD = Bound(-SLOT_LIMIT_M, SLOT_LIMIT_M, "m", "desired position in the leader frame", lo_inclusive=True)
+
+
+@dataclass(frozen=True)
+class Params:
+    """Everything the operator can change, as one consistent snapshot."""
+
+    gains: Gains = field(default_factory=Gains)
+    leader_mode: LeaderMode = "stop"
+    leader_speed_mps: float = 0.06
+    leader_turn_deg_s: float = 1.5
+    slots: FloatArray = field(default_factory=lambda: np.array([[-0.5, -0.3], [0.5, -0.3]]))
+    n_followers: int = 2
+    paused: bool = False
+    stop: bool = False  # the big STOP: every follower commanded (0, 0), the loop keeps observing
+    safety: bool = True  # the barrier-certificate filter on every command (core.control.safety)
+    safety_distance_m: float = 0.25  # its minimum distance, centre to centre
+    step_requests: int = 0
+    reset_requests: int = 0
+    version: int = 0
+
+    def replace(self, **changes: Any) -> "Params":
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class Notice:
+    """Something the operator should see: a value clamped or refused."""
+
+    key: str
+    message: str
+
+
+class ParamsStore:
+    """Thread-safe holder of the current :class:`Params`; atomic swaps, validation, notices."""
+
+    def __init__(self, initial: Params | None = None, fixed_followers: int | None = None) -> None:
+        """``fixed_followers``: a real team's size (e.g. the robots on a serial link); the
+        follower count then cannot be changed from the page."""
+        self._lock = threading.Lock()
+        self.fixed_followers = fixed_followers
+        self._params = initial or Params()
+        if fixed_followers is not None and self._params.n_followers != fixed_followers:
+            self._params = self._params.replace(n_followers=fixed_followers)
+        self._listeners: list[Callable[[Params, str, tuple[Notice, ...]], None]] = []
+
+    def get(self) -> Params:
+        return self._params  # a reference read is atomic; Params is immutable
+
+    def subscribe(self, fn: Callable[[Params, str, tuple[Notice, ...]], None]) -> None:
+        """Call fn(params, source, notices) after every change (e.g. to sync other browsers)."""
+        with self._lock:
+            self._listeners.append(fn)
+
+    def update(self, source: str = "server", **changes: Any) -> tuple[Params, tuple[Notice, ...]]:
+        """Validate and apply changes; out-of-range numbers are clamped with a notice.
+
+        ``source`` says who changed it ("browser:<client id>", "server", "cli"),
+        so listeners can tell a person's change from the server's own echo.
+        Unknown keys and values of the wrong kind are refused (ValueError).
+        """
+        with self._lock:
+            current = self._params
+            notices: list[Notice] = []
+            new_values: dict[str, Any] = {}
+            gain_changes: dict[str, float] = {}
+            for key, value in changes.items():
+                if key in GAIN_BOUNDS:
+                    gain_changes[key] = _clamped(key, value, GAIN_BOUNDS[key], notices)
+                elif key == "leader_mode":
+                    if value not in LEADER_MODES:
+                        raise ValueError(f"leader_mode = {value!r}: must be one of {', '.join(LEADER_MODES)}")
+                    new_values[key] = value
+                elif key == "leader_speed_mps":
+                    new_values[key] = _clamped(key, value, LEADER_SPEED, notices)
+                elif key == "leader_turn_deg_s":
+                    new_values[key] = _clamped(key, value, LEADER_TURN, notices)
+                elif key == "slot":
+                    index, x, y = value
+                    slots = np.array(new_values.get("slots", current.slots), dtype=np.float64)
+                    if not 0 <= int(index) < slots.shape[0]:
+                        raise ValueError(f"slot {index}: must be 0..{slots.shape[0] - 1}")
+                    slots[int(index)] = [
+                        _clamped(f"slot {int(index) + 1} x", x, SLOT_COORD, notices),
+                        _clamped(f"slot {int(index) + 1} y", y, SLOT_COORD, notices),
+                    ]
+                    new_values["slots"] = slots
+                elif key == "slots":
+                    arr = np.asarray(value, dtype=np.float64)
+                    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < 1:
+                        raise ValueError(f"slots: must be a list of [x, y], got shape {arr.shape}")
+                    if not np.all(np.isfinite(arr)):
+                        raise ValueError("slots: every x and y must be a finite number (m); unchanged")
+                    clipped = np.clip(arr, -SLOT_LIMIT_M, SLOT_LIMIT_M)
+                    if not np.array_equal(clipped, arr):
+                        notices.append(Notice("slots", f"slots clamped to +-{SLOT_LIMIT_M:g} m"))
+                    new_values["slots"] = clipped
+                elif key == "n_followers":
+                    n = _whole(key, value)
+                    if self.fixed_followers is not None and n != self.fixed_followers:
+                        notices.append(Notice(key, f"followers = {value}: the team on the link has"
+                                                   f" {self.fixed_followers}; the count is fixed"))
+                        n = self.fixed_followers
+                    elif not 1 <= n <= MAX_FOLLOWERS:
+                        notices.append(Notice(key, f"followers = {value}: allowed 1..{MAX_FOLLOWERS}, set to {min(max(n, 1), MAX_FOLLOWERS)}"))
+                        n = min(max(n, 1), MAX_FOLLOWERS)
+                    new_values[key] = n
+                elif key in ("paused", "stop", "safety"):
+                    if not isinstance(value, (bool, int, np.bool_)):
+                        raise ValueError(f"{key} = {value!r}: must be true or false")
+                    new_values[key] = bool(value)
+                elif key == "safety_distance_m":
+                    new_values[key] = _clamped(key, value, SAFETY_DISTANCE, notices)
+                elif key in ("step_requests", "reset_requests"):
+                    new_values[key] = getattr(current, key) + 1
+                else:
+                    raise ValueError(f"{key}: not a parameter the operator can set")
+            if gain_changes:
+                new_values["gains"] = current.gains.replace(**gain_changes)
+            new = current.replace(**new_values, version=current.version + 1)
+            slots = new.slots
+            if slots.shape[0] < new.n_followers:
+                extra = default_slots(new.n_followers)[slots.shape[0]:]
+                new = new.replace(slots=np.vstack([slots, extra]))
+            self._params = new
+            listeners = list(self._listeners)
+        result = tuple(notices)
+        for fn in listeners:
+            fn(new, source, result)
+        return new, result
+
+
+def _clamped(key: str, value: Any, bound: Bound, notices: list[Notice]) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key} = {value!r}: must be a number") from None
+    lo_br = "[" if bound.lo_inclusive else "("
+    if not math.isfinite(number):  # NaN or infinity is no value at all: refused, not clamped to a bound
+        raise ValueError(f"{key} = {value!r}: must be a finite number in {lo_br}{bound.lo:g}, {bound.hi:g}] {bound.unit}"
+                         "; unchanged")
+    clamped = bound.clamp(number)
+    if clamped != number:
+        notices.append(Notice(key, f"{key} = {value!r} is outside {lo_br}{bound.lo:g}, {bound.hi:g}] {bound.unit}: set to {clamped:g}"))
+    return clamped
+
+
+def _whole(key: str, value: Any) -> int:
+    """A count from a person: a whole number (a float that is one is fine), else one line."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key} = {value!r}: must be a whole number") from None
+    if not math.isfinite(number) or number != int(number):
+        raise ValueError(f"{key} = {value!r}: must be a whole number; unchanged")
+    return int(number)
+
+
+def default_slots(n: int) -> FloatArray:
+    """A sensible formation for n followers: the paper's triangle for 2, a V or ring beyond."""
+    return formation_preset("paper triangle" if n <= 2 else "V" if n <= 5 else "ring", n)
+
+
+FORMATION_PRESETS = ("paper triangle", "triangle ahead", "line abreast", "column", "V", "diamond", "ring")
+
+
+PRESET_REACH_M = 1.5  # presets stay inside the camera's working ring
+
+
+def formation_preset(name: str, n: int) -> FloatArray:
+    """Slots (n, 2) in the leader frame for a named formation, shrunk to fit within 1.5 m."""
+    slots = _preset_shape(name, n)
+    reach = float(np.abs(slots).max()) if slots.size else 0.0
+    return slots * (PRESET_REACH_M / reach) if reach > PRESET_REACH_M else slots
+
+
+def _preset_shape(name: str, n: int) -> FloatArray:
+    i = np.arange(n, dtype=np.float64)
+    if name == "paper triangle":  # §4: (-0.5, -0.3), (0.5, -0.3), more behind
+        side = np.where(i % 2 == 0, -1.0, 1.0)
+        row = i // 2
+        return np.column_stack([side * 0.5 * (1 + row), -0.3 - 0.4 * row])
+    if name == "triangle ahead":  # §5.1: (-0.6, 0.3), (0.6, 0.3)
+        side = np.where(i % 2 == 0, -1.0, 1.0)
+        row = i // 2
+        return np.column_stack([side * 0.6 * (1 + row), 0.3 + 0.4 * row])
+    if name == "line abreast":
+        k = i // 2 + 1
+        side = np.where(i % 2 == 0, -1.0, 1.0)
+        return np.column_stack([side * 0.5 * k, np.zeros(n)])
+    if name == "column":
+        spacing = min(0.5, 1.1 / max(n, 1))
+        return np.column_stack([np.zeros(n), -(0.4 + spacing * i)])
+    if name == "V":
+        k = i // 2 + 1
+        side = np.where(i % 2 == 0, -1.0, 1.0)
+        return np.column_stack([side * 0.4 * k, -0.4 * k])
+    if name == "diamond":
+        base = np.array([[-0.5, -0.5], [0.5, -0.5], [0.0, -1.0], [0.0, 0.6]])
+        extra = _preset_shape("ring", n)[4:] * 1.3 if n > 4 else np.zeros((0, 2))
+        return np.vstack([base[: min(n, 4)], extra])
+    if name == "ring":
+        ang = np.pi / 2 + 2 * np.pi * i / max(n, 1)
+        return np.column_stack([0.9 * np.cos(ang), 0.9 * np.sin(ang)])
+    raise ValueError(f"formation {name!r}: must be one of {', '.join(FORMATION_PRESETS)}")

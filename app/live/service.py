@@ -1,0 +1,105 @@
+"""The long-running service: one loop thread, the viser server, the dashboard.
+
+``Service.start()`` starts the loop in its own thread (the only thread that
+steps the world); ``Service.close()`` stops it, which commands every follower
+to zero, then stops the server. `omniformation run` runs one until Ctrl-C or
+SIGTERM.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+
+from core.config import MeasurementNoise, Scenario
+from core.sim.team import FollowerDynamics
+from core.sim.profiles import ConstantProfile, Eq39Profile
+
+from app.backends.hardware import HardwareTeam
+from app.contracts import FollowerLink, FrameSource, Rig
+from app.dashboard import Dashboard, LatestStatePublisher
+from app.dashboard.camera_panel import Overlay
+from app.dashboard.gate import quietly, serve_gated
+from app.dashboard.recordings_panel import RecordingsPanel
+from app.live.loop import DEFAULT_NOISE, ServiceLoop
+from app.live.params import LeaderMode, Params, ParamsStore, default_slots
+
+
+
+def params_for(scenario: Scenario | None, n_followers: int) -> Params:
+    """The operator's starting values: a scenario's, or the built-in team's."""
+    if scenario is None:
+        return Params(n_followers=n_followers, slots=default_slots(n_followers), leader_mode="straight")
+    mode: LeaderMode = "straight"
+    speed, turn = 0.06, 1.5
+    lp = scenario.leader
+    if isinstance(lp, ConstantProfile):
+        mode = "circle" if lp.turn_rps else "straight"
+        speed, turn = lp.speed_mps, math.degrees(lp.turn_rps) or 1.5
+    elif isinstance(lp, Eq39Profile):
+        mode, speed, turn = "eq39", lp.speed_mps, math.degrees(lp.k1_rps)
+    return Params(gains=scenario.gains, leader_mode=mode, leader_speed_mps=speed, leader_turn_deg_s=turn,
+                  slots=scenario.slots.copy(), n_followers=scenario.n)
+
+
+class Service:
+    """``camera``: the synthetic rig and its Γ — the loop then sees the team through the vision
+    pipeline; None feeds it the simulator's poses plus noise (``dynamics`` and ``noise`` apply)."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, scenario: Scenario | None = None,
+                 n_followers: int = 3, rate_hz: float = 30.0, seed: int = 0,
+                 camera: Rig | None = None,
+                 dynamics: FollowerDynamics | None = None, noise: MeasurementNoise | None = None,
+                 link: FollowerLink | None = None, frames: FrameSource | None = None,
+                 hardware: HardwareTeam | None = None, recordings: Path | None = None,
+                 token: str | None = None) -> None:
+        """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
+        ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host."""
+        fixed = hardware.state.n if hardware is not None else getattr(link, "n", None)
+        self.store = ParamsStore(params_for(scenario, fixed or n_followers), fixed_followers=fixed)
+        noise = scenario.measurement if scenario is not None else noise or DEFAULT_NOISE
+        initial_poses = None
+        if scenario is not None:
+            initial_poses = (scenario.initial_p, scenario.initial_a)
+            dynamics = scenario.dynamics
+            seed = scenario.seed
+        self.loop = ServiceLoop(self.store, rate_hz=rate_hz, seed=seed, dynamics=dynamics, camera=camera,
+                                link=link, frames=frames, hardware=hardware,
+                                position_noise_m=noise.position_noise_m, heading_noise_rad=noise.heading_noise_rad,
+                                initial_poses=initial_poses)
+        self.server, self.gate = serve_gated(host, port, token)
+        overlay = None
+        if camera is not None:
+            wa = camera[0].working_area
+            overlay = Overlay((camera[1].cx, camera[1].cy), wa.inner_px, wa.outer_px)
+        self.dashboard = Dashboard(self.server, self.store, overlay)
+        self.recordings = RecordingsPanel(self.server, host, recordings, token=self.gate.token)
+        self.publisher = LatestStatePublisher(self.dashboard.publish)
+        self.loop.subscribe(self.publisher)
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        return self.gate.url
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.loop.run, name="omniformation-loop", daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        while self._thread is not None and self._thread.is_alive():
+            self._thread.join(0.2)
+
+    def close(self) -> None:
+        """Stop the loop (it zeroes every follower as it ends), then the server and the camera.
+        Waits for the tick in progress: the first one can take seconds while compiled code loads."""
+        self.loop.stop()
+        if self._thread is not None:
+            self._thread.join(60.0)
+        self.publisher.close()
+        self.recordings.close()
+        self.gate.close()
+        quietly(self.server.stop)
+        if self.loop.frames is not None:
+            self.loop.frames.close()

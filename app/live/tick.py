@@ -1,0 +1,55 @@
+"""What one tick of the loop produced: the value the dashboard, the recorder and a replay
+read. Its own module, so that they need not import the loop (and through it every backend)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.types import FloatArray, Gains, Image, IntArray
+
+
+@dataclass(frozen=True)
+class TickState:
+    """Everything one tick produced, published to the dashboard and recorder."""
+
+    tick: int
+    t: float
+    leader: FloatArray  # (3,) world x, y, theta
+    leader_twist: tuple[float, float]
+    followers_world: FloatArray  # (n, 3) true, simulation only
+    p_est: FloatArray  # (n, 2) leader frame, what the controller used
+    a_est: FloatArray  # (n,)
+    tracked: FloatArray  # (n,) bool
+    p_true: FloatArray  # (n, 2)
+    a_true: FloatArray  # (n,)
+    p_d: FloatArray  # (n, 2) desired position of each follower (ramped)
+    slot_targets: FloatArray  # (m, 2) the formation as set
+    assignment: IntArray  # (n,) slot of each follower
+    commands: FloatArray  # (n, 2) v, w sent
+    a_err: FloatArray  # (n,)
+    v_lyap: FloatArray  # (n,)
+    gains: Gains
+    params_version: int
+    stopped: bool
+    paused: bool
+    link_state: str
+    rate_hz: float
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    phase: str = "truth"  # where poses come from: "truth", or the vision pipeline's phase
+    probing: int = -1  # the follower the pipeline is probing (start-up), -1 otherwise
+    a_raw: FloatArray | None = None  # (n,) last raw heading measurement (eq. 34-37), held
+    frame: Image | None = None  # the camera image (BGR) this tick, vision only; np.asarray(frame) for its pixels
+    windows: np.ndarray | None = None  # (n, 4) CAMSHIFT windows, pixels
+    hues_deg: FloatArray | None = None  # (n,) learned marker colours
+    link_detail: str = ""  # per follower: round trip, lost replies, CRC errors, battery (serial link)
+    fault: str = ""  # the last exception inside a tick, if the loop caught one
+    camera_state: str = ""  # a real camera's state ("" for the synthetic camera)
+    safety: str = ""  # the safety filter's state for people ("off", "on, inactive", "on, changed F2 0.04 m/s", ...)
+    safety_changed: FloatArray | None = None  # (n,) how much the filter moved each follower's command (m/s)
+    min_distance_m: float = float("nan")  # the smallest centre distance between two robots this tick
+
+    @property
+    def n(self) -> int:
+        return int(self.p_est.shape[0])

@@ -1,0 +1,460 @@
+"""Reading a recording back: in bounded memory, past damage, saying exactly what was lost.
+
+Opening a recording walks its records once (the MCAP framing: an opcode and a length per
+record) and keeps an index, not the messages: per tick and per camera frame its time and
+where it sits (which chunk, which offset inside it). ``Recording.ticks`` and
+``Recording.frames`` are sequences that decode a chunk when one of its messages is asked
+for (the last few decoded chunks are kept), so ``report`` and ``replay`` hold a few chunks
+and the index whatever the file's length, and a seek anywhere costs one chunk.
+
+Every chunk carries a CRC of its contents. A chunk whose CRC, compression or framing does
+not check out is skipped, and reading goes on at the next chunk that does (found by its
+framing if the damage hit a length field). A file cut off mid-chunk (a killed writer, power
+loss) is read up to its last complete chunk. What could not be read is said in ticks and
+seconds: the tick counter of the loop runs without gaps, so a gap is a loss.
+"""
+
+from __future__ import annotations
+
+import bisect
+from array import array
+import io
+import json
+import os
+import re
+import struct
+import zlib
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO, overload
+
+import numpy as np
+import zstandard
+from mcap.records import Chunk, Metadata, Schema, Channel
+from mcap.data_stream import ReadDataStream
+
+from app.live.params import Params
+from app.recording.schema import CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, TICK_TOPIC
+
+MAGIC = b"\x89MCAP0\r\n"
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
+OP_METADATA, OP_DATA_END = 0x0C, 0x0F
+KNOWN_OPCODES = set(range(0x01, 0x10))
+MAX_RECORD = 64 * 1024 * 1024  # no record this program writes comes near (chunks are ~256 KiB)
+CHUNKS_KEPT = 4  # decoded chunks kept for the sequences (a few MB)
+_TICK_HEAD = re.compile(rb'^\{"tick":(-?\d+),"t":')
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+
+
+class RecordingError(ValueError):
+    """A file that is not a readable recording: one line for people."""
+
+
+@dataclass(frozen=True)
+class Damage:
+    """A stretch of the file that could not be read."""
+
+    start_byte: int
+    end_byte: int
+    why: str  # "a damaged chunk", "cut off: an unfinished chunk", ...
+
+
+@dataclass(frozen=True)
+class Gap:
+    """Ticks missing between two that were read (by the loop's tick counter)."""
+
+    after_tick: int
+    before_tick: int
+    t_from: float
+    t_to: float
+
+    @property
+    def ticks(self) -> int:
+        return self.before_tick - self.after_tick - 1
+
+    @property
+    def seconds(self) -> float:
+        return self.t_to - self.t_from
+
+
+class _Chunks:
+    """Decoded chunks by number, the last few kept: (topic, log time ns, payload bytes) per message."""
+
+    def __init__(self, path: Path, places: list[tuple[int, int]], topic_of: dict[int, str]) -> None:
+        self.path = path
+        self.places = places  # per chunk: (offset of its record, record length)
+        self.topic_of = topic_of
+        self._kept: OrderedDict[int, list[bytes]] = OrderedDict()
+        self._file: BinaryIO | None = None
+
+    def message(self, chunk: int, offset: int) -> bytes:
+        """The payload of the message at ``offset`` in chunk ``chunk``'s contents."""
+        data = self._kept.get(chunk)
+        if data is None:
+            data = self._decode(chunk)
+        else:
+            self._kept.move_to_end(chunk)
+        contents = data[0]
+        length = int.from_bytes(contents[offset + 1:offset + 9], "little")
+        start = offset + 9 + _MESSAGE_HEAD.size
+        return contents[start:offset + 9 + length]
+
+    def _decode(self, chunk: int) -> list[bytes]:
+        if self._file is None:
+            self._file = open(self.path, "rb")  # noqa: SIM115 - kept open for the life of the recording
+        pos, length = self.places[chunk]
+        self._file.seek(pos + 9)
+        body = self._file.read(length)
+        contents = _chunk_contents(body)
+        self._kept[chunk] = [contents]
+        while len(self._kept) > CHUNKS_KEPT:
+            self._kept.popitem(last=False)
+        return self._kept[chunk]
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+class _Messages(Sequence[Any]):
+    """Messages of one topic, decoded on demand from their chunks."""
+
+    def __init__(self, chunks: _Chunks, where: np.ndarray, decode: Any) -> None:
+        self._chunks = chunks
+        self._where = where  # (n, 2) chunk number, offset in the chunk's contents
+        self._decode = decode
+
+    def __len__(self) -> int:
+        return int(self._where.shape[0])
+
+    @overload
+    def __getitem__(self, k: int) -> Any: ...
+
+    @overload
+    def __getitem__(self, k: slice) -> list[Any]: ...
+
+    def __getitem__(self, k: int | slice) -> Any:
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(k)
+        chunk, offset = self._where[k]
+        return self._decode(k, self._chunks.message(int(chunk), int(offset)))
+
+    def __iter__(self) -> Iterator[Any]:
+        for k in range(len(self)):
+            yield self[k]
+
+    def __eq__(self, other: object) -> bool:  # compares as the list it stands for
+        if isinstance(other, (list, tuple, _Messages)):
+            return len(self) == len(other) and all(a == b for a, b in zip(self, other))
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]  # a mutable-looking sequence, like list
+
+
+@dataclass
+class Recording:
+    """A recording's metadata, channels, events and parameter changes, and its ticks and frames
+    as sequences that read from the file when asked (see the module docstring)."""
+
+    path: Path
+    metadata: dict[str, str]
+    channels: dict[str, str]  # topic -> schema name
+    complete: bool  # the file ends with its summary and footer
+    bytes_total: int
+    bytes_read: int  # bytes that were read as good records
+    damage: list[Damage]
+    t: np.ndarray  # (ticks,) session time of each tick (s)
+    tick_numbers: np.ndarray  # (ticks,) the loop's tick counter
+    frame_t: np.ndarray  # (frames,) session time of each camera frame (s)
+    events: list[dict[str, Any]]
+    params: list[tuple[float, dict[str, Any]]]  # (t, the full parameter set) at start and on change
+    ticks: Sequence[dict[str, Any]] = field(repr=False, default=())
+    frames: Sequence[tuple[float, bytes]] = field(repr=False, default=())  # (t, JPEG)
+    _chunks: _Chunks | None = field(repr=False, default=None)
+
+    def gaps(self) -> list[Gap]:
+        """Where the tick counter jumps: ticks that are not in the file."""
+        k = self.tick_numbers
+        if len(k) < 2:
+            return []
+        jumps = np.nonzero(np.diff(k) > 1)[0]
+        return [Gap(int(k[i]), int(k[i + 1]), float(self.t[i]), float(self.t[i + 1])) for i in jumps]
+
+    def loss_note(self) -> str:
+        """What could not be read, in ticks and seconds; '' for a whole, undamaged file."""
+        parts = []
+        for g in self.gaps():
+            parts.append(f"{g.ticks} ticks ({g.seconds:.2f} s, t = {g.t_from:.2f}–{g.t_to:.2f} s) missing")
+        damaged = [d for d in self.damage if not d.why.startswith("cut off")]
+        if damaged:
+            size = sum(d.end_byte - d.start_byte for d in damaged)
+            parts.append(f"{len(damaged)} damaged stretch{'es' if len(damaged) > 1 else ''} of the file"
+                         f" ({size / 1024:.0f} KiB) skipped")
+        if not self.complete:
+            last = float(self.t[-1]) if len(self.t) else 0.0
+            tail = self.bytes_total - max((d.start_byte for d in self.damage if d.why.startswith("cut off")),
+                                          default=self.bytes_total)
+            parts.append(f"the file was cut off (no summary): recovered {len(self.t)} ticks up to t = {last:.2f} s;"
+                         f" the last {tail} bytes (an unfinished chunk, at most {CHUNK_BYTES // 1024} KiB of"
+                         " messages, about a second) could not be read")
+        return f"{self.path.name}: " + "; ".join(parts) if parts else ""
+
+    def close(self) -> None:
+        if self._chunks is not None:
+            self._chunks.close()
+
+
+def _chunk_contents(body: bytes) -> bytes:
+    """A chunk record's body -> its uncompressed contents, CRC checked (ValueError if damaged)."""
+    chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
+    if chunk.compression == "zstd":
+        contents = zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=chunk.uncompressed_size)
+    elif chunk.compression == "":
+        contents = bytes(chunk.data)
+    else:
+        raise ValueError(f"compression {chunk.compression!r} is not one this program writes")
+    if len(contents) != chunk.uncompressed_size:
+        raise ValueError("chunk size does not match")
+    if chunk.uncompressed_crc and zlib.crc32(contents) != chunk.uncompressed_crc:
+        raise ValueError("chunk CRC does not match")
+    return contents
+
+
+def _records(contents: bytes) -> Iterator[tuple[int, int, int]]:
+    """(opcode, offset of the record, its length) for the records inside a chunk's contents."""
+    pos, end = 0, len(contents)
+    while pos + 9 <= end:
+        op = contents[pos]
+        length = int.from_bytes(contents[pos + 1:pos + 9], "little")
+        if pos + 9 + length > end:
+            raise ValueError("a record runs past the end of its chunk")
+        yield op, pos, length
+        pos += 9 + length
+    if pos != end:
+        raise ValueError("trailing bytes in a chunk")
+
+
+class _Scan:
+    """One walk over the file's records, building the index."""
+
+    def __init__(self, f: BinaryIO, size: int) -> None:
+        self.f, self.size = f, size
+        self.topic_of: dict[int, str] = {}
+        self.schema_name: dict[int, str] = {}
+        self.channels: dict[str, str] = {}
+        self.metadata: dict[str, str] = {}
+        self.places: list[tuple[int, int]] = []
+        # per tick and per frame: log time (ns), chunk number, offset in the chunk (compact: 24 bytes each)
+        self.index: dict[str, tuple[array[int], array[int], array[int]]] = {
+            topic: (array("q"), array("q"), array("q")) for topic in (TICK_TOPIC, IMAGE_TOPIC)}
+        self.tick_numbers: array[int] = array("q")
+        self.events: list[tuple[int, dict[str, Any]]] = []
+        self.params: list[tuple[int, dict[str, Any]]] = []
+        self.damage: list[Damage] = []
+        self.complete = False
+        self.good_bytes = 8
+
+    def run(self) -> None:
+        pos = 8
+        while pos < self.size:
+            self.f.seek(pos)
+            head = self.f.read(9)
+            if len(head) < 9:
+                self.damage.append(Damage(pos, self.size, "cut off: an unfinished record"))
+                return
+            op, length = head[0], int.from_bytes(head[1:9], "little")
+            end = pos + 9 + length
+            if op not in KNOWN_OPCODES or length > MAX_RECORD or end > self.size:
+                nxt = self._resync(pos + 1)
+                if nxt is None:
+                    why = "cut off: an unfinished chunk" if op == OP_CHUNK and end > self.size else "cut off: damaged to the end"
+                    self.damage.append(Damage(pos, self.size, why))
+                    return
+                self.damage.append(Damage(pos, nxt, "a damaged stretch"))
+                pos = nxt
+                continue
+            body = self.f.read(length)
+            try:
+                self._take(op, body)
+            except Exception:  # noqa: BLE001 - damaged bytes raise assorted errors: skip to the next good chunk
+                nxt = self._resync(pos + 1)
+                if nxt is None:
+                    self.damage.append(Damage(pos, self.size, "cut off: damaged to the end"))
+                    return
+                self.damage.append(Damage(pos, nxt, "a damaged chunk"))
+                pos = nxt
+                continue
+            self.good_bytes += 9 + length
+            if op == OP_FOOTER:
+                self.complete = self._ends_with_magic(end)
+                return
+            pos = end
+
+    def _ends_with_magic(self, end: int) -> bool:
+        self.f.seek(end)
+        return self.f.read(8) == MAGIC
+
+    def _take(self, op: int, body: bytes) -> None:
+        if op == OP_CHUNK:
+            self._take_chunk(body)
+        elif op == OP_METADATA:
+            md = Metadata.read(ReadDataStream(io.BytesIO(body)))
+            if md.name == "omniformation":
+                self.metadata = dict(md.metadata)
+        elif op == OP_SCHEMA:
+            self._schema(body)
+        elif op == OP_CHANNEL:
+            self._channel(body)
+        elif op == OP_DATA_END:
+            pass  # the summary that follows repeats what the data section said
+
+    def _schema(self, body: bytes) -> None:
+        s = Schema.read(ReadDataStream(io.BytesIO(body)))
+        self.schema_name[s.id] = s.name
+
+    def _channel(self, body: bytes) -> None:
+        c = Channel.read(ReadDataStream(io.BytesIO(body)))
+        self.topic_of[c.id] = c.topic
+        self.channels[c.topic] = self.schema_name.get(c.schema_id, "")
+
+    def _take_chunk(self, body: bytes) -> None:
+        contents = _chunk_contents(body)
+        found: list[tuple[str, int, int, bytes]] = []  # checked whole before any of it is kept
+        for op, off, length in _records(contents):
+            if op == OP_SCHEMA:
+                self._schema(contents[off + 9:off + 9 + length])
+            elif op == OP_CHANNEL:
+                self._channel(contents[off + 9:off + 9 + length])
+            elif op == OP_MESSAGE:
+                channel, _, log_time, _ = _MESSAGE_HEAD.unpack_from(contents, off + 9)
+                topic = self.topic_of.get(channel)
+                if topic is None:
+                    raise ValueError("a message on a channel never announced")
+                start = off + 9 + _MESSAGE_HEAD.size
+                head = contents[start:start + 40] if topic == TICK_TOPIC else contents[start:off + 9 + length]
+                found.append((topic, log_time, off, head))
+        chunk = len(self.places)
+        for topic, _, _, head in found:  # the counters first: a chunk is taken whole or not at all
+            if topic == TICK_TOPIC:
+                m = _TICK_HEAD.match(head)
+                if m is None:
+                    raise ValueError("a tick message without its counter")
+        for topic, log_time, off, head in found:
+            if topic == TICK_TOPIC:
+                self.tick_numbers.append(int(_TICK_HEAD.match(head).group(1)))  # type: ignore[union-attr]  # checked above
+            if topic in self.index:
+                ns, chunks, offsets = self.index[topic]
+                ns.append(log_time)
+                chunks.append(chunk)
+                offsets.append(off)
+            elif topic == EVENT_TOPIC:
+                self.events.append((log_time, json.loads(head)))
+            elif topic == PARAMS_TOPIC:
+                self.params.append((log_time, json.loads(head)))
+        self.places.append((self.f.tell() - len(body) - 9, len(body)))
+
+    def _resync(self, start: int) -> int | None:
+        """The offset of the next chunk record at or after ``start`` whose framing and CRC check out."""
+        block = 1 << 20
+        pos = start
+        while pos < self.size:
+            self.f.seek(pos)
+            data = self.f.read(block + 9)
+            k = data.find(bytes([OP_CHUNK]))
+            while k != -1 and k < block:
+                cand = pos + k
+                if k + 9 <= len(data):
+                    length = int.from_bytes(data[k + 1:k + 9], "little")
+                    if 32 <= length <= MAX_RECORD and cand + 9 + length <= self.size:
+                        self.f.seek(cand + 9)
+                        try:
+                            _chunk_contents(self.f.read(length))
+                            return cand
+                        except Exception:  # noqa: BLE001 - not a chunk after all
+                            pass
+                k = data.find(bytes([OP_CHUNK]), k + 1)
+            pos += block
+        return None
+
+
+def read_recording(path: Path) -> Recording:
+    """Open a recording (see the module docstring). A file that is not an omniformation
+    recording, or holds no readable tick, raises :class:`RecordingError` (one line)."""
+    if not path.is_file():
+        raise RecordingError(f"{path}: no such recording")
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if f.read(8) != MAGIC:
+            raise RecordingError(f"{path.name}: not an MCAP file")
+        scan = _Scan(f, size)
+        scan.run()
+    if TICK_TOPIC not in scan.channels and not scan.damage:
+        raise RecordingError(f"{path.name}: an MCAP file, but not an omniformation recording (no {TICK_TOPIC})")
+    if not scan.index[TICK_TOPIC][0]:
+        raise RecordingError(f"{path.name}: the recording holds no complete tick (cut off or damaged in its first chunk)")
+    try:
+        start_ns = int(scan.metadata.get("start_ns", "0") or 0)
+    except ValueError:
+        raise RecordingError(f"{path.name}: its metadata start_ns is not a number") from None
+    chunks = _Chunks(path, scan.places, scan.topic_of)
+
+    def where(topic: str) -> tuple[np.ndarray, np.ndarray]:
+        ns, chunk, offset = (np.frombuffer(a, dtype=np.int64) if len(a) else np.zeros(0, np.int64)
+                             for a in scan.index[topic])
+        return (ns - start_ns) / 1e9, np.column_stack([chunk, offset])
+
+    tick_t, ticks_at = where(TICK_TOPIC)
+    frame_t, frames_at = where(IMAGE_TOPIC)
+
+    def tick(_: int, data: bytes) -> dict[str, Any]:
+        return dict(json.loads(data))
+
+    def frame(k: int, data: bytes) -> tuple[float, bytes]:
+        import base64
+
+        return float(frame_t[k]), base64.b64decode(json.loads(data)["data"])
+
+    params = []
+    tick_ns = scan.index[TICK_TOPIC][0]
+    for ns, p in scan.params:
+        before = bisect.bisect_right(tick_ns, ns) - 1
+        params.append((float(tick_t[before]) if before >= 0 else 0.0, p))
+    return Recording(
+        path=path, metadata=scan.metadata, channels=scan.channels, complete=scan.complete,
+        bytes_total=size, bytes_read=scan.good_bytes, damage=scan.damage, t=tick_t,
+        tick_numbers=np.frombuffer(scan.tick_numbers, dtype=np.int64) if len(scan.tick_numbers) else np.zeros(0, np.int64),
+        frame_t=frame_t,
+        events=[e for _, e in scan.events], params=params,
+        ticks=_Messages(chunks, ticks_at, tick), frames=_Messages(chunks, frames_at, frame), _chunks=chunks,
+    )
+
+
+def check_ticks(rec: Recording) -> None:
+    """RecordingError (one line) unless the first and last ticks are what the loop records."""
+    from app.recording.schema import tick_from_payload
+
+    for k in (0, len(rec.ticks) - 1):
+        try:
+            tick_from_payload(rec.ticks[k])
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            raise RecordingError(f"{rec.path.name}: tick {k} is not what omniformation records"
+                                 f" ({type(exc).__name__}: {exc})"[:300]) from None
+
+
+def params_from_recording(rec: Recording) -> Params:
+    """The parameter set in force when the recording started."""
+    if not rec.params:
+        return Params()
+    from core.types import Gains
+
+    d = rec.params[0][1]
+    return Params(gains=Gains(**d["gains"]), leader_mode=d["leader_mode"], leader_speed_mps=d["leader_speed_mps"],
+                  leader_turn_deg_s=d["leader_turn_deg_s"], slots=np.array(d["slots"], dtype=float).reshape(-1, 2),
+                  n_followers=int(d["n_followers"]))

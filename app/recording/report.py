@@ -1,0 +1,282 @@
+"""`omniformation report FILE --out DIR`: a recording as the paper's figures and a summary.
+
+Figures (PNG, paper style): trajectory.png (fig. 16/21/25/28: the team's path with the
+formation triangle at a few instants), errors.png (fig. 17/19/23/26: x / y position error
+per follower), headings.png (fig. 20/24/27: measured vs Kalman-filtered headings),
+lyapunov_commands.png (V(t) and the commands). summary.md and summary.json: per follower
+the settling time, steady-state error RMS and max, time not tracked; the STOP events.
+
+Errors use the true pose when the recording has one (simulation), else the estimate.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+from dataclasses import dataclass
+from pathlib import Path
+from collections.abc import Callable
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.axes import Axes  # noqa: E402
+import numpy as np  # noqa: E402
+
+from app.recording.plots import colour, trajectory_panel  # noqa: E402
+from app.recording.reader import Recording
+from app.recording.schema import json_floats  # noqa: E402
+
+SETTLED_M = 0.03  # settled: the error stays under 3 cm to the end
+
+
+@dataclass(frozen=True)
+class Series:
+    """A recording as arrays (T rows)."""
+
+    t: np.ndarray  # s, 0 = the scenario's start (start-up manoeuvres before it)
+    leader: np.ndarray  # (T, 3)
+    followers_world: np.ndarray  # (T, n, 3)
+    p: np.ndarray  # (T, n, 2) true if recorded, else estimated
+    p_d: np.ndarray
+    a_est: np.ndarray
+    a_raw: np.ndarray
+    tracked: np.ndarray
+    v_lyap: np.ndarray  # (T,)
+    commands: np.ndarray  # (T, n, 2)
+    truth: bool
+    filter_acting: np.ndarray | None = None  # (T,) the safety filter changed a command (None: not recorded)
+
+    def every(self, k: int) -> "Series":
+        """Every k-th row (views, no copies): what a figure needs of a long recording."""
+        if k <= 1:
+            return self
+        return Series(self.t[::k], self.leader[::k], self.followers_world[::k], self.p[::k], self.p_d[::k],
+                      self.a_est[::k], self.a_raw[::k], self.tracked[::k], self.v_lyap[::k], self.commands[::k],
+                      self.truth, None if self.filter_acting is None else self.filter_acting[::k])
+
+    def min_distance(self) -> np.ndarray:
+        """(T,) the smallest centre distance between two robots (followers and the leader) per tick."""
+        pts = np.concatenate([np.zeros((len(self.t), 1, 2)), self.p], axis=1)
+        d = np.linalg.norm(pts[:, :, None, :] - pts[:, None, :, :], axis=-1)
+        m = pts.shape[1]
+        d[:, np.arange(m), np.arange(m)] = np.inf
+        return np.nanmin(d.reshape(len(self.t), -1), axis=1) if m > 1 else np.full(len(self.t), np.inf)
+
+
+MAX_PLOTTED = 20_000  # points per line in a figure (every k-th tick of a longer recording)
+SERIES_FIELDS = ("t", "leader", "followers_world", "p_true", "p_est", "p_d", "a_est", "a_raw", "tracked", "v_lyap",
+                 "commands")
+
+
+def series(rec: Recording) -> Series:
+    """The arrays the figures and the summary need, in one streaming pass over the ticks (the
+    recording's chunks are decoded one after the other): each tick's numbers go straight into
+    arrays made for the whole recording, so memory is those arrays, whatever the file's size."""
+    total = len(rec.ticks)
+    first = rec.ticks[0]
+    cols: dict[str, np.ndarray] = {}
+    for name in SERIES_FIELDS:
+        shape = json_floats(first.get(name) if first.get(name) is not None else first["a_est"]).shape
+        cols[name] = np.full((total, *shape), np.nan)
+    acting = np.zeros(total, dtype=bool)
+    has_filter = "safety" in first
+    for k, tk in enumerate(rec.ticks):
+        acting[k] = str(tk.get("safety", "")).startswith(("on, changed", "on, infeasible", "on, no solver"))
+        for name in SERIES_FIELDS:
+            value = tk.get(name)
+            if name == "a_raw" and value is None:
+                value = tk["a_est"]
+            try:
+                cols[name][k] = value
+            except (TypeError, ValueError):  # JSON null (a NaN when written) inside
+                cols[name][k] = json_floats(value)
+    start = float(rec.metadata.get("scenario_start_s", "0") or 0)
+    p_true = cols["p_true"]
+    truth = bool(np.isfinite(p_true).any())
+    return Series(
+        t=cols["t"] - start, leader=cols["leader"], followers_world=cols["followers_world"],
+        p=p_true if truth else cols["p_est"], p_d=cols["p_d"], a_est=cols["a_est"], a_raw=cols["a_raw"],
+        tracked=cols["tracked"].astype(bool), v_lyap=np.nansum(cols["v_lyap"], axis=1),
+        commands=cols["commands"], truth=truth, filter_acting=acting if has_filter else None,
+    )
+
+
+COLLISION_M = 0.15  # two robot centres closer than this: their bodies (15 x 25 cm) touch
+NEAR_MISS_M = 0.25  # the safety filter's default minimum distance
+
+
+def safety_summary(rec: Recording, s: Series, dt: float) -> dict[str, Any]:
+    """Robotarium's kind of per-run safety summary: collisions, near misses, actuator limit hits."""
+    d = s.min_distance()
+    after = s.t >= 0
+    close = d[after]
+
+    def episodes(mask: np.ndarray) -> int:  # runs of consecutive ticks
+        return int(np.count_nonzero(np.diff(np.concatenate([[0], mask.astype(np.int8)])) == 1))
+
+    limits = rec.params[0][1].get("gains", {}) if rec.params else {}
+    v_max, w_max = float(limits.get("v_max", np.inf)), float(limits.get("w_max", np.inf))
+    at_limit = (np.abs(s.commands[..., 0]) >= v_max - 1e-6) | (np.abs(s.commands[..., 1]) >= w_max - 1e-6)
+    return {"safety": {
+        "distances_from": "true poses" if s.truth else "estimated poses",
+        "min_distance_cm": round(float(np.nanmin(close)) * 100, 1) if close.size and np.isfinite(close).any() else None,
+        "collisions": episodes(close < COLLISION_M),
+        "near_misses": episodes(close < NEAR_MISS_M),
+        "time_under_min_distance_s": round(float(np.count_nonzero(close < NEAR_MISS_M) * dt), 2),
+        "actuator_limit_hits": episodes(at_limit[after].any(axis=1)),
+        "filter_acting_s": None if s.filter_acting is None else round(float(np.count_nonzero(s.filter_acting[after]) * dt), 2),
+    }}
+
+
+def summarise(rec: Recording, s: Series) -> dict[str, Any]:
+    err = np.linalg.norm(s.p_d - s.p, axis=-1)  # (T, n)
+    dt = float(np.median(np.diff(s.t))) if len(s.t) > 1 else 0.0
+    followers = []
+    for i in range(err.shape[1]):
+        e = err[:, i]
+        ok = np.isfinite(e) & (s.t >= 0)
+        above = np.flatnonzero(ok & (e >= SETTLED_M))
+        valid = np.flatnonzero(ok)
+        if valid.size == 0:
+            settle = None
+        elif above.size == 0:
+            settle = float(s.t[valid[0]])
+        elif above[-1] == valid[-1]:
+            settle = None  # not settled by the end
+        else:
+            settle = float(s.t[above[-1] + 1])
+        steady = ok & (s.t >= (settle if settle is not None else s.t[-1] * 0.75))
+        es = e[steady]
+        followers.append({
+            "follower": i + 1,
+            "settling_time_s": None if settle is None else round(settle, 2),
+            "steady_error_rms_cm": round(float(np.sqrt(np.mean(es**2))) * 100, 3) if es.size else None,
+            "steady_error_max_cm": round(float(es.max()) * 100, 3) if es.size else None,
+            "time_not_tracked_s": round(float((~s.tracked[s.t >= 0, i]).sum() * dt), 2),
+        })
+    stops = [e for e in rec.events if e.get("kind") == "stop"]
+    return {
+        **safety_summary(rec, s, dt),
+        "recording": rec.path.name,
+        "complete": rec.complete,
+        "duration_s": round(float(s.t[-1] - s.t[0]), 2),
+        "errors_from": "true poses" if s.truth else "estimated poses (no ground truth recorded)",
+        "settled_means": f"error stays under {SETTLED_M * 100:.0f} cm to the end",
+        "followers": followers,
+        "stop_events": [{"t": round(float(e["t"]), 2), "detail": e["detail"]} for e in stops],
+        "events": len(rec.events),
+        "lost_ticks": sum(g.ticks for g in rec.gaps()),
+        "lost_s": round(sum(g.seconds for g in rec.gaps()), 3),
+        "loss": rec.loss_note(),
+    }
+
+
+def _summary_md(sm: dict[str, Any]) -> str:
+    lines = [f"# Session report: {sm['recording']}", "",
+             f"- duration {sm['duration_s']} s; errors from {sm['errors_from']}; settled = {sm['settled_means']}",
+             f"- file complete: {'yes' if sm['complete'] else 'no (cut off; read up to its last complete chunk)'}",
+             f"- {sm['events']} events, {len(sm['stop_events'])} STOP events"]
+    sf = sm["safety"]
+    lines.append(f"- safety ({sf['distances_from']}): closest two robots {sf['min_distance_cm']} cm; {sf['collisions']}"
+                 f" collisions (< {COLLISION_M * 100:.0f} cm), {sf['near_misses']} near misses (< {NEAR_MISS_M * 100:.0f}"
+                 f" cm, {sf['time_under_min_distance_s']} s); {sf['actuator_limit_hits']} actuator-limit hits; safety"
+                 f" filter acting {sf['filter_acting_s'] if sf['filter_acting_s'] is not None else 'not recorded'} s")
+    if sm["loss"]:
+        lines.append(f"- not in the file: {sm['lost_ticks']} ticks ({sm['lost_s']} s); {sm['loss']}")
+    for ev in sm["stop_events"]:
+        lines.append(f"  - {ev['t']} s: {ev['detail']}")
+    lines += ["", "| follower | settling time (s) | steady error RMS (cm) | steady error max (cm) | not tracked (s) |",
+              "|---|---|---|---|---|"]
+    for f in sm["followers"]:
+        lines.append(f"| {f['follower']} | {f['settling_time_s'] if f['settling_time_s'] is not None else 'not settled'}"
+                     f" | {f['steady_error_rms_cm']} | {f['steady_error_max_cm']} | {f['time_not_tracked_s']} |")
+    return "\n".join(lines) + "\n"
+
+
+def _trajectory(s: Series, title: str, path: Path, instants: int = 6) -> None:
+    fig, ax = plt.subplots(figsize=(7.5, 7), constrained_layout=True)
+    trajectory_panel(ax, s.t, s.leader, s.followers_world, s.p_d, title, instants)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _per_follower(s: Series, path: Path, ylabel: str, title: str,
+                  draw: Callable[[Axes, int], None]) -> None:
+    """One panel per follower, stacked over a shared time axis (the paper's fig. 17/20 layout)."""
+    n = s.p.shape[1]
+    fig, axes = plt.subplots(n, 1, figsize=(9, 2.2 * n + 0.6), sharex=True, constrained_layout=True, squeeze=False)
+    for i in range(n):
+        ax = axes[i, 0]
+        draw(ax, i)
+        ax.set(ylabel=ylabel, title=f"follower {i + 1}: {title}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("t (s)")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _errors(s: Series, path: Path) -> None:
+    err = s.p_d - s.p
+
+    def draw(ax: Axes, i: int) -> None:
+        ax.plot(s.t, err[:, i, 0], color="tab:blue", lw=1.0, label="x error")
+        ax.plot(s.t, err[:, i, 1], color="tab:red", lw=1.0, label="y error")
+
+    _per_follower(s, path, "m", "position error", draw)
+
+
+def _headings(s: Series, path: Path) -> None:
+    def draw(ax: Axes, i: int) -> None:
+        ax.plot(s.t, np.degrees(s.a_raw[:, i]), color="tab:blue", lw=0.8, label="measured (eq. 34-37)")
+        ax.plot(s.t, np.degrees(s.a_est[:, i]), color="tab:red", lw=1.2, label="Kalman-filtered")
+        ax.axhline(90.0, color="k", lw=0.5, ls=":")
+
+    _per_follower(s, path, "deg", "heading in the leader frame", draw)
+
+
+def _lyapunov_commands(s: Series, path: Path) -> None:
+    n = s.p.shape[1]
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True, constrained_layout=True)
+    axes[0].plot(s.t, s.v_lyap, color="tab:blue")
+    axes[0].set(ylabel="m²", title="team V = Σ ½‖ρ̃‖² (eq. 21)")
+    axes[0].set_yscale("symlog", linthresh=1e-5)
+    for i in range(n):
+        axes[1].plot(s.t, s.commands[:, i, 0], color=colour(i), lw=0.9, label=f"follower {i + 1}")
+        axes[2].plot(s.t, s.commands[:, i, 1], color=colour(i), lw=0.9)
+    axes[1].set(ylabel="m/s", title="command v")
+    axes[2].set(ylabel="rad/s", title="command ω", xlabel="t (s)")
+    axes[1].legend(fontsize=7)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], None] | None = None) -> list[Path]:
+    s = series(rec)
+    title = rec.metadata.get("scenario", rec.path.stem)
+    # a figure ~1000 px wide shows no more than this many points per line; the summary uses them all
+    shown = s.every(-(-len(s.t) // MAX_PLOTTED))
+    steps: list[tuple[str, Callable[[Path], None]]] = [
+        ("trajectory.png", lambda p: _trajectory(shown, title, p)),
+        ("errors.png", lambda p: _errors(shown, p)),
+        ("headings.png", lambda p: _headings(shown, p)),
+        ("lyapunov_commands.png", lambda p: _lyapunov_commands(shown, p)),
+    ]
+    written = []
+    total = len(steps) + 1
+    for k, (name, fn) in enumerate(steps, 1):
+        fn(out / name)
+        written.append(out / name)
+        if progress:
+            progress(k, total, name)
+    sm = summarise(rec, s)
+    (out / "summary.json").write_text(json.dumps(sm, indent=2) + "\n", encoding="utf-8")
+    (out / "summary.md").write_text(_summary_md(sm), encoding="utf-8")
+    written += [out / "summary.json", out / "summary.md"]
+    if progress:
+        progress(total, total, "summary.md, summary.json")
+    return written

@@ -1,0 +1,306 @@
+"""Writing a session to MCAP (channels and payloads: app.recording.schema).
+
+Messages are queued and written by one writer thread, so the loop never waits on the disk.
+Crash safety: messages are written in zstd chunks of at most ``CHUNK_BYTES``; SIGINT /
+SIGTERM finish the file (summary and index). A file cut off by SIGKILL or power loss is
+still read up to its last complete chunk (app.recording.reader).
+
+A disk is allowed to fail. A write error (a full disk, a pulled USB stick) or free space
+below the floor stops the recording cleanly: what was written stays readable, the reason is
+kept in :attr:`Recorder.failure` and handed to ``on_stopped`` (the page and the log say it),
+and the loop and the robots carry on. Closing never waits longer than ``CLOSE_TIMEOUT_S`` on
+the disk. :func:`apply_retention` keeps a recordings folder within its budget.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from mcap.writer import CompressionType, Writer
+
+from app.live.params import Params
+from core.types import Image
+from app.live.tick import TickState
+from app.recording.schema import (CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCHEMAS, TF_TOPIC, TICK_TOPIC,
+                                  TOPIC_SCHEMA, image_payload, params_payload, tick_payload, transforms_payload)
+
+DEFAULT_FRAME_RATE_HZ = 10.0
+MAX_FRAMES_WAITING = 30  # raw frames queued for JPEG encoding on the writer thread (3 s at 10 Hz)
+DEFAULT_FREE_FLOOR_BYTES = 200 * 1024 * 1024  # a recording stops before the disk is this full
+CLOSE_TIMEOUT_S = 10.0  # closing waits at most this long for a slow disk
+
+log = logging.getLogger(__name__)
+
+
+class RecordingRefused(OSError):
+    """A recording that cannot start (no room, no folder): one line for people."""
+
+
+def free_bytes(folder: Path) -> int:
+    return shutil.disk_usage(folder).free
+
+
+def apply_retention(folder: Path, max_total_bytes: int, keep: tuple[Path, ...] = ()) -> list[Path]:
+    """Delete the oldest sessions directly in ``folder`` (never its sub-folders: samples/ is
+    kept) until the sessions there add up to at most ``max_total_bytes``; the paths deleted."""
+    if not folder.is_dir():
+        return []
+    keep_resolved = {p.resolve() for p in keep}
+    sessions = sorted((p for p in folder.glob("*.mcap") if p.is_file() and not p.is_symlink()),
+                      key=lambda p: p.stat().st_mtime)
+    total = sum(p.stat().st_size for p in sessions)
+    deleted = []
+    for p in sessions:
+        if total <= max_total_bytes:
+            break
+        if p.resolve() in keep_resolved:
+            continue
+        size = p.stat().st_size
+        p.unlink()
+        total -= size
+        deleted.append(p)
+    return deleted
+
+
+def _safety_kind(text: str) -> str:
+    """"off", "inactive", "changed", "infeasible" or "no solver": an event when it changes, not every tick."""
+    rest = text.partition(", ")[2]
+    return rest.split(":")[0].split(" F")[0] if rest else text
+
+
+def tick_events(prev: TickState | None, s: TickState) -> list[tuple[str, str]]:
+    """Events a tick shows compared with the one before: lost / found, link, phase, STOP."""
+    ev: list[tuple[str, str]] = []
+    if prev is None or prev.n != s.n:
+        return ev
+    for i in range(s.n):
+        if bool(prev.tracked[i]) and not bool(s.tracked[i]):
+            ev.append(("lost", f"follower {i + 1} lost"))
+        elif not bool(prev.tracked[i]) and bool(s.tracked[i]):
+            ev.append(("found", f"follower {i + 1} found"))
+    if prev.link_state != s.link_state:
+        ev.append(("link", f"link {prev.link_state} -> {s.link_state}"))
+    if _safety_kind(prev.safety) != _safety_kind(s.safety) and s.safety:
+        ev.append(("safety", f"safety filter {s.safety}"))
+    if prev.phase != s.phase:
+        ev.append(("phase", f"vision {prev.phase} -> {s.phase}"))
+    if prev.stopped != s.stopped:
+        ev.append(("stop", "STOP: every follower at zero" if s.stopped else "STOP released"))
+    return ev
+
+
+def params_events(old: Params, new: Params, source: str) -> list[tuple[str, str]]:
+    """What an operator change did, in words."""
+    ev: list[tuple[str, str]] = []
+    og, ng = old.gains.as_dict(), new.gains.as_dict()
+    changed = [f"{k} {og[k]:g} -> {ng[k]:g}" for k in ng if og[k] != ng[k]]
+    if changed:
+        ev.append(("gain", ", ".join(changed)))
+    if old.slots.shape != new.slots.shape or not np.array_equal(old.slots, new.slots):
+        kind = "preset" if "preset" in source else "target"
+        ev.append((kind, f"{source.split(' ', 1)[-1] if kind == 'preset' else 'slots'}: "
+                   + "; ".join(f"({x:.2f}, {y:.2f})" for x, y in new.slots)))
+    for key in ("leader_mode", "leader_speed_mps", "leader_turn_deg_s", "n_followers", "paused"):
+        if getattr(old, key) != getattr(new, key):
+            ev.append(("setting", f"{key} {getattr(old, key)} -> {getattr(new, key)}"))
+    if old.reset_requests != new.reset_requests:
+        ev.append(("reset", "team reset"))
+    return ev
+
+
+class Recorder:
+    """Writes a session: subscribe ``on_tick`` to the loop and ``on_params`` to the store.
+
+    Messages are queued and written by one writer thread, so the loop never waits on the disk.
+    """
+
+    def __init__(self, path: Path, metadata: dict[str, str], params: Params,
+                 frame_rate_hz: float = DEFAULT_FRAME_RATE_HZ, jpeg_quality: int = 80,
+                 start_ns: int | None = None, free_floor_bytes: int = 0,
+                 on_stopped: Callable[[str], None] | None = None, lossless: bool = False) -> None:
+        """``free_floor_bytes``: the recording refuses to start, or stops, when the disk has less
+        free; ``on_stopped(why)``: called once (on the writer thread) if it stops early.
+        ``lossless``: a full queue makes the caller wait (offline writers: simulate, rerun)
+        instead of dropping the message (the live loop must never wait on the disk)."""
+        self.lossless = lossless
+        self.path = path
+        self.frame_rate_hz = frame_rate_hz
+        self.jpeg_quality = jpeg_quality
+        self.start_ns = time.time_ns() if start_ns is None else start_ns
+        self.free_floor_bytes = free_floor_bytes
+        self.on_stopped = on_stopped
+        self.failure = ""  # why the recording stopped early ("" while it records or after a clean close)
+        self.not_written = 0  # messages accepted but never written (the recording stopped, or closing gave up)
+        free = free_bytes(path.parent)
+        if free < free_floor_bytes:
+            raise RecordingRefused(f"{path}: only {free / 1e6:.0f} MB free on its disk, below the floor of"
+                                   f" {free_floor_bytes / 1e6:.0f} MB; free some space or record elsewhere")
+        try:
+            self._file = open(path, "xb")  # never over an existing file
+        except FileExistsError:
+            raise RecordingRefused(f"{path}: exists; a recording is never written over another") from None
+        self._writer = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._channels: dict[str, int] = {}
+        try:
+            self._writer.start(profile="", library="omniformation")
+            for topic, schema in TOPIC_SCHEMA.items():
+                sid = self._writer.register_schema(schema, "jsonschema", json.dumps(SCHEMAS[schema]).encode())
+                self._channels[topic] = self._writer.register_channel(topic, "json", sid)
+            self._writer.add_metadata("omniformation", {**metadata, "start_ns": str(self.start_ns)})
+        except OSError as exc:
+            self._file.close()
+            raise RecordingRefused(f"{path}: cannot write: {exc.strerror or exc}") from None
+        self._abandon = False
+        self._queue: queue.Queue[tuple[str, int, dict[str, Any] | Image] | None] = queue.Queue(maxsize=10_000)
+        self._frame_slots = threading.Semaphore(MAX_FRAMES_WAITING)  # raw frames (~1 MB each) the writer may owe
+        self._prev: TickState | None = None
+        self._params = params
+        self._last_t = 0.0
+        self._last_frame_t = -math.inf
+        self.ticks = 0
+        self.dropped = 0
+        self._thread = threading.Thread(target=self._drain, name="omniformation-recorder", daemon=True)
+        self._thread.start()
+        self._put(PARAMS_TOPIC, 0.0, params_payload(params))
+
+    def _ns(self, t: float) -> int:
+        return self.start_ns + max(0, int(round(t * 1e9)))
+
+    def _put(self, topic: str, t: float, payload: dict[str, Any] | Image) -> None:
+        """Queue a message; JSON and JPEG encoding happen on the writer thread, not the loop's."""
+        if self.failure:
+            return  # the recording has stopped: nothing more is written
+        item = (topic, self._ns(t), payload)
+        while self.lossless and not self.failure and self._thread.is_alive():
+            try:
+                self._queue.put(item, timeout=0.5)
+                return
+            except queue.Full:
+                continue
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+
+    @property
+    def recording(self) -> bool:
+        return not self.failure and self._thread.is_alive()
+
+    def on_tick(self, s: TickState) -> None:
+        """The loop's subscriber: one tick (and the frame when one is due)."""
+        if self.failure:
+            return
+        self._last_t = s.t
+        self._put(TICK_TOPIC, s.t, tick_payload(s))
+        self._put(TF_TOPIC, s.t, transforms_payload(s, self._ns(s.t)))
+        for kind, detail in tick_events(self._prev, s):
+            self.event(s.t, kind, detail)
+        if s.frame is not None and self.frame_rate_hz > 0 and s.t - self._last_frame_t >= 1.0 / self.frame_rate_hz - 1e-9:
+            self._last_frame_t = s.t
+            got = self._frame_slots.acquire(timeout=30.0) if self.lossless else self._frame_slots.acquire(blocking=False)
+            if got:  # a stalled disk must not fill memory with frames
+                self._put(IMAGE_TOPIC, s.t, s.frame)  # a published frame is never changed: encoded later
+            else:
+                self.dropped += 1
+        self._prev = s
+        self.ticks += 1
+
+    def add_jpeg(self, t: float, jpeg: bytes) -> None:
+        """One camera frame, already JPEG-encoded."""
+        self._put(IMAGE_TOPIC, t, image_payload(self._ns(t), jpeg))
+
+    def on_params(self, p: Params, source: str, notices: tuple[Any, ...]) -> None:
+        """The store's subscriber: the new parameter set and what changed."""
+        old, self._params = self._params, p
+        for kind, detail in params_events(old, p, source):
+            self.event(self._last_t, kind, detail)
+        self._put(PARAMS_TOPIC, self._last_t, params_payload(p))
+
+    def event(self, t: float, kind: str, detail: str) -> None:
+        self._put(EVENT_TOPIC, t, {"t": t, "kind": kind, "detail": detail})
+
+    def _drain(self) -> None:
+        written = self._file.tell()
+        while not self._abandon:
+            item = self._queue.get()
+            if item is None:
+                return
+            topic, ns, payload = item
+            if not isinstance(payload, dict):  # a camera frame (a synthetic one is rendered here, off the loop)
+                self._frame_slots.release()
+                ok, buf = cv2.imencode(".jpg", np.asarray(payload), [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+                if not ok:
+                    continue
+                payload = image_payload(ns, buf.tobytes())
+            data = json.dumps(payload, separators=(",", ":")).encode()
+            try:
+                self._writer.add_message(self._channels[topic], log_time=ns, data=data, publish_time=ns)
+                if self.free_floor_bytes and self._file.tell() != written:  # a chunk went to disk: look again
+                    written = self._file.tell()
+                    free = free_bytes(self.path.parent)
+                    if free < self.free_floor_bytes:
+                        self._stop_early(f"the disk is nearly full ({free / 1e6:.0f} MB free, below the floor of"
+                                         f" {self.free_floor_bytes / 1e6:.0f} MB)")
+                        return
+            except OSError as exc:
+                self._stop_early(f"writing failed: {exc.strerror or exc}")
+                return
+
+    def _stop_early(self, why: str) -> None:
+        """On the writer thread: end the file as well as the disk lets us, say why, drop the rest."""
+        self.failure = why
+        self.not_written += self._queue.qsize() + 1
+        self._finish_file()
+        log.error("recording %s stopped: %s", self.path, why)
+        while True:  # what is queued will never be written: let the loop's frames go
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item is not None and not isinstance(item[2], dict):
+                self._frame_slots.release()
+        if self.on_stopped is not None:
+            try:
+                self.on_stopped(why)
+            except Exception:  # noqa: BLE001 - a broken listener must not hide the failure
+                log.exception("recording stop listener failed")
+
+    def _finish_file(self) -> None:
+        """Summary and index if the disk takes them; the file is closed either way (a file
+        without its summary is still read up to its last complete chunk)."""
+        try:
+            self._writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer.finish has no annotations
+        except (OSError, ValueError):
+            pass
+        try:
+            self._file.close()
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        """Write what is queued, then the summary and index: a complete file. Never waits on a
+        slow or dead disk longer than ``CLOSE_TIMEOUT_S``."""
+        try:
+            self._queue.put(None, timeout=CLOSE_TIMEOUT_S / 2)
+        except queue.Full:
+            pass
+        self._thread.join(CLOSE_TIMEOUT_S)
+        if self._thread.is_alive():  # the disk does not take the bytes: leave the file as it is
+            self._abandon = True
+            self.not_written += self._queue.qsize()
+            if not self.failure:
+                self.failure = f"closing gave up after {CLOSE_TIMEOUT_S:g} s (the disk did not keep up)"
+            return
+        if not self.failure:
+            self._finish_file()

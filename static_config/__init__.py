@@ -1,0 +1,1 @@
+"""The shipped configuration as package data: default.toml, camera/ rigs, scenarios/ (see app.files)."""

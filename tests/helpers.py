@@ -1,0 +1,154 @@
+"""What several test modules use: the repository's folders, the command line run as a user
+runs it (a subprocess, or the same entry point in-process), emulated followers on a real pty,
+Debian's Chromium driven by Playwright, and waiting for a condition."""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from app.backends.emulator import FollowerEmulator, PtyEndpoint, serve
+
+ROOT = Path(__file__).resolve().parents[1]
+ARTIFACTS = ROOT / "test-artifacts"
+SCENARIOS = ROOT / "static_config" / "scenarios"
+SAMPLES = ROOT / "recordings" / "samples"
+
+
+def wait_for(pred: Callable[[], object], timeout: float = 10.0, what: str = "condition") -> float:
+    """Poll ``pred`` until it is true; the seconds it took. A time-out fails the test, naming ``what``."""
+    start = time.monotonic()
+    while time.monotonic() - start < timeout:
+        if pred():
+            return time.monotonic() - start
+        time.sleep(0.01)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=300,
+        cwd=cwd or ROOT,
+    )
+
+
+@dataclass
+class ServedRun:
+    returncode: int
+    startup: str  # stdout up to and including the "dashboard at" line
+    stdout: str  # the rest
+    stderr: str
+
+
+def serve_then_signal(*args: str, until: Callable[[], bool] | None = None, hold_s: float = 1.0,
+                      sig: int = signal.SIGTERM, command: list[str] | None = None, cwd: Path = ROOT,
+                      start_timeout_s: float = 60.0) -> ServedRun:
+    """`omniformation run ARGS` as a real process (``command``: another way to start it, e.g. an
+    installed console script): wait for its dashboard line, then for ``until`` (or ``hold_s``),
+    send ``sig`` and collect everything it printed."""
+    proc = subprocess.Popen([*(command or [sys.executable, "-m", "app.cli", "run"]), *args], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        lines: list[str] = []
+        deadline = time.monotonic() + start_timeout_s
+        while time.monotonic() < deadline and not (lines and "dashboard at" in lines[-1]):
+            line = proc.stdout.readline() if proc.stdout else ""
+            if not line and proc.poll() is not None:
+                break
+            lines.append(line)
+        if until is None:
+            time.sleep(hold_s)
+        else:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and not until():
+                time.sleep(0.02)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    return ServedRun(proc.returncode, "".join(lines), out, err)
+
+
+def main_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    """The same ``omniformation`` entry point, called in this process: no interpreter start-up
+    (~3 s each with the compiled core), the same parsing, messages and exit codes. Only for
+    commands that end by themselves; signals and the console script are tested as subprocesses."""
+    import contextlib
+    import io
+
+    from app.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(list(args))
+        except SystemExit as exc:  # argparse's usage errors
+            code = exc.code if isinstance(exc.code, int) else 1
+    return subprocess.CompletedProcess(["omniformation", *args], code, out.getvalue(), err.getvalue())
+
+
+class EmulatorThread:
+    """Emulated followers on a real pty, in this process so a test can look at the robots."""
+
+    def __init__(self, n: int = 3, drop: float = 0.0, corrupt: float = 0.0, addresses: list[int] | None = None) -> None:
+        self.emulator = FollowerEmulator(addresses or list(range(1, n + 1)), drop=drop, corrupt=corrupt, seed=3)
+        self.endpoint = PtyEndpoint()
+        self.path = self.endpoint.path
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=serve, args=(self.emulator, self.endpoint, self._stop), daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.endpoint.close()
+
+
+def start_emulator_process(link_path: Path, *extra: str) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "emulate-follower", "--pty", "--link-path", str(link_path),
+                             *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    assert "emulating followers 1..3" in line, line + proc.stderr.read()
+    return proc
+
+
+@contextlib.contextmanager
+def chromium_browser() -> Iterator[Any]:
+    """Debian's Chromium driven by Playwright (Playwright cannot download its own browsers here)."""
+    from playwright.sync_api import sync_playwright
+
+    chromium = shutil.which("chromium")
+    assert chromium, "Debian's chromium is missing: `make test` installs it (scripts/ensure-chromium)"
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+def settle(page) -> None:
+    """Wait until the page's main thread is free: right after loading, software WebGL compiles
+    its shaders there for seconds on these machines (no GPU)."""
+    page.evaluate("() => new Promise(r => requestAnimationFrame(() => r(true)))")
+
+
+def control_id(page, label: str) -> str:
+    loc = page.locator("label", has_text=label).first
+    loc.wait_for(timeout=30_000)
+    ident = loc.get_attribute("for")
+    assert ident, f"label {label!r} has no control id"
+    return ident
+
+
