@@ -1,0 +1,242 @@
+"""Who may open the dashboard: same-origin clients whose Host is the served address, a token
+off loopback, never viser's own port; a taken port or a foreign address is one line, exit 2.
+
+The clients here are real websocket and HTTP clients on loopback, sending the headers a
+hostile page (or a DNS-rebinding one) would send."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+
+import pytest
+import viser
+import websockets.exceptions
+import websockets.sync.client as wsc
+
+from app.dashboard.gate import COOKIE
+from app.live.service import Service
+from tests.helpers import ROOT, main_cli
+
+SUBPROTOCOL = f"viser-v{viser.__version__}"
+
+
+def ws_connect(port: int, host_name: str = "127.0.0.1", origin: str | None = "same", path: str = "/",
+               cookie: str = "") -> wsc.ClientConnection:
+    """A websocket to 127.0.0.1:port that says ``Host: host_name:port`` and the given Origin."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    headers = {}
+    if origin == "same":
+        origin = f"http://{host_name}:{port}"
+    if origin is not None:
+        headers["Origin"] = origin
+    if cookie:
+        headers["Cookie"] = cookie
+    return wsc.connect(f"ws://{host_name}:{port}{path}", sock=sock, subprotocols=[SUBPROTOCOL],
+                       additional_headers=headers, open_timeout=10, max_queue=None)
+
+
+def http_get(port: int, path: str = "/", host_name: str = "127.0.0.1") -> tuple[int, dict[str, str], bytes]:
+    req = urllib.request.Request(f"http://127.0.0.1:{port}{path}", headers={"Host": f"{host_name}:{port}"})
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, dict(r.headers), r.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, dict(exc.headers), exc.read()
+
+
+def refused_ws(**kw) -> bool:
+    try:
+        ws_connect(**kw).close()
+    except websockets.exceptions.InvalidStatus as exc:
+        return exc.response.status_code == 403
+    return False
+
+
+@pytest.fixture(scope="module")
+def service():
+    svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0)
+    svc.start()
+    yield svc
+    svc.close()
+
+
+def test_a_same_origin_page_connects_and_gets_the_scene(service):
+    conn = ws_connect(service.gate.port)
+    try:
+        first = conn.recv(timeout=10)
+        assert isinstance(first, bytes) and len(first) > 16  # viser's framed, compressed messages
+    finally:
+        conn.close()
+
+
+def test_another_web_page_cannot_drive_the_robots(service):
+    before = service.store.get().version
+    refused = service.gate.refused.origin
+    for origin in ("http://evil.example.com", f"http://127.0.0.1:{service.gate.port + 1}", "null", None):
+        assert refused_ws(port=service.gate.port, origin=origin), origin
+    assert service.gate.refused.origin == refused + 4
+    assert service.store.get().version == before
+
+
+def test_dns_rebinding_is_refused_for_the_page_and_the_websocket(service):
+    port = service.gate.port
+    status, _, body = http_get(port, host_name="evil.example")
+    assert status == 403 and b"Host" in body
+    assert refused_ws(port=port, host_name="evil.example")
+    assert http_get(port)[0] == 200
+    assert http_get(port, host_name="localhost")[0] == 200
+
+
+def test_viser_own_port_refuses_clients_that_did_not_come_through_the_gate(service):
+    upstream = service.server.get_port()
+    bypass = service.gate.refused.bypass
+    conn = ws_connect(upstream)
+    with pytest.raises(websockets.exceptions.ConnectionClosed) as info:
+        while True:
+            conn.recv(timeout=10)
+    assert info.value.rcvd is not None and info.value.rcvd.code == 1008
+    assert service.gate.refused.bypass == bypass + 1
+
+
+def test_off_loopback_a_token_is_required_and_kept_as_a_cookie():
+    svc = Service(host="0.0.0.0", port=0, n_followers=2, rate_hz=30.0)  # reached here over loopback only
+    try:
+        port, token = svc.gate.port, svc.gate.token
+        assert token and len(token) >= 16 and f"?token={token}" in svc.url
+        assert http_get(port)[0] == 403
+        assert refused_ws(port=port)
+        assert refused_ws(port=port, cookie=f"{COOKIE}=wrong-token-wrong-token")
+        status, headers, _ = http_get(port, f"/?token={token}")
+        assert status == 200 and f"{COOKIE}={token}" in headers["Set-Cookie"] and "HttpOnly" in headers["Set-Cookie"]
+        conn = ws_connect(port, cookie=f"{COOKIE}={token}")
+        assert len(conn.recv(timeout=10)) > 16
+        conn.close()
+        assert svc.gate.refused.token == 3
+    finally:
+        svc.close()
+
+
+def test_the_live_page_offers_only_what_it_listed(service, tmp_path):
+    panel = service.recordings
+    outside = tmp_path / "outside.mcap"
+    outside.write_bytes(b"not a recording")
+    for name in (str(outside), "../../../elsewhere/outside.mcap", "/etc/passwd"):
+        panel.menu.value = name
+        assert panel.open_selected() == "not one of the listed recordings"
+    assert panel.replays == []
+
+
+def test_a_taken_port_is_one_line_and_exit_2(service):
+    res = main_cli("run", "--port", str(service.gate.port), "--no-record", "--feedback", "truth")
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Address already in use" in lines[0] and "--port" in lines[0], res.stderr
+    res = main_cli("replay", str(ROOT / "recordings/samples/experiment2-vision.mcap"), "--port", str(service.gate.port))
+    assert res.returncode == 2 and "Address already in use" in res.stderr
+
+
+def test_an_address_this_machine_does_not_have_is_one_line_and_exit_2():
+    start = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "app.cli", "run", "--host", "192.0.2.1", "--no-record",
+                           "--feedback", "truth"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("omniformation: error: cannot serve on 192.0.2.1:8080")
+    assert "Traceback" not in proc.stderr
+    assert time.monotonic() - start < 110  # it answered, it did not hang
+
+
+@pytest.mark.parametrize("bad", ["short", "has space in it here", "x" * 201])
+def test_a_bad_token_argument_is_refused(bad):
+    res = main_cli("run", "--token", bad)
+    assert res.returncode == 2 and "token is 16 to 200 characters" in res.stderr
+
+
+def _fuzz_values(rng) -> list:
+    return [float("nan"), float("inf"), float("-inf"), 1e308, -1e308, 0.0, -0.0, 1e-320, 2**63 - 1, -(2**63), True, None,
+            "", "fast", "1.5", [1, 2], {"a": 1}, b"\x00\xff", float(rng.normal()), float(rng.uniform(-5, 5)),
+            int(rng.integers(-100, 100)), "eq39", "warp"]
+
+
+def test_ten_thousand_random_and_malformed_gui_messages_leave_every_parameter_in_bounds(service):
+    """A same-origin client (the worst a let-in page can do) sends 10,000 GUI messages: valid
+    updates with hostile values to every input, unknown types, missing fields and random bytes."""
+    import math
+
+    import msgspec
+    import numpy as np
+
+    from app.live.params import LEADER_MODES, LEADER_SPEED, LEADER_TURN, MAX_FOLLOWERS, SLOT_LIMIT_M
+    from core.types import GAIN_BOUNDS
+
+    rng = np.random.default_rng(11)
+    controls = service.dashboard.controls
+    handles = [*controls.gains.values(), controls.mode, controls.speed, controls.turn, controls.n_slider,
+               *(h for pair in controls.slot_inputs for h in pair)]
+    uuids = [h._impl.uuid for h in handles] + ["no-such-uuid"]
+    values = _fuzz_values(rng)
+    ticks_before, faults_before = service.loop.tick_count, service.loop.faults
+    start = time.monotonic()
+    sent = reconnects = 0
+    conn = ws_connect(service.gate.port)
+    try:
+        while sent < 10_000:
+            kind = rng.integers(0, 10)
+            if kind < 7:
+                msg = {"type": "GuiUpdateMessage", "uuid": uuids[rng.integers(len(uuids))],
+                       "updates": {"value": values[rng.integers(len(values))]}}
+                data = msgspec.msgpack.encode(msg)
+            elif kind == 7:
+                data = msgspec.msgpack.encode({"type": ["NoSuchMessage", "GuiUpdateMessage"][rng.integers(2)]})
+            else:
+                data = rng.bytes(int(rng.integers(0, 64)))
+            try:
+                conn.send(data)
+                sent += 1
+            except websockets.exceptions.ConnectionClosed:  # viser drops a client that sends garbage
+                reconnects += 1
+                conn = ws_connect(service.gate.port)
+            if sent % 500 == 0:
+                time.sleep(0.05)  # let the callbacks run
+    finally:
+        conn.close()
+    time.sleep(1.0)
+    elapsed = time.monotonic() - start
+    ticks = service.loop.tick_count - ticks_before
+    print(f"\n10,000 messages in {elapsed:.1f} s over {reconnects + 1} connections; the loop ticked {ticks} times"
+          f" ({ticks / elapsed:.1f} Hz, set 30 Hz), faults {service.loop.faults - faults_before}")
+    p = service.store.get()
+    for name, bound in GAIN_BOUNDS.items():
+        value = getattr(p.gains, name)
+        assert math.isfinite(value) and bound.lo <= value <= bound.hi, (name, value)
+    assert p.leader_mode in LEADER_MODES
+    assert LEADER_SPEED.lo <= p.leader_speed_mps <= LEADER_SPEED.hi and math.isfinite(p.leader_speed_mps)
+    assert LEADER_TURN.lo <= p.leader_turn_deg_s <= LEADER_TURN.hi and math.isfinite(p.leader_turn_deg_s)
+    assert 1 <= p.n_followers <= MAX_FOLLOWERS
+    assert np.all(np.isfinite(p.slots)) and np.all(np.abs(p.slots) <= SLOT_LIMIT_M)
+    assert service.loop.faults == faults_before  # nothing the page sent broke a tick
+    assert service.loop.last is not None and service.loop.last.tick >= ticks_before + 1
+
+
+def test_a_token_with_any_characters_is_refused_not_crashed_on():
+    svc = Service(host="0.0.0.0", port=0, n_followers=1, rate_hz=30.0)
+    try:
+        port = svc.gate.port
+        req = urllib.request.Request(f"http://127.0.0.1:{port}/?token=%C3%A9t%C3%A9",
+                                     headers={"Host": f"127.0.0.1:{port}", "Cookie": f"{COOKIE}=\u00e9t\u00e9"})
+        with pytest.raises(urllib.error.HTTPError) as info:
+            urllib.request.urlopen(req, timeout=30)
+        assert info.value.code == 403
+    finally:
+        svc.close()
+
+
+def test_a_recording_does_not_keep_the_token():
+    from app.recording.session import without_secrets
+
+    assert without_secrets(["run", "--token", "s3cret-s3cret-s3cret", "--token=abc", "--port", "1"]) == \
+        ["run", "--token", "***", "--token=***", "--port", "1"]

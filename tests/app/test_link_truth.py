@@ -1,0 +1,239 @@
+"""The follower link tells the truth: "ok" only while robots answer frames we sent; echoes and
+strangers are recognised; every command written is answered, late, lost or pending; while the
+link is lost only zero goes out (and the loop commands zero); a reopened port gets STOP first.
+
+Each "line" here is a real pseudo-terminal with a small program on the robots' end."""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from app.backends.serial_link import REPLY_TIMEOUT_S, SerialLink
+from core.link import protocol as p
+from core.types import Commands
+from tests.helpers import main_cli, wait_for
+
+
+class Line:
+    """A pty whose far end runs ``behave(frame bytes in) -> bytes out (or None)`` on every chunk
+    read; it keeps everything the host wrote, as frames."""
+
+    def __init__(self, behave: Callable[[bytes], bytes | None]) -> None:
+        self.master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.path = os.ttyname(self._slave)
+        self.behave = behave
+        self.parser = p.FrameParser()
+        self.frames: list[p.Frame] = []
+        self.chunks: list[bytes] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.02)
+            if not ready:
+                continue
+            try:
+                data = os.read(self.master, 4096)
+            except OSError:
+                continue
+            self.chunks.append(data)
+            self.frames.extend(self.parser.feed(data))
+            out = self.behave(data)
+            if out:
+                os.write(self.master, out)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        os.close(self.master)
+        os.close(self._slave)
+
+
+def run_at_30hz(link: SerialLink, seconds: float, v: float = 0.1) -> list[str]:
+    states = []
+    for _ in range(int(seconds * 30)):
+        link.send(Commands(np.full(link.n, v), np.zeros(link.n)))
+        states.append(link.link_state)
+        time.sleep(1 / 30)
+    return states
+
+
+def acker(delay_s: float = 0.0, answer: Callable[[p.Frame], bool] = lambda f: True) -> Callable[[bytes], bytes | None]:
+    """Robots at the addresses written to that ACK every SET_VELOCITY and STOP (after ``delay_s``)."""
+    parser = p.FrameParser()
+
+    def behave(data: bytes) -> bytes | None:
+        out = b""
+        for f in parser.feed(data):
+            if f.msg_type in (p.MSG_SET_VELOCITY, p.MSG_STOP) and f.address != p.BROADCAST and answer(f):
+                out += p.encode_frame(p.ack(f.address, f.seq, p.Ack(0, 0, 0.0, 0.0, 0)))
+        if delay_s and out:
+            time.sleep(delay_s)
+        return out
+
+    return behave
+
+
+def test_an_echoing_line_is_never_ok_and_carries_only_zero():
+    line = Line(lambda data: data)  # every byte written comes back: no robot at all
+    link = SerialLink(line.path, 3)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        states = run_at_30hz(link, 1.5)
+        assert not any(s.endswith(": ok") for s in states)
+        assert "an echoing line, no robot answers" in link.link_state
+        assert sum(s.echoes for s in link.stats) > 100 and sum(s.answered for s in link.stats) == 0
+        velocities = [p.decode_velocity(f) for f in line.frames if f.msg_type == p.MSG_SET_VELOCITY]
+        assert len(velocities) > 100 and all(v == (0.0, 0.0) for v in velocities)  # lost: zero, whatever asked
+    finally:
+        link.close()
+        line.close()
+
+
+def test_well_formed_replies_that_answer_nothing_we_sent_are_not_an_answer():
+    rng = np.random.default_rng(5)
+
+    seen: set[int] = set()
+    sent_seqs = p.FrameParser()
+
+    def behave(data: bytes) -> bytes:
+        for f in sent_seqs.feed(data):
+            seen.add(f.seq)
+        out = b""
+        for a in (1, 2, 3):
+            seq = next(s for s in rng.permutation(256) if s not in seen)
+            out += p.encode_frame(p.ack(a, int(seq), p.Ack(1, 2, 0.1, 0.0, 0)))
+        return out
+
+    line = Line(behave)
+    link = SerialLink(line.path, 3)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        states = run_at_30hz(link, 1.0)
+        assert not any(s.endswith(": ok") for s in states)
+        assert "replies answered nothing we sent" in link.link_state
+        assert sum(s.unmatched for s in link.stats) > 30 and sum(s.answered for s in link.stats) == 0
+        v, w = link.measured()
+        assert np.all(v == 0) and np.all(w == 0)  # a stranger's odometry is not taken
+    finally:
+        link.close()
+        line.close()
+
+
+def test_late_replies_are_late_not_answered_and_the_counts_add_up():
+    line = Line(acker(delay_s=REPLY_TIMEOUT_S + 0.15))
+    link = SerialLink(line.path, 2)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        for _ in range(20):
+            link.send(Commands(np.full(2, 0.1), np.zeros(2)))
+            time.sleep(0.1)
+            s = link.stats
+            assert sum(x.sent for x in s) == sum(x.answered + x.late + x.lost for x in s) + link.pending
+        time.sleep(1.0)
+        link.send(Commands.zeros(2))
+        s = link.stats
+        assert sum(x.late for x in s) > 10 and sum(x.answered for x in s) < sum(x.late for x in s)
+        assert sum(x.sent for x in s) == sum(x.answered + x.late + x.lost for x in s) + link.pending
+        assert "late" in link.detail()
+    finally:
+        link.close()
+        line.close()
+
+
+def test_one_silent_follower_makes_the_link_degraded_naming_it():
+    line = Line(acker(answer=lambda f: f.address != 2))
+    link = SerialLink(line.path, 3)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        run_at_30hz(link, 1.0)
+        assert link.link_state.startswith(f"serial {line.path}: degraded (F2 ")
+        assert link.quality()[0] == "" and link.quality()[2] == "" and link.quality()[1]
+    finally:
+        link.close()
+        line.close()
+
+
+def test_a_reopened_port_gets_stop_for_everyone_before_anything_else():
+    line = Line(acker())
+    link = SerialLink(line.path, 3)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        run_at_30hz(link, 0.3)
+        assert line.frames[0].msg_type == p.MSG_STOP and line.frames[0].address == 1
+        first = [f for f in line.frames[:4]]
+        assert [f.msg_type for f in first] == [p.MSG_STOP] * 4 and {f.address for f in first} == {1, 2, 3, p.BROADCAST}
+        link._lost(link._port, "test: the cable was pulled")  # as a failed read or write does
+        wait_for(lambda: link.connects == 2, 5, "the port to reopen")
+        count = len(line.frames)
+        run_at_30hz(link, 0.3)
+        after = line.frames[count:]
+        assert [f.msg_type for f in after[:4]] == [p.MSG_STOP] * 4
+    finally:
+        link.close()
+        line.close()
+
+
+def test_while_the_link_is_lost_the_loop_commands_zero():
+    """A line nobody answers: the loop's controller would drive, but every tick's commands are zero."""
+    from app.live.loop import ServiceLoop
+    from app.live.params import ParamsStore
+
+    line = Line(lambda data: None)
+    link = SerialLink(line.path, 2)
+    store = ParamsStore()
+    store.update("test", leader_mode="straight")
+    loop = ServiceLoop(store, rate_hz=30.0, seed=1, link=link)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        states = [loop.tick() for _ in range(60)]
+        assert all(s.link_state.startswith("link lost") for s in states)
+        assert all(np.all(s.commands == 0.0) for s in states)
+        written = [p.decode_velocity(f) for f in line.frames if f.msg_type == p.MSG_SET_VELOCITY]
+        assert written and all(v == (0.0, 0.0) for v in written)
+    finally:
+        loop.halt_followers()
+        link.close()
+        line.close()
+
+
+def test_the_emulator_never_touches_an_existing_file(tmp_path):
+    precious = tmp_path / "notes.txt"
+    precious.write_text("keep me")
+    res = main_cli("emulate-follower", "--link-path", str(precious))
+    assert res.returncode == 2 and "exists and is not a link to a pseudo-terminal" in res.stderr
+    assert precious.read_text() == "keep me" and not precious.is_symlink()
+    folder = tmp_path / "dir"
+    folder.mkdir()
+    res = main_cli("emulate-follower", "--link-path", str(folder))
+    assert res.returncode == 2 and folder.is_dir()
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_counts_add_up_with_a_healthy_team(n):
+    line = Line(acker())
+    link = SerialLink(line.path, n)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        states = run_at_30hz(link, 1.0)
+        assert not states[-1].startswith("link lost")  # answered (a loaded machine may make a reply late)
+        time.sleep(REPLY_TIMEOUT_S + 0.1)
+        link.send(Commands.zeros(n))
+        s = link.stats
+        assert sum(x.sent for x in s) == sum(x.answered + x.late + x.lost for x in s) + link.pending
+        assert sum(x.answered + x.late for x in s) > 0.9 * sum(x.sent for x in s)  # every robot answers
+        assert sum(x.unmatched + x.echoes for x in s) == 0
+    finally:
+        link.close()
+        line.close()
