@@ -2,38 +2,27 @@
 
 from __future__ import annotations
 
-import contextlib
-import shutil
+import re
 import threading
 import time
-from pathlib import Path
-from typing import Any, Callable, Iterator
 
 import numpy as np
 import pytest
 
-from app.loop import TickState
-from app.service import Service
+from app.live.tick import TickState
+from app.live.service import Service
 
-ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
+from tests.helpers import ARTIFACTS
+from tests.helpers import chromium_browser, control_id, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
-
-
-def wait_for(pred: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 @pytest.fixture(scope="module")
 def service():
     """What `make run` serves: default.toml, the synthetic camera and the vision pipeline."""
-    from app.params import MAX_FOLLOWERS
-    from app.service_config import DEFAULT_CONFIG, load_service_config
+    from app.live.params import MAX_FOLLOWERS
+    from app.live.config import DEFAULT_CONFIG, load_service_config
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=4, camera=config.camera(),
@@ -53,19 +42,6 @@ def service():
     svc.close()
 
 
-@contextlib.contextmanager
-def chromium_browser() -> Iterator[Any]:
-    """Debian's Chromium driven by Playwright (Playwright cannot download its own browsers here)."""
-    chromium = shutil.which("chromium")
-    assert chromium, "Debian's chromium is missing: `make test` installs it (scripts/ensure-chromium)"
-    with playwright_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
-        try:
-            yield browser
-        finally:
-            browser.close()
-
-
 @pytest.fixture(scope="module")
 def page(service):
     with chromium_browser() as browser:
@@ -75,20 +51,6 @@ def page(service):
         pg.wait_for_selector(".uplot canvas", timeout=30_000)
         settle(pg)
         yield pg
-
-
-def settle(page) -> None:
-    """Wait until the page's main thread is free: right after loading, software WebGL compiles
-    its shaders there for seconds on these machines (no GPU)."""
-    page.evaluate("() => new Promise(r => requestAnimationFrame(() => r(true)))")
-
-
-def control_id(page, label: str) -> str:
-    loc = page.locator("label", has_text=label).first
-    loc.wait_for(timeout=30_000)
-    ident = loc.get_attribute("for")
-    assert ident, f"label {label!r} has no control id"
-    return ident
 
 
 def states_after(service, version: int) -> list[TickState]:
@@ -112,6 +74,11 @@ def test_page_shows_scene_plots_and_camera_and_is_screenshotted(page, service):
     assert (ARTIFACTS / "dashboard.png").stat().st_size > 30_000
     assert page.locator(".uplot").count() >= 6
     assert service.loop.last is not None and service.loop.last.n == 3
+    page.locator(".uplot .u-over").first.hover()  # the cursor shows the x value in every synced chart's legend
+    legends = page.locator(".uplot .u-legend").all_inner_texts()
+    assert legends and not any("1970" in text or "/70" in text for text in legends), legends  # seconds, not dates
+    # one cursor for all: every legend shows the same x in seconds (uPlot prints a whole second as "8")
+    assert all(re.search(r"t \(s\)\s*\d+(\.\d+)?[FV]", text) for text in legends), legends
 
 
 def test_kf1_slider_reaches_the_controller_on_the_next_tick(page, service):
@@ -153,6 +120,20 @@ def test_out_of_range_value_is_clamped_with_a_notice(page, service):
              what="slot 2 y clamped")
     assert service.store.get().slots[1, 1] == pytest.approx(2.0)
     assert service.loop.last is not None and service.loop.stopping is False
+
+
+def test_the_safety_filter_is_on_and_the_page_switches_it(page, service):
+    assert service.store.get().safety is True
+    wait_for(lambda: service.loop.last is not None and service.loop.last.safety.startswith("on"), what="the filter's state")
+    ident = control_id(page, "Safety filter")
+    page.locator(f'[id="{ident}"] input, input[id="{ident}"]').first.click()
+    wait_for(lambda: service.store.get().safety is False, what="the filter off in the store")
+    version = service.store.get().version
+    wait_for(lambda: len(states_after(service, version)) > 0, what="a tick without the filter")
+    assert states_after(service, version)[0].safety == "off"
+    wait_for(lambda: "safety filter: off" in page.inner_text("body"), timeout=15.0, what="the status line to say so")
+    page.locator(f'[id="{ident}"] input, input[id="{ident}"]').first.click()
+    wait_for(lambda: service.store.get().safety is True, what="the filter back on")
 
 
 def test_stop_zeroes_every_command_on_the_next_tick(page, service):
