@@ -16,7 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from core.sim.profiles import ConstantProfile, Eq39Profile, LeaderProfile, Segment, SegmentsProfile
+from core.control.presets import FORMATION_PRESETS, formation_preset
+from core.control.safety import SafetySettings
+from core.obstacles import Obstacle, as_array, surface_distance
+from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile, LeaderProfile, Segment, SegmentsProfile
 from core.sim.team import DISTURBANCE_KINDS, Disturbance, FollowerDynamics
 from core.types import GAIN_BOUNDS, FloatArray, Gains
 
@@ -50,6 +53,16 @@ class Scenario:
     dynamics: FollowerDynamics
     measurement: MeasurementNoise
     disturbances: tuple[Disturbance, ...]
+    obstacles: tuple[Obstacle, ...] = ()  # world frame (= the leader frame at t = 0)
+    safety: SafetySettings | None = None  # the safety filter on every command ([safety]); None: off
+    switches: tuple[tuple[float, FloatArray], ...] = ()  # (scenario time s, new slots (n, 2)), in order
+    min_scale: float = 1.0  # the formation may shrink to this to pass a gap ([formation] min_scale)
+
+    @property
+    def stepped(self) -> bool:
+        """Needs the stepped simulator (core.sim.stepped): obstacles, the filter, a goal or switches."""
+        return bool(self.obstacles) or self.safety is not None or isinstance(self.leader, GoalProfile) \
+            or bool(self.switches)
 
     @property
     def n(self) -> int:
@@ -167,9 +180,12 @@ def _speed(t: Table) -> float:
 
 
 def _parse_leader(t: Table) -> LeaderProfile:
-    kind = t.text("profile", choices=("constant", "eq39", "segments"))
+    kind = t.text("profile", choices=("constant", "eq39", "segments", "goal"))
     profile: LeaderProfile
-    if kind == "constant":
+    if kind == "goal":
+        profile = GoalProfile(t.point("goal", WORKSPACE_LIMIT_M), t.number("speed_mps", 0.0, 0.5, lo_open=True,
+                                                                          unit="m/s"))
+    elif kind == "constant":
         profile = ConstantProfile(_speed(t), _turn(t))
     elif kind == "eq39":
         profile = Eq39Profile(
@@ -278,6 +294,8 @@ def parse_scenario(text: str, source: str) -> Scenario:
             if math.dist(slots[i], slots[j]) < MIN_SLOT_SPACING_M:
                 raise formation.fail("slots", slots_raw, f"points at least {MIN_SLOT_SPACING_M * 100:g} cm apart"
                                      f" (slots {j + 1} and {i + 1} are not: two robots cannot stand in one place)")
+    min_scale = formation.number("min_scale", 0.3, 1.0, default=1.0)
+    switches = _parse_switches(formation, len(p0), duration, seed)
     formation.finish()
 
     gains = parse_gains(top.table("gains"))
@@ -294,6 +312,8 @@ def parse_scenario(text: str, source: str) -> Scenario:
             raise dt_.fail("end_s", end, f"> start_s ({start:g})")
         dt_.finish()
         disturbances.append(Disturbance(follower - 1, start, end, kind))
+    obstacles = _parse_obstacles(top, np.array(p0, dtype=np.float64), leader)
+    safety = _parse_safety(top)
     top.finish()
 
     return Scenario(
@@ -310,4 +330,93 @@ def parse_scenario(text: str, source: str) -> Scenario:
         dynamics=dynamics,
         measurement=measurement,
         disturbances=tuple(disturbances),
+        obstacles=obstacles,
+        safety=safety,
+        switches=switches,
+        min_scale=min_scale,
     )
+
+
+ROBOT_RADIUS_M = 0.15  # a follower's footprint (15 x 25 cm) seen as a disc; the leader's is larger
+LEADER_RADIUS_M = 0.25
+
+
+def _parse_obstacles(top: Table, p0: FloatArray, leader: LeaderProfile) -> tuple[Obstacle, ...]:
+    """[[obstacles]]: boxes in the world frame; none may hold a robot at the start or the goal."""
+    out = []
+    for ot in top.tables("obstacles"):
+        x, y = ot.point("center", WORKSPACE_LIMIT_M)
+        size = ot.raw("size")
+        if (not isinstance(size, list) or len(size) != 2
+                or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in size)
+                or not all(math.isfinite(float(c)) and 0.0 < float(c) <= 5.0 for c in size)):
+            raise ot.fail("size", size, "[length, width] in (0, 5] m")
+        heading = math.radians(ot.number("heading_deg", -360.0, 360.0, default=0.0, unit="deg"))
+        height = ot.number("height_m", 0.0, 2.0, default=0.3, lo_open=True, unit="m")
+        ot.finish()
+        o = Obstacle(x, y, float(size[0]), float(size[1]), heading, height)
+        box = as_array([o])
+        gaps = surface_distance(p0, box)[:, 0]
+        if np.any(gaps < ROBOT_RADIUS_M):
+            k = int(np.argmin(gaps))
+            raise ot.fail("center", [x, y], f"clear of the robots: follower {k + 1} starts"
+                          f" {max(gaps[k], 0.0) * 100:.0f} cm from its surface (at least {ROBOT_RADIUS_M * 100:.0f} cm)")
+        if surface_distance(np.zeros((1, 2)), box)[0, 0] < LEADER_RADIUS_M:
+            raise ot.fail("center", [x, y], f"clear of the leader, which starts at the origin (at least"
+                          f" {LEADER_RADIUS_M * 100:.0f} cm from its surface)")
+        if isinstance(leader, GoalProfile) and surface_distance(np.array([leader.goal]), box)[0, 0] < LEADER_RADIUS_M:
+            raise ot.fail("center", [x, y], f"clear of the leader's goal {list(leader.goal)} (at least"
+                          f" {LEADER_RADIUS_M * 100:.0f} cm)")
+        out.append(o)
+    return tuple(out)
+
+
+def _parse_safety(top: Table) -> SafetySettings | None:
+    """[safety]: present means the filter runs (core.control.safety); its distances."""
+    if not top.has("safety"):
+        top.used.add("safety")
+        return None
+    t = top.table("safety", optional=False)
+    if not _flag(t, "enabled", True):
+        t.finish()
+        return None
+    d = t.number("min_distance_m", 0.1, 1.0, default=0.25, unit="m")
+    margin = t.number("obstacle_margin_m", 0.0, 1.0, default=0.10, unit="m")
+    t.finish()
+    return SafetySettings(min_distance_m=d, obstacle_margin_m=margin, activity_m=max(0.6, d + 0.35))
+
+
+def _flag(t: Table, name: str, default: bool) -> bool:
+    if not t.has(name):
+        t.used.add(name)
+        return default
+    value = t.raw(name)
+    if not isinstance(value, bool):
+        raise t.fail(name, value, "true or false")
+    return value
+
+
+def _parse_switches(formation: Table, n: int, duration: float, seed: int) -> tuple[tuple[float, FloatArray], ...]:
+    """Formation switches: [[formation.switches]] (at_s, preset) in order, or ``switch_every_s``:
+    a preset drawn at random (from the scenario's seed) every so many seconds."""
+    out: list[tuple[float, FloatArray]] = []
+    for st in formation.tables("switches"):
+        at = st.number("at_s", 0.0, duration, unit="s")
+        name = st.text("preset", choices=FORMATION_PRESETS)
+        st.finish()
+        if out and at <= out[-1][0]:
+            raise st.fail("at_s", at, f"later than the switch before ({out[-1][0]:g} s)")
+        out.append((at, formation_preset(name, n)))
+    if formation.has("switch_every_s"):
+        if out:
+            raise formation.fail("switch_every_s", formation.raw("switch_every_s"),
+                                 "absent when [[formation.switches]] are listed (one or the other)")
+        every = formation.number("switch_every_s", 1.0, 3600.0, unit="s")
+        rng = np.random.default_rng(seed + 7)
+        k = 1
+        while k * every < duration:
+            out.append((k * every, formation_preset(FORMATION_PRESETS[int(rng.integers(len(FORMATION_PRESETS)))], n)))
+            k += 1
+    else:
+        formation.used.add("switch_every_s")
+    return tuple(out)

@@ -52,9 +52,10 @@ class SafetySettings:
     min_distance_m: float = 0.25  # centre to centre, between any two robots (followers and leader)
     obstacle_margin_m: float = 0.10  # from a follower's centre to an obstacle's surface, beyond its half-width
     follower_radius_m: float = 0.15  # half the follower's diagonal: what must clear an obstacle's surface
-    projection_m: float = 0.05  # the point ahead of the axle the barriers act on
+    projection_m: float = 0.025  # the point ahead of the axle the barriers act on
     barrier_gain: float = 100.0  # γ in ḣ ≥ −γ h³ (Robotarium's default)
     activity_m: float = 0.6  # constraints are written only for robots within this of each other
+    keep_right_deg: float = 40.0  # a follower the filter stalls aims this far to its right instead (0: never)
     solver: str = "daqp"
 
     def __post_init__(self) -> None:
@@ -151,6 +152,30 @@ def barrier_constraints(
     return np.vstack([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]), constrained
 
 
+def obstacle_rows(points: FloatArray, robots: FloatArray, settings: SafetySettings, sectors: int = 8) -> FloatArray:
+    """The obstacles as the filter takes them, (k, 3) x, y, radius 0: of the obstacle
+    ``points`` the leader knows (leader frame; the free-space scan's, or the truth's), for
+    each robot within reach the nearest one in each of ``sectors`` directions around it —
+    a handful of rows per robot instead of hundreds."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    rob = np.asarray(robots, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0 or len(rob) == 0:
+        return np.zeros((0, 3))
+    reach = settings.activity_m + settings.obstacle_margin_m + settings.follower_radius_m
+    d = pts[None, :, :] - rob[:, None, :]
+    dist = np.hypot(d[..., 0], d[..., 1])
+    sector = np.floor((np.arctan2(d[..., 1], d[..., 0]) + np.pi) / (2 * np.pi / sectors)).astype(np.int64) % sectors
+    chosen: set[int] = set()
+    for i in range(len(rob)):
+        near = np.nonzero(dist[i] <= reach)[0]
+        best: dict[int, int] = {}
+        for k in near[np.argsort(dist[i, near])]:
+            best.setdefault(int(sector[i, k]), int(k))
+        chosen.update(best.values())
+    picked = pts[sorted(chosen)] if chosen else np.zeros((0, 2))
+    return np.column_stack([picked, np.zeros(len(picked))])
+
+
 def _limit_rows(a: FloatArray, ahead: float, v_max: float, w_max: float) -> tuple[FloatArray, FloatArray]:
     """|v| ≤ v_max and |ω| ≤ ω_max as rows on u: v = c·uₓ + s·u_y, ω = (−s·uₓ + c·u_y)/l."""
     n = a.shape[0]
@@ -163,6 +188,23 @@ def _limit_rows(a: FloatArray, ahead: float, v_max: float, w_max: float) -> tupl
             G[4 * i + k, 2 * i:2 * i + 2] = row
             h[4 * i + k] = bound
     return G, h
+
+
+def _solve(u_nom: FloatArray, G: FloatArray, h: FloatArray, solver: str) -> tuple[FloatArray | None, SolveStatus, str]:
+    """min ½‖u − u_nom‖² s.t. G u ≤ h through qpsolvers: (u or None, status, why it failed)."""
+    try:
+        import qpsolvers
+    except ImportError:
+        return None, "no solver", "qpsolvers is not installed"
+    try:
+        u = qpsolvers.solve_qp(P=np.eye(u_nom.shape[0]), q=-u_nom, G=G, h=h, solver=solver)
+    except qpsolvers.SolverNotFound:
+        return None, "no solver", f"the QP solver {solver!r} is not installed"
+    except Exception as exc:  # noqa: BLE001 - a failing solver must stop the robots, not the loop
+        return None, "infeasible", f"the {solver} solver failed: {type(exc).__name__}: {exc}"[:200]
+    if u is None:
+        return None, "infeasible", "the barrier QP has no solution"
+    return np.asarray(u, dtype=np.float64), "filtered", ""
 
 
 def filter_commands(
@@ -196,19 +238,24 @@ def filter_commands(
     if limits is not None:
         G_lim, h_lim = _limit_rows(a, ahead, *limits)
         G_all, h_all = np.vstack([G, G_lim]), np.concatenate([h, h_lim])
-    status: SolveStatus = "infeasible"
-    try:
-        import qpsolvers
-    except ImportError:
-        u, status, message = None, "no solver", "qpsolvers is not installed"
-    else:
-        try:
-            u = qpsolvers.solve_qp(P=np.eye(2 * n), q=-u_nom, G=G_all, h=h_all, solver=settings.solver)
-            message = "" if u is not None else "the barrier QP has no solution"
-        except qpsolvers.SolverNotFound:
-            u, status, message = None, "no solver", f"the QP solver {settings.solver!r} is not installed"
-        except Exception as exc:  # noqa: BLE001 - a failing solver must stop the robots, not the loop
-            u, message = None, f"the {settings.solver} solver failed: {type(exc).__name__}: {exc}"[:200]
+    u, status, message = _solve(u_nom, G_all, h_all, settings.solver)
+    if u is not None and settings.keep_right_deg > 0:
+        # a barrier stalls a robot where two meet head on, or where one's slot lies behind
+        # another (the QP's answer is symmetric: nobody moves); each stalled follower then
+        # aims to its right by keep_right_deg, as people do in a corridor, and the QP is solved
+        # again from there: the symmetry is broken the same way for all, so they pass
+        un, uf = u_nom.reshape(n, 2), np.asarray(u).reshape(n, 2)
+        speed = np.hypot(un[:, 0], un[:, 1])
+        stalled = constrained & (speed > 1e-3) & (np.hypot(uf[:, 0], uf[:, 1]) < 0.3 * speed)
+        if stalled.any():
+            turn = -np.radians(settings.keep_right_deg)
+            c, si = np.cos(turn), np.sin(turn)
+            aimed = un.copy()
+            aimed[stalled] = np.column_stack([c * un[stalled, 0] - si * un[stalled, 1],
+                                              si * un[stalled, 0] + c * un[stalled, 1]])
+            u2, _, _ = _solve(aimed.reshape(-1), G_all, h_all, settings.solver)
+            if u2 is not None and np.all(np.isfinite(u2)):
+                u = u2
     if u is None or not np.all(np.isfinite(u)):
         stop = constrained
         v = np.where(stop, 0.0, v0)

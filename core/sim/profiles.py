@@ -83,4 +83,22 @@ class SegmentsProfile:
         return table[np.searchsorted(starts, times, side="right")]
 
 
-LeaderProfile = ConstantProfile | Eq39Profile | SegmentsProfile
+
+
+@dataclass(frozen=True)
+class GoalProfile:
+    """The leader drives to a goal (world frame, m) around obstacles at up to ``speed_mps``
+    (core.control.navigation): its twist depends on what it sees, not on time, so only the
+    stepped simulator and the live loop drive it; as a time profile it stands still."""
+
+    goal: tuple[float, float]
+    speed_mps: float
+
+    def twist(self, t: float) -> tuple[float, float]:
+        return 0.0, 0.0
+
+    def twists(self, t: ArrayLike) -> FloatArray:
+        return np.zeros((np.asarray(t).size, 2))
+
+
+LeaderProfile = ConstantProfile | Eq39Profile | SegmentsProfile | GoalProfile

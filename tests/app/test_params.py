@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 
 from app.live.params import FORMATION_PRESETS, Params, ParamsStore, formation_preset
+from core.control.presets import MIN_SPACING_M, spacing
+from core.control.safety import SafetySettings
 
 
 def test_gain_changes_are_validated_and_clamped_with_a_notice():
@@ -102,3 +104,5 @@ def test_presets_give_distinct_slots_inside_the_area(name, n):
     assert np.all(np.abs(s) <= 2.0)
     assert len({tuple(np.round(r, 6)) for r in s.tolist()}) == n
     assert np.all(np.hypot(s[:, 0], s[:, 1]) >= 0.3)  # outside the leader's body / blind centre
+    # a settled team leaves the safety filter (0.25 m by default) inactive
+    assert spacing(s) >= MIN_SPACING_M > SafetySettings().min_distance_m

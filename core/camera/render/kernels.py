@@ -102,6 +102,7 @@ def layout_boxes(
     cx: np.ndarray, cy: np.ndarray, ca: np.ndarray, cdims: np.ndarray, cbody: np.ndarray, ctop: np.ndarray,
     followers: np.ndarray, visible: np.ndarray, fdims: np.ndarray, fbody: np.ndarray, fcolours: np.ndarray,
     leader_x: float, leader_y: float, leader_theta: float, period: float, reach: float,
+    ox: np.ndarray, oy: np.ndarray, oa: np.ndarray, odims: np.ndarray, obody: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every box of a frame in the leader frame, far to near (painter's order).
 
@@ -110,6 +111,7 @@ def layout_boxes(
     leader that lie between 0.6 m and ``reach`` - 0.3 m from it and at least 0.45 m from
     every follower (the simulator has no collisions, so a robot would drive into them).
     Followers: (x, y, a) leader frame, the visible ones, marker colour i mod len(fcolours).
+    Obstacles: world-fixed boxes (ox, oy world, m; oa world heading), each once, within ``reach``.
     Returns x, y, a, dims (m, 5), body colour (m, 3), marker colour (m, 3; NaN: none).
     """
     phi = leader_theta - math.pi / 2
@@ -117,7 +119,7 @@ def layout_boxes(
     s = math.sin(phi)
     n = followers.shape[0]
     k = cx.shape[0]
-    cap = 25 * k + n
+    cap = 25 * k + n + ox.shape[0]
     x = np.empty(cap)
     y = np.empty(cap)
     a = np.empty(cap)
@@ -151,6 +153,20 @@ def layout_boxes(
                 body[m] = cbody[q]
                 top[m] = ctop[q]
                 m += 1
+    for q in range(ox.shape[0]):
+        wx = ox[q] - leader_x
+        wy = oy[q] - leader_y
+        bx = c * wx + s * wy
+        by = -s * wx + c * wy
+        if math.hypot(bx, by) > reach + 0.5 * (odims[q, 0] + odims[q, 1]):
+            continue
+        x[m] = bx
+        y[m] = by
+        a[m] = oa[q] - phi
+        dims[m] = odims[q]
+        body[m] = obody[q]
+        top[m] = math.nan
+        m += 1
     for f in range(n):
         if not visible[f]:
             continue
@@ -329,6 +345,7 @@ def _frame_layout(
     cx: np.ndarray, cy: np.ndarray, ca: np.ndarray, cdims: np.ndarray, cbody: np.ndarray, ctop: np.ndarray,
     followers: np.ndarray, visible: np.ndarray, fdims: np.ndarray, fbody: np.ndarray, fcolours: np.ndarray,
     leader_x: float, leader_y: float, leader_theta: float, period: float, reach: float,
+    ox: np.ndarray, oy: np.ndarray, oa: np.ndarray, odims: np.ndarray, obody: np.ndarray,
     to_mirror: np.ndarray, xi: float, gamma_px: float, ccx: float, ccy: float, mirror_height: float,
     scale: float, limit: float, gain: float, offset: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
@@ -338,7 +355,8 @@ def _frame_layout(
     their lit colours (m, 6: body then marker, clip(c * gain + offset, 0, 255)), whether
     each has a marker, and the lighting table for grey levels (the same clip, truncated)."""
     x, y, a, dims, body, top = layout_boxes(cx, cy, ca, cdims, cbody, ctop, followers, visible, fdims, fbody,
-                                             fcolours, leader_x, leader_y, leader_theta, period, reach)
+                                             fcolours, leader_x, leader_y, leader_theta, period, reach,
+                                             ox, oy, oa, odims, obody)
     body_px, top_px, bbox, ok = box_polygons(x, y, a, dims, to_mirror, xi, gamma_px, ccx, ccy, mirror_height,
                                               scale, limit)
     m = x.shape[0]
@@ -380,6 +398,11 @@ class ClutterAndTeam(NamedTuple):
     leader_theta: float
     period: float
     reach: float
+    ox: np.ndarray  # obstacles: world-fixed boxes, each drawn once (see layout_boxes)
+    oy: np.ndarray
+    oa: np.ndarray
+    odims: np.ndarray
+    obody: np.ndarray
 
 
 class Projection(NamedTuple):

@@ -35,6 +35,7 @@ from core.camera.render.kernels import (ClutterAndTeam, Projection, background_r
 from core.camera.render.looks import Boxes, BoxLook, RenderSettings, look_dims, marker_bgr
 from core.camera.render.textures import floor_texture, wall_texture
 from core.geometry import pose_floats
+from core.obstacles import Obstacle
 from core.types import BoolArray, FloatArray
 
 _TEX_PPM = 100.0  # floor texture: pixels per metre (1 cm texels)
@@ -111,7 +112,9 @@ class SyntheticFrame:
 class Renderer:
     """Synthetic frames from one camera model; precomputes everything static at construction."""
 
-    def __init__(self, model: CameraModel, settings: RenderSettings = RenderSettings()) -> None:
+    def __init__(self, model: CameraModel, settings: RenderSettings = RenderSettings(),
+                 obstacles: tuple[Obstacle, ...] = ()) -> None:
+        """``obstacles``: boxes fixed in the world (a scenario's), drawn where they stand."""
         self.model = model
         self.settings = settings
         h, w = model.height, model.width
@@ -136,6 +139,8 @@ class Renderer:
                                          for hue in settings.hues_deg]).reshape(-1, 3)
         self._follower_dims = np.array(look_dims(settings.follower))
         self._follower_body = np.array([40.0, 40.0, 44.0])
+        self.obstacles = tuple(obstacles)
+        self._obstacles = self._make_obstacles(self.obstacles)
 
     # -- the world's furniture ---------------------------------------------------------
 
@@ -162,6 +167,16 @@ class Renderer:
         return Boxes(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
                      np.array([r[3] for r in rows]), np.array([r[4] for r in rows]), np.array([r[5] for r in rows]))
 
+    @staticmethod
+    def _make_obstacles(obstacles: tuple[Obstacle, ...]) -> tuple[np.ndarray, ...]:
+        """Obstacle boxes as ``layout_boxes`` takes them: cardboard browns, a little different each."""
+        m = len(obstacles)
+        body = np.array([[62.0 + 9 * (k % 3), 104.0 + 7 * (k % 2), 150.0 - 6 * (k % 4)] for k in range(m)]).reshape(m, 3)
+        return (np.array([o.x for o in obstacles], dtype=np.float64), np.array([o.y for o in obstacles], dtype=np.float64),
+                np.array([o.heading for o in obstacles], dtype=np.float64),
+                np.array([(o.length, o.width, o.height, 0.0, 0.0) for o in obstacles], dtype=np.float64).reshape(m, 5),
+                body)
+
     def boxes(self, leader_pose: FloatArray, followers_leader: FloatArray, hidden: BoolArray | None = None,
               clutter_only: bool = False) -> Boxes:
         """The frame's boxes in the leader frame, far to near: clutter within the floor's reach
@@ -183,7 +198,7 @@ class Renderer:
             visible = ~np.asarray(hidden, dtype=np.bool_)[: len(fol)]
         return ClutterAndTeam(cl.x, cl.y, cl.a, cl.dims, cl.body_bgr, cl.top_bgr, fol, visible, self._follower_dims,
                               self._follower_body, self._marker_colours, *leader, self.settings.clutter_period_m,
-                              self.settings.floor_far_m)
+                              self.settings.floor_far_m, *self._obstacles)
 
     # -- a frame -----------------------------------------------------------------------
 

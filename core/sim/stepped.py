@@ -1,0 +1,316 @@
+"""The stepped simulator: one Python step per tick, for what a whole-run kernel cannot do.
+
+A scenario with obstacles, the safety filter, a goal for the leader or formation switches
+(``Scenario.stepped``) runs here, with ground truth (plus the scenario's measurement noise)
+or the vision pipeline on rendered frames as feedback. Each tick:
+
+    observe (truth + noise, or frame → pipeline; with obstacles: the free-space scan and its
+    memory, core.vision.freespace) → the leader's twist (its profile, or the goal navigator,
+    core.control.navigation) → slots (switches, the navigator's scale; moved smoothly,
+    core.control.targets) → controller (§2) → safety filter (core.control.safety) → world.
+
+What the filter sees of the obstacles is what the leader would know: the scan's points with
+vision, the boxes' nearest points with truth feedback. The log keeps what the truth says
+(the closest two robots, the closest robot to an obstacle's surface), what the filter did,
+and the scan.
+
+The vision start-up of §3.1–3.2 takes simulated time, as on the real robots: the leader
+stands still until the pipeline is ready, then its profile starts (scenario time 0). Log
+rows before that have negative time. Disturbances ("stuck", "hidden") use scenario time.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from core.camera.config import CameraConfig
+from core.camera.gamma import Gamma
+from core.camera.render import Renderer
+from core.config import Scenario
+from core.control.assignment import assign_slots
+from core.control.formation import ControllerState, compute_commands
+from core.control.navigation import NavSettings, goal_in_leader_frame, navigate
+from core.control.safety import filter_commands, obstacle_rows, team_min_distance
+from core.control.targets import SlotMotion, step_slots
+from core.geometry import heading_world_to_leader, leader_displacement, world_to_leader
+from core.obstacles import as_array, seen_from, surface_distance
+from core.sim.profiles import GoalProfile
+from core.sim.run import SimulationLog
+from core.sim.team import disturbance_mask, make_team_state, step_team
+from core.types import BoolArray, Commands, FloatArray, Image, IntArray
+from core.vision.freespace import FreeSpaceScanner, ObstacleMemory, ScanSettings
+from core.vision.pipeline import PipelineSettings, VisionPipeline
+
+
+@dataclass(frozen=True)
+class VisionLog:
+    """A vision-in-the-loop run: the usual log (p_meas/a_meas are the pipeline's estimates)
+    plus what only vision has."""
+
+    log: SimulationLog
+    tracked: BoolArray  # (T, n)
+    heading_measured: FloatArray  # (T, n) eq. 34–37 measurements, NaN between them
+    phase: tuple[str, ...]  # (T,)
+    startup_s: float  # simulated time the start-up manoeuvres took
+    windows: IntArray | None = None  # (T, n, 4) CAMSHIFT windows, pixels
+    hues_deg: FloatArray | None = None  # (T, n) learned marker colours
+
+    @property
+    def n(self) -> int:
+        return self.log.n
+
+
+@dataclass(frozen=True)
+class SafetyLog:
+    """What keeps the team safe, per tick (truth where it says so)."""
+
+    min_distance: FloatArray  # (T,) closest centres of two robots (followers and leader), truth
+    obstacle_gap: FloatArray  # (T,) closest follower centre to an obstacle's surface, truth (inf: none)
+    leader_gap: FloatArray  # (T,) the leader's centre to the nearest obstacle surface, truth (inf: none)
+    status: tuple[str, ...]  # (T,) the filter's: inactive, filtered, infeasible, no solver, off
+    changed: FloatArray  # (T, n) how much the filter moved each follower's command (m/s)
+    limit_hits: FloatArray  # (T, n) bool: a command at |v| = v_max or |ω| = ω_max
+    scale: FloatArray  # (T,) the formation's scale
+    goal_reached_s: float  # scenario time the leader reached its goal (NaN: not, or no goal)
+    scan_bearings: FloatArray | None = None  # (B,) with vision and obstacles
+    scan_ranges: FloatArray | None = None  # (T, B) m, inf: free
+    obstacle_points: tuple[FloatArray, ...] = ()  # per tick (k, 2), leader frame: what the filter saw
+
+
+@dataclass(frozen=True)
+class SteppedRun:
+    log: SimulationLog
+    safety: SafetyLog
+    vision: VisionLog | None
+
+
+def scan_settings_for(rig: CameraConfig) -> ScanSettings:
+    """The scan's heights for a synthetic rig: its mirror and the markers its Γ was calibrated on."""
+    assert rig.model is not None
+    return ScanSettings(mirror_height_m=rig.model.mirror_height_m,
+                        marker_height_m=rig.render.follower.height_m + 0.002,
+                        follower_height_m=rig.render.follower.height_m)
+
+
+def renderer_for(scenario: Scenario, rig: CameraConfig) -> Renderer:
+    """The synthetic camera of a scenario's world: its obstacles drawn; a world with declared
+    obstacles has no other furniture (the clutter would be obstacles the simulator does not know)."""
+    assert rig.model is not None
+    settings = replace(rig.render, clutter=False, distractor=False) if scenario.obstacles else rig.render
+    return Renderer(rig.model, settings, scenario.obstacles)
+
+
+def simulate_stepped(
+    scenario: Scenario,
+    rig: CameraConfig | None = None,
+    gamma: Gamma | None = None,
+    settings: PipelineSettings = PipelineSettings(),
+    max_startup_s: float = 60.0,
+    on_frame: Callable[[int, Image], None] | None = None,
+    nav: NavSettings | None = None,
+) -> SteppedRun:
+    """Run ``scenario`` step by step; with ``rig`` and ``gamma`` the controller is fed by the
+    vision pipeline on rendered frames, else by the truth plus the scenario's measurement noise.
+
+    ``on_frame(k, frame)`` sees every frame (row k of the log), e.g. to record it;
+    ``np.asarray(frame)`` renders the whole of it."""
+    vision = rig is not None and gamma is not None
+    if vision and rig is not None and rig.model is None:
+        raise ValueError(f"{rig.source}: a vision simulation needs the rig's [model]")
+    dt = 1.0 / scenario.rate_hz
+    n = scenario.n
+    rng = np.random.default_rng(scenario.seed)
+    goal = scenario.leader if isinstance(scenario.leader, GoalProfile) else None
+    nav = nav or NavSettings(speed_mps=goal.speed_mps if goal else NavSettings.speed_mps)
+    boxes = as_array(scenario.obstacles)
+    renderer = pipeline = scanner = None
+    memory = ObstacleMemory()
+    if vision:
+        assert rig is not None and gamma is not None and rig.model is not None
+        renderer = renderer_for(scenario, rig)
+        pipeline = VisionPipeline(n, gamma, rig.working_area, rig.detect, (rig.model.width, rig.model.height),
+                                  np.random.default_rng(scenario.seed + 1), settings)
+        if scenario.obstacles or goal is not None:  # a world without obstacles scans empty (tested): skip its cost
+            scanner = FreeSpaceScanner(gamma, rig.working_area, scan_settings_for(rig))
+            memory = ObstacleMemory(scanner.settings)
+    state = make_team_state(scenario.initial_p, scenario.initial_a)
+    ctrl_state = ControllerState.initial(n)
+    smooth = bool(scenario.switches) or goal is not None  # slots that move: followed smoothly (as the live loop does)
+    slots_now = scenario.slots
+    p_d = np.zeros((n, 2))
+    motion = SlotMotion.at_rest(p_d)
+    assignment = np.arange(n)
+    assigned = False
+    switch_k = 0
+    scale = 1.0
+    heading = math.nan
+    reached_at = math.nan
+
+    rows: dict[str, list[object]] = {k: [] for k in (
+        "t", "leader", "twist", "fw", "p", "a", "pm", "am", "pd", "cmd", "aerr", "tracked", "meas", "phase", "win",
+        "hue", "dmin", "gap", "lgap", "status", "changed", "limit", "scale", "scan", "obs")}
+    prev_leader = state.leader.copy()
+    last_cmd = np.zeros((n, 2))
+    err_norm = np.zeros(n)
+    t_ready: float | None = None if vision else 0.0
+    k = 0
+    steps_after = int(round(scenario.duration_s * scenario.rate_hz)) + 1
+    meas = scenario.measurement
+    while True:
+        t_wall = k * dt
+        t_scn = t_wall - t_ready if t_ready is not None else -math.inf
+        if t_ready is not None and int(round(t_scn / dt)) >= steps_after:
+            break
+        if t_ready is None and t_wall > max_startup_s:
+            raise RuntimeError(f"{scenario.name}: the vision start-up did not finish in {max_startup_s:g} s")
+        theta = float(state.leader[2])
+        p_true = world_to_leader(state.followers[:, :2], state.leader[:2], theta)
+        a_true = np.asarray(heading_world_to_leader(state.followers[:, 2], theta))
+        odo = leader_displacement(prev_leader, state.leader)
+        scan = None
+        manoeuvre = None
+        if vision:
+            assert renderer is not None and pipeline is not None
+            hidden = disturbance_mask(scenario.disturbances, n, t_scn, "hidden")[0] if t_ready is not None else None
+            # pixels are made only where the pipeline looks (bit for bit the whole frame's there)
+            frame = renderer.frame(state.leader, np.column_stack([p_true, a_true]), t_wall, rng, hidden=hidden)
+            if on_frame is not None:
+                on_frame(k, frame)
+            out = pipeline.step(frame, dt, odo, last_cmd, err_norm)
+            pos_m, head_m, tracked = out.positions, out.headings, out.tracked
+            manoeuvre = out.manoeuvre
+            if scanner is not None and manoeuvre is None:  # not during the start-up: nobody is tracked yet
+                scan = scanner.scan(frame, pos_m, tracked)
+        else:
+            noise_p = rng.normal(0.0, meas.position_noise_m, (n, 2)) if meas.position_noise_m > 0 else 0.0
+            noise_a = rng.normal(0.0, meas.heading_noise_rad, n) if meas.heading_noise_rad > 0 else 0.0
+            pos_m, head_m, tracked = p_true + noise_p, a_true + noise_a, np.ones(n, dtype=bool)
+        prev_leader = state.leader.copy()
+        # the obstacles as the leader knows them (leader frame)
+        memory.move(odo)
+        if scan is not None:
+            known_pts = memory.update(scan, t_wall, np.where(tracked[:, None], pos_m, np.nan))
+        else:
+            known_pts = seen_from(boxes, state.leader, p_true)
+
+        twist = (0.0, 0.0)
+        status = "off"
+        changed = np.zeros(n)
+        if manoeuvre is not None:
+            v_cmd, w_cmd = manoeuvre[:, 0], manoeuvre[:, 1]
+            a_err = np.zeros(n)
+        else:
+            if vision and t_ready is None:
+                t_ready = t_wall
+                t_scn = 0.0
+            if not assigned:
+                assigned = True
+                known = np.where(np.isfinite(pos_m), pos_m, 0.0)
+                assignment = assign_slots(known, scenario.slots)  # eq. 33 on the first estimates
+                p_d = np.ascontiguousarray(scenario.slots[assignment])
+                motion = SlotMotion.at_rest(p_d)
+            while switch_k < len(scenario.switches) and t_scn >= scenario.switches[switch_k][0]:
+                slots_now = scenario.switches[switch_k][1]
+                known = np.where(np.isfinite(pos_m), pos_m, 0.0)
+                assignment = assign_slots(known, slots_now, current=assignment, margin_m2=0.05)
+                switch_k += 1
+            if goal is not None:
+                g = goal_in_leader_frame(goal.goal, state.leader)  # odometry is exact in the simulator
+                team_err = float(err_norm[tracked].max()) if tracked.any() else 0.0
+                nav_out = navigate(g, known_pts, team_err, heading, scale, slots_now, scenario.min_scale, dt, nav)
+                twist, heading, scale = nav_out.twist, nav_out.heading, nav_out.scale
+                if nav_out.reached and not math.isfinite(reached_at):
+                    reached_at = t_scn
+            else:
+                twist = tuple(float(x) for x in scenario.leader.twist(t_scn))  # type: ignore[assignment]  # a pair
+            targets = slots_now[assignment] * np.array([scale, 1.0])  # the formation narrows, it does not shorten
+            if smooth:
+                keep_out = scenario.safety.min_distance_m + 0.2 if scenario.safety is not None else 0.0
+                motion = step_slots(motion, targets, dt, keep_out_m=keep_out)
+            else:
+                motion = SlotMotion.at_rest(targets)
+            p_d = motion.p_d
+            pos = np.where(np.isfinite(pos_m), pos_m, 0.0)
+            head = np.where(np.isfinite(head_m), head_m, math.pi / 2)
+            c = compute_commands(pos, head, p_d, motion.v_d, twist[0], twist[1], scenario.gains, ctrl_state, dt,
+                                 active=tracked)
+            ctrl_state = c.state
+            commands = c.commands
+            if scenario.safety is not None:
+                res = filter_commands(pos, head, commands, twist, obstacle_rows(known_pts, pos[tracked], scenario.safety),
+                                      scenario.safety, known=tracked,
+                                      limits=(scenario.gains.v_max, scenario.gains.w_max))
+                commands, status, changed = res.commands, res.status, res.changed
+            v_cmd, w_cmd = np.asarray(commands.v), np.asarray(commands.w)
+            a_err = c.a_err
+            err_norm = np.hypot(p_d[:, 0] - pos[:, 0], p_d[:, 1] - pos[:, 1])
+
+        rows["t"].append(t_wall)
+        rows["leader"].append(state.leader.copy())
+        rows["twist"].append(twist)
+        rows["fw"].append(state.followers.copy())
+        rows["p"].append(p_true)
+        rows["a"].append(a_true)
+        rows["pm"].append(pos_m)
+        rows["am"].append(head_m)
+        rows["pd"].append(p_d.copy() if t_ready is not None else np.full((n, 2), np.nan))  # no target yet
+        last_cmd = np.column_stack([v_cmd, w_cmd])
+        rows["cmd"].append(last_cmd)
+        rows["aerr"].append(a_err)
+        rows["tracked"].append(tracked)
+        rows["dmin"].append(team_min_distance(p_true))
+        rows["gap"].append(float(surface_distance(state.followers[:, :2], boxes).min()) if len(boxes) else math.inf)
+        rows["lgap"].append(float(surface_distance(state.leader[None, :2], boxes).min()) if len(boxes) else math.inf)
+        rows["status"].append(status)
+        rows["changed"].append(changed)
+        rows["limit"].append((np.abs(v_cmd) >= scenario.gains.v_max - 1e-9) | (np.abs(w_cmd) >= scenario.gains.w_max - 1e-9))
+        rows["scale"].append(scale)
+        rows["scan"].append(scan.ranges if scan is not None else None)
+        rows["obs"].append(known_pts)
+        if vision:
+            rows["meas"].append(out.heading_measured)
+            rows["phase"].append(out.phase)
+            rows["win"].append(out.windows)
+            rows["hue"].append(out.hues_deg)
+
+        state = step_team(state, Commands(np.asarray(v_cmd), np.asarray(w_cmd)), twist, dt,
+                          t_scn if t_ready is not None else -1.0, rng, scenario.dynamics,
+                          scenario.disturbances if t_ready is not None else ())
+        k += 1
+
+    assert t_ready is not None
+    t = np.array(rows["t"]) - t_ready
+    log = SimulationLog(
+        scenario=scenario,
+        t=t,
+        leader=np.array(rows["leader"]),
+        leader_twist=np.array(rows["twist"], dtype=np.float64),
+        followers_world=np.array(rows["fw"]),
+        p=np.array(rows["p"]),
+        a=np.array(rows["a"]),
+        p_meas=np.array(rows["pm"]),
+        a_meas=np.array(rows["am"]),
+        p_d=np.array(rows["pd"]),
+        commands=np.array(rows["cmd"]),
+        a_err=np.array(rows["aerr"]),
+        assignment=np.asarray(assignment),
+    )
+    scans: list[FloatArray] = [np.asarray(r) for r in rows["scan"] if r is not None]
+    safety = SafetyLog(
+        min_distance=np.array(rows["dmin"]), obstacle_gap=np.array(rows["gap"]), leader_gap=np.array(rows["lgap"]),
+        status=tuple(str(x) for x in rows["status"]), changed=np.array(rows["changed"]),
+        limit_hits=np.array(rows["limit"]), scale=np.array(rows["scale"]), goal_reached_s=reached_at,
+        scan_bearings=scanner.bin_bearings if scanner is not None else None,
+        scan_ranges=np.array([r if r is not None else np.full(scans[0].shape[0], np.nan) for r in rows["scan"]])
+        if scans else None,
+        obstacle_points=tuple(np.asarray(o) for o in rows["obs"]),
+    )
+    vlog = None
+    if vision:
+        vlog = VisionLog(log, np.array(rows["tracked"]), np.array(rows["meas"]), tuple(str(ph) for ph in rows["phase"]),
+                         t_ready, np.array(rows["win"], dtype=np.int64), np.array(rows["hue"]))
+    return SteppedRun(log, safety, vlog)

@@ -1,0 +1,124 @@
+"""The free-space scan against the simulator's truth: box obstacles at the right distance,
+nothing on the followers or the leader's body, and a memory that keeps what goes out of
+sight (leader odometry, eq. 38) and forgets what the scan now sees as floor."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from core.camera.render import Renderer
+from core.geometry import leader_displacement
+from core.obstacles import Obstacle, ray_ranges
+from core.sim.stepped import scan_settings_for
+from core.control.safety import SafetySettings, obstacle_rows
+from core.vision.freespace import FreeSpaceScanner, ObstacleMemory, Scan
+
+
+@pytest.fixture(scope="module")
+def scanner(rig, gamma):
+    return FreeSpaceScanner(gamma, rig.working_area, scan_settings_for(rig))
+
+
+def _truth(renderer: Renderer, leader: np.ndarray, followers: np.ndarray, bearings: np.ndarray) -> np.ndarray:
+    """Ranges (leader frame) to the boxes drawn that are not followers, per bearing."""
+    bx = renderer.boxes(leader, followers, clutter_only=True)
+    boxes = np.column_stack([bx.x, bx.y, bx.a, bx.dims[:, 0] / 2, bx.dims[:, 1] / 2])
+    return ray_ranges((0.0, 0.0), bearings + math.pi / 2, boxes)
+
+
+def _random_world(rng: np.random.Generator, n_boxes: int) -> tuple[tuple[Obstacle, ...], np.ndarray]:
+    """Boxes inside the working ring around a leader at the origin facing +y, and three
+    followers clear of them."""
+    boxes: list[Obstacle] = []
+    while len(boxes) < n_boxes:
+        r, b = rng.uniform(0.7, 1.9), rng.uniform(-math.pi, math.pi)
+        o = Obstacle(-r * math.sin(b), r * math.cos(b), rng.uniform(0.2, 0.6), rng.uniform(0.2, 0.5),
+                     rng.uniform(-math.pi, math.pi), rng.uniform(0.15, 0.5))
+        if all(math.dist((o.x, o.y), (q.x, q.y)) > 0.9 for q in boxes):
+            boxes.append(o)
+    followers: list[tuple[float, float, float]] = []
+    while len(followers) < 3:
+        r, b = rng.uniform(0.5, 1.7), rng.uniform(-math.pi, math.pi)
+        x, y = -r * math.sin(b), r * math.cos(b)
+        if all(math.dist((x, y), (o.x, o.y)) > 0.75 for o in boxes) and all(math.dist((x, y), f[:2]) > 0.45 for f in followers):
+            followers.append((x, y, rng.uniform(-math.pi, math.pi)))
+    return tuple(boxes), np.array(followers)
+
+
+def test_box_obstacles_are_found_within_5_cm_of_the_truth(rig, scanner):
+    rng = np.random.default_rng(21)
+    errors, found, expected = [], 0, 0
+    leader = np.array([0.0, 0.0, math.pi / 2])
+    for k in range(60):
+        boxes, followers = _random_world(rng, 3)
+        renderer = Renderer(rig.model, replace(rig.render, clutter=False, distractor=False), boxes)
+        frame = renderer.render(leader, followers, 0.7 * k, rng)
+        estimate = followers[:, :2] + rng.normal(0.0, 0.01, (3, 2))  # the pipeline's estimates are this good
+        scan = scanner.scan(frame, estimate, np.ones(3, dtype=bool))
+        truth = _truth(renderer, leader, followers, scan.bearings)
+        inside = np.isfinite(truth) & (truth > scan.min_range_m + 0.05) & (truth < scan.reach - 0.05) & ~scan.hidden
+        expected += int(inside.sum())
+        found += int(np.isfinite(scan.ranges[inside]).sum())
+        errors.extend(np.abs(scan.ranges[inside] - truth[inside])[np.isfinite(scan.ranges[inside])])
+    err = np.array(errors)
+    print(f"\nscan vs truth: {found} of {expected} bearings with a box found; median error {np.median(err) * 100:.1f} cm,"
+          f" p90 {np.percentile(err, 90) * 100:.1f} cm")
+    assert expected > 1000 and found >= 0.95 * expected
+    assert np.median(err) <= 0.05
+
+
+def test_no_phantom_obstacle_on_a_follower_or_the_leaders_body_in_1000_frames(rig, scanner):
+    """Followers anywhere in the ring (estimates 1 cm off), the leader anywhere on the tiled
+    floor under drifting light, no obstacle: the scan must see nothing at all."""
+    renderer = Renderer(rig.model, replace(rig.render, clutter=False, distractor=False))
+    rng = np.random.default_rng(4)
+    hits = 0
+    for _ in range(1000):
+        leader = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-math.pi, math.pi)])
+        n = int(rng.integers(1, 7))
+        r, b = rng.uniform(0.45, 1.8, n), rng.uniform(-math.pi, math.pi, n)
+        followers = np.column_stack([-r * np.sin(b), r * np.cos(b), rng.uniform(-math.pi, math.pi, n)])
+        frame = renderer.render(leader, followers, rng.uniform(0, 60), rng)
+        scan = scanner.scan(frame, followers[:, :2] + rng.normal(0.0, 0.01, (n, 2)), np.ones(n, dtype=bool))
+        hits += int(np.isfinite(scan.ranges).sum())
+    assert hits == 0
+
+
+def _scan_with(points: dict[int, float], scanner: FreeSpaceScanner, hidden: tuple[int, ...] = ()) -> Scan:
+    ranges = np.full(scanner.bin_bearings.shape[0], np.inf)
+    for b, r in points.items():
+        ranges[b] = r
+    mask = np.zeros_like(ranges, dtype=bool)
+    mask[list(hidden)] = True
+    return Scan(scanner.bin_bearings, ranges, scanner.bin_reach, mask, scanner.min_range_m)
+
+
+def test_the_memory_keeps_what_leaves_the_ring_or_hides_and_forgets_what_is_seen_free(scanner):
+    memory = ObstacleMemory(scanner.settings)
+    ahead = 180  # the bin straight ahead (bearing 0)
+    pts = memory.update(_scan_with({ahead: 1.0}, scanner), 0.0)
+    assert len(pts) == 1 and np.allclose(pts[0], [0.0, 1.0], atol=0.02)
+    # the leader turns by 180 degrees on the spot: the obstacle is now behind it, still 1 m away
+    memory.move(leader_displacement((0.0, 0.0, math.pi / 2), (0.0, 0.0, -math.pi / 2)))
+    hidden = tuple(range(0, 5)) + tuple(range(355, 360))  # a follower hides what is straight behind
+    pts = memory.update(_scan_with({}, scanner, hidden), 1.0)
+    assert len(pts) == 1 and np.allclose(pts[0], [0.0, -1.0], atol=0.02)
+    # seen as floor now (the follower moved away): forgotten at once
+    assert len(memory.update(_scan_with({}, scanner), 1.1)) == 0
+    # drive 4 m away from a remembered point: out of the ring, kept for keep_s, then forgotten
+    memory.update(_scan_with({ahead: 1.0}, scanner), 2.0)
+    memory.move((0.0, -4.0, 0.0))  # backwards: the point is now 5 m ahead, beyond the ring
+    assert np.allclose(memory.update(_scan_with({}, scanner), 3.0), [[0.0, 5.0]], atol=0.02)
+    assert len(memory.update(_scan_with({}, scanner), 2.0 + scanner.settings.keep_s + 0.1)) == 0
+
+
+def test_the_filter_gets_the_nearest_point_per_direction_around_each_robot():
+    wall = np.column_stack([np.linspace(-1, 1, 81), np.full(81, 0.5)])
+    picked = obstacle_rows(wall, np.array([[0.0, 0.2]]), SafetySettings())
+    assert 1 <= len(picked) <= 8 and np.all(picked[:, 2] == 0.0)
+    assert np.allclose(picked[np.argmin(np.hypot(*(picked[:, :2] - [0.0, 0.2]).T)), :2], [0.0, 0.5])
+    assert len(obstacle_rows(wall, np.array([[0.0, -2.0]]), SafetySettings())) == 0
