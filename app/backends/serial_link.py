@@ -324,9 +324,10 @@ class SerialLink:
                     s = self._by_addr[key[0]]
                     s.lost += 1
                     s.recent.append(False)
-                    self._expired[key] = None
-                    while len(self._expired) > EXPIRED_KEPT:
-                        self._expired.popitem(last=False)
+                # every request given up on is remembered: a reply to it now is late, not a stranger's
+                self._expired[key] = None
+                while len(self._expired) > EXPIRED_KEPT:
+                    self._expired.popitem(last=False)
 
     def _read_loop(self) -> None:
         backoff = BACKOFF_S[0]
@@ -380,14 +381,16 @@ class SerialLink:
                 request = next((key for key in ((f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type)
                                 if key in self._pending), None)
                 if request is None:
-                    late = (f.address, f.seq, p.MSG_SET_VELOCITY)
-                    if f.msg_type == p.MSG_ACK and late in self._expired:
-                        del self._expired[late]
+                    late = next((key for key in ((f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type)
+                                 if key in self._expired), None)
+                    if late is None:
+                        s.unmatched += 1
+                        continue
+                    del self._expired[late]
+                    if late[2] == p.MSG_SET_VELOCITY:  # counted lost when given up on: it was late
                         s.lost -= 1
                         s.late += 1
-                        s.last_reply = now  # alive, but this odometry is old news
-                    else:
-                        s.unmatched += 1
+                    s.last_reply = now  # alive, but what it says is old news
                     continue
                 t_sent = self._pending.pop(request)
                 s.last_reply = now
