@@ -18,6 +18,7 @@ from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
 from core.sim.team import TeamState
 from core.types import BoolArray, Commands, FloatArray, Image
+from core.vision.freespace import Scan
 
 
 class Rig(NamedTuple):
@@ -108,6 +109,8 @@ class Observation:
     probing: int = -1
     stage_ms: dict[str, float] = field(default_factory=dict)  # camera and pipeline times
     camera_state: str = ""  # a real camera's state for people ("" for the synthetic one)
+    obstacles: FloatArray | None = None  # (k, 2) leader frame: obstacle points the leader knows (scan, memory, truth)
+    scan: Scan | None = None  # this frame's free-space scan (vision)
 
     @property
     def ready(self) -> bool:

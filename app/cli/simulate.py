@@ -4,8 +4,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from app.cli.args import Parser, float_in, int_in, seed
+from core.sim.profiles import GoalProfile
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from core.config import Scenario
+    from core.sim.stepped import SafetyLog
 from app.files import (SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, UserError, check_new_file, display_path,
                        scenario_names)
 
@@ -34,6 +42,8 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     sim.add_argument("--frames-hz", type=float_in(0.0, 1000.0, "Hz", lo_inclusive=True), default=10.0,
                      help="camera frames per second in the recording (--vision; default 10, 0 = none)")
     sim.add_argument("--jpeg-quality", type=int_in(1, 100), default=80, help="JPEG quality of recorded frames (default 80)")
+    sim.add_argument("--no-safety", action="store_true",
+                     help="run a scenario that has a [safety] table without the safety filter (to compare)")
     sim.set_defaults(func=cmd_simulate)
 
 
@@ -51,6 +61,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         changes["rate_hz"] = VISION_RATE_HZ  # one control step per camera frame
     if args.seed is not None:
         changes["seed"] = args.seed
+    if args.no_safety:
+        changes["safety"] = None
     scenario = scenario.replace(**changes)
     if args.out is not None:
         check_new_file(args.out, "CSV log", ".csv")
@@ -90,6 +102,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     err = np.linalg.norm(log.error, axis=-1)
     final = ", ".join(f"f{i + 1} {err[-1, i] * 100:.2f} cm" for i in range(log.n))
     print(f"{scenario.name}: {scenario.duration_s:g} s at {scenario.rate_hz:g} Hz, {log.n} followers; final position error {final}")
+    if run.safety is not None:
+        print(safety_line(run.safety, log.t, scenario))
     if args.out is not None:
         from app.recording.csv_log import write_csv
 
@@ -117,3 +131,27 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+
+
+def safety_line(sf: "SafetyLog", t: "np.ndarray", scenario: "Scenario") -> str:
+    """What a stepped run says about safety, from the simulator's truth."""
+    import math
+
+    import numpy as np
+
+    after = t >= 0
+    d = sf.min_distance[after]
+    under = d < 0.25
+    episodes = int(np.count_nonzero(np.diff(np.concatenate([[0], under.astype(np.int8)])) == 1))
+    parts = [f"safety filter {'on' if scenario.safety is not None else 'off'}: closest two robots {d.min() * 100:.1f} cm,"
+             f" {int(under.sum())} ticks ({episodes} times) under 25 cm"]
+    if np.isfinite(sf.obstacle_gap).any():
+        parts.append(f"closest follower body to an obstacle {(sf.obstacle_gap[after].min() - 0.15) * 100:.1f} cm,"
+                     f" the leader's {(sf.leader_gap[after].min() - 0.25) * 100:.1f} cm")
+    acted = sum(1 for s_ in sf.status if s_ == "filtered")
+    failed = sum(1 for s_ in sf.status if s_ in ("infeasible", "no solver"))
+    parts.append(f"filter acted on {acted} ticks, failed on {failed}")
+    if isinstance(scenario.leader, GoalProfile):
+        reached = f"reached at {sf.goal_reached_s:.1f} s" if math.isfinite(sf.goal_reached_s) else "NOT reached"
+        parts.append(f"goal {reached}; narrowest formation {sf.scale.min():.2f}")
+    return "; ".join(parts)

@@ -12,6 +12,8 @@ from collections.abc import Callable
 
 import viser
 
+from core.obstacles import Obstacle
+
 from app.dashboard.camera_panel import CameraPanel, Overlay
 from app.dashboard.controls import Controls
 from app.dashboard.plots import Plots
@@ -23,11 +25,12 @@ from app.live.params import ParamsStore
 class Dashboard:
     """Wires the three parts to one viser server; ``publish`` is the loop's subscriber."""
 
-    def __init__(self, server: viser.ViserServer, store: ParamsStore, overlay: Overlay | None = None) -> None:
+    def __init__(self, server: viser.ViserServer, store: ParamsStore, overlay: Overlay | None = None,
+                 obstacles: tuple[Obstacle, ...] = ()) -> None:
         self.server = server
         server.gui.configure_theme(control_width="large", dark_mode=False)
         self.controls = Controls(server, store)
-        self.scene = Scene(server, store, self.controls)
+        self.scene = Scene(server, store, self.controls, obstacles)
         self.camera = CameraPanel(server, overlay, order=self.controls.status.order + 0.5)  # under the status
         self.plots = Plots(server)
 

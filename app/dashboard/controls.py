@@ -16,7 +16,9 @@ from core.types import GAIN_BOUNDS
 from app.live.tick import TickState
 from app.live.params import (
     FORMATION_PRESETS,
+    GOAL_LIMIT_M,
     LEADER_MODES,
+    MIN_SCALE,
     LEADER_SPEED,
     LEADER_TURN,
     SAFETY_DISTANCE,
@@ -57,12 +59,23 @@ class Controls:
                                            hint="number of simulated followers (resets the team)")
         with gui.add_folder("Leader"):
             self.mode = gui.add_dropdown("Motion", options=LEADER_MODES, initial_value=p.leader_mode,
-                                         hint="stop | straight | circle | eq39 (the paper's manoeuvre, eq. 39)")
+                                         hint="stop | straight | circle | eq39 (the paper's manoeuvre, eq. 39) |"
+                                              " goal (drive to the goal below around obstacles)")
             self.speed = gui.add_slider("Speed (m/s)", min=LEADER_SPEED.lo, max=LEADER_SPEED.hi, step=0.01,
                                         initial_value=p.leader_speed_mps, hint="leader forward speed v_l")
             self.turn = gui.add_slider("Turn (deg/s)", min=LEADER_TURN.lo, max=LEADER_TURN.hi, step=0.5,
                                        initial_value=p.leader_turn_deg_s,
                                        hint="leader turn rate w_l (circle), or k1 of eq. 39")
+            gx, gy = p.goal if p.goal is not None else (0.0, 2.0)
+            self.goal_x = gui.add_number("Goal x (m)", initial_value=float(gx), step=0.05, min=-GOAL_LIMIT_M,
+                                         max=GOAL_LIMIT_M, hint="where the leader drives in goal mode (the floor's"
+                                                                " frame: where the leader started); or shift-click the floor")
+            self.goal_y = gui.add_number("Goal y (m)", initial_value=float(gy), step=0.05, min=-GOAL_LIMIT_M,
+                                         max=GOAL_LIMIT_M)
+            self.go_button = gui.add_button("Drive to goal", hint="leader mode goal, to the point above")
+            self.min_scale = gui.add_slider("Narrowest formation", min=MIN_SCALE.lo, max=MIN_SCALE.hi, step=0.05,
+                                            initial_value=p.min_scale, hint=MIN_SCALE.meaning +
+                                            " (its width times this, at the least; goal mode)")
         with gui.add_folder("Gains"):
             self.gains: dict[str, Any] = {}
             for name, (lo, hi, step) in GAIN_SLIDERS.items():
@@ -97,7 +110,7 @@ class Controls:
         why = "replay: a recording cannot command robots"
         handles = [self.stop_button, self.release_button, self.pause_button, self.step_button, self.reset_button,
                    self.n_slider, self.mode, self.speed, self.turn, self.preset, self.apply_preset, self.safety,
-                   self.safety_distance,
+                   self.safety_distance, self.goal_x, self.goal_y, self.go_button, self.min_scale,
                    *self.gains.values(), *(h for pair in self.slot_inputs for h in pair)]
         for h in handles:
             h.disabled = True
@@ -175,10 +188,23 @@ class Controls:
         for name, handle in self.gains.items():
             on_value(handle, name)
 
+        on_value(self.min_scale, "min_scale")
+
+        @self.go_button.on_click
+        def _(event: viser.GuiEvent[Any]) -> None:
+            self.drive_to(event, (self.goal_x.value, self.goal_y.value))
+
         @self.apply_preset.on_click
         def _(event: viser.GuiEvent[Any]) -> None:
             p = self.store.get()
             self._update(event, slots=formation_preset(self.preset.value, p.n_followers), what=f"preset {self.preset.value}")
+
+    def drive_to(self, event: Any, goal: tuple[float, float], what: str = "goal") -> None:
+        """Goal mode to ``goal`` (floor frame, m): from the button, or a shift-click on the floor.
+        A goal the store refuses (off the floor, in an obstacle) leaves the leader as it was."""
+        self._update(event, what=what, goal=goal)
+        if self.store.get().goal == (float(goal[0]), float(goal[1])):
+            self._update(event, what=what, leader_mode="goal")
 
     # -- store -> widgets -----------------------------------------------------------------
     @staticmethod
@@ -199,6 +225,10 @@ class Controls:
         self._set(self.safety, bool(p.safety))
         self._set(self.safety_distance, float(p.safety_distance_m))
         self._set(self.n_slider, int(p.n_followers))
+        self._set(self.min_scale, float(p.min_scale))
+        if p.goal is not None:
+            self._set(self.goal_x, float(np.round(p.goal[0], 3)))
+            self._set(self.goal_y, float(np.round(p.goal[1], 3)))
         if len(self.slot_inputs) != p.slots.shape[0]:
             self._build_slot_inputs(p)
         for j, (x_in, y_in) in enumerate(self.slot_inputs):
@@ -230,8 +260,14 @@ class Controls:
             f" · link: {s.link_state} · " + (f"replaying {self.recording}" if self.replay else f"recording: {self.recording}"),
             "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
             f"safety filter: {s.safety or '-'}"
-            + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else ""),
+            + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else "")
+            + (f" · obstacle points known {len(s.obstacles)}" if s.obstacles is not None and len(s.obstacles) else ""),
         ]
+        if s.goal is not None:
+            heading = f"heading {math.degrees(s.heading):+.0f} deg" if np.isfinite(s.heading) else "no way free"
+            lines.append(f"goal ({s.goal[0]:.2f}, {s.goal[1]:.2f}) m: " + ("**reached**" if s.goal_reached else
+                         f"{math.hypot(s.goal[0] - s.leader[0], s.goal[1] - s.leader[1]):.2f} m to go, {heading}")
+                         + f" · formation width {s.formation_scale * 100:.0f} %")
         if s.camera_state:
             lines.append(f"camera: {s.camera_state}")
         if s.link_detail:

@@ -11,6 +11,7 @@ import numpy as np
 import viser
 
 from core.geometry import leader_to_world
+from core.obstacles import Obstacle
 
 from core.camera.render.looks import follower_rgb
 from app.dashboard.controls import Controls
@@ -32,7 +33,9 @@ def _circle(radius: float, segments: int = 72) -> np.ndarray:
 
 
 class Scene:
-    def __init__(self, server: viser.ViserServer, store: ParamsStore, controls: Controls) -> None:
+    def __init__(self, server: viser.ViserServer, store: ParamsStore, controls: Controls,
+                 obstacles: tuple[Obstacle, ...] = ()) -> None:
+        """``obstacles``: the simulated world's boxes (its truth), drawn where they stand."""
         self.server = server
         self.store = store
         self.controls = controls
@@ -56,12 +59,34 @@ class Scene:
         self._slots_key = b""
         self._trail_at = -1.0
         self._dragging = False
+        for k, o in enumerate(obstacles):
+            s.add_box(f"/obstacles/{k}", color=(160, 110, 60), dimensions=(o.length, o.width, o.height),
+                      position=(o.x, o.y, o.height / 2), wxyz=yaw_wxyz(o.heading), opacity=0.85)
+        self.known = s.add_point_cloud("/known", points=np.zeros((1, 3)), colors=(240, 140, 0), point_size=0.03,
+                                       visible=False)
+        self.goal = s.add_frame("/goal", show_axes=False, visible=False)
+        s.add_cylinder("/goal/pole", radius=0.015, height=0.5, color=(20, 150, 60), position=(0, 0, 0.25))
+        s.add_icosphere("/goal/ball", radius=0.06, color=(20, 150, 60), position=(0, 0, 0.5))
+        self.plan = s.add_arrows("/leader/plan", points=np.array([[[0, 0, 0.3], [0, 0.7, 0.3]]]), colors=(20, 150, 60),
+                                 shaft_radius=0.012, head_radius=0.035, head_length=0.07, visible=False)
+        self.active: list[viser.LineSegmentsHandle] = []
 
+        @s.on_click(modifier="shift")
+        def _(event: viser.SceneClickEvent) -> None:
+            (ox, oy, oz), (dx, dy, dz) = event.ray_origin, event.ray_direction
+            if dz >= -1e-6:
+                return  # the ray never meets the floor
+            t = -oz / dz
+            self.controls.drive_to(event, (ox + t * dx, oy + t * dy), what="goal clicked")
     def _rebuild(self, n: int, state: TickState) -> None:
         s = self.server.scene
         for h in self.followers + self.ghosts + self.slot_handles + self.trail_handles:
             h.remove()
+        for h in self.active:
+            h.remove()
         self.followers, self.ghosts, self.slot_handles, self.trail_handles = [], [], [], []
+        self.active = [s.add_line_segments(f"/followers/{i}/constrained", _circle(0.22), colors=(220, 30, 30),
+                                           thickness=0.02, visible=False) for i in range(n)]
         self.trails = [deque(maxlen=int(TRAIL_SECONDS * 10)) for _ in range(n)]
         for i in range(n):
             rgb = follower_rgb(i)
@@ -151,6 +176,31 @@ class Scene:
                 if len(pts) >= 2:
                     p3 = np.column_stack([pts, np.full(len(pts), 0.005)])
                     self.trail_handles[i].points = np.stack([p3[:-1], p3[1:]], axis=1)
+        if every_tenth:
+            self._safety_view(state, est_world, known)
         if self.controls.follow_leader.value and every_tenth:
             for client in self.server.get_clients().values():
                 client.camera.look_at = (float(lx), float(ly), 0.0)
+
+    def _safety_view(self, state: TickState, est_world: np.ndarray, known: np.ndarray) -> None:
+        """The obstacles the leader knows (scan and memory), the goal, the planned heading, and a
+        red ring on each follower whose command the safety filter is holding back."""
+        lx, ly, lth = (float(v) for v in state.leader)
+        pts = state.obstacles
+        if pts is not None and len(pts):
+            world = leader_to_world(pts, (lx, ly), lth)
+            self.known.points = np.column_stack([world, np.full(len(world), 0.03)]).astype(np.float32)
+            self.known.visible = True
+        else:
+            self.known.visible = False
+        self.goal.visible = state.goal is not None
+        if state.goal is not None:
+            self.goal.position = (float(state.goal[0]), float(state.goal[1]), 0.0)
+        self.plan.visible = state.goal is not None and bool(np.isfinite(state.heading))
+        if self.plan.visible:
+            b = float(state.heading)
+            self.plan.points = np.array([[[0.0, 0.0, 0.3], [-0.7 * math.sin(b), 0.7 * math.cos(b), 0.3]]],
+                                        dtype=np.float32)
+        active = state.safety_active if state.safety_active is not None else np.zeros(state.n, dtype=bool)
+        for i, ring in enumerate(self.active):
+            ring.visible = bool(active[i]) and bool(known[i])

@@ -15,7 +15,7 @@ the time and leader motion since the frame before), and a camera with no fresh f
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from collections.abc import Callable
 
 import numpy as np
@@ -24,7 +24,10 @@ from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
 from core.camera.render import Renderer
 from core.geometry import leader_displacement
+from core.obstacles import Obstacle, as_array, seen_from
+from core.sim.stepped import scan_settings_for
 from core.types import FloatArray, Image
+from core.vision.freespace import FreeSpaceScanner, ObstacleMemory, ScanSettings
 from core.vision.pipeline import PipelineSettings, VisionPipeline
 
 from app.contracts import FrameSource, Observation, Team
@@ -34,14 +37,17 @@ STALE_FRAME_S = 0.3  # a camera frame older than this is no ground for moving a 
 
 
 class TruthFeedback:
-    """Ground truth plus the configured noise: no camera, no start-up."""
+    """Ground truth plus the configured noise: no camera, no start-up; the obstacles as the
+    simulator knows them (the nearest point of each box to each robot)."""
 
-    def __init__(self, team: SimTeam) -> None:
+    def __init__(self, team: SimTeam, obstacles: tuple[Obstacle, ...] = ()) -> None:
         self.team = team
+        self.boxes = as_array(obstacles)
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
         p, a, tracked = self.team.observe()
-        return Observation(p, a, a.copy(), tracked, "truth")
+        known = seen_from(self.boxes, self.team.state.leader, self.team.truth()[0]) if len(self.boxes) else None
+        return Observation(p, a, a.copy(), tracked, "truth", obstacles=known)
 
 
 @dataclass
@@ -56,8 +62,11 @@ class VisionFeedback:
     source: FrameSource | None = None
     clock: Callable[[], float] = time.monotonic
     settings: PipelineSettings = field(default_factory=PipelineSettings)
+    obstacles: tuple[Obstacle, ...] = ()  # the synthetic world's boxes (a scenario's), drawn by its camera
+    scan: ScanSettings | None = None  # the free-space scan's heights (default: the synthetic rig's)
     renderer: Renderer | None = field(init=False, default=None)
     pipeline: VisionPipeline | None = field(init=False, default=None)
+    scanner: FreeSpaceScanner | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         n = self.team.state.n
@@ -65,7 +74,8 @@ class VisionFeedback:
             model = self.rig.model
             if model is None:
                 raise ValueError(f"{self.rig.source}: the simulated camera needs a [model]")
-            self.renderer = Renderer(model, self.rig.render)
+            render = replace(self.rig.render, clutter=False, distractor=False) if self.obstacles else self.rig.render
+            self.renderer = Renderer(model, render, self.obstacles)
             self._make_pipeline((model.width, model.height))
         self._rng = np.random.default_rng(self.seed + 1)
         self._prev_leader = self.team.state.leader.copy()
@@ -74,10 +84,13 @@ class VisionFeedback:
         self._since_frame = 0.0
         self._frame_count = 0
         self._last: Observation | None = None
+        self.memory = ObstacleMemory(self.scanner.settings if self.scanner is not None else ScanSettings())
 
     def _make_pipeline(self, size: tuple[int, int]) -> None:
         self.pipeline = VisionPipeline(self.team.state.n, self.gamma, self.rig.working_area, self.rig.detect,
                                        size, np.random.default_rng(self.seed), self.settings)
+        heights = self.scan or (scan_settings_for(self.rig) if self.rig.model is not None else ScanSettings())
+        self.scanner = FreeSpaceScanner(self.gamma, self.rig.working_area, heights)
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
         state = self.team.state
@@ -111,12 +124,19 @@ class VisionFeedback:
         out = self.pipeline.step(frame, self._since_frame, odometry, commands, error_norm)
         self._since_frame = 0.0
         t2 = time.perf_counter()
+        self.memory.move(odometry)
+        scan = known = None
+        if out.manoeuvre is None and self.scanner is not None:  # not during the start-up: nobody is tracked yet
+            scan = self.scanner.scan(frame, out.positions, out.tracked)
+            known = self.memory.update(scan, self._t, np.where(out.tracked[:, None], out.positions, np.nan))
+        t3 = time.perf_counter()
         fresh = np.isfinite(out.heading_measured)
         self._a_raw[fresh] = out.heading_measured[fresh]
         raw = np.where(np.isfinite(self._a_raw), self._a_raw, out.headings)
         self._last = Observation(out.positions, out.headings, raw, out.tracked, out.phase, out.manoeuvre, frame,
                                  out.windows, out.hues_deg, out.probing,
-                                 {"camera": (t1 - t0) * 1e3, "vision": (t2 - t1) * 1e3}, camera_state)
+                                 {"camera": (t1 - t0) * 1e3, "vision": (t2 - t1) * 1e3, "scan": (t3 - t2) * 1e3},
+                                 camera_state, known, scan)
         return self._last
 
     def _stale(self, phase: str, camera_state: str) -> Observation:

@@ -22,9 +22,11 @@ import numpy as np
 
 from core.control.assignment import assign_slots
 from core.control.formation import ControlOutput, ControllerState, compute_commands
-from core.control.safety import SafetyResult, SafetySettings, filter_commands, team_min_distance
+from core.control.navigation import NavOutput, NavSettings, goal_in_leader_frame, navigate
+from core.control.safety import SafetyResult, SafetySettings, filter_commands, obstacle_rows, team_min_distance
 from core.control.targets import SlotMotion, step_slots
 from core.config import MeasurementNoise
+from core.obstacles import Obstacle
 from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
 from core.vision.pipeline import PipelineSettings
@@ -87,13 +89,19 @@ class ServiceLoop:
         frames: FrameSource | None = None,
         hardware: HardwareTeam | None = None,
         pipeline_settings: PipelineSettings | None = None,
+        obstacles: tuple[Obstacle, ...] = (),
+        switches: tuple[tuple[float, FloatArray], ...] = (),
     ) -> None:
         """``camera``: the synthetic rig and its calibrated Γ; with it the controller is fed
         by the vision pipeline on rendered frames, without it by ground truth plus noise.
         ``link``: a real follower link (serial); the simulated followers then move by what
         the robots on it report (see app.backends.sim).
         ``frames`` and ``hardware``: a real camera and real robots (no simulator); ``camera``
-        then holds the rig's calibration file (working area, detection, Γ)."""
+        then holds the rig's calibration file (working area, detection, Γ).
+        ``obstacles``: boxes in the simulated world (a scenario's): the synthetic camera draws
+        them, truth feedback knows them; the filter and the goal mode keep clear of them.
+        ``switches``: (time s, slots) a scenario's formation switches, applied as the operator's
+        would be (they count from the loop's start and from every reset)."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
@@ -107,6 +115,11 @@ class ServiceLoop:
         self.frames = frames
         self.hardware = hardware
         self.pipeline_settings = pipeline_settings or PipelineSettings()
+        self.obstacles = tuple(obstacles)
+        self.switches = tuple(switches)
+        self._switch_k = 0
+        self._nav = (math.nan, 1.0)  # the goal mode's last heading and formation scale
+        self._nav_out: NavOutput | None = None
         if frames is not None and (hardware is None or camera is None):
             raise ValueError("a real frame source needs the real team (hardware) and the rig's calibration (camera)")
         self.faults = 0
@@ -157,11 +170,13 @@ class ServiceLoop:
                            self.seed + 1000 + self._resets, link=self.link)
             if self.camera is not None:
                 feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
-                                          settings=self.pipeline_settings)
+                                          settings=self.pipeline_settings, obstacles=self.obstacles)
             else:
-                feedback = TruthFeedback(team)
+                feedback = TruthFeedback(team, self.obstacles)
             assignment = assign_slots(p0, params.slots)
         self.t = 0.0
+        self._nav = (math.nan, 1.0)
+        self._switch_k = 0
         return _World(team, feedback, ControllerState.initial(n), SlotMotion.at_rest(params.slots[assignment]),
                       assignment, params.slots.tobytes(), ready=self.camera is None,
                       last_cmd=np.zeros((n, 2)), err_norm=np.zeros(n))
@@ -172,10 +187,23 @@ class ServiceLoop:
                                           activity_m=max(0.6, params.safety_distance_m + 0.35))
         return self._safety
 
-    def _leader_twist(self, params: Params) -> tuple[float, float]:
+    def _leader_twist(self, params: Params, known: FloatArray, err_norm: FloatArray, tracked: np.ndarray,
+                      slots: FloatArray) -> tuple[float, float]:
         if self._mode[0] != params.leader_mode:
             self._mode = (params.leader_mode, self.t)
         v, w = params.leader_speed_mps, math.radians(params.leader_turn_deg_s)
+        self._nav_out = None
+        if params.leader_mode == "goal":
+            if params.goal is None:
+                return 0.0, 0.0
+            goal = goal_in_leader_frame(params.goal, self._world.team.state.leader)
+            team_err = float(err_norm[tracked].max()) if tracked.any() else 0.0
+            nav = NavSettings(speed_mps=max(abs(v), 0.01))
+            out = navigate(goal, known, team_err, self._nav[0], self._nav[1], slots, params.min_scale, self.dt, nav)
+            self._nav = (out.heading, out.scale)
+            self._nav_out = out
+            return out.twist
+        self._nav = (math.nan, min(1.0, self._nav[1] + NavSettings.scale_rate * self.dt))  # grows back in other modes
         if params.leader_mode == "stop":
             return 0.0, 0.0
         if params.leader_mode == "straight":
@@ -195,6 +223,11 @@ class ServiceLoop:
             self._world = self._make_world(params)
             self._mode = ("", 0.0)
         world = self._world
+        while self._switch_k < len(self.switches) and world.ready and self.t >= self.switches[self._switch_k][0]:
+            slots = self.switches[self._switch_k][1]
+            self._switch_k += 1
+            if slots.shape[0] == params.n_followers:
+                params, _ = self.store.update("scenario", slots=slots)
         if self.fault and not params.stop:  # the operator saw the fault and released STOP
             self.fault = ""
         advance = not params.paused or params.step_requests != self._steps_done
@@ -222,10 +255,13 @@ class ServiceLoop:
         if world.ready and slots_key != world.slot_version:
             world.assignment = assign_slots(p, params.slots, current=world.assignment, margin_m2=REASSIGN_MARGIN_M2)
             world.slot_version = slots_key
-        targets = params.slots[world.assignment]
+        known = obs.obstacles if obs.obstacles is not None else np.zeros((0, 2))
+        twist = self._leader_twist(params, known, world.err_norm, tracked, params.slots) if advance and world.ready \
+            else (0.0, 0.0)
+        targets = params.slots[world.assignment] * np.array([self._nav[1], 1.0])  # narrowed for a gap (goal mode)
         if advance and world.ready:
-            world.slots = step_slots(world.slots, targets, self.dt)
-        twist = self._leader_twist(params) if advance and world.ready else (0.0, 0.0)
+            keep_out = params.safety_distance_m + 0.2 if params.safety else 0.0  # round the leader, not through it
+            world.slots = step_slots(world.slots, targets, self.dt, keep_out_m=keep_out)
         if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
             move = advance and not params.stop
             manoeuvre = obs.manoeuvre if move else np.zeros((params.n_followers, 2))
@@ -237,8 +273,9 @@ class ServiceLoop:
             world.controller = out.state
         safety = None
         if obs.manoeuvre is None and params.safety and not params.stop:
-            safety = filter_commands(p, a, out.commands, twist, None, self._safety_settings(params), known=tracked,
-                                     limits=(params.gains.v_max, params.gains.w_max))
+            settings = self._safety_settings(params)
+            safety = filter_commands(p, a, out.commands, twist, obstacle_rows(known, p[tracked], settings), settings,
+                                     known=tracked, limits=(params.gains.v_max, params.gains.w_max))
             if safety.status != "inactive":
                 out = dataclasses.replace(out, commands=safety.commands)
         if world.team.link_lost:  # nobody answers: no command but zero until the robots do
@@ -268,6 +305,10 @@ class ServiceLoop:
             safety=safety_text(safety, params.safety), safety_changed=None if safety is None else safety.changed,
             min_distance_m=(safety.min_distance_m if safety is not None  # the filter measured it already
                             else team_min_distance(p[tracked]) if tracked.any() else float("nan")),
+            safety_active=None if safety is None else safety.active, obstacles=known, scan=obs.scan,
+            goal=params.goal if params.leader_mode == "goal" else None,
+            heading=self._nav_out.heading if self._nav_out is not None else float("nan"),
+            formation_scale=self._nav[1], goal_reached=self._nav_out is not None and self._nav_out.reached,
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)

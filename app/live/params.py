@@ -21,9 +21,10 @@ from collections.abc import Callable
 
 import numpy as np
 
+from core.control.presets import FORMATION_PRESETS, PRESET_REACH_M, formation_preset
 from core.types import GAIN_BOUNDS, Bound, FloatArray, Gains
 
-LeaderMode = Literal["stop", "straight", "circle", "eq39"]
+LeaderMode = Literal["stop", "straight", "circle", "eq39", "goal"]
 LEADER_MODES: tuple[LeaderMode, ...] = get_args(LeaderMode)
 MAX_FOLLOWERS = 8
 SLOT_LIMIT_M = 2.0  # desired positions must stay where the camera can see them
@@ -32,6 +33,8 @@ LEADER_SPEED = Bound(-0.3, 0.3, "m/s", "leader forward speed", lo_inclusive=True
 LEADER_TURN = Bound(-30.0, 30.0, "deg/s", "leader turn rate, counter-clockwise positive", lo_inclusive=True)
 SAFETY_DISTANCE = Bound(0.15, 1.0, "m", "the safety filter's minimum distance between robots, centre to centre",
                         lo_inclusive=True)
+MIN_SCALE = Bound(0.3, 1.0, "", "how narrow the formation may get to pass a gap", lo_inclusive=True)
+GOAL_LIMIT_M = 10.0  # a goal further than this from where the leader started is off the floor it knows
 SLOT_COORD = Bound(-SLOT_LIMIT_M, SLOT_LIMIT_M, "m", "desired position in the leader frame", lo_inclusive=True)
 
 
@@ -49,6 +52,8 @@ class Params:
     stop: bool = False  # the big STOP: every follower commanded (0, 0), the loop keeps observing
     safety: bool = True  # the barrier-certificate filter on every command (core.control.safety)
     safety_distance_m: float = 0.25  # its minimum distance, centre to centre
+    goal: tuple[float, float] | None = None  # leader mode "goal": where the leader drives (odometry frame, m)
+    min_scale: float = 0.6  # how narrow the formation may get to pass a gap (core.control.navigation)
     step_requests: int = 0
     reset_requests: int = 0
     version: int = 0
@@ -77,6 +82,7 @@ class ParamsStore:
         if fixed_followers is not None and self._params.n_followers != fixed_followers:
             self._params = self._params.replace(n_followers=fixed_followers)
         self._listeners: list[Callable[[Params, str, tuple[Notice, ...]], None]] = []
+        self.goal_check: Callable[[tuple[float, float]], str | None] | None = None  # why a goal cannot be reached
 
     def get(self) -> Params:
         return self._params  # a reference read is atomic; Params is immutable
@@ -145,6 +151,21 @@ class ParamsStore:
                     new_values[key] = bool(value)
                 elif key == "safety_distance_m":
                     new_values[key] = _clamped(key, value, SAFETY_DISTANCE, notices)
+                elif key == "min_scale":
+                    new_values[key] = _clamped(key, value, MIN_SCALE, notices)
+                elif key == "goal":
+                    goal = _goal(value)
+                    if goal is not None and max(abs(goal[0]), abs(goal[1])) > GOAL_LIMIT_M:
+                        notices.append(Notice(key, f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m is off the floor the leader"
+                                                   f" can reach (|x|, |y| <= {GOAL_LIMIT_M:g} m from where it started);"
+                                                   " refused"))
+                        continue
+                    if goal is not None and self.goal_check is not None:
+                        why = self.goal_check(goal)
+                        if why:
+                            notices.append(Notice(key, f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m {why}; refused"))
+                            continue
+                    new_values[key] = goal
                 elif key in ("step_requests", "reset_requests"):
                     new_values[key] = getattr(current, key) + 1
                 else:
@@ -164,6 +185,19 @@ class ParamsStore:
         return new, result
 
 
+def _goal(value: Any) -> tuple[float, float] | None:
+    """A goal from a person: None (no goal) or two finite numbers (m), else one line."""
+    if value is None:
+        return None
+    try:
+        x, y = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"goal = {value!r}: must be [x, y] in metres, or none") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"goal = {value!r}: must be two finite numbers (m); unchanged")
+    return x, y
+
+
 def _clamped(key: str, value: Any, bound: Bound, notices: list[Notice]) -> float:
     try:
         number = float(value)
@@ -175,7 +209,8 @@ def _clamped(key: str, value: Any, bound: Bound, notices: list[Notice]) -> float
                          "; unchanged")
     clamped = bound.clamp(number)
     if clamped != number:
-        notices.append(Notice(key, f"{key} = {value!r} is outside {lo_br}{bound.lo:g}, {bound.hi:g}] {bound.unit}: set to {clamped:g}"))
+        unit = f" {bound.unit}" if bound.unit else ""
+        notices.append(Notice(key, f"{key} = {value!r} is outside {lo_br}{bound.lo:g}, {bound.hi:g}]{unit}: set to {clamped:g}"))
     return clamped
 
 
@@ -195,45 +230,4 @@ def default_slots(n: int) -> FloatArray:
     return formation_preset("paper triangle" if n <= 2 else "V" if n <= 5 else "ring", n)
 
 
-FORMATION_PRESETS = ("paper triangle", "triangle ahead", "line abreast", "column", "V", "diamond", "ring")
-
-
-PRESET_REACH_M = 1.5  # presets stay inside the camera's working ring
-
-
-def formation_preset(name: str, n: int) -> FloatArray:
-    """Slots (n, 2) in the leader frame for a named formation, shrunk to fit within 1.5 m."""
-    slots = _preset_shape(name, n)
-    reach = float(np.abs(slots).max()) if slots.size else 0.0
-    return slots * (PRESET_REACH_M / reach) if reach > PRESET_REACH_M else slots
-
-
-def _preset_shape(name: str, n: int) -> FloatArray:
-    i = np.arange(n, dtype=np.float64)
-    if name == "paper triangle":  # §4: (-0.5, -0.3), (0.5, -0.3), more behind
-        side = np.where(i % 2 == 0, -1.0, 1.0)
-        row = i // 2
-        return np.column_stack([side * 0.5 * (1 + row), -0.3 - 0.4 * row])
-    if name == "triangle ahead":  # §5.1: (-0.6, 0.3), (0.6, 0.3)
-        side = np.where(i % 2 == 0, -1.0, 1.0)
-        row = i // 2
-        return np.column_stack([side * 0.6 * (1 + row), 0.3 + 0.4 * row])
-    if name == "line abreast":
-        k = i // 2 + 1
-        side = np.where(i % 2 == 0, -1.0, 1.0)
-        return np.column_stack([side * 0.5 * k, np.zeros(n)])
-    if name == "column":
-        spacing = min(0.5, 1.1 / max(n, 1))
-        return np.column_stack([np.zeros(n), -(0.4 + spacing * i)])
-    if name == "V":
-        k = i // 2 + 1
-        side = np.where(i % 2 == 0, -1.0, 1.0)
-        return np.column_stack([side * 0.4 * k, -0.4 * k])
-    if name == "diamond":
-        base = np.array([[-0.5, -0.5], [0.5, -0.5], [0.0, -1.0], [0.0, 0.6]])
-        extra = _preset_shape("ring", n)[4:] * 1.3 if n > 4 else np.zeros((0, 2))
-        return np.vstack([base[: min(n, 4)], extra])
-    if name == "ring":
-        ang = np.pi / 2 + 2 * np.pi * i / max(n, 1)
-        return np.column_stack([0.9 * np.cos(ang), 0.9 * np.sin(ang)])
-    raise ValueError(f"formation {name!r}: must be one of {', '.join(FORMATION_PRESETS)}")
+__all__ = ["FORMATION_PRESETS", "PRESET_REACH_M", "formation_preset"]  # the page's presets live in core

@@ -10,11 +10,16 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
+
+import numpy as np
 from pathlib import Path
 
 from core.config import MeasurementNoise, Scenario
 from core.sim.team import FollowerDynamics
-from core.sim.profiles import ConstantProfile, Eq39Profile
+from core.config import LEADER_RADIUS_M
+from core.obstacles import Obstacle, as_array, surface_distance
+from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile
 
 from app.backends.hardware import HardwareTeam
 from app.contracts import FollowerLink, FrameSource, Rig
@@ -24,6 +29,7 @@ from app.dashboard.gate import quietly, serve_gated
 from app.dashboard.recordings_panel import RecordingsPanel
 from app.live.loop import DEFAULT_NOISE, ServiceLoop
 from app.live.params import LeaderMode, Params, ParamsStore, default_slots
+from app.memory import bound_native_heap
 
 
 
@@ -39,8 +45,26 @@ def params_for(scenario: Scenario | None, n_followers: int) -> Params:
         speed, turn = lp.speed_mps, math.degrees(lp.turn_rps) or 1.5
     elif isinstance(lp, Eq39Profile):
         mode, speed, turn = "eq39", lp.speed_mps, math.degrees(lp.k1_rps)
+    goal = None
+    if isinstance(lp, GoalProfile):
+        mode, speed, goal = "goal", lp.speed_mps, lp.goal
+    safety = scenario.safety
     return Params(gains=scenario.gains, leader_mode=mode, leader_speed_mps=speed, leader_turn_deg_s=turn,
-                  slots=scenario.slots.copy(), n_followers=scenario.n)
+                  slots=scenario.slots.copy(), n_followers=scenario.n, goal=goal, min_scale=scenario.min_scale,
+                  safety_distance_m=safety.min_distance_m if safety is not None else Params.safety_distance_m)
+
+
+def goal_check_for(obstacles: tuple[Obstacle, ...]) -> Callable[[tuple[float, float]], str | None]:
+    """Why a goal cannot be reached in a world with these boxes (None: it can)."""
+    boxes = as_array(obstacles)
+
+    def check(goal: tuple[float, float]) -> str | None:
+        gap = float(surface_distance(np.array([goal]), boxes).min())
+        if gap < LEADER_RADIUS_M:
+            return f"is {max(gap, 0.0) * 100:.0f} cm from an obstacle's surface (the leader needs {LEADER_RADIUS_M * 100:.0f})"
+        return None
+
+    return check
 
 
 class Service:
@@ -56,6 +80,7 @@ class Service:
                  token: str | None = None) -> None:
         """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
         ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host."""
+        bound_native_heap()  # hours of frames in bounded resident memory (app.memory)
         fixed = hardware.state.n if hardware is not None else getattr(link, "n", None)
         self.store = ParamsStore(params_for(scenario, fixed or n_followers), fixed_followers=fixed)
         noise = scenario.measurement if scenario is not None else noise or DEFAULT_NOISE
@@ -64,16 +89,20 @@ class Service:
             initial_poses = (scenario.initial_p, scenario.initial_a)
             dynamics = scenario.dynamics
             seed = scenario.seed
+        obstacles = scenario.obstacles if scenario is not None and hardware is None else ()
         self.loop = ServiceLoop(self.store, rate_hz=rate_hz, seed=seed, dynamics=dynamics, camera=camera,
                                 link=link, frames=frames, hardware=hardware,
                                 position_noise_m=noise.position_noise_m, heading_noise_rad=noise.heading_noise_rad,
-                                initial_poses=initial_poses)
+                                initial_poses=initial_poses, obstacles=obstacles,
+                                switches=scenario.switches if scenario is not None else ())
+        if obstacles:
+            self.store.goal_check = goal_check_for(obstacles)
         self.server, self.gate = serve_gated(host, port, token)
         overlay = None
         if camera is not None:
             wa = camera[0].working_area
             overlay = Overlay((camera[1].cx, camera[1].cy), wa.inner_px, wa.outer_px)
-        self.dashboard = Dashboard(self.server, self.store, overlay)
+        self.dashboard = Dashboard(self.server, self.store, overlay, obstacles)
         self.recordings = RecordingsPanel(self.server, host, recordings, token=self.gate.token)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.types import FloatArray, Gains, Image, IntArray
+from core.vision.freespace import Scan
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,13 @@ class TickState:
     safety: str = ""  # the safety filter's state for people ("off", "on, inactive", "on, changed F2 0.04 m/s", ...)
     safety_changed: FloatArray | None = None  # (n,) how much the filter moved each follower's command (m/s)
     min_distance_m: float = float("nan")  # the smallest centre distance between two robots this tick
+    safety_active: np.ndarray | None = None  # (n,) bool: a constraint of this follower is at its limit
+    obstacles: FloatArray | None = None  # (k, 2) leader frame: the obstacle points the leader knows
+    scan: Scan | None = None  # this frame's free-space scan (vision)
+    goal: tuple[float, float] | None = None  # leader mode "goal": where it drives (world / odometry frame)
+    heading: float = float("nan")  # the goal mode's chosen bearing (rad, leader frame)
+    formation_scale: float = 1.0  # how far the formation is narrowed for a gap
+    goal_reached: bool = False
 
     @property
     def n(self) -> int:

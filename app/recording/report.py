@@ -105,6 +105,35 @@ def series(rec: Recording) -> Series:
 
 COLLISION_M = 0.15  # two robot centres closer than this: their bodies (15 x 25 cm) touch
 NEAR_MISS_M = 0.25  # the safety filter's default minimum distance
+BOUNDARY_M = 2.2  # a follower further than this from the leader has left the camera's working ring (fig. 8)
+OBSTACLE_CLEARANCE_M = 0.10  # a follower's body (a disc of 0.15 m) nearer than this to an obstacle: a near miss
+FOLLOWER_RADIUS_M = 0.15
+
+
+def recorded_obstacles(rec: Recording) -> np.ndarray:
+    """The world's boxes (core.obstacles.as_array rows) from the scenario the recording names."""
+    text = rec.metadata.get("scenario_toml", "")
+    if "[[obstacles]]" not in text:
+        return np.zeros((0, 5))
+    from core.config import ConfigError, parse_scenario
+    from core.obstacles import as_array
+
+    try:
+        return as_array(parse_scenario(text, "the recorded scenario").obstacles)
+    except ConfigError:
+        return np.zeros((0, 5))
+
+
+def obstacle_gap(rec: Recording, s: Series) -> np.ndarray | None:
+    """(T,) the closest follower body to an obstacle's surface (true poses), or None (no obstacles, no truth)."""
+    boxes = recorded_obstacles(rec)
+    if len(boxes) == 0 or not s.truth:
+        return None
+    from core.obstacles import surface_distance
+
+    fw = s.followers_world[..., :2].reshape(-1, 2)
+    gaps = surface_distance(np.nan_to_num(fw, nan=1e9), boxes).min(axis=1).reshape(len(s.t), -1)
+    return np.asarray(gaps.min(axis=1) - FOLLOWER_RADIUS_M)
 
 
 def safety_summary(rec: Recording, s: Series, dt: float) -> dict[str, Any]:
@@ -119,6 +148,13 @@ def safety_summary(rec: Recording, s: Series, dt: float) -> dict[str, Any]:
     limits = rec.params[0][1].get("gains", {}) if rec.params else {}
     v_max, w_max = float(limits.get("v_max", np.inf)), float(limits.get("w_max", np.inf))
     at_limit = (np.abs(s.commands[..., 0]) >= v_max - 1e-6) | (np.abs(s.commands[..., 1]) >= w_max - 1e-6)
+    out_of_ring = (np.linalg.norm(s.p, axis=-1) > BOUNDARY_M).any(axis=1)
+    gap = obstacle_gap(rec, s)
+    near_obstacle = {} if gap is None else {
+        "obstacle_clearance_cm": round(float(np.nanmin(gap[after])) * 100, 1),
+        "obstacle_hits": episodes(gap[after] <= 0.0),
+        "obstacle_near_misses": episodes(gap[after] < OBSTACLE_CLEARANCE_M),
+    }
     return {"safety": {
         "distances_from": "true poses" if s.truth else "estimated poses",
         "min_distance_cm": round(float(np.nanmin(close)) * 100, 1) if close.size and np.isfinite(close).any() else None,
@@ -126,6 +162,8 @@ def safety_summary(rec: Recording, s: Series, dt: float) -> dict[str, Any]:
         "near_misses": episodes(close < NEAR_MISS_M),
         "time_under_min_distance_s": round(float(np.count_nonzero(close < NEAR_MISS_M) * dt), 2),
         "actuator_limit_hits": episodes(at_limit[after].any(axis=1)),
+        "boundary_exits": episodes(out_of_ring[after]),
+        **near_obstacle,
         "filter_acting_s": None if s.filter_acting is None else round(float(np.count_nonzero(s.filter_acting[after]) * dt), 2),
     }}
 
@@ -181,8 +219,13 @@ def _summary_md(sm: dict[str, Any]) -> str:
     sf = sm["safety"]
     lines.append(f"- safety ({sf['distances_from']}): closest two robots {sf['min_distance_cm']} cm; {sf['collisions']}"
                  f" collisions (< {COLLISION_M * 100:.0f} cm), {sf['near_misses']} near misses (< {NEAR_MISS_M * 100:.0f}"
-                 f" cm, {sf['time_under_min_distance_s']} s); {sf['actuator_limit_hits']} actuator-limit hits; safety"
+                 f" cm, {sf['time_under_min_distance_s']} s); {sf['actuator_limit_hits']} actuator-limit hits;"
+                 f" {sf['boundary_exits']} exits from the camera's ring (> {BOUNDARY_M:g} m); safety"
                  f" filter acting {sf['filter_acting_s'] if sf['filter_acting_s'] is not None else 'not recorded'} s")
+    if "obstacle_clearance_cm" in sf:
+        lines.append(f"- obstacles: closest follower body {sf['obstacle_clearance_cm']} cm from a surface;"
+                     f" {sf['obstacle_hits']} hits, {sf['obstacle_near_misses']} near misses"
+                     f" (< {OBSTACLE_CLEARANCE_M * 100:.0f} cm)")
     if sm["loss"]:
         lines.append(f"- not in the file: {sm['lost_ticks']} ticks ({sm['lost_s']} s); {sm['loss']}")
     for ev in sm["stop_events"]:
@@ -255,6 +298,29 @@ def _lyapunov_commands(s: Series, path: Path) -> None:
     plt.close(fig)
 
 
+def _safety(s: Series, gap: np.ndarray | None, path: Path) -> None:
+    """The minimum distance over time (robots, and obstacles where the scenario has them) and
+    where the safety filter acted."""
+    fig, axes = plt.subplots(2, 1, figsize=(9, 5), sharex=True, constrained_layout=True,
+                             gridspec_kw={"height_ratios": [3, 1]})
+    axes[0].plot(s.t, s.min_distance() * 100, color="tab:blue", lw=0.9, label="closest two robots (centres)")
+    if gap is not None:
+        axes[0].plot(s.t, gap * 100, color="tab:brown", lw=0.9, label="closest follower body to an obstacle")
+    axes[0].axhline(NEAR_MISS_M * 100, color="tab:red", ls="--", lw=0.8, label=f"minimum distance {NEAR_MISS_M * 100:.0f} cm")
+    axes[0].axhline(OBSTACLE_CLEARANCE_M * 100, color="tab:orange", ls=":", lw=0.8,
+                    label=f"obstacle clearance {OBSTACLE_CLEARANCE_M * 100:.0f} cm")
+    axes[0].set(ylabel="cm", title="minimum distance over time")
+    axes[0].set_ylim(bottom=0)
+    axes[0].legend(fontsize=7, loc="upper right")
+    if s.filter_acting is not None:
+        axes[1].fill_between(s.t, s.filter_acting.astype(float), step="mid", color="tab:red", alpha=0.5, lw=0)
+    axes[1].set(ylabel="acting", xlabel="t (s)", title="safety filter changed a command", yticks=[0, 1])
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], None] | None = None) -> list[Path]:
     s = series(rec)
     title = rec.metadata.get("scenario", rec.path.stem)
@@ -265,6 +331,7 @@ def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], 
         ("errors.png", lambda p: _errors(shown, p)),
         ("headings.png", lambda p: _headings(shown, p)),
         ("lyapunov_commands.png", lambda p: _lyapunov_commands(shown, p)),
+        ("safety.png", lambda p: _safety(shown, obstacle_gap(rec, shown), p)),
     ]
     written = []
     total = len(steps) + 1

@@ -23,8 +23,10 @@ Metadata record ``omniformation``: the config and scenario text used, the comman
 
 Crash safety: messages are written in zstd chunks of at most ``CHUNK_BYTES``; SIGINT /
 SIGTERM finish the file (summary and index). A file cut off by SIGKILL or power loss is
-still read up to its last complete chunk: at most ``CHUNK_BYTES`` of messages — about one
-second of a session with camera frames at 10 Hz — are lost.
+still read up to its last complete chunk: at most ``CHUNK_BYTES`` of messages — about three
+seconds of a session with camera frames at 10 Hz — are lost. 1 MiB rather than smaller: the
+writer keeps one chunk index per chunk in memory until the file is closed (about 600 bytes
+each), so an hour of a session (1.2 GB) holds 1,200 of them (0.7 MB), not 4,800.
 """
 
 from __future__ import annotations
@@ -38,13 +40,16 @@ import numpy as np
 
 from app.live.params import Params
 from app.live.tick import TickState
+from core.vision.freespace import Scan
 
-CHUNK_BYTES = 256 * 1024
+CHUNK_BYTES = 1024 * 1024
 TICK_TOPIC = "/omniformation/tick"
 TF_TOPIC = "/tf"
 IMAGE_TOPIC = "/camera/image"
 EVENT_TOPIC = "/omniformation/events"
 PARAMS_TOPIC = "/omniformation/params"
+SCAN_TOPIC = "/scan"
+SCAN_HZ = 10.0  # free-space scans recorded per second (each is 360 ranges)
 
 _NUM_ARRAY = {"type": "array", "items": {"type": ["number", "null"]}}
 _TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
@@ -68,7 +73,21 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "rate_hz": {"type": "number"}, "stage_ms": {"type": "object"}, "phase": {"type": "string"},
             "probing": {"type": "integer"}, "windows": {"type": "array"}, "hues_deg": _NUM_ARRAY,
             "safety": {"type": "string"}, "safety_changed": _NUM_ARRAY, "min_distance_m": {"type": ["number", "null"]},
+            "safety_active": {"type": ["array", "null"]},
+            "obstacles": {"type": ["array", "null"], "description": "obstacle points the leader knows, leader frame, m"},
+            "goal": {"type": ["array", "null"]}, "heading": {"type": ["number", "null"]},
+            "formation_scale": {"type": "number"}, "goal_reached": {"type": "boolean"},
         },
+    },
+    "foxglove.LaserScan": {
+        "type": "object",
+        "title": "foxglove.LaserScan",
+        "description": "The free-space scan of the omnidirectional image (core.vision.freespace), in the leader frame;"
+                       " null: free as far as the camera's working ring reaches",
+        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
+                       "pose": {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}},
+                       "start_angle": {"type": "number"}, "end_angle": {"type": "number"},
+                       "ranges": _NUM_ARRAY, "intensities": _NUM_ARRAY},
     },
     "foxglove.FrameTransforms": {
         "type": "object",
@@ -92,7 +111,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
 }
 TOPIC_SCHEMA = {TICK_TOPIC: "omniformation.Tick", TF_TOPIC: "foxglove.FrameTransforms",
                 IMAGE_TOPIC: "foxglove.CompressedImage", EVENT_TOPIC: "omniformation.Event",
-                PARAMS_TOPIC: "omniformation.Params"}
+                PARAMS_TOPIC: "omniformation.Params", SCAN_TOPIC: "foxglove.LaserScan"}
 
 
 def _jsonable(x: Any) -> Any:
@@ -115,9 +134,21 @@ def _jsonable(x: Any) -> Any:
 
 def tick_payload(s: TickState) -> dict[str, Any]:
     """A TickState as the JSON object recorded on /omniformation/tick (no image)."""
-    d = {f.name: getattr(s, f.name) for f in dataclasses.fields(s) if f.name != "frame"}
+    d = {f.name: getattr(s, f.name) for f in dataclasses.fields(s) if f.name not in ("frame", "scan")}
     d["gains"] = s.gains.as_dict()
+    if s.obstacles is not None:  # centimetres are what the scan resolves
+        d["obstacles"] = np.round(np.asarray(s.obstacles, dtype=np.float64), 2)
     return _jsonable(d)  # type: ignore[no-any-return]  # a dict in, the same keys out
+
+
+def scan_payload(scan: Scan, ns: int) -> dict[str, Any]:
+    """A foxglove.LaserScan message: angles counter-clockwise from the leader frame's +x (its
+    right), as Foxglove reads them; our bearings count from straight ahead (+y)."""
+    b = scan.bearings
+    return {"timestamp": _stamp(ns), "frame_id": "leader",
+            "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+            "start_angle": float(b[0] + math.pi / 2), "end_angle": float(b[-1] + math.pi / 2),
+            "ranges": _jsonable(scan.ranges), "intensities": []}
 
 
 def params_payload(p: Params) -> dict[str, Any]:
@@ -188,4 +219,9 @@ def tick_from_payload(d: dict[str, Any], frame: np.ndarray | None = None) -> Tic
         safety=str(d.get("safety", "")),
         safety_changed=json_floats(d["safety_changed"]) if d.get("safety_changed") is not None else None,
         min_distance_m=float(d["min_distance_m"]) if d.get("min_distance_m") is not None else float("nan"),
+        safety_active=np.array(d["safety_active"], dtype=bool) if d.get("safety_active") is not None else None,
+        obstacles=json_floats(d["obstacles"]).reshape(-1, 2) if d.get("obstacles") is not None else None,
+        goal=(float(d["goal"][0]), float(d["goal"][1])) if d.get("goal") is not None else None,
+        heading=float(d["heading"]) if d.get("heading") is not None else float("nan"),
+        formation_scale=float(d.get("formation_scale", 1.0)), goal_reached=bool(d.get("goal_reached", False)),
     )

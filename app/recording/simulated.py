@@ -16,7 +16,10 @@ from app.live.params import Params
 from app.recording.writer import Recorder
 from core.config import Scenario
 from core.sim.run import SimulationLog, simulate
+from core.sim.profiles import GoalProfile
+from core.sim.stepped import SafetyLog, simulate_stepped
 from core.sim.vision_run import VisionLog, simulate_vision
+from core.vision.freespace import Scan
 from core.types import Image
 from core.vision.pipeline import PipelineSettings
 
@@ -26,14 +29,16 @@ class SimRun:
     log: SimulationLog
     vision: VisionLog | None = None
     frames: dict[int, bytes] = field(default_factory=dict)  # row -> JPEG, kept for a recording
+    safety: SafetyLog | None = None  # the stepped simulator's (obstacles, the filter, a goal, switches)
 
 
 def run_simulation(scenario: Scenario, camera: Rig | None = None,
                    settings: PipelineSettings = PipelineSettings(), frames_hz: float = 0.0,
                    jpeg_quality: int = 80) -> SimRun:
     """The scenario with ground-truth feedback, or with ``camera`` (a synthetic rig and its Γ)
-    through the vision pipeline, keeping ``frames_hz`` JPEG frames a second."""
-    if camera is None:
+    through the vision pipeline, keeping ``frames_hz`` JPEG frames a second. A scenario with
+    obstacles, the safety filter, a goal or switches runs in the stepped simulator."""
+    if camera is None and not scenario.stepped:
         return SimRun(simulate(scenario))
     every = max(1, int(round(scenario.rate_hz / frames_hz))) if frames_hz > 0 else 0
     frames: dict[int, bytes] = {}
@@ -42,6 +47,11 @@ def run_simulation(scenario: Scenario, camera: Rig | None = None,
         if every and k % every == 0:  # only a kept frame is rendered whole
             frames[k] = cv2.imencode(".jpg", np.asarray(frame), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])[1].tobytes()
 
+    if scenario.stepped:
+        stepped = simulate_stepped(scenario, camera[0] if camera else None, camera[1] if camera else None, settings,
+                                   on_frame=keep)
+        return SimRun(stepped.log, stepped.vision, frames, stepped.safety)
+    assert camera is not None
     vision = simulate_vision(scenario, camera[0], camera[1], settings, on_frame=keep)
     return SimRun(vision.log, vision, frames)
 
@@ -60,7 +70,7 @@ def record_run(run: SimRun, path: Path, metadata: dict[str, str], frames_hz: flo
                              phases=vision.phase if vision is not None else None, frames=run.frames or None,
                              a_raw=a_raw, frame_rate_hz=frames_hz,
                              windows=vision.windows if vision is not None else None,
-                             hues_deg=vision.hues_deg if vision is not None else None)
+                             hues_deg=vision.hues_deg if vision is not None else None, safety=run.safety)
 
 
 def record_simulation(
@@ -74,6 +84,7 @@ def record_simulation(
     frame_rate_hz: float = 10.0,
     windows: np.ndarray | None = None,
     hues_deg: np.ndarray | None = None,
+    safety: SafetyLog | None = None,
 ) -> int:
     """Write every row of ``log`` as a tick, and the JPEG frames given (by row); returns the ticks."""
     sc = log.scenario
@@ -82,8 +93,20 @@ def record_simulation(
     rec = Recorder(path, {**metadata, "frames_hz": f"{frame_rate_hz:g}"}, params, frame_rate_hz=frame_rate_hz, lossless=True,
                    start_ns=0)
     v_lyap = log.v_lyap
+    goal = sc.leader.goal if isinstance(sc.leader, GoalProfile) else None
     try:
         for k in range(len(log.t)):
+            extra: dict[str, object] = {}
+            if safety is not None:
+                status = safety.status[k]
+                extra = dict(
+                    safety="off" if status == "off" else f"on, {'changed' if status == 'filtered' else status}",
+                    safety_changed=safety.changed[k], min_distance_m=float(safety.min_distance[k]),
+                    obstacles=safety.obstacle_points[k] if safety.obstacle_points else None,
+                    goal=goal, formation_scale=float(safety.scale[k]),
+                    goal_reached=bool(np.isfinite(safety.goal_reached_s) and log.t[k] >= safety.goal_reached_s),
+                    scan=_scan_row(safety, k),
+                )
             rec.on_tick(TickState(
                 tick=k, t=float(log.t[k]) - float(log.t[0]), leader=log.leader[k],
                 leader_twist=(float(log.leader_twist[k, 0]), float(log.leader_twist[k, 1])),
@@ -96,10 +119,18 @@ def record_simulation(
                 phase=phases[k] if phases is not None else "truth",
                 a_raw=a_raw[k] if a_raw is not None else None,
                 windows=windows[k] if windows is not None else None,
-                hues_deg=hues_deg[k] if hues_deg is not None else None,
+                hues_deg=hues_deg[k] if hues_deg is not None else None, **extra,  # type: ignore[arg-type]  # TickState's fields, typed there
             ))
             if frames is not None and k in frames:
                 rec.add_jpeg(float(log.t[k]) - float(log.t[0]), frames[k])
     finally:
         rec.close()
     return len(log.t)
+
+
+def _scan_row(safety: SafetyLog, k: int) -> Scan | None:
+    """Row k of a stepped run's scans as a Scan (None where none was taken: the start-up, no obstacles)."""
+    if safety.scan_ranges is None or safety.scan_bearings is None or np.isnan(safety.scan_ranges[k]).all():
+        return None
+    ranges = safety.scan_ranges[k]
+    return Scan(safety.scan_bearings, ranges, np.full_like(ranges, np.nan), np.zeros(len(ranges), dtype=bool), 0.0)

@@ -32,8 +32,9 @@ from mcap.writer import CompressionType, Writer
 from app.live.params import Params
 from core.types import Image
 from app.live.tick import TickState
-from app.recording.schema import (CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCHEMAS, TF_TOPIC, TICK_TOPIC,
-                                  TOPIC_SCHEMA, image_payload, params_payload, tick_payload, transforms_payload)
+from app.recording.schema import (CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS,
+                                  TF_TOPIC, TICK_TOPIC, TOPIC_SCHEMA, image_payload, params_payload, scan_payload,
+                                  tick_payload, transforms_payload)
 
 DEFAULT_FRAME_RATE_HZ = 10.0
 MAX_FRAMES_WAITING = 30  # raw frames queued for JPEG encoding on the writer thread (3 s at 10 Hz)
@@ -168,6 +169,7 @@ class Recorder:
         self._params = params
         self._last_t = 0.0
         self._last_frame_t = -math.inf
+        self._last_scan_t = -math.inf
         self.ticks = 0
         self.dropped = 0
         self._thread = threading.Thread(target=self._drain, name="omniformation-recorder", daemon=True)
@@ -206,6 +208,9 @@ class Recorder:
         self._put(TF_TOPIC, s.t, transforms_payload(s, self._ns(s.t)))
         for kind, detail in tick_events(self._prev, s):
             self.event(s.t, kind, detail)
+        if s.scan is not None and s.t - self._last_scan_t >= 1.0 / SCAN_HZ - 1e-9:
+            self._last_scan_t = s.t
+            self._put(SCAN_TOPIC, s.t, scan_payload(s.scan, self._ns(s.t)))
         if s.frame is not None and self.frame_rate_hz > 0 and s.t - self._last_frame_t >= 1.0 / self.frame_rate_hz - 1e-9:
             self._last_frame_t = s.t
             got = self._frame_slots.acquire(timeout=30.0) if self.lossless else self._frame_slots.acquire(blocking=False)

@@ -209,3 +209,46 @@ def test_preset_switches_with_the_safety_filter_keep_every_robot_apart():
           f" {closest_on * 100:.1f} cm, settled error {err_on * 100:.1f} cm)")
     assert under_off > 0  # the switches do bring robots together: the test can fail
     assert closest_on >= 0.25 - 0.005 and under_on == 0
+
+
+def test_the_live_loop_drives_narrow_gap_to_its_goal_clear_of_the_boxes():
+    """`run --scenario narrow_gap` as the service builds it (truth feedback: the boxes as the
+    simulator knows them): the leader reaches its goal, no follower body comes within 10 cm
+    of a box, the formation narrows for the gap and grows back."""
+    from app.files import load_scenario
+    from app.live.service import params_for
+    from core.obstacles import as_array, surface_distance
+
+    s = load_scenario("narrow_gap")
+    store = ParamsStore(params_for(s, s.n))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=s.seed, dynamics=s.dynamics, initial_poses=(s.initial_p, s.initial_a),
+                       position_noise_m=s.measurement.position_noise_m, heading_noise_rad=s.measurement.heading_noise_rad,
+                       obstacles=s.obstacles)
+    boxes = as_array(s.obstacles)
+    gaps, scales, reached = [], [], None
+    for _ in range(int(100 * 30)):
+        st = loop.tick()
+        gaps.append(float(surface_distance(st.followers_world[:, :2], boxes).min()))
+        scales.append(st.formation_scale)
+        assert st.safety.startswith("on") and st.goal == (0.0, 5.0)
+        if st.goal_reached and reached is None:
+            reached = st.t
+    assert reached is not None and np.hypot(st.leader[0], st.leader[1] - 5.0) <= 0.06
+    assert min(gaps) >= 0.15 + 0.10
+    assert min(scales) < 0.5 and scales[-1] == 1.0
+    assert st.obstacles is not None and len(st.obstacles) > 0
+
+
+def test_a_goal_in_a_box_or_off_the_floor_is_refused_with_a_notice():
+    from app.files import load_scenario
+    from app.live.service import goal_check_for, params_for
+
+    s = load_scenario("narrow_gap")
+    store = ParamsStore(params_for(s, s.n))
+    store.goal_check = goal_check_for(s.obstacles)
+    _, notices = store.update("browser:1", goal=(1.1, 2.5))  # the right-hand box's centre
+    assert store.get().goal == (0.0, 5.0) and "from an obstacle's surface" in notices[0].message
+    _, notices = store.update("browser:1", goal=(40.0, 0.0))
+    assert store.get().goal == (0.0, 5.0) and "off the floor" in notices[0].message
+    p, notices = store.update("browser:1", goal=(0.0, 3.5))
+    assert p.goal == (0.0, 3.5) and not notices

@@ -308,3 +308,34 @@ def test_the_safety_summary_counts_collisions_near_misses_and_limit_hits():
     assert out["collisions"] == 1 and out["near_misses"] == 1 and out["min_distance_cm"] == 10.0
     assert out["actuator_limit_hits"] == 1 and out["filter_acting_s"] == 0.0
     assert out["time_under_min_distance_s"] > 1.0
+
+
+def test_a_run_with_obstacles_records_the_scan_and_the_report_counts_the_clearance(tmp_path):
+    """narrow_gap with vision in the loop, recorded: the free-space scan as foxglove.LaserScan
+    on /scan (leader frame, 10 a second), the known obstacle points and the goal in the
+    ticks; `report` draws the minimum distance over time and says how close a follower got."""
+    from mcap.reader import make_reader
+
+    path = tmp_path / "gap.mcap"
+    out = run_cli("simulate", "narrow_gap", "--vision", "--duration", "40", "--frames-hz", "2", "--record", str(path))
+    assert out.returncode == 0, out.stderr
+    assert "goal" in out.stdout and "closest follower body to an obstacle" in out.stdout
+    rec = read_recording(path)
+    assert rec.channels["/scan"] == "foxglove.LaserScan"
+    scans = []
+    with path.open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(topics=["/scan"]):
+            scans.append(json.loads(message.data))
+    assert len(scans) > 200  # 10 a second once the start-up is over
+    scan = scans[-1]
+    assert scan["frame_id"] == "leader" and len(scan["ranges"]) == 360
+    assert scan["end_angle"] - scan["start_angle"] == pytest.approx(np.radians(359.0))
+    assert any(r is not None for s_ in scans for r in s_["ranges"])  # the boxes were seen
+    ticks = [tick_from_payload(t) for t in rec.ticks[-5:]]
+    assert all(t.goal == (0.0, 5.0) and t.obstacles is not None for t in ticks)
+    rep = run_cli("report", str(path), "--out", str(tmp_path / "rep"))
+    assert rep.returncode == 0, rep.stderr
+    summary = json.loads((tmp_path / "rep" / "summary.json").read_text())["safety"]
+    assert summary["obstacle_clearance_cm"] >= 10.0 and summary["obstacle_hits"] == 0
+    assert summary["collisions"] == 0 and summary["boundary_exits"] == 0
+    assert (tmp_path / "rep" / "safety.png").stat().st_size > 10_000

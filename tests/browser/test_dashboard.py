@@ -149,3 +149,25 @@ def test_stop_zeroes_every_command_on_the_next_tick(page, service):
     assert after[-1].tick > after[0].tick  # the loop keeps observing
     page.get_by_role("button", name="Release STOP").click()
     wait_for(lambda: not service.store.get().stop, what="STOP released")
+
+
+def test_shift_click_on_the_floor_gives_the_leader_a_goal(page, service):
+    """Goal mode from the 3D view: a shift-click where the floor is sets the goal there (the
+    click's ray meets z = 0), the leader mode becomes goal and the status line says how far."""
+    canvas = page.locator('canvas[data-engine^="three.js"]').first
+    box = canvas.bounding_box()
+    assert box is not None
+    before = service.store.get().version
+    page.keyboard.down("Shift")
+    try:
+        page.mouse.click(box["x"] + box["width"] * 0.5, box["y"] + box["height"] * 0.75)  # below the horizon: floor
+    finally:
+        page.keyboard.up("Shift")
+    wait_for(lambda: service.store.get().leader_mode == "goal" and service.store.get().goal is not None,
+             timeout=20.0, what="the goal in the store")
+    p = service.store.get()
+    assert p.version > before and max(abs(p.goal[0]), abs(p.goal[1])) <= 10.0
+    version = p.version
+    wait_for(lambda: any(s.goal is not None for s in states_after(service, version)), what="a tick in goal mode")
+    wait_for(lambda: "goal (" in page.inner_text("body"), timeout=15.0, what="the status line to show the goal")
+    service.store.update("test", leader_mode="straight", goal=None)
