@@ -32,11 +32,13 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                                       " 10 s, and the RSS growth per hour after the first two minutes.")
     soak.add_argument("--minutes", type=float_in(0.5, 24 * 60, "min"), default=60.0, help="how long (default 60)")
     soak.add_argument("--browsers", type=int_in(0, 3), default=1, help="browsers connected (default 1)")
+    soak.add_argument("--scenario", help="run this scenario (e.g. obstacle_course: the scan, the filter and the goal mode"
+                                         " all on) instead of the built-in team")
     soak.set_defaults(func=cmd_soak)
 
 
 def cmd_soak(args: argparse.Namespace) -> int:
-    run_soak(args.minutes, args.browsers)
+    run_soak(args.minutes, args.browsers, scenario=args.scenario)
     return 0
 
 
@@ -48,9 +50,10 @@ def _rss_mb() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
-def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] = print) -> dict[str, float]:
-    """The live service as `make run` serves it, recording to a temporary folder, with
-    ``browsers`` low-priority Chromium pages connected; samples every 10 s."""
+def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] = print,
+             scenario: str | None = None) -> dict[str, float]:
+    """The live service as `make run` serves it (or `run --scenario SCENARIO`), recording to a
+    temporary folder, with ``browsers`` low-priority Chromium pages connected; samples every 10 s."""
     import shutil
     import subprocess
     import sys
@@ -63,11 +66,14 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     from app.live.service import Service
     from app.recording.session import start_recording
 
+    from app.files import load_scenario
+
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
-    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, camera=config.camera(),
+    sc = load_scenario(scenario) if scenario else None
+    svc = Service(host="127.0.0.1", port=0, scenario=sc, n_followers=3, rate_hz=30.0, camera=config.camera(),
                   dynamics=config.dynamics)
     folder = Path(tempfile.mkdtemp(prefix="omniformation-soak-"))
-    recorder = start_recording(svc, config, None, None, config.camera(), 10.0, folder / "soak.mcap")
+    recorder = start_recording(svc, config, sc, scenario, config.camera(), 10.0, folder / "soak.mcap")
     svc.start()
     viewer = None
     chromium = shutil.which("chromium")

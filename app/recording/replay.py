@@ -22,7 +22,7 @@ from app.dashboard.gate import quietly, serve_gated
 from app.live.tick import TickState
 from app.live.params import ParamsStore
 from app.recording.reader import Recording, params_from_recording
-from app.recording.schema import tick_from_payload
+from app.recording.schema import scenario_obstacles, tick_from_payload
 
 if TYPE_CHECKING:
     from app.dashboard.camera_panel import Overlay
@@ -39,7 +39,7 @@ class ReplayService:
         self.event_t = sorted(float(e["t"]) for e in rec.events)
         self.server, self.gate = serve_gated(host, port, token)
         self.store = ParamsStore(params_from_recording(rec))
-        self.dashboard = Dashboard(self.server, self.store, overlay=_overlay(rec))
+        self.dashboard = Dashboard(self.server, self.store, overlay=_overlay(rec), obstacles=scenario_obstacles(rec.metadata))
         self.dashboard.controls.set_replay(rec.path.name)
         gui = self.server.gui
         self.playing = False

@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 
 from app.recording.plots import colour, trajectory_panel  # noqa: E402
 from app.recording.reader import Recording
-from app.recording.schema import json_floats  # noqa: E402
+from app.recording.schema import json_floats, scenario_obstacles  # noqa: E402
 
 SETTLED_M = 0.03  # settled: the error stays under 3 cm to the end
 
@@ -112,16 +112,9 @@ FOLLOWER_RADIUS_M = 0.15
 
 def recorded_obstacles(rec: Recording) -> np.ndarray:
     """The world's boxes (core.obstacles.as_array rows) from the scenario the recording names."""
-    text = rec.metadata.get("scenario_toml", "")
-    if "[[obstacles]]" not in text:
-        return np.zeros((0, 5))
-    from core.config import ConfigError, parse_scenario
     from core.obstacles import as_array
 
-    try:
-        return as_array(parse_scenario(text, "the recorded scenario").obstacles)
-    except ConfigError:
-        return np.zeros((0, 5))
+    return as_array(scenario_obstacles(rec.metadata))
 
 
 def obstacle_gap(rec: Recording, s: Series) -> np.ndarray | None:

@@ -40,6 +40,7 @@ import numpy as np
 
 from app.live.params import Params
 from app.live.tick import TickState
+from core.obstacles import Obstacle
 from core.vision.freespace import Scan
 
 CHUNK_BYTES = 1024 * 1024
@@ -225,3 +226,17 @@ def tick_from_payload(d: dict[str, Any], frame: np.ndarray | None = None) -> Tic
         heading=float(d["heading"]) if d.get("heading") is not None else float("nan"),
         formation_scale=float(d.get("formation_scale", 1.0)), goal_reached=bool(d.get("goal_reached", False)),
     )
+
+
+def scenario_obstacles(metadata: dict[str, str]) -> tuple[Obstacle, ...]:
+    """The boxes of the scenario a recording was made with (its text is in the metadata); none
+    when it had none or its text no longer parses."""
+    text = metadata.get("scenario_toml", "")
+    if "[[obstacles]]" not in text:
+        return ()
+    from core.config import ConfigError, parse_scenario
+
+    try:
+        return parse_scenario(text, "the recorded scenario").obstacles
+    except ConfigError:
+        return ()

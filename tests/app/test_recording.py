@@ -324,7 +324,7 @@ def test_a_run_with_obstacles_records_the_scan_and_the_report_counts_the_clearan
     assert rec.channels["/scan"] == "foxglove.LaserScan"
     scans = []
     with path.open("rb") as f:
-        for _, channel, message in make_reader(f).iter_messages(topics=["/scan"]):
+        for _schema, _channel, message in make_reader(f).iter_messages(topics=["/scan"]):
             scans.append(json.loads(message.data))
     assert len(scans) > 200  # 10 a second once the start-up is over
     scan = scans[-1]
