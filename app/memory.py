@@ -6,7 +6,9 @@ arenas instead of fresh mappings; with several threads (the loop, the web server
 recorder) each holding an arena, the freed space is fragmented and the resident size creeps
 up over hours though nothing leaks. A fixed threshold keeps every block over 256 KiB in its
 own mapping, returned to the system when freed, and two arenas bound the fragmentation
-(mallopt(3), M_MMAP_THRESHOLD and M_ARENA_MAX). Elsewhere than glibc this does nothing.
+(mallopt(3), M_MMAP_THRESHOLD and M_ARENA_MAX). What is freed inside a heap's pages is given
+back once a minute (malloc_trim(3), from a thread of its own: never the robots' loop).
+Elsewhere than glibc this does nothing.
 """
 
 from __future__ import annotations
@@ -14,13 +16,16 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import sys
+import threading
 
 M_MMAP_THRESHOLD = -3
 M_ARENA_MAX = -8
 MMAP_THRESHOLD_BYTES = 256 * 1024
 ARENAS = 2
+TRIM_EVERY_S = 60.0
 
 _done = False
+_trimmer: threading.Thread | None = None
 
 
 def bound_native_heap() -> bool:
@@ -38,4 +43,17 @@ def bound_native_heap() -> bool:
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
     _done = bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_ARENA_MAX, ARENAS))
+    trim = getattr(libc, "malloc_trim", None)
+    global _trimmer
+    if _done and trim is not None and _trimmer is None:
+        trim.argtypes = [ctypes.c_size_t]
+        trim.restype = ctypes.c_int
+        stop = threading.Event()
+
+        def trimming() -> None:
+            while not stop.wait(TRIM_EVERY_S):
+                trim(0)
+
+        _trimmer = threading.Thread(target=trimming, name="omniformation-malloc-trim", daemon=True)
+        _trimmer.start()
     return _done

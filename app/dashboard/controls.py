@@ -46,8 +46,10 @@ class Controls:
         self.recording = "off"  # what the status says about recording (set by the service)
         self._status_at = -1.0
         self.replay = False
+        self._tracked: list[bool] = []  # the last tick's, for the question before releasing STOP
 
-        self.stop_button = gui.add_button("STOP", color="red", hint="Command every follower to zero now. The loop keeps observing.")
+        self.stop_button = gui.add_button("STOP", color="red", hint="Command every follower to zero now (keyboard:"
+                                                                    " Escape or Space). The loop keeps observing.")
         self.release_button = gui.add_button("Release STOP", color="gray", disabled=True)
         self.status = gui.add_markdown("starting ...")
 
@@ -163,7 +165,31 @@ class Controls:
             handle.on_click(_)
 
         on(self.stop_button, stop=True)
-        on(self.release_button, stop=False)
+
+        @self.release_button.on_click
+        def _(event: viser.GuiEvent[Any]) -> None:
+            lost = [i for i, t in enumerate(self._tracked) if not t]
+            if not lost or event.client is None:
+                self._update(event, stop=False)
+                return
+            # a follower the camera does not see gets zero from the controller, but the operator
+            # should know before the others move: ask
+            names = ", ".join(f"F{i + 1}" for i in lost)
+            with event.client.gui.add_modal("Release STOP?") as modal:
+                event.client.gui.add_markdown(f"**{names} {'is' if len(lost) == 1 else 'are'} not tracked.** The"
+                                              " others will move; the untracked stay at zero until the camera sees"
+                                              " them again.")
+                go = event.client.gui.add_button("Release anyway", color="red")
+                keep = event.client.gui.add_button("Keep STOP")
+
+                @go.on_click
+                def _(inner: viser.GuiEvent[Any]) -> None:
+                    modal.close()
+                    self._update(inner, what="release with followers untracked", stop=False)
+
+                @keep.on_click
+                def _(_: viser.GuiEvent[Any]) -> None:
+                    modal.close()
         on(self.step_button, step_requests=1)
         on(self.reset_button, reset_requests=1)
 
@@ -242,6 +268,7 @@ class Controls:
             self.notice = "; ".join(n.message for n in notices)
 
     def update_status(self, s: TickState) -> None:
+        self._tracked = [bool(t) for t in s.tracked]
         now = time.monotonic()
         if now - self._status_at < STATUS_S and not self.replay:  # live: 5 Hz is plenty; a replay shows
             return                                                 # exactly the tick it jumped to

@@ -58,6 +58,18 @@ T = TypeVar("T")
 LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 COOKIE = "omniformation_token"
 GATE_HEADER = "X-Omniformation-Gate"
+# Escape, or Space outside a text field, presses the page's STOP button (viser has no keyboard
+# hook, so the gate adds it to the page it serves; the press goes the button's own way)
+KEYBOARD_STOP = b"""<script>
+document.addEventListener("keydown", function (e) {
+  var typing = /^(INPUT|TEXTAREA|SELECT)$/.test((document.activeElement || {}).tagName || "");
+  if (!(e.key === "Escape" || (e.key === " " && !typing))) return;
+  var stop = Array.prototype.find.call(document.querySelectorAll("button"),
+    function (b) { return b.textContent.trim() === "STOP"; });
+  if (stop && !stop.disabled) { stop.click(); e.preventDefault(); }
+}, true);
+</script>
+"""
 MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit
 _BIND_TIMEOUT_S = 30.0
 
@@ -231,14 +243,18 @@ class Gate:
         return response
 
     def _fetch(self, request: Request) -> Response:
-        """The page's files from viser (plain GET on its loopback port)."""
+        """The page's files from viser (plain GET on its loopback port); the page itself gets
+        the keyboard STOP (``KEYBOARD_STOP``)."""
         conn = http.client.HTTPConnection("127.0.0.1", self._upstream, timeout=30)
+        page = urlsplit(request.path).path in ("/", "/index.html")
         try:
             encodings = request.headers.get_all("Accept-Encoding")
-            headers = {"Accept-Encoding": encodings[0] if len(encodings) == 1 else "identity"}
+            headers = {"Accept-Encoding": encodings[0] if len(encodings) == 1 and not page else "identity"}
             conn.request("GET", request.path, headers=headers)
             up = conn.getresponse()
             body = up.read()
+            if page and b"</head>" in body and not up.getheader("Content-Encoding"):
+                body = body.replace(b"</head>", KEYBOARD_STOP + b"</head>", 1)
             keep = {k: v for k, v in up.getheaders() if k.lower() in ("content-type", "content-encoding")}
             keep["Content-Length"] = str(len(body))
             keep["Cache-Control"] = "no-store"

@@ -34,6 +34,8 @@ from app.contracts import FrameSource, Observation, Team
 from app.backends.sim import SimTeam
 
 STALE_FRAME_S = 0.3  # a camera frame older than this is no ground for moving a robot
+SCAN_EVERY = 3  # frames between free-space scans (10 a second at 30 Hz, as a laser scanner gives them); the
+# memory, moved by the odometry, holds the obstacles in between
 
 
 class TruthFeedback:
@@ -84,6 +86,7 @@ class VisionFeedback:
         self._since_frame = 0.0
         self._frame_count = 0
         self._last: Observation | None = None
+        self._scan_due = 0
         self.memory = ObstacleMemory(self.scanner.settings if self.scanner is not None else ScanSettings())
 
     def _make_pipeline(self, size: tuple[int, int]) -> None:
@@ -127,8 +130,13 @@ class VisionFeedback:
         self.memory.move(odometry)
         scan = known = None
         if out.manoeuvre is None and self.scanner is not None:  # not during the start-up: nobody is tracked yet
-            scan = self.scanner.scan(frame, out.positions, out.tracked)
-            known = self.memory.update(scan, self._t, np.where(out.tracked[:, None], out.positions, np.nan))
+            self._scan_due -= 1
+            if self._scan_due <= 0:  # a scan needs the whole ring rendered: SCAN_EVERY frames apart
+                self._scan_due = SCAN_EVERY
+                scan = self.scanner.scan(frame, out.positions, out.tracked)
+                known = self.memory.update(scan, self._t, np.where(out.tracked[:, None], out.positions, np.nan))
+            else:
+                known = self.memory.current(self._t)
         t3 = time.perf_counter()
         fresh = np.isfinite(out.heading_measured)
         self._a_raw[fresh] = out.heading_measured[fresh]

@@ -240,13 +240,17 @@ def filter_commands(
         G_all, h_all = np.vstack([G, G_lim]), np.concatenate([h, h_lim])
     u, status, message = _solve(u_nom, G_all, h_all, settings.solver)
     if u is not None and settings.keep_right_deg > 0:
-        # a barrier stalls a robot where two meet head on, or where one's slot lies behind
+        # a barrier stalls two followers that meet head on, or one whose slot lies behind
         # another (the QP's answer is symmetric: nobody moves); each stalled follower then
         # aims to its right by keep_right_deg, as people do in a corridor, and the QP is solved
         # again from there: the symmetry is broken the same way for all, so they pass
         un, uf = u_nom.reshape(n, 2), np.asarray(u).reshape(n, 2)
         speed = np.hypot(un[:, 0], un[:, 1])
-        stalled = constrained & (speed > 1e-3) & (np.hypot(uf[:, 0], uf[:, 1]) < 0.3 * speed)
+        n_pairs = int(np.count_nonzero(np.any(G.reshape(len(h), n, 2) != 0.0, axis=2).sum(axis=1) == 2))
+        pair_rows = G[:n_pairs][(h[:n_pairs] - G[:n_pairs] @ u) < 1e-6 * np.maximum(1.0, np.abs(h[:n_pairs]))]
+        blocked_by_peer = np.any(pair_rows.reshape(-1, n, 2) != 0.0, axis=(0, 2)) if len(pair_rows) else np.zeros(n, bool)
+        # only between followers: one the leader bears down on must back away, not turn aside
+        stalled = blocked_by_peer & (speed > 1e-3) & (np.hypot(uf[:, 0], uf[:, 1]) < 0.3 * speed)
         if stalled.any():
             turn = -np.radians(settings.keep_right_deg)
             c, si = np.cos(turn), np.sin(turn)

@@ -258,6 +258,12 @@ class ObstacleMemory:
         c, s = math.cos(phi), math.sin(phi)
         return np.column_stack([c * pts[:, 0] - s * pts[:, 1], s * pts[:, 0] + c * pts[:, 1]]) + self.pose[:2]
 
+    def current(self, t: float) -> FloatArray:
+        """(k, 2) leader-frame points known now without a new scan (between scans: what the
+        last one saw and what is remembered, moved by the odometry since)."""
+        fresh = self.seen_at >= t - self.settings.keep_s
+        return self._to_leader(self.points[fresh]) if fresh.any() else np.zeros((0, 2))
+
     def update(self, scan: Scan, t: float, followers: FloatArray | None = None) -> FloatArray:
         """Take this frame's scan at time t; (k, 2) leader-frame obstacle points: the scan's
         hits and what is remembered where the scan cannot see now. ``followers``: (n, 2)

@@ -134,10 +134,10 @@ def test_report_writes_figures_and_summary(tmp_path):
     assert out.returncode == 0, out.stderr
     import cv2
 
-    for name in ("trajectory.png", "errors.png", "headings.png", "lyapunov_commands.png"):
+    for name in ("trajectory.png", "errors.png", "headings.png", "lyapunov_commands.png", "safety.png"):
         img = cv2.imread(str(tmp_path / "rep" / name))
         assert img is not None and img.shape[0] > 300 and img.std() > 10, name  # a real picture, not a blank
-    assert "[5/5]" in out.stdout
+    assert "[6/6]" in out.stdout
     summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
     f1, f2 = summary["followers"]
     assert f1["settling_time_s"] is not None and f1["settling_time_s"] < 30
@@ -303,7 +303,7 @@ def test_the_safety_summary_counts_collisions_near_misses_and_limit_hits():
     commands[10:20, 0, 0] = 0.3  # at v_max for a third of a second
     s = Series(t, np.zeros((T, 3)), np.zeros((T, 2, 3)), p, p, np.zeros((T, 2)), np.zeros((T, 2)), np.ones((T, 2), bool),
                np.zeros(T), commands, True, np.zeros(T, bool))
-    rec = SimpleNamespace(params=[(0.0, {"gains": {"v_max": 0.3, "w_max": 2.0}})])
+    rec = SimpleNamespace(params=[(0.0, {"gains": {"v_max": 0.3, "w_max": 2.0}})], metadata={})
     out = safety_summary(rec, s, 1 / 30)["safety"]
     assert out["collisions"] == 1 and out["near_misses"] == 1 and out["min_distance_cm"] == 10.0
     assert out["actuator_limit_hits"] == 1 and out["filter_acting_s"] == 0.0

@@ -171,3 +171,15 @@ def test_shift_click_on_the_floor_gives_the_leader_a_goal(page, service):
     wait_for(lambda: any(s.goal is not None for s in states_after(service, version)), what="a tick in goal mode")
     wait_for(lambda: "goal (" in page.inner_text("body"), timeout=15.0, what="the status line to show the goal")
     service.store.update("test", leader_mode="straight", goal=None)
+
+
+def test_escape_on_the_page_is_stop(page, service):
+    """The keyboard STOP the gate adds to the page: Escape presses the STOP button."""
+    page.locator('canvas[data-engine^="three.js"]').first.click(position={"x": 20, "y": 20})  # the page has the focus
+    page.keyboard.press("Escape")
+    wait_for(lambda: service.store.get().stop, timeout=15.0, what="STOP from the keyboard")
+    version = service.store.get().version
+    wait_for(lambda: len(states_after(service, version)) >= 2, what="ticks after STOP")
+    assert all(np.all(s.commands == 0.0) for s in states_after(service, version))
+    page.get_by_role("button", name="Release STOP").click()  # every follower tracked: no question asked
+    wait_for(lambda: not service.store.get().stop, what="STOP released")

@@ -104,6 +104,7 @@ def test_the_memory_keeps_what_leaves_the_ring_or_hides_and_forgets_what_is_seen
     assert len(pts) == 1 and np.allclose(pts[0], [0.0, 1.0], atol=0.02)
     # the leader turns by 180 degrees on the spot: the obstacle is now behind it, still 1 m away
     memory.move(leader_displacement((0.0, 0.0, math.pi / 2), (0.0, 0.0, -math.pi / 2)))
+    assert np.allclose(memory.current(0.5), [[0.0, -1.0]], atol=0.02)  # between scans: moved by the odometry
     hidden = tuple(range(0, 5)) + tuple(range(355, 360))  # a follower hides what is straight behind
     pts = memory.update(_scan_with({}, scanner, hidden), 1.0)
     assert len(pts) == 1 and np.allclose(pts[0], [0.0, -1.0], atol=0.02)
