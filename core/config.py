@@ -133,6 +133,15 @@ class Table:
             raise self.fail(name, value, "one of " + ", ".join(choices) if choices else "a string")
         return value
 
+    def flag(self, name: str, default: bool) -> bool:
+        if not self.has(name):
+            self.used.add(name)
+            return default
+        value = self.raw(name)
+        if not isinstance(value, bool):
+            raise self.fail(name, value, "true or false")
+        return value
+
     def point(self, name: str, limit: float) -> tuple[float, float]:
         value = self.raw(name)
         allowed = f"[x, y] with |x|, |y| <= {limit:g} m"
@@ -377,23 +386,13 @@ def _parse_safety(top: Table) -> SafetySettings | None:
         top.used.add("safety")
         return None
     t = top.table("safety", optional=False)
-    if not _flag(t, "enabled", True):
+    if not t.flag("enabled", True):
         t.finish()
         return None
     d = t.number("min_distance_m", 0.1, 1.0, default=0.25, unit="m")
     margin = t.number("obstacle_margin_m", 0.0, 1.0, default=0.10, unit="m")
     t.finish()
-    return SafetySettings(min_distance_m=d, obstacle_margin_m=margin, activity_m=max(0.6, d + 0.35))
-
-
-def _flag(t: Table, name: str, default: bool) -> bool:
-    if not t.has(name):
-        t.used.add(name)
-        return default
-    value = t.raw(name)
-    if not isinstance(value, bool):
-        raise t.fail(name, value, "true or false")
-    return value
+    return SafetySettings.for_distance(d, obstacle_margin_m=margin)
 
 
 def _parse_switches(formation: Table, n: int, duration: float, seed: int) -> tuple[tuple[float, FloatArray], ...]:

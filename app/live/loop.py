@@ -183,8 +183,7 @@ class ServiceLoop:
 
     def _safety_settings(self, params: Params) -> SafetySettings:
         if self._safety is None or self._safety.min_distance_m != params.safety_distance_m:
-            self._safety = SafetySettings(min_distance_m=params.safety_distance_m,
-                                          activity_m=max(0.6, params.safety_distance_m + 0.35))
+            self._safety = SafetySettings.for_distance(params.safety_distance_m)
         return self._safety
 
     def _leader_twist(self, params: Params, known: FloatArray, err_norm: FloatArray, tracked: np.ndarray,

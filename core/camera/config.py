@@ -102,16 +102,6 @@ def _number_list(t: Table, name: str, lo: float, hi: float, min_len: int, defaul
     return tuple(float(x) for x in value)
 
 
-def _boolean(t: Table, name: str, default: bool) -> bool:
-    if not t.has(name):
-        t.used.add(name)
-        return default
-    value = t.raw(name)
-    if not isinstance(value, bool):
-        raise t.fail(name, value, "true or false")
-    return value
-
-
 def _parse_model(t: Table) -> CameraModel:
     width = t.integer("width", 64, 4096)
     height = t.integer("height", 48, 4096)
@@ -126,7 +116,7 @@ def _parse_model(t: Table) -> CameraModel:
         tilt_deg=t.number("tilt_deg", 0.0, 10.0, default=0.0, unit="deg"),
         tilt_bearing_deg=t.number("tilt_bearing_deg", -360.0, 360.0, default=0.0, unit="deg"),
         bearing_offset_deg=t.number("bearing_offset_deg", -360.0, 360.0, default=0.0, unit="deg"),
-        flip=_boolean(t, "flip", False),
+        flip=t.flag("flip", False),
         rim_elevation_deg=t.number("rim_elevation_deg", -30.0, 30.0, default=2.0, unit="deg"),
         body_radius_m=t.number("body_radius_m", 0.0, 2.0, default=0.25, unit="m"),
     )
@@ -157,8 +147,8 @@ def _parse_render(t: Table) -> RenderSettings:
         drift_gain=t.number("drift_gain", 0.0, 0.9, default=d.drift_gain),
         drift_offset=t.number("drift_offset", 0.0, 100.0, default=d.drift_offset, unit="grey levels"),
         drift_period_s=t.number("drift_period_s", 0.0, 1e6, default=d.drift_period_s, unit="s"),
-        clutter=_boolean(t, "clutter", d.clutter),
-        distractor=_boolean(t, "distractor", d.distractor),
+        clutter=t.flag("clutter", d.clutter),
+        distractor=t.flag("distractor", d.distractor),
         distractor_hue_deg=t.number("distractor_hue_deg", 0.0, 360.0, default=d.distractor_hue_deg, unit="deg"),
         clutter_period_m=t.number("clutter_period_m", 1.0, 100.0, default=d.clutter_period_m, unit="m"),
         floor_far_m=t.number("floor_far_m", 0.5, 100.0, default=d.floor_far_m, unit="m"),
@@ -173,7 +163,7 @@ def _parse_render(t: Table) -> RenderSettings:
 def _parse_gamma(t: Table) -> Gamma:
     cx = t.number("cx", -1e5, 1e5, unit="px")
     cy = t.number("cy", -1e5, 1e5, unit="px")
-    flip = _boolean(t, "flip", False)
+    flip = t.flag("flip", False)
     offset = math.radians(t.number("bearing_offset_deg", -360.0, 360.0, default=0.0, unit="deg"))
     r_min = t.number("r_min_px", 0.0, 1e5, unit="px")
     r_max = t.number("r_max_px", 0.0, 1e5, unit="px")

@@ -58,6 +58,11 @@ class SafetySettings:
     keep_right_deg: float = 40.0  # a follower the filter stalls aims this far to its right instead (0: never)
     solver: str = "daqp"
 
+    @staticmethod
+    def for_distance(min_distance_m: float, **changes: float) -> "SafetySettings":
+        """The settings for a minimum distance, constraints written a little further out."""
+        return SafetySettings(min_distance_m=min_distance_m, activity_m=max(0.6, min_distance_m + 0.35), **changes)  # type: ignore[arg-type]  # float fields only
+
     def __post_init__(self) -> None:
         for name in ("min_distance_m", "projection_m", "barrier_gain", "activity_m"):
             value = getattr(self, name)
