@@ -212,12 +212,14 @@ class VisionPipeline:
 
     def _search_lost(self, frame: Image) -> None:
         """Look for lost followers by colour in the whole working area (§3.3, recovery)."""
-        lost = [f for f in self.followers if f.track is not None and not f.tracked]
+        # by index: comparing followers (dataclasses holding arrays) with == is no way to find one
+        lost = [i for i, f in enumerate(self.followers) if f.track is not None and not f.tracked]
         if not lost:
             return
         blobs = find_blobs(np.asarray(frame), self.mask, self.detect)
         taken = [f.track.window for f in self.followers if f.track is not None and f.tracked]
-        for f in lost:
+        for i in lost:
+            f = self.followers[i]
             t = f.track
             assert t is not None
             cands = [b for b in blobs if hue_distance_deg(b.hue_deg, t.hue_deg) <= self.settings.hue_tolerance_deg
@@ -230,7 +232,6 @@ class VisionPipeline:
             t.window = (bx - 2, by - 2, bw + 4, bh + 4)
             t.u, t.v, t.misses = best.u, best.v, 0
             f.tracked = True
-            i = self.followers.index(f)
             self.positions[i] = self._to_leader(best.u, best.v)
             if self.headings.active[i]:
                 self._set_anchor(i)

@@ -59,21 +59,22 @@ def test_vision_in_the_loop_reaches_and_holds_formation(rig, gamma, name):
     assert np.all(rms(form) <= 0.03)
 
 
-def test_a_hidden_follower_is_lost_stopped_and_found_again(rig, gamma):
+@pytest.mark.parametrize("who", [0, 1])  # the second: the search once failed on any follower but the first
+def test_a_hidden_follower_is_lost_stopped_and_found_again(rig, gamma, who):
     base = _scenario("experiment1")
-    scenario = base.replace(duration_s=30.0, disturbances=(Disturbance(0, 20.0, 22.0, "hidden"),))
+    scenario = base.replace(duration_s=30.0, disturbances=(Disturbance(who, 20.0, 22.0, "hidden"),))
     run = simulate_vision(scenario, rig, gamma)
     log, dt = run.log, 1 / 30
     t = log.t
     hidden = (t >= 20.0) & (t < 22.0)
-    first_lost = t[(~run.tracked[:, 0]) & (t >= 0)][0]
+    first_lost = t[(~run.tracked[:, who]) & (t >= 0)][0]
     assert 20.0 <= first_lost <= 20.2 + 1e-9, first_lost
-    lost = ~run.tracked[:, 0]
-    assert np.all(log.commands[lost & (t >= 0), 0] == 0.0), "a lost follower is commanded zero at once"
-    assert run.tracked[:, 1][t >= 0].all(), "the other follower continues"
+    lost = ~run.tracked[:, who]
+    assert np.all(log.commands[lost & (t >= 0), who] == 0.0), "a lost follower is commanded zero at once"
+    assert run.tracked[:, 1 - who][t >= 0].all(), "the other follower continues"
     assert lost[hidden & (t >= 20.2)].all()
-    back = t[(t >= 22.0) & run.tracked[:, 0]][0]
+    back = t[(t >= 22.0) & run.tracked[:, who]][0]
     assert back <= 22.0 + 10 * dt, back
-    assert run.tracked[t >= back + dt, 0].all()
+    assert run.tracked[t >= back + dt, who].all()
     # and it rejoins the formation
-    assert np.linalg.norm(log.p_d[-1, 0] - log.p[-1, 0]) < 0.03
+    assert np.linalg.norm(log.p_d[-1, who] - log.p[-1, who]) < 0.03
