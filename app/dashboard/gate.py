@@ -253,7 +253,7 @@ class Gate:
             conn.request("GET", request.path, headers=headers)
             up = conn.getresponse()
             body = up.read()
-            if page and b"</head>" in body and not up.getheader("Content-Encoding"):
+            if page and b"</head>" in body and (up.getheader("Content-Encoding") or "identity") == "identity":
                 body = body.replace(b"</head>", KEYBOARD_STOP + b"</head>", 1)
             keep = {k: v for k, v in up.getheaders() if k.lower() in ("content-type", "content-encoding")}
             keep["Content-Length"] = str(len(body))

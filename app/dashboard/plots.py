@@ -1,12 +1,19 @@
 """Live uPlot charts: x / y error per follower (fig. 19 style), headings, team V, commands.
 
-The loop appends every tick to ring buffers (last 60 s); charts are redrawn at
-about 10 Hz from a decimated copy, so the page stays smooth at any loop rate.
+The loop appends every tick to ring buffers (the last 5 minutes); the charts show the last
+10 s, 60 s or 5 min (the operator's choice) and are redrawn at about 10 Hz from a decimated
+copy, so the page stays smooth at any loop rate. "Freeze" holds the charts still while the
+loop runs on; "Export CSV" sends the data the charts show (every tick of the window, not
+the decimated copy) to the browser that asked.
 """
 
 from __future__ import annotations
 
+import io
+import itertools
 import time
+from collections import deque
+from typing import Any
 
 import numpy as np
 import viser
@@ -15,7 +22,9 @@ import viser.uplot as uplot
 from core.camera.render.looks import follower_rgb
 from app.live.tick import TickState
 
-WINDOW_S = 60.0
+WINDOWS_S = {"10 s": 10.0, "60 s": 60.0, "5 min": 300.0}
+WINDOW_S = WINDOWS_S["60 s"]  # what the charts show at first
+KEPT_S = max(WINDOWS_S.values())
 REDRAW_S = 0.1
 MAX_POINTS = 400
 
@@ -29,11 +38,24 @@ class Plots:
     def __init__(self, server: viser.ViserServer) -> None:
         self.server = server
         self.folder = server.gui.add_folder("Plots")
+        with self.folder:
+            self.window = server.gui.add_dropdown("Window", options=tuple(WINDOWS_S), initial_value="60 s",
+                                                  hint="how much of the session the charts show")
+            self.freeze = server.gui.add_checkbox("Freeze", initial_value=False,
+                                                  hint="hold the charts still; the loop and the recording go on")
+            self.export = server.gui.add_button("Export CSV", hint="the data the charts show, every tick, as CSV")
         self.charts: dict[str, viser.GuiUplotHandle] = {}
+        self._names: list[str] = []
         self._n = -1
         self._last_draw = 0.0
-        self._rows: list[np.ndarray] = []
-        self._t: list[float] = []
+        self._rows: deque[np.ndarray] = deque()
+        self._t: deque[float] = deque()
+        self._shown: tuple[np.ndarray, np.ndarray] | None = None  # (t, rows) the charts show now
+
+        @self.export.on_click
+        def _(event: viser.GuiEvent[Any]) -> None:
+            if event.client is not None:
+                event.client.send_file_download("omniformation-plots.csv", self.csv(), save_immediately=True)
 
     def _build(self, n: int) -> None:
         for h in self.charts.values():
@@ -66,13 +88,36 @@ class Plots:
         chart("V", "team V = Σ ½‖ρ̃‖² (m²)", ["V"], ["rgb(40,70,140)"])
         chart("v", "command v (m/s)", follower_names, colours)
         chart("w", "command ω (rad/s)", follower_names, colours)
+        self._names = ([f"F{i + 1} ex (m)" for i in range(n)] + [f"F{i + 1} ey (m)" for i in range(n)]
+                       + [f"F{i + 1} a (deg)" for i in range(n)] + [f"F{i + 1} a raw (deg)" for i in range(n)]
+                       + ["V (m2)"] + [f"F{i + 1} v (m/s)" for i in range(n)] + [f"F{i + 1} w (rad/s)" for i in range(n)])
         self._n = n
-        self._rows, self._t = [], []
+        self.reset()
 
     def reset(self) -> None:
         """Forget the history (replay: after a jump on the timeline)."""
-        self._rows, self._t = [], []
+        self._rows, self._t = deque(), deque()
+        self._shown = None
         self._last_draw = 0.0
+
+    def visible(self) -> tuple[np.ndarray, np.ndarray]:
+        """(t (k,), rows (k, columns)) of every tick in the window the charts show (frozen: as frozen)."""
+        if self.freeze.value and self._shown is not None:
+            return self._shown
+        if not self._t:
+            return np.zeros(0), np.zeros((0, len(self._names)))
+        t = np.fromiter(self._t, dtype=np.float64, count=len(self._t))
+        first = int(np.searchsorted(t, t[-1] - WINDOWS_S.get(str(self.window.value), WINDOW_S)))
+        return t[first:], np.array(list(itertools.islice(self._rows, first, None)))
+
+    def csv(self) -> bytes:
+        """The visible data as CSV: t (s of the session), then every series of every chart."""
+        t, rows = self.visible()
+        out = io.StringIO()
+        out.write(",".join(["t (s)", *self._names]) + "\n")
+        for ti, row in zip(t, rows):
+            out.write(f"{ti:.4f}," + ",".join(f"{v:.6g}" for v in row) + "\n")
+        return out.getvalue().encode()
 
     def add(self, s: TickState) -> None:
         """Append one tick to the 60 s window, without drawing."""
@@ -86,21 +131,22 @@ class Plots:
         heads = np.degrees(np.nan_to_num(np.concatenate([s.a_est, a_raw]), nan=np.pi / 2))
         self._rows.append(np.concatenate([np.nan_to_num(err[:, 0]), np.nan_to_num(err[:, 1]), heads,
                                           [float(np.nansum(s.v_lyap))], s.commands[:, 0], s.commands[:, 1]]))
-        while self._t and self._t[0] < s.t - WINDOW_S:
-            self._t.pop(0)
-            self._rows.pop(0)
+        while self._t and self._t[0] < s.t - KEPT_S:
+            self._t.popleft()
+            self._rows.popleft()
 
     def update(self, s: TickState) -> None:
         """Append one tick and redraw at most every REDRAW_S."""
         self.add(s)
         n = s.n
         now = time.monotonic()
-        if now - self._last_draw < REDRAW_S or len(self._t) < 2:
+        if now - self._last_draw < REDRAW_S or len(self._t) < 2 or (self.freeze.value and self._shown is not None):
             return
         self._last_draw = now
-        step = max(1, len(self._t) // MAX_POINTS)
-        t = np.array(self._t[::step])
-        rows = np.array(self._rows[::step])
+        self._shown = self.visible()
+        t_all, rows_all = self._shown
+        step = max(1, len(t_all) // MAX_POINTS)
+        t, rows = t_all[::step], rows_all[::step]
         cols = {"ex": rows[:, :n], "ey": rows[:, n:2 * n], "a": rows[:, 2 * n:4 * n], "V": rows[:, 4 * n:4 * n + 1],
                 "v": rows[:, 4 * n + 1:5 * n + 1], "w": rows[:, 5 * n + 1:6 * n + 1]}
         with self.server.atomic():

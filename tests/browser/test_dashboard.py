@@ -175,7 +175,7 @@ def test_shift_click_on_the_floor_gives_the_leader_a_goal(page, service):
 
 def test_escape_on_the_page_is_stop(page, service):
     """The keyboard STOP the gate adds to the page: Escape presses the STOP button."""
-    page.locator('canvas[data-engine^="three.js"]').first.click(position={"x": 20, "y": 20})  # the page has the focus
+    page.evaluate("document.activeElement && document.activeElement.blur()")  # no text field has the focus
     page.keyboard.press("Escape")
     wait_for(lambda: service.store.get().stop, timeout=15.0, what="STOP from the keyboard")
     version = service.store.get().version
@@ -183,3 +183,32 @@ def test_escape_on_the_page_is_stop(page, service):
     assert all(np.all(s.commands == 0.0) for s in states_after(service, version))
     page.get_by_role("button", name="Release STOP").click()  # every follower tracked: no question asked
     wait_for(lambda: not service.store.get().stop, what="STOP released")
+
+
+def test_plots_window_freeze_and_csv_export(page, service, tmp_path):
+    """The Plots folder: a 10 s window, freeze (the charts hold still while the loop runs on),
+    and the visible data exported as CSV to this browser."""
+    plots = service.dashboard.plots
+    wait_for(lambda: len(plots._t) > 30 * 12, timeout=60.0, what="more than 10 s of ticks")
+    ident = control_id(page, "Window")
+    page.locator(f'[id="{ident}"]').first.click()
+    page.get_by_role("option", name="10 s").click()
+    wait_for(lambda: plots.window.value == "10 s", what="the 10 s window on the server")
+    t, rows = plots.visible()
+    assert 9.0 <= t[-1] - t[0] <= 10.0 + 1e-9 and rows.shape == (len(t), 6 * service.loop.last.n + 1)
+    freeze = control_id(page, "Freeze")
+    page.locator(f'[id="{freeze}"] input, input[id="{freeze}"]').first.click()
+    wait_for(lambda: plots.freeze.value is True, what="freeze on the server")
+    frozen, _ = plots.visible()
+    ticks = service.loop.tick_count
+    wait_for(lambda: service.loop.tick_count > ticks + 30, timeout=30.0, what="the loop to run on")
+    assert np.array_equal(plots.visible()[0], frozen)  # the charts held still
+    with page.expect_download(timeout=30_000) as download:
+        page.get_by_role("button", name="Export CSV").click()
+    path = tmp_path / "plots.csv"
+    download.value.save_as(path)
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("t (s),F1 ex (m),") and len(lines) == len(frozen) + 1
+    assert float(lines[1].split(",")[0]) == pytest.approx(frozen[0], abs=1e-3)
+    page.locator(f'[id="{freeze}"] input, input[id="{freeze}"]').first.click()
+    wait_for(lambda: plots.freeze.value is False, what="freeze off")
