@@ -115,6 +115,7 @@ class SerialLink:
         self._lock = threading.Lock()  # guards _port, _pending, stats
         self._pending: dict[tuple[int, int, int], float] = {}  # (address, sequence, request type) -> time written
         self._expired: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # given up on: a reply now is late
+        self._unsent: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # writes that failed (maybe went out)
         self._seq = 0
         self._stop_first = True  # a fresh port gets STOP for everyone before anything else
         self._next_ping = 0.0
@@ -251,6 +252,10 @@ class SerialLink:
             with self._lock:
                 for key in keys:
                     self._pending.pop(key, None)
+                    # a timed-out write may still have gone out: its reply is ours, not a stranger's
+                    self._unsent[key] = None
+                while len(self._unsent) > EXPIRED_KEPT:
+                    self._unsent.popitem(last=False)
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFF
@@ -381,8 +386,13 @@ class SerialLink:
                 request = next((key for key in ((f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type)
                                 if key in self._pending), None)
                 if request is None:
-                    late = next((key for key in ((f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type)
-                                 if key in self._expired), None)
+                    asked = [(f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type]
+                    maybe = next((key for key in asked if key in self._unsent), None)
+                    if maybe is not None:  # the answer to a write we counted as failed: not sent, not a stranger
+                        del self._unsent[maybe]
+                        s.last_reply = now
+                        continue
+                    late = next((key for key in asked if key in self._expired), None)
                     if late is None:
                         s.unmatched += 1
                         continue
