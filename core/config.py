@@ -346,7 +346,7 @@ def parse_scenario(text: str, source: str) -> Scenario:
     )
 
 
-ROBOT_RADIUS_M = 0.15  # a follower's footprint (15 x 25 cm) seen as a disc; the leader's is larger
+ROBOT_RADIUS_M = SafetySettings.follower_radius_m  # a follower's footprint (15 x 25 cm) seen as a disc; the leader's is larger
 LEADER_RADIUS_M = 0.25
 
 

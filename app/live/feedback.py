@@ -15,7 +15,7 @@ the time and leader motion since the frame before), and a camera with no fresh f
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from collections.abc import Callable
 
 import numpy as np
@@ -25,7 +25,7 @@ from core.camera.gamma import Gamma
 from core.camera.render import Renderer
 from core.geometry import leader_displacement
 from core.obstacles import Obstacle, as_array, seen_from
-from core.sim.stepped import scan_settings_for
+from core.sim.stepped import scan_settings_for, world_renderer
 from core.types import FloatArray, Image
 from core.vision.freespace import FreeSpaceScanner, ObstacleMemory, ScanSettings
 from core.vision.pipeline import PipelineSettings, VisionPipeline
@@ -76,8 +76,7 @@ class VisionFeedback:
             model = self.rig.model
             if model is None:
                 raise ValueError(f"{self.rig.source}: the simulated camera needs a [model]")
-            render = replace(self.rig.render, clutter=False, distractor=False) if self.obstacles else self.rig.render
-            self.renderer = Renderer(model, render, self.obstacles)
+            self.renderer = world_renderer(self.rig, self.obstacles)
             self._make_pipeline((model.width, model.height))
         self._rng = np.random.default_rng(self.seed + 1)
         self._prev_leader = self.team.state.leader.copy()

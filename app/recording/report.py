@@ -107,7 +107,6 @@ COLLISION_M = 0.15  # two robot centres closer than this: their bodies (15 x 25 
 NEAR_MISS_M = 0.25  # the safety filter's default minimum distance
 BOUNDARY_M = 2.2  # a follower further than this from the leader has left the camera's working ring (fig. 8)
 OBSTACLE_CLEARANCE_M = 0.10  # a follower's body (a disc of 0.15 m) nearer than this to an obstacle: a near miss
-FOLLOWER_RADIUS_M = 0.15
 
 
 def recorded_obstacles(rec: Recording) -> np.ndarray:
@@ -122,11 +121,12 @@ def obstacle_gap(rec: Recording, s: Series) -> np.ndarray | None:
     boxes = recorded_obstacles(rec)
     if len(boxes) == 0 or not s.truth:
         return None
+    from core.config import ROBOT_RADIUS_M
     from core.obstacles import surface_distance
 
     fw = s.followers_world[..., :2].reshape(-1, 2)
     gaps = surface_distance(np.nan_to_num(fw, nan=1e9), boxes).min(axis=1).reshape(len(s.t), -1)
-    return np.asarray(gaps.min(axis=1) - FOLLOWER_RADIUS_M)
+    return np.asarray(gaps.min(axis=1) - ROBOT_RADIUS_M)
 
 
 def safety_summary(rec: Recording, s: Series, dt: float) -> dict[str, Any]:

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.control.safety import SafetySettings
 from core.types import FloatArray
 
 
@@ -96,8 +97,8 @@ def blocked_bins(points: FloatArray, s: NavSettings, radius_m: float) -> tuple[F
     return bearings, blocked
 
 
-ROBOT_RADIUS_M = 0.15  # a follower's footprint as a disc (core.config)
-MARGIN_M = 0.10  # what the safety filter keeps from an obstacle's surface by default
+ROBOT_RADIUS_M = SafetySettings.follower_radius_m  # a follower's footprint as a disc
+MARGIN_M = SafetySettings.obstacle_margin_m  # what the safety filter keeps from an obstacle's surface by default
 
 
 def formation_scale(points: FloatArray, half_width_m: float, depth_m: float, s: NavSettings, min_scale: float,

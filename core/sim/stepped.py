@@ -37,7 +37,7 @@ from core.control.navigation import NavSettings, goal_in_leader_frame, navigate
 from core.control.safety import filter_commands, obstacle_rows, team_min_distance
 from core.control.targets import SlotMotion, step_slots
 from core.geometry import heading_world_to_leader, leader_displacement, world_to_leader
-from core.obstacles import as_array, seen_from, surface_distance
+from core.obstacles import Obstacle, as_array, seen_from, surface_distance
 from core.sim.profiles import GoalProfile
 from core.sim.run import SimulationLog
 from core.sim.team import disturbance_mask, make_team_state, step_team
@@ -96,12 +96,12 @@ def scan_settings_for(rig: CameraConfig) -> ScanSettings:
                         follower_height_m=rig.render.follower.height_m)
 
 
-def renderer_for(scenario: Scenario, rig: CameraConfig) -> Renderer:
-    """The synthetic camera of a scenario's world: its obstacles drawn; a world with declared
+def world_renderer(rig: CameraConfig, obstacles: tuple[Obstacle, ...]) -> Renderer:
+    """The synthetic camera of a world with these obstacles drawn; a world with declared
     obstacles has no other furniture (the clutter would be obstacles the simulator does not know)."""
     assert rig.model is not None
-    settings = replace(rig.render, clutter=False, distractor=False) if scenario.obstacles else rig.render
-    return Renderer(rig.model, settings, scenario.obstacles)
+    settings = replace(rig.render, clutter=False, distractor=False) if obstacles else rig.render
+    return Renderer(rig.model, settings, obstacles)
 
 
 def simulate_stepped(
@@ -131,7 +131,7 @@ def simulate_stepped(
     memory = ObstacleMemory()
     if vision:
         assert rig is not None and gamma is not None and rig.model is not None
-        renderer = renderer_for(scenario, rig)
+        renderer = world_renderer(rig, scenario.obstacles)
         pipeline = VisionPipeline(n, gamma, rig.working_area, rig.detect, (rig.model.width, rig.model.height),
                                   np.random.default_rng(scenario.seed + 1), settings)
         if scenario.obstacles or goal is not None:  # a world without obstacles scans empty (tested): skip its cost

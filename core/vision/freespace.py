@@ -180,7 +180,6 @@ class FreeSpaceScanner:
         reach = np.full(n_bins, np.nan)
         np.fmax.at(reach, self.row_bin, self.ground[:, -1])
         self.bin_reach = reach
-        self._rows_idx = np.arange(s.rows)
         self._kernel = np.ones((3, 5), np.uint8)  # 3 rows (degrees) by 5 samples outward
         self._by_bin = np.argsort(self.row_bin, kind="stable")  # rows grouped by bin, for reduceat
         self._bins_present, self._bin_starts = np.unique(self.row_bin[self._by_bin], return_index=True)
