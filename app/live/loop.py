@@ -25,6 +25,7 @@ from core.control.formation import ControlOutput, ControllerState, compute_comma
 from core.control.navigation import NavOutput, NavSettings, goal_in_leader_frame, navigate
 from core.control.safety import SafetyResult, SafetySettings, filter_commands, obstacle_rows, team_min_distance
 from core.control.targets import SlotMotion, step_slots
+from core.control.tuning import FILTER, RATE_WINDOW_S, limit_flags, lyapunov_rate
 from core.config import MeasurementNoise
 from core.obstacles import Obstacle
 from core.sim.profiles import Eq39Profile
@@ -57,6 +58,7 @@ class _World:
     last_obs: Observation | None = None
     last_cmd: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) the last tick's commands
     err_norm: FloatArray = field(default_factory=lambda: np.zeros(0))  # (n,) the last tick's position errors
+    v_hist: deque[tuple[float, FloatArray]] = field(default_factory=deque)  # (t, V (n,)) over RATE_WINDOW_S
 
 
 def safety_text(result: SafetyResult | None, on: bool) -> str:
@@ -265,11 +267,14 @@ class ServiceLoop:
             move = advance and not params.stop
             manoeuvre = obs.manoeuvre if move else np.zeros((params.n_followers, 2))
             out = ControlOutput.idle(manoeuvre)
+            flags = np.zeros(params.n_followers, dtype=np.int64)
         else:
             active = tracked & (not params.stop) & advance
             out = compute_commands(p, a, world.slots.p_d, world.slots.v_d, twist[0], twist[1],
                                    params.gains, world.controller, self.dt, active)
             world.controller = out.state
+            flags = limit_flags(p, world.slots.p_d, out.a_err, out.zeta_r, out.a_r_dot, twist[1],
+                                np.column_stack([out.commands.v, out.commands.w]), params.gains, active)
         safety = None
         if obs.manoeuvre is None and params.safety and not params.stop:
             settings = self._safety_settings(params)
@@ -277,11 +282,18 @@ class ServiceLoop:
                                      known=tracked, limits=(params.gains.v_max, params.gains.w_max))
             if safety.status != "inactive":
                 out = dataclasses.replace(out, commands=safety.commands)
+            flags = flags | np.where(safety.active, FILTER, 0)
         if world.team.link_lost:  # nobody answers: no command but zero until the robots do
             out = ControlOutput.idle(np.zeros((len(a), 2)))
             world.controller = ControllerState.initial(len(a))
         world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
         world.err_norm = np.linalg.norm(world.slots.p_d - p, axis=1)
+        if advance:  # eq. 21's V per follower, and its slope over the last RATE_WINDOW_S
+            world.v_hist.append((self.t, out.v_lyap))
+            while world.v_hist and world.v_hist[0][0] < self.t - RATE_WINDOW_S:
+                world.v_hist.popleft()
+        v_rate = lyapunov_rate([h[0] for h in world.v_hist], [h[1] for h in world.v_hist]) \
+            if len(world.v_hist) >= 2 else np.zeros(len(a))
         t2 = time.perf_counter()
         stage["control"] = (t2 - t1) * 1e3
 
@@ -308,6 +320,7 @@ class ServiceLoop:
             goal=params.goal if params.leader_mode == "goal" else None,
             heading=self._nav_out.heading if self._nav_out is not None else float("nan"),
             formation_scale=self._nav[1], goal_reached=self._nav_out is not None and self._nav_out.reached,
+            limits=flags, v_rate=v_rate,
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)

@@ -57,6 +57,8 @@ class TickState:
     heading: float = float("nan")  # the goal mode's chosen bearing (rad, leader frame)
     formation_scale: float = 1.0  # how far the formation is narrowed for a gap
     goal_reached: bool = False
+    limits: IntArray | None = None  # (n,) bits of core.control.tuning.LIMIT_NAMES active this tick
+    v_rate: FloatArray | None = None  # (n,) dV/dt per follower (m²/s) over the last half second
 
     @property
     def n(self) -> int:

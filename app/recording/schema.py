@@ -17,6 +17,8 @@ topic                       schema                          what
 /omniformation/events       omniformation.Event             gain / target / preset changes, STOP, follower
                                                             lost / found, link state, vision phase
 /omniformation/params       omniformation.Params            the full parameter set at start and on change
+/omniformation/trials       omniformation.Trial             each step test (app.live.tuning): the test, the
+                                                            gains, when it started, its scores per follower
 =========================== =============================== ==========================================
 
 Metadata record ``omniformation``: the config and scenario text used, the command line.
@@ -50,6 +52,7 @@ IMAGE_TOPIC = "/camera/image"
 EVENT_TOPIC = "/omniformation/events"
 PARAMS_TOPIC = "/omniformation/params"
 SCAN_TOPIC = "/scan"
+TRIAL_TOPIC = "/omniformation/trials"
 SCAN_HZ = 10.0  # free-space scans recorded per second (each is 360 ranges)
 
 _NUM_ARRAY = {"type": "array", "items": {"type": ["number", "null"]}}
@@ -78,6 +81,9 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "obstacles": {"type": ["array", "null"], "description": "obstacle points the leader knows, leader frame, m"},
             "goal": {"type": ["array", "null"]}, "heading": {"type": ["number", "null"]},
             "formation_scale": {"type": "number"}, "goal_reached": {"type": "boolean"},
+            "limits": {"type": ["array", "null"], "description": "per follower, bits of the active saturations and"
+                       " limits: 1 eq. 4, 2 eq. 12, 4 v limit, 8 omega limit, 16 safety filter"},
+            "v_rate": {"type": ["array", "null"], "description": "dV/dt per follower, m^2/s (eq. 21)"},
         },
     },
     "foxglove.LaserScan": {
@@ -109,19 +115,28 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "properties": {"t": {"type": "number"}, "kind": {"type": "string"}, "detail": {"type": "string"}},
     },
     "omniformation.Params": {"type": "object", "title": "omniformation.Params"},
+    "omniformation.Trial": {
+        "type": "object", "title": "omniformation.Trial",
+        "description": "One step test: settling time to 2 cm (s, null: not within the window), overshoot (m),"
+                       " steady error RMS (m), effort (integral of the mean squared wheel speed, m^2/s)",
+        "properties": {"number": {"type": "integer"}, "test": {"type": "object"}, "label": {"type": "string"},
+                       "gains": {"type": "object"}, "t0": {"type": "number"}, "status": {"type": "string"},
+                       "followers": {"type": ["array", "null"]}, "team": {"type": ["object", "null"]}},
+    },
 }
 TOPIC_SCHEMA = {TICK_TOPIC: "omniformation.Tick", TF_TOPIC: "foxglove.FrameTransforms",
                 IMAGE_TOPIC: "foxglove.CompressedImage", EVENT_TOPIC: "omniformation.Event",
-                PARAMS_TOPIC: "omniformation.Params", SCAN_TOPIC: "foxglove.LaserScan"}
+                PARAMS_TOPIC: "omniformation.Params", SCAN_TOPIC: "foxglove.LaserScan",
+                TRIAL_TOPIC: "omniformation.Trial"}
 
 
-def _jsonable(x: Any) -> Any:
+def jsonable(x: Any) -> Any:
     if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
+        return jsonable(x.tolist())
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (np.floating, float)):
         f = float(x)
         # 7 significant digits: micrometres and microradians, and files half the size
@@ -139,7 +154,7 @@ def tick_payload(s: TickState) -> dict[str, Any]:
     d["gains"] = s.gains.as_dict()
     if s.obstacles is not None:  # centimetres are what the scan resolves
         d["obstacles"] = np.round(np.asarray(s.obstacles, dtype=np.float64), 2)
-    return _jsonable(d)  # type: ignore[no-any-return]  # a dict in, the same keys out
+    return jsonable(d)  # type: ignore[no-any-return]  # a dict in, the same keys out
 
 
 def scan_payload(scan: Scan, ns: int) -> dict[str, Any]:
@@ -149,13 +164,13 @@ def scan_payload(scan: Scan, ns: int) -> dict[str, Any]:
     return {"timestamp": _stamp(ns), "frame_id": "leader",
             "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
             "start_angle": float(b[0] + math.pi / 2), "end_angle": float(b[-1] + math.pi / 2),
-            "ranges": _jsonable(scan.ranges), "intensities": []}
+            "ranges": jsonable(scan.ranges), "intensities": []}
 
 
 def params_payload(p: Params) -> dict[str, Any]:
     d = {f.name: getattr(p, f.name) for f in dataclasses.fields(p)}
     d["gains"] = p.gains.as_dict()
-    return _jsonable(d)  # type: ignore[no-any-return]  # a dict in, the same keys out
+    return jsonable(d)  # type: ignore[no-any-return]  # a dict in, the same keys out
 
 
 def _stamp(ns: int) -> dict[str, int]:
@@ -225,6 +240,8 @@ def tick_from_payload(d: dict[str, Any], frame: np.ndarray | None = None) -> Tic
         goal=(float(d["goal"][0]), float(d["goal"][1])) if d.get("goal") is not None else None,
         heading=float(d["heading"]) if d.get("heading") is not None else float("nan"),
         formation_scale=float(d.get("formation_scale", 1.0)), goal_reached=bool(d.get("goal_reached", False)),
+        limits=np.array(d["limits"], dtype=np.int64) if d.get("limits") is not None else None,
+        v_rate=json_floats(d["v_rate"]) if d.get("v_rate") is not None else None,
     )
 
 
