@@ -56,6 +56,20 @@ def check_out_path(path: Path) -> None:
         raise UserError(f"{path}: folder {path.parent} does not exist")
 
 
+def prepare_out_dir(out: Path) -> None:
+    """A folder we are about to write files into: made if missing, and shown to be writable;
+    one line naming what is wrong otherwise."""
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".omniformation-write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UserError(f"{out}: cannot write there: {exc.strerror or exc}") from None
+
+
 def check_new_file(path: Path, what: str, *suffixes: str) -> None:
     """A file we are about to write: not a folder, its folder exists and is writable, and (if
     given) one of ``suffixes``; one line naming what is wrong otherwise."""

@@ -62,16 +62,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from app.recording.report import write_report
 
+    from app.files import prepare_out_dir
+
     out: Path = args.out
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".omniformation-write-test"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise UserError(f"{out}: cannot write there: {exc.strerror or exc}") from None
+    prepare_out_dir(out)
     rec = load_recording(args.file)
 
     def progress(done: int, total: int, what: str) -> None:

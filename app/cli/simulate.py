@@ -46,6 +46,29 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                      help="run a scenario that has a [safety] table without the safety filter (to compare)")
     sim.set_defaults(func=cmd_simulate)
 
+    tune = sub.add_parser(
+        "tune",
+        help="sweep one or two gains over a step test in the simulator; write the table and the figure",
+        description="Run a step test (an offset of one follower's slot, a formation switch, or a step of the"
+                    " leader's turn rate) in the simulator for every point of a grid of one or two gains, starting"
+                    " from the scenario's team settled on its slots, and score each run (settling time to 2 cm,"
+                    " overshoot, steady error RMS, effort).",
+    )
+    tune.add_argument("scenario", help="scenario name from static_config/scenarios or a .toml path")
+    tune.add_argument("--gain", action="append", required=True, metavar="NAME=LO:HI:COUNT",
+                      help="a gain and its values (COUNT from LO to HI); once or twice, e.g. --gain k_w2=1:4:7")
+    tune.add_argument("--test", choices=("offset", "switch", "turn"), default="offset", help="the step (default offset)")
+    tune.add_argument("--follower", type=int_in(1, 8), default=1, help="offset: whose slot moves (default 1)")
+    tune.add_argument("--size", type=float, default=None,
+                      help="offset: cm sideways (default 10); turn: deg/s added to the leader's turn (default 5)")
+    tune.add_argument("--formation", default="line abreast", help="switch: the preset switched to (default line abreast)")
+    tune.add_argument("--window", type=float_in(0.0, 600.0, "s"), default=10.0, help="seconds measured (default 10)")
+    tune.add_argument("--vision", action="store_true", help="vision in the loop (the synthetic rig) instead of truth")
+    tune.add_argument("--camera", type=Path, default=SYNTHETIC_CAMERA, help="synthetic rig for --vision")
+    tune.add_argument("--calibration", type=Path, default=SYNTHETIC_CALIBRATED, help="Γ for --vision")
+    tune.add_argument("--out", type=Path, required=True, help="folder for sweep.csv, sweep.png and summary.md")
+    tune.set_defaults(func=cmd_tune)
+
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -155,3 +178,65 @@ def safety_line(sf: "SafetyLog", t: "np.ndarray", scenario: "Scenario") -> str:
         reached = f"reached at {sf.goal_reached_s:.1f} s" if math.isfinite(sf.goal_reached_s) else "NOT reached"
         parts.append(f"goal {reached}; narrowest formation {sf.scale.min():.2f}")
     return "; ".join(parts)
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    import math
+
+    from app.files import load_scenario, prepare_out_dir
+    from app.live.sweep import run_sweep
+    from app.recording.plots import sweep_figure
+    from core.control.tuning import StepTest, check_step_test, parse_gain_range, sweep_grid
+    from core.sim.sweep import LEAD_S, settled_start
+
+    if len(args.gain) > 2:
+        raise UserError(f"--gain given {len(args.gain)} times: a sweep takes one or two gains")
+    try:
+        ranges = [parse_gain_range(g) for g in args.gain]
+    except ValueError as exc:
+        raise UserError(f"--gain {exc}") from None
+    scenario = load_scenario(args.scenario)
+    try:
+        grid = sweep_grid(ranges, scenario.gains)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    size = args.size if args.size is not None else (10.0 if args.test == "offset" else 5.0)
+    if not math.isfinite(size):
+        raise UserError(f"--size {size!r}: must be a finite number")
+    scaled = size / 100.0 if args.test == "offset" else math.radians(size)
+    test = StepTest(args.test, args.follower - 1, scaled, args.formation, args.window)
+    base = settled_start(scenario)
+    why = check_step_test(test, base.n)
+    if why:
+        raise UserError(f"--test {args.test}: {why}")
+    vision = None
+    if args.vision:
+        from app.files import load_synthetic_rig
+
+        vision = load_synthetic_rig(args.camera, args.calibration)
+        base = base.replace(rate_hz=VISION_RATE_HZ)
+    prepare_out_dir(args.out)
+    twist = tuple(float(x) for x in scenario.leader.twist(0.0))
+    print(f"tune {scenario.name}: {test.label()} over {' x '.join(r.label() for r in ranges)}"
+          f" ({len(grid)} runs, {'vision' if vision else 'truth'} feedback)", flush=True)
+
+    def progress(done: int, total: int) -> None:
+        print(f"  [{done}/{total}]", flush=True)
+
+    result = run_sweep(base, test, (twist[0], twist[1]), ranges, scenario.gains, vision, progress)
+    (args.out / "sweep.csv").write_text(result.csv(), encoding="utf-8")
+    fig = sweep_figure(result)
+    fig.savefig(args.out / "sweep.png", dpi=110)
+    best = result.best()
+    lines = [f"# Sweep: {scenario.name}, {test.label()}", "",
+             f"- {len(grid)} runs with {result.feedback} feedback in {result.seconds:.1f} s",
+             f"- from the team settled on its slots; the step at {LEAD_S:g} s, measured for {test.window_s:g} s",
+             f"- best (settled, then fastest, then least overshoot): {result.point_label(best) if best is not None else 'none'}",
+             "- Pareto front (settling time vs. overshoot): " + "; ".join(result.point_label(k) for k in result.pareto()),
+             "", "sweep.csv: every point; sweep.png: heat map (or line) and Pareto plot."]
+    (args.out / "summary.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    for name in ("sweep.csv", "sweep.png", "summary.md"):
+        print(f"wrote {display_path(args.out / name)}")
+    print(lines[4][2:])
+    print(f"{len(grid)} runs in {result.seconds:.1f} s")
+    return 0

@@ -18,6 +18,7 @@ from app.dashboard.camera_panel import CameraPanel, Overlay
 from app.dashboard.controls import Controls
 from app.dashboard.plots import Plots
 from app.dashboard.scene import Scene
+from app.dashboard.tuning_panel import LyapunovMonitor, TuningPanel
 from app.live.tick import TickState
 from app.live.params import ParamsStore
 
@@ -26,12 +27,16 @@ class Dashboard:
     """Wires the three parts to one viser server; ``publish`` is the loop's subscriber."""
 
     def __init__(self, server: viser.ViserServer, store: ParamsStore, overlay: Overlay | None = None,
-                 obstacles: tuple[Obstacle, ...] = ()) -> None:
+                 obstacles: tuple[Obstacle, ...] = (), tuning: Callable[[viser.ViserServer], TuningPanel] | None = None,
+                 ) -> None:
+        """``tuning``: makes the live page's Tuning panel (step tests, sweeps); a replay has none."""
         self.server = server
         server.gui.configure_theme(control_width="large", dark_mode=False)
         self.controls = Controls(server, store)
         self.scene = Scene(server, store, self.controls, obstacles)
         self.camera = CameraPanel(server, overlay, order=self.controls.status.order + 0.5)  # under the status
+        self.tuning = tuning(server) if tuning is not None else None
+        self.monitor = LyapunovMonitor(server)
         self.plots = Plots(server)
 
     def publish(self, state: TickState) -> None:
@@ -39,6 +44,9 @@ class Dashboard:
             self.scene.update(state)
             self.controls.update_status(state)
         self.camera.update(state)
+        self.monitor.update(state)
+        if self.tuning is not None:
+            self.tuning.update(state)
         self.plots.update(state)
 
 

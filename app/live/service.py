@@ -13,6 +13,7 @@ import threading
 from collections.abc import Callable
 
 import numpy as np
+import viser
 from pathlib import Path
 
 from core.config import MeasurementNoise, Scenario
@@ -25,10 +26,13 @@ from app.backends.hardware import HardwareTeam
 from app.contracts import FollowerLink, FrameSource, Rig
 from app.dashboard import Dashboard, LatestStatePublisher
 from app.dashboard.camera_panel import Overlay
+from app.dashboard.tuning_panel import TuningPanel
 from app.dashboard.gate import quietly, serve_gated
 from app.dashboard.recordings_panel import RecordingsPanel
 from app.live.loop import DEFAULT_NOISE, ServiceLoop
 from app.live.params import LeaderMode, Params, ParamsStore, default_slots
+from app.live.sweep import SweepRunner
+from app.live.tuning import StepTests, live_base
 from app.memory import bound_native_heap
 
 
@@ -102,7 +106,22 @@ class Service:
         if camera is not None:
             wa = camera[0].working_area
             overlay = Overlay((camera[1].cx, camera[1].cy), wa.inner_px, wa.outer_px)
-        self.dashboard = Dashboard(self.server, self.store, overlay, obstacles)
+        self.tests = StepTests(self.store, self.loop.dynamics.wheel_base_m)
+        self.loop.subscribe(self.tests.on_tick)
+        self.sweeps = SweepRunner()
+        loop = self.loop
+
+        def base() -> tuple[Scenario, tuple[float, float]] | str:
+            return live_base(loop.last, self.store.get(), loop.dynamics,
+                             MeasurementNoise(loop.position_noise_m, loop.heading_noise_rad), loop.rate_hz, loop.seed)
+
+        synthetic = camera is not None and hardware is None and camera[0].model is not None
+
+        def tuning(server: viser.ViserServer) -> TuningPanel:
+            return TuningPanel(server, self.store, self.tests, self.sweeps, base,
+                               (lambda: camera) if synthetic else None)
+
+        self.dashboard = Dashboard(self.server, self.store, overlay, obstacles, tuning=tuning)
         self.recordings = RecordingsPanel(self.server, host, recordings, token=self.gate.token)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
@@ -126,6 +145,7 @@ class Service:
         self.loop.stop()
         if self._thread is not None:
             self._thread.join(60.0)
+        self.sweeps.cancel()
         self.publisher.close()
         self.recordings.close()
         self.gate.close()

@@ -8,6 +8,7 @@ errors per follower over time, and the followers' headings.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -20,6 +21,11 @@ from core.geometry import leader_to_world  # noqa: E402
 from core.sim.run import SimulationLog  # noqa: E402
 
 from core.camera.render.looks import follower_hex  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from app.live.sweep import SweepResult
 
 colour = follower_hex  # each follower in its marker's colour, as on the page
 
@@ -92,3 +98,94 @@ def plot_simulation(log: SimulationLog, path: Path, instants: int = 6) -> None:
     ax_head.legend(fontsize=7, loc="upper right")
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def sweep_figure(result: "SweepResult", width_in: float = 7.5) -> "Figure":
+    """A sweep's result: for two gains a heat map of the settling time (not settled: grey,
+    hatched) with the overshoot (cm) in each cell, for one gain the settling time and
+    overshoot against it; beside it the Pareto plot (settling time vs. overshoot, the
+    front joined, the best point ringed)."""
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    fig = Figure(figsize=(width_in, width_in * 0.42), constrained_layout=True)
+    ax, axp = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.15, 1]})
+    settle = result.grid("settling_s")
+    over = result.grid("overshoot_m") * 100
+    r0 = result.ranges[0]
+    best = result.best()
+    if len(result.ranges) == 2:
+        r1 = result.ranges[1]
+        masked = np.ma.masked_invalid(settle)
+        ax.set_facecolor("0.85")
+        mesh = ax.imshow(masked.T, origin="lower", aspect="auto", cmap="viridis_r",
+                         extent=(-0.5, len(r0.values) - 0.5, -0.5, len(r1.values) - 0.5))
+        fig.colorbar(mesh, ax=ax, label="settling time (s)")
+        for i in range(len(r0.values)):
+            for j in range(len(r1.values)):
+                text = f"{over[i, j]:.1f}" if np.isfinite(over[i, j]) else ""
+                if not np.isfinite(settle[i, j]):
+                    text = "no" if not text else f"no\n{text}"
+                ax.text(i, j, text, ha="center", va="center", fontsize=6, color="k")
+        ax.set_xticks(range(len(r0.values)), [f"{v:g}" for v in r0.values], fontsize=7)
+        ax.set_yticks(range(len(r1.values)), [f"{v:g}" for v in r1.values], fontsize=7)
+        ax.set(xlabel=r0.name, ylabel=r1.name, title=f"{result.test.label()}: settling (overshoot cm)")
+        if best is not None:
+            bi, bj = np.unravel_index(best, settle.shape)
+            ax.add_patch(Rectangle((bi - 0.5, bj - 0.5), 1, 1, fill=False, edgecolor="red", lw=2))
+    else:
+        x = r0.values
+        ax.plot(x, settle[:, 0], "o-", color="tab:blue", label="settling time (s)")
+        ax.set(xlabel=r0.name, ylabel="settling time (s)", title=result.test.label())
+        ax2 = ax.twinx()
+        ax2.plot(x, over[:, 0], "s--", color="tab:red", label="overshoot (cm)")
+        ax2.set_ylabel("overshoot (cm)", color="tab:red")
+        ax.grid(alpha=0.3)
+        if best is not None:
+            ax.axvline(x[best], color="red", lw=0.8, ls=":")
+    pts = [(k, s.worst) for k, s in enumerate(result.scores) if s is not None and np.isfinite(s.worst["settling_s"])]
+    if pts:
+        axp.scatter([w["settling_s"] for _, w in pts], [w["overshoot_m"] * 100 for _, w in pts], s=14, color="0.5")
+        front = result.pareto()
+        axp.plot([result.scores[k].worst["settling_s"] for k in front],  # type: ignore[union-attr]  # settled
+                 [result.scores[k].worst["overshoot_m"] * 100 for k in front], "o-", color="tab:orange", ms=4,  # type: ignore[union-attr]
+                 label="Pareto front")
+        if best is not None and result.scores[best] is not None:
+            w = result.scores[best].worst  # type: ignore[union-attr]  # checked
+            axp.scatter([w["settling_s"]], [w["overshoot_m"] * 100], s=80, facecolors="none", edgecolors="red",
+                        label="best")
+        axp.legend(fontsize=7)
+    else:
+        axp.text(0.5, 0.5, "no point settled", ha="center", va="center", transform=axp.transAxes)
+    axp.set(xlabel="settling time (s)", ylabel="overshoot (cm)", title=f"{result.feedback} feedback")
+    axp.grid(alpha=0.3)
+    return fig
+
+
+def figure_rgb(fig: "Figure", dpi: int = 90) -> np.ndarray:
+    """A matplotlib Figure as an (h, w, 3) uint8 image (for the page)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    fig.set_dpi(dpi)
+    canvas.draw()  # type: ignore[no-untyped-call]  # matplotlib's Agg canvas has no annotations here
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()  # type: ignore[no-untyped-call]
+
+
+def limits_strip(t: np.ndarray, limits: np.ndarray, ax: Axes) -> None:
+    """Which saturation or limit each follower is in over time (core.control.tuning): one row
+    per follower and limit, filled where it is active."""
+    from core.control.tuning import LIMIT_NAMES
+
+    n = limits.shape[1]
+    k = len(LIMIT_NAMES)
+    img = np.zeros((n * k, len(t)))
+    for i in range(n):
+        for b in range(k):
+            img[i * k + b] = (limits[:, i].astype(np.int64) >> b) & 1
+    if len(t) >= 2:
+        ax.imshow(img, aspect="auto", interpolation="nearest", cmap="Greys", vmin=0, vmax=1,
+                  extent=(float(t[0]), float(t[-1]), n * k - 0.5, -0.5))
+    ax.set_yticks(range(n * k), [f"F{i + 1} {name}" for i in range(n) for name in LIMIT_NAMES], fontsize=6)
+    for i in range(1, n):
+        ax.axhline(i * k - 0.5, color=colour(i), lw=0.8)

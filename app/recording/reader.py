@@ -36,7 +36,7 @@ from mcap.records import Chunk, Metadata, Schema, Channel
 from mcap.data_stream import ReadDataStream
 
 from app.live.params import Params
-from app.recording.schema import CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, TICK_TOPIC
+from app.recording.schema import CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, TICK_TOPIC, TRIAL_TOPIC
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
@@ -175,6 +175,7 @@ class Recording:
     frame_t: np.ndarray  # (frames,) session time of each camera frame (s)
     events: list[dict[str, Any]]
     params: list[tuple[float, dict[str, Any]]]  # (t, the full parameter set) at start and on change
+    trials: list[dict[str, Any]] = field(default_factory=list)  # the step tests (app.live.tuning.Trial.payload)
     ticks: Sequence[dict[str, Any]] = field(repr=False, default=())
     frames: Sequence[tuple[float, bytes]] = field(repr=False, default=())  # (t, JPEG)
     _chunks: _Chunks | None = field(repr=False, default=None)
@@ -257,6 +258,7 @@ class _Scan:
         self.tick_numbers: array[int] = array("q")
         self.events: list[tuple[int, dict[str, Any]]] = []
         self.params: list[tuple[int, dict[str, Any]]] = []
+        self.trials: list[dict[str, Any]] = []
         self.damage: list[Damage] = []
         self.complete = False
         self.good_bytes = 8
@@ -358,6 +360,8 @@ class _Scan:
                 self.events.append((log_time, json.loads(head)))
             elif topic == PARAMS_TOPIC:
                 self.params.append((log_time, json.loads(head)))
+            elif topic == TRIAL_TOPIC:
+                self.trials.append(json.loads(head))
         self.places.append((self.f.tell() - len(body) - 9, len(body)))
 
     def _resync(self, start: int) -> int | None:
@@ -431,7 +435,7 @@ def read_recording(path: Path) -> Recording:
         bytes_total=size, bytes_read=scan.good_bytes, damage=scan.damage, t=tick_t,
         tick_numbers=np.frombuffer(scan.tick_numbers, dtype=np.int64) if len(scan.tick_numbers) else np.zeros(0, np.int64),
         frame_t=frame_t,
-        events=[e for _, e in scan.events], params=params,
+        events=[e for _, e in scan.events], params=params, trials=scan.trials,
         ticks=_Messages(chunks, ticks_at, tick), frames=_Messages(chunks, frames_at, frame), _chunks=chunks,
     )
 

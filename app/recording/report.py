@@ -3,7 +3,8 @@
 Figures (PNG, paper style): trajectory.png (fig. 16/21/25/28: the team's path with the
 formation triangle at a few instants), errors.png (fig. 17/19/23/26: x / y position error
 per follower), headings.png (fig. 20/24/27: measured vs Kalman-filtered headings),
-lyapunov_commands.png (V(t) and the commands). summary.md and summary.json: per follower
+lyapunov_commands.png (V(t) and the commands), lyapunov.png (V per follower, where it rose or
+fell, and which saturation or limit was active), safety.png. summary.md and summary.json: per follower
 the settling time, steady-state error RMS and max, time not tracked; the STOP events.
 
 Errors use the true pose when the recording has one (simulation), else the estimate.
@@ -47,14 +48,21 @@ class Series:
     commands: np.ndarray  # (T, n, 2)
     truth: bool
     filter_acting: np.ndarray | None = None  # (T,) the safety filter changed a command (None: not recorded)
+    v_each: np.ndarray | None = None  # (T, n) eq. 21 per follower
+    v_rate: np.ndarray | None = None  # (T, n) its rate as the loop measured it (NaN: not recorded)
+    limits: np.ndarray | None = None  # (T, n) core.control.tuning flags (NaN: not recorded)
 
     def every(self, k: int) -> "Series":
         """Every k-th row (views, no copies): what a figure needs of a long recording."""
         if k <= 1:
             return self
+
+        def cut(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[::k]
+
         return Series(self.t[::k], self.leader[::k], self.followers_world[::k], self.p[::k], self.p_d[::k],
                       self.a_est[::k], self.a_raw[::k], self.tracked[::k], self.v_lyap[::k], self.commands[::k],
-                      self.truth, None if self.filter_acting is None else self.filter_acting[::k])
+                      self.truth, cut(self.filter_acting), cut(self.v_each), cut(self.v_rate), cut(self.limits))
 
     def min_distance(self) -> np.ndarray:
         """(T,) the smallest centre distance between two robots (followers and the leader) per tick."""
@@ -67,7 +75,8 @@ class Series:
 
 MAX_PLOTTED = 20_000  # points per line in a figure (every k-th tick of a longer recording)
 SERIES_FIELDS = ("t", "leader", "followers_world", "p_true", "p_est", "p_d", "a_est", "a_raw", "tracked", "v_lyap",
-                 "commands")
+                 "commands", "v_rate", "limits")
+PER_FOLLOWER_OPTIONAL = ("v_rate", "limits")  # not in recordings made before the Lyapunov monitor
 
 
 def series(rec: Recording) -> Series:
@@ -79,6 +88,8 @@ def series(rec: Recording) -> Series:
     cols: dict[str, np.ndarray] = {}
     for name in SERIES_FIELDS:
         shape = json_floats(first.get(name) if first.get(name) is not None else first["a_est"]).shape
+        if name in PER_FOLLOWER_OPTIONAL:
+            shape = json_floats(first["a_est"]).shape
         cols[name] = np.full((total, *shape), np.nan)
     acting = np.zeros(total, dtype=bool)
     has_filter = "safety" in first
@@ -88,6 +99,8 @@ def series(rec: Recording) -> Series:
             value = tk.get(name)
             if name == "a_raw" and value is None:
                 value = tk["a_est"]
+            if value is None and name in PER_FOLLOWER_OPTIONAL:
+                continue
             try:
                 cols[name][k] = value
             except (TypeError, ValueError):  # JSON null (a NaN when written) inside
@@ -100,6 +113,7 @@ def series(rec: Recording) -> Series:
         p=p_true if truth else cols["p_est"], p_d=cols["p_d"], a_est=cols["a_est"], a_raw=cols["a_raw"],
         tracked=cols["tracked"].astype(bool), v_lyap=np.nansum(cols["v_lyap"], axis=1),
         commands=cols["commands"], truth=truth, filter_acting=acting if has_filter else None,
+        v_each=cols["v_lyap"], v_rate=cols["v_rate"], limits=cols["limits"],
     )
 
 
@@ -201,7 +215,37 @@ def summarise(rec: Recording, s: Series) -> dict[str, Any]:
         "lost_ticks": sum(g.ticks for g in rec.gaps()),
         "lost_s": round(sum(g.seconds for g in rec.gaps()), 3),
         "loss": rec.loss_note(),
+        "step_tests": step_tests(rec),
     }
+
+
+def step_tests(rec: Recording) -> list[dict[str, Any]]:
+    """The session's step tests: what the page measured (recorded with each trial) beside the
+    same scores computed here again from the recorded ticks (core.control.tuning.score_step)."""
+    from core.control.tuning import score_step
+
+    out = []
+    for tr in rec.trials:
+        row: dict[str, Any] = {"number": tr.get("number"), "label": tr.get("label"), "status": tr.get("status"),
+                               "t0": tr.get("t0"), "gains": tr.get("gains"), "page": tr.get("team"),
+                               "page_followers": tr.get("followers")}
+        test = tr.get("test") or {}
+        if tr.get("status") == "done" and isinstance(tr.get("t0"), (int, float)) and test.get("window_s"):
+            t0, window = float(tr["t0"]), float(test["window_s"])
+            idx = np.flatnonzero((rec.t >= t0 - 0.5 / 30) & (rec.t <= t0 + window + 0.5 / 30))
+            ticks = [rec.ticks[int(k)] for k in idx]
+            if len(ticks) >= 2:
+                t = np.array([float(tk["t"]) for tk in ticks])
+                p = np.array([json_floats(tk["p_est"]) for tk in ticks])
+                target = np.array([json_floats(tk["slot_targets"])[np.array(tk["assignment"], dtype=int)]
+                                   * np.array([float(tk.get("formation_scale", 1.0)), 1.0]) for tk in ticks])
+                cmd = np.array([json_floats(tk["commands"]) for tk in ticks])
+                score = score_step(t, p, target, cmd, t0, window, float(tr.get("wheel_base_m", 0.12)))
+                row["report"] = {k: (float(v) if np.isfinite(v) else None) for k, v in score.worst.items()}
+                row["report_settling_s"] = [float(v) if np.isfinite(v) else None for v in score.settling_s]
+                row["report_overshoot_m"] = [float(v) for v in score.overshoot_m]
+        out.append(row)
+    return out
 
 
 def _summary_md(sm: dict[str, Any]) -> str:
@@ -228,6 +272,25 @@ def _summary_md(sm: dict[str, Any]) -> str:
     for f in sm["followers"]:
         lines.append(f"| {f['follower']} | {f['settling_time_s'] if f['settling_time_s'] is not None else 'not settled'}"
                      f" | {f['steady_error_rms_cm']} | {f['steady_error_max_cm']} | {f['time_not_tracked_s']} |")
+    if sm["step_tests"]:
+        lines += ["", "## Step tests", "",
+                  "Settling to 2 cm, overshoot past the target, steady error RMS over the last 2 s and effort"
+                  " (∫ mean squared wheel speed dt): as the page measured them / as computed here from the"
+                  " recorded ticks.", "",
+                  "| # | test | status | settling (s) | overshoot (cm) | steady RMS (cm) | effort (m²/s) |",
+                  "|---|---|---|---|---|---|---|"]
+        for tr in sm["step_tests"]:
+            page, here = tr.get("page") or {}, tr.get("report") or {}
+
+            def pair(key: str, scale: float = 1.0, digits: int = 2, page: dict[str, Any] = page,
+                     here: dict[str, Any] = here) -> str:
+                def one(d: dict[str, Any]) -> str:
+                    v = d.get(key)
+                    return "not settled" if v is None and d else "" if v is None else f"{v * scale:.{digits}f}"
+                return f"{one(page)} / {one(here)}"
+
+            lines.append(f"| {tr['number']} | {tr['label']} | {tr['status']} | {pair('settling_s')} |"
+                         f" {pair('overshoot_m', 100)} | {pair('steady_rms_m', 100, 3)} | {pair('effort', 1, 4)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -291,6 +354,41 @@ def _lyapunov_commands(s: Series, path: Path) -> None:
     plt.close(fig)
 
 
+def _lyapunov_monitor(s: Series, path: Path) -> None:
+    """Per follower: eq. 21's V (where it rose, shaded red; fell, green), and the strip of the
+    saturations and limits that were active (core.control.tuning)."""
+    from app.recording.plots import limits_strip
+    from core.control.tuning import lyapunov_trend
+
+    v = s.v_each if s.v_each is not None else s.v_lyap[:, None]
+    n = v.shape[1]
+    rate = s.v_rate if s.v_rate is not None and np.isfinite(s.v_rate).any() else \
+        np.gradient(v, s.t, axis=0) if len(s.t) > 1 else np.zeros_like(v)
+    fig, axes = plt.subplots(n + 1, 1, figsize=(9, 1.9 * n + 2.2), sharex=True, constrained_layout=True,
+                             squeeze=False, gridspec_kw={"height_ratios": [2] * n + [max(1.5, 0.35 * n * 5 / 2)]})
+    for i in range(n):
+        ax = axes[i, 0]
+        ax.plot(s.t, v[:, i], color=colour(i), lw=1.0)
+        trend = lyapunov_trend(rate[:, i], v[:, i])
+        top = float(np.nanmax(v[:, i])) if np.isfinite(v[:, i]).any() else 1.0
+        ax.fill_between(s.t, 0, top, where=trend > 0, color="tab:red", alpha=0.15, lw=0, step="mid", label="rising")
+        ax.fill_between(s.t, 0, top, where=trend < 0, color="tab:green", alpha=0.10, lw=0, step="mid", label="falling")
+        ax.set_yscale("symlog", linthresh=1e-5)
+        ax.set(ylabel="V (m²)", title=f"follower {i + 1}: V = ½‖ρ̃‖² (eq. 21)")
+        ax.legend(fontsize=7, loc="upper right")
+        ax.grid(alpha=0.3)
+    ax = axes[n, 0]
+    if s.limits is not None and np.isfinite(s.limits).any():
+        limits_strip(s.t, np.nan_to_num(s.limits).astype(np.int64), ax)
+        ax.set_title("active saturations and limits (eq. 4, eq. 12, v / ω limits, safety filter)")
+    else:
+        ax.text(0.5, 0.5, "saturations not recorded (a recording older than the monitor)", ha="center",
+                va="center", transform=ax.transAxes)
+    ax.set_xlabel("t (s)")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _safety(s: Series, gap: np.ndarray | None, path: Path) -> None:
     """The minimum distance over time (robots, and obstacles where the scenario has them) and
     where the safety filter acted."""
@@ -325,6 +423,7 @@ def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], 
         ("headings.png", lambda p: _headings(shown, p)),
         ("lyapunov_commands.png", lambda p: _lyapunov_commands(shown, p)),
         ("safety.png", lambda p: _safety(shown, obstacle_gap(rec, shown), p)),
+        ("lyapunov.png", lambda p: _lyapunov_monitor(shown, p)),
     ]
     written = []
     total = len(steps) + 1

@@ -99,6 +99,7 @@ def start_recording(service: "Service", config: "ServiceConfig", scenario: "Scen
     recorder = Recorder(path, meta, service.store.get(), frame_rate_hz=frames_hz,
                         free_floor_bytes=config.free_floor_bytes, on_stopped=stopped)
     service.loop.subscribe(recorder.on_tick)
+    service.tests.listeners.append(recorder.on_trial)
     service.store.subscribe(recorder.on_params)
     service.dashboard.controls.recording = shown
     service.recordings.current = shown  # not offered for replay while it is being written

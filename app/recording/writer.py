@@ -33,8 +33,8 @@ from app.live.params import Params
 from core.types import Image
 from app.live.tick import TickState
 from app.recording.schema import (CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS,
-                                  TF_TOPIC, TICK_TOPIC, TOPIC_SCHEMA, image_payload, params_payload, scan_payload,
-                                  tick_payload, transforms_payload)
+                                  TF_TOPIC, TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
+                                  params_payload, scan_payload, tick_payload, transforms_payload)
 
 DEFAULT_FRAME_RATE_HZ = 10.0
 MAX_FRAMES_WAITING = 30  # raw frames queued for JPEG encoding on the writer thread (3 s at 10 Hz)
@@ -231,6 +231,13 @@ class Recorder:
         for kind, detail in params_events(old, p, source):
             self.event(self._last_t, kind, detail)
         self._put(PARAMS_TOPIC, self._last_t, params_payload(p))
+
+    def on_trial(self, trial: Any) -> None:
+        """A step test's row (app.live.tuning.Trial): its message, and an event for the list."""
+        payload = trial.payload()
+        t = self._last_t
+        self._put(TRIAL_TOPIC, t, jsonable(payload))
+        self.event(t, "trial", f"trial {payload['number']}: {payload['label']}, {payload['status']}")
 
     def event(self, t: float, kind: str, detail: str) -> None:
         self._put(EVENT_TOPIC, t, {"t": t, "kind": kind, "detail": detail})

@@ -134,10 +134,10 @@ def test_report_writes_figures_and_summary(tmp_path):
     assert out.returncode == 0, out.stderr
     import cv2
 
-    for name in ("trajectory.png", "errors.png", "headings.png", "lyapunov_commands.png", "safety.png"):
+    for name in ("trajectory.png", "errors.png", "headings.png", "lyapunov_commands.png", "safety.png", "lyapunov.png"):
         img = cv2.imread(str(tmp_path / "rep" / name))
         assert img is not None and img.shape[0] > 300 and img.std() > 10, name  # a real picture, not a blank
-    assert "[6/6]" in out.stdout
+    assert "[7/7]" in out.stdout
     summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
     f1, f2 = summary["followers"]
     assert f1["settling_time_s"] is not None and f1["settling_time_s"] < 30

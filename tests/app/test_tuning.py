@@ -1,0 +1,187 @@
+"""Step tests on the live loop, recorded and reported; sweeps in the worker process; the
+`tune` command and its bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.live.loop import ServiceLoop
+from app.live.params import Params, ParamsStore, default_slots
+from app.live.sweep import SweepRunner
+from app.live.tuning import StepTests, live_base, trials_csv
+from app.recording.reader import read_recording
+from app.recording.report import write_report
+from app.recording.writer import Recorder
+from core.config import MeasurementNoise
+from core.control.tuning import StepTest, parse_gain_range
+from core.sim.team import FollowerDynamics
+
+from tests.helpers import main_cli, wait_for
+
+
+def _team(tmp_path, n=3):
+    store = ParamsStore(Params(n_followers=n, slots=default_slots(n), leader_mode="straight"))
+    dynamics = FollowerDynamics(actuator_tau_s=0.2, speed_max_mps=0.35, turn_max_rps=2.5, accel_max_mps2=0.6,
+                                turn_accel_max_rps2=6.0)
+    loop = ServiceLoop(store, rate_hz=30.0, seed=5, dynamics=dynamics,
+                       initial_poses=(default_slots(n), np.full(n, math.pi / 2)))
+    tests = StepTests(store, dynamics.wheel_base_m)
+    loop.subscribe(tests.on_tick)
+    rec = Recorder(tmp_path / "t.mcap", {"scenario": "tuning"}, store.get())
+    loop.subscribe(rec.on_tick)
+    store.subscribe(rec.on_params)
+    tests.listeners.append(rec.on_trial)
+    return store, loop, tests, rec
+
+
+def _tick(loop, seconds):
+    for _ in range(int(round(seconds * 30))):
+        loop.tick()
+
+
+def test_a_step_test_runs_on_the_loop_is_recorded_and_report_agrees_within_one_tick(tmp_path):
+    store, loop, tests, rec = _team(tmp_path)
+    _tick(loop, 4.0)  # the team catches up with the moving leader
+    slots_before = store.get().slots.copy()
+    assert tests.request(StepTest("offset", 1, 0.12, window_s=8.0)) is None
+    assert "running" in (tests.request(StepTest("offset", 0, 0.1)) or "")  # one test at a time
+    _tick(loop, 9.0)
+    assert len(tests.trials) == 1
+    trial = tests.trials[0]
+    assert trial.status == "done" and trial.score is not None
+    assert 0.3 < trial.score.settling_s[1] < 6.0, trial.score  # the follower stepped settles
+    assert trial.score.overshoot_m[1] < 0.05 and trial.score.effort[1] > trial.score.effort[0]
+    np.testing.assert_allclose(store.get().slots, slots_before)  # the formation is set back afterwards
+    # a second test with other gains: STOP in the middle aborts it and still restores the slots
+    store.update("browser:1", k_f1=0.2)
+    _tick(loop, 3.0)
+    assert tests.request(StepTest("switch", formation="line abreast", window_s=8.0)) is None
+    _tick(loop, 2.0)
+    store.update("browser:1", stop=True)
+    _tick(loop, 0.5)
+    assert tests.trials[-1].status == "aborted: STOP"
+    np.testing.assert_allclose(store.get().slots, slots_before)
+    assert "STOP is engaged" in (tests.request(StepTest("offset", 0, 0.1)) or "")
+    store.update("browser:1", stop=False, paused=True)
+    _tick(loop, 0.2)
+    assert "paused" in (tests.request(StepTest("offset", 0, 0.1)) or "")
+    store.update("browser:1", paused=False)
+    _tick(loop, 1.0)
+    rec.close()
+
+    csv = trials_csv(tests.trials).decode().splitlines()
+    assert len(csv) == 3 and csv[0].startswith("trial,test,status,t0_s,k_f1")
+    assert csv[1].split(",")[2] == "done" and "aborted: STOP" in csv[2]
+
+    back = read_recording(tmp_path / "t.mcap")
+    assert [t["status"] for t in back.trials] == ["done", "aborted: STOP"]
+    assert [e["kind"] for e in back.events].count("trial") == 2
+    out = tmp_path / "report"
+    out.mkdir()
+    write_report(back, out)
+    import json
+
+    summary = json.loads((out / "summary.json").read_text())
+    rows = summary["step_tests"]
+    page, here = rows[0]["page"], rows[0]["report"]
+    assert abs(page["settling_s"] - here["settling_s"]) <= 1 / 30 + 1e-9
+    assert here["overshoot_m"] == pytest.approx(page["overshoot_m"], abs=1e-5)
+    assert here["steady_rms_m"] == pytest.approx(page["steady_rms_m"], abs=1e-5)
+    assert "## Step tests" in (out / "summary.md").read_text()
+    assert (out / "lyapunov.png").stat().st_size > 20_000
+
+
+def test_the_loop_publishes_v_trend_and_active_limits():
+    slots = default_slots(2)
+    store = ParamsStore(Params(n_followers=2, slots=slots, leader_mode="stop"))
+    # F1 starts 0.8 m behind its slot (the slots are where the team starts: no ramp): eq. 4 saturates
+    start = slots + np.array([[0.0, -0.8], [0.0, 0.0]])
+    loop = ServiceLoop(store, rate_hz=30.0, seed=5, initial_poses=(start, np.full(2, math.pi / 2)))
+    _tick(loop, 1.5)
+    s = loop.last
+    assert s is not None and s.limits is not None and s.v_rate is not None
+    assert s.limits[0] & 1, s.limits  # eq. 4 for F1
+    assert not s.limits[1] & 1
+    assert s.v_rate[0] < -1e-4  # V falls while F1 drives in
+    for _ in range(int(30 * 25)):
+        loop.tick()
+    s = loop.last
+    assert not s.limits[0] & 1 and abs(s.v_rate[0]) < 1e-4  # arrived: no saturation, V flat
+
+
+def test_a_sweep_runs_in_a_worker_and_a_cancel_stops_it(tmp_path):
+    store, loop, tests, rec = _team(tmp_path)
+    _tick(loop, 2.0)
+    rec.close()
+    base = live_base(loop.last, store.get(), loop.dynamics, MeasurementNoise(0.003, math.radians(1)), 30.0, 5)
+    assert not isinstance(base, str)
+    scenario, twist = base
+    assert scenario.n == 3 and twist[0] == pytest.approx(store.get().leader_speed_mps)
+    runner = SweepRunner()
+    progress: list[tuple[int, int]] = []
+    runner.on_progress.append(lambda d, t: progress.append((d, t)))
+    ranges = [parse_gain_range("k_w2=1:4:3"), parse_gain_range("k_f1=0.05:0.2:3")]
+    assert runner.start(scenario, StepTest("offset", 0, 0.1, window_s=6.0), twist, ranges, store.get().gains) is None
+    assert "running" in (runner.start(scenario, StepTest(), twist, ranges, store.get().gains) or "")
+    result = runner.wait(300)
+    assert result is not None and not result.cancelled and all(s is not None for s in result.scores)
+    assert progress[-1] == (9, 9) and [d for d, _ in progress] == list(range(1, 10))
+    best = result.best()
+    assert best is not None and math.isfinite(result.scores[best].worst["settling_s"])
+    assert best in result.pareto() or result.pareto()
+    # a long sweep cancelled after its first point: the points not started never run
+    runner.on_progress.append(lambda d, t: runner.cancel() if d == 1 else None)
+    long = [parse_gain_range("k_w2=1:4:10"), parse_gain_range("k_f1=0.05:0.2:10")]
+    assert runner.start(scenario, StepTest("offset", 0, 0.1, window_s=6.0), twist, long, store.get().gains) is None
+    cancelled = runner.wait(300)
+    assert cancelled is not None and cancelled.cancelled
+    assert sum(s is not None for s in cancelled.scores) < 10
+    # bad ranges are refused before anything runs
+    assert "at most" in (runner.start(scenario, StepTest(), twist, [parse_gain_range("k_w2=1:4:20"),
+                                                                     parse_gain_range("k_f1=0.05:0.2:20")],
+                                      store.get().gains) or "")
+
+
+def test_tune_writes_the_table_and_the_figure(tmp_path):
+    out = tmp_path / "sweep"
+    r = main_cli("tune", "experiment1", "--gain", "k_w2=1:4:3", "--gain", "k_f1=0.05:0.2:3", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    lines = (out / "sweep.csv").read_text().splitlines()
+    assert lines[0].startswith("k_w2,k_f1,settling_s") and len(lines) == 10
+    assert (out / "sweep.png").stat().st_size > 20_000
+    assert "best" in (out / "summary.md").read_text() and "9 runs in" in r.stdout
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--gain", "k_w2=4:1:5"], "reversed"),
+    (["--gain", "k_w2=2:2:5"], "empty"),
+    (["--gain", "k_w2=1:30:5"], "(0, 20]"),
+    (["--gain", "speed=1:2:3"], "NAME one of"),
+    (["--gain", "k_w2=1:2:3", "--gain", "k_f1=0.1:0.2:3", "--gain", "a=0.1:0.2:2"], "one or two gains"),
+    (["--gain", "k_w2=1:2:3", "--test", "offset", "--size", "80"], "cm"),
+    (["--gain", "k_w2=1:2:3", "--test", "switch", "--formation", "blob"], "one of"),
+    (["--gain", "k_w2=1:2:3", "--follower", "3"], "followers 1..2"),
+])
+def test_tune_refuses_bad_input_in_one_line(tmp_path, args, needle):
+    r = main_cli("tune", "experiment1", *args, "--out", str(tmp_path / "o"))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert needle in r.stderr and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+    assert not (tmp_path / "o").exists()  # nothing written
+
+
+def test_a_turn_step_in_eq39_mode_is_refused_with_the_reason(tmp_path):
+    store, loop, tests, rec = _team(tmp_path)
+    store.update("browser:1", leader_mode="eq39")
+    _tick(loop, 0.5)
+    assert "turn step needs the leader" in (tests.request(StepTest("turn", 0, math.radians(5))) or "")
+    store.update("browser:1", leader_mode="stop")
+    _tick(loop, 0.5)
+    assert tests.request(StepTest("turn", 0, math.radians(5), window_s=4.0)) is None
+    _tick(loop, 5.0)
+    assert tests.trials[-1].status == "done"
+    assert store.get().leader_mode == "stop"  # set back
+    wait_for(lambda: True)
+    rec.close()
