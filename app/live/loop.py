@@ -43,6 +43,7 @@ from app.live.tick import TickState
 log = logging.getLogger(__name__)
 
 DEFAULT_NOISE = MeasurementNoise(0.003, math.radians(1.0))  # truth feedback's noise unless told
+CATCH_UP_TICKS = 3  # a loop this many ticks late or less catches up; further behind, it starts afresh
 REASSIGN_MARGIN_M2 = 0.05  # eq. 33 is re-solved when slots change; keep the old one unless this much cheaper
 
 
@@ -373,10 +374,12 @@ class ServiceLoop:
                     self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
                 next_deadline += self.dt
                 delay = next_deadline - time.monotonic()
-                if delay < -self.dt:  # fell behind: do not try to catch up in a burst
+                if delay < -CATCH_UP_TICKS * self.dt:  # far behind (a stall): start afresh, no burst
                     next_deadline = time.monotonic()
                 elif delay > 0:
                     self._stop.wait(delay)
+                # else a tick or two late (the CPU was busy for a moment): the next one at once,
+                # so the rate holds; the simulated world steps by dt either way
         finally:
             self.halt_followers()
             self._world.team.close()

@@ -29,7 +29,7 @@ from core.control.tuning import GainRange, StepScore, StepTest, sweep_grid
 from core.sim.sweep import run_step_test
 from core.types import Gains
 
-WORKER_NICE = 10
+WORKER_NICE = 19  # the lowest priority: the robots' loop comes first
 
 
 @dataclass(frozen=True)
