@@ -150,24 +150,24 @@ class TuningPanel:
         gui = server.gui
         n = store.get().n_followers
         with gui.add_folder("Tuning", expand_by_default=False):
-            self.kind = gui.add_dropdown("Test", options=("offset", "switch", "turn"), initial_value="offset",
+            self.kind = gui.add_dropdown("Step test", options=("offset", "switch", "turn"), initial_value="offset",
                                          hint="offset: one follower's slot moves sideways; switch: to the formation"
                                               " below; turn: the leader's turn rate steps")
-            self.follower = gui.add_dropdown("Follower", options=tuple(f"F{i + 1}" for i in range(n)), initial_value="F1")
-            self.size = gui.add_number("Size", initial_value=10.0, step=1.0,
+            self.follower = gui.add_dropdown("Which follower", options=tuple(f"F{i + 1}" for i in range(n)), initial_value="F1")
+            self.size = gui.add_number("Step size", initial_value=10.0, step=1.0,
                                        hint=f"offset: cm ({OFFSET_M[0] * 100:g} to {OFFSET_M[1] * 100:g}, either way);"
                                             f" turn: deg/s ({math.degrees(TURN_RPS[0]):g} to"
                                             f" {math.degrees(TURN_RPS[1]):g}, either way)")
             self.formation = gui.add_dropdown("Switch to", options=FORMATION_PRESETS, initial_value="line abreast")
-            self.window = gui.add_number("Window (s)", initial_value=10.0, min=WINDOW_S[0], max=WINDOW_S[1], step=1.0,
+            self.window = gui.add_number("Measure for (s)", initial_value=10.0, min=WINDOW_S[0], max=WINDOW_S[1], step=1.0,
                                          hint="how long each follower's response is measured")
             self.run_button = gui.add_button("Run test", hint="apply the test and measure: settling to 2 cm,"
                                                               " overshoot, steady RMS, effort")
             self.cancel_button = gui.add_button("Cancel test", color="gray")
             self.status = gui.add_markdown("step test: idle")
             self.table = gui.add_html("<i>no trials yet</i>")
-            self.row = gui.add_number("Trial", initial_value=1, min=1, step=1)
-            self.reapply = gui.add_button("Apply its gains", hint="set the gains that trial ran with")
+            self.row = gui.add_number("Trial #", initial_value=1, min=1, step=1)
+            self.reapply = gui.add_button("Apply trial's gains", hint="set the gains that trial ran with")
             self.export = gui.add_button("Export trials CSV")
             with gui.add_folder("Sweep in the simulator"):
                 self.gain1 = gui.add_dropdown("Gain 1", options=SWEEP_GAINS, initial_value="k_w2")
@@ -184,7 +184,7 @@ class TuningPanel:
                 self.cancel_sweep = gui.add_button("Cancel sweep", color="gray", disabled=True)
                 self.sweep_status = gui.add_markdown("sweep: none yet")
                 self.figure = gui.add_image(np.full((8, 8, 3), 255, np.uint8), format="png", visible=False)
-                self.point = gui.add_dropdown("Point", options=("none",), initial_value="none", disabled=True,
+                self.point = gui.add_dropdown("Sweep point", options=("none",), initial_value="none", disabled=True,
                                               hint="best first: settled, then fastest, then least overshoot")
                 self.apply_point = gui.add_button("Apply point's gains", disabled=True)
                 self.apply_best = gui.add_button("Apply best", disabled=True)
@@ -326,7 +326,7 @@ class TuningPanel:
 
         self.result = result
         ran = sum(s is not None for s in result.scores)
-        fig = sweep_figure(result)
+        fig = sweep_figure(result, width_in=4.6, stacked=True)
         self.figure.image = figure_rgb(fig)
         self.figure.visible = True
         order = [k for k in result.order() if result.scores[k] is not None]

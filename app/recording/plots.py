@@ -100,7 +100,7 @@ def plot_simulation(log: SimulationLog, path: Path, instants: int = 6) -> None:
     plt.close(fig)
 
 
-def sweep_figure(result: "SweepResult", width_in: float = 7.5) -> "Figure":
+def sweep_figure(result: "SweepResult", width_in: float = 7.5, stacked: bool = False) -> "Figure":
     """A sweep's result: for two gains a heat map of the settling time (not settled: grey,
     hatched) with the overshoot (cm) in each cell, for one gain the settling time and
     overshoot against it; beside it the Pareto plot (settling time vs. overshoot, the
@@ -108,8 +108,12 @@ def sweep_figure(result: "SweepResult", width_in: float = 7.5) -> "Figure":
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
 
-    fig = Figure(figsize=(width_in, width_in * 0.42), constrained_layout=True)
-    ax, axp = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.15, 1]})
+    if stacked:  # one above the other: the page's narrow panel
+        fig = Figure(figsize=(width_in, width_in * 1.3), constrained_layout=True)
+        ax, axp = fig.subplots(2, 1, gridspec_kw={"height_ratios": [1.15, 1]})
+    else:
+        fig = Figure(figsize=(width_in, width_in * 0.42), constrained_layout=True)
+        ax, axp = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.15, 1]})
     settle = result.grid("settling_s")
     over = result.grid("overshoot_m") * 100
     r0 = result.ranges[0]

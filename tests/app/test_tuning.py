@@ -19,7 +19,7 @@ from core.config import MeasurementNoise
 from core.control.tuning import StepTest, parse_gain_range
 from core.sim.team import FollowerDynamics
 
-from tests.helpers import main_cli, wait_for
+from tests.helpers import main_cli
 
 
 def _team(tmp_path, n=3):
@@ -172,6 +172,24 @@ def test_tune_refuses_bad_input_in_one_line(tmp_path, args, needle):
     assert not (tmp_path / "o").exists()  # nothing written
 
 
+def test_a_test_or_sweep_with_a_follower_not_tracked_is_refused_with_the_reason(tmp_path):
+    import dataclasses
+
+    store, loop, tests, rec = _team(tmp_path)
+    _tick(loop, 1.0)
+    rec.close()
+    assert loop.last is not None
+    lost = dataclasses.replace(loop.last, tracked=np.array([True, False, True]))
+    tests.on_tick(lost)  # what the runner last saw: F2 out of view
+    assert tests.request(StepTest("offset", 0, 0.1)) == "F2 not tracked: a step test needs every follower in view"
+    why = live_base(lost, store.get(), loop.dynamics, MeasurementNoise(), 30.0, 5)
+    assert isinstance(why, str) and why.startswith("F2 not tracked")
+    starting = dataclasses.replace(loop.last, phase="probe")
+    tests.on_tick(starting)
+    assert "start-up is not finished" in (tests.request(StepTest("offset", 0, 0.1)) or "")
+    assert tests.trials == []
+
+
 def test_a_turn_step_in_eq39_mode_is_refused_with_the_reason(tmp_path):
     store, loop, tests, rec = _team(tmp_path)
     store.update("browser:1", leader_mode="eq39")
@@ -183,5 +201,4 @@ def test_a_turn_step_in_eq39_mode_is_refused_with_the_reason(tmp_path):
     _tick(loop, 5.0)
     assert tests.trials[-1].status == "done"
     assert store.get().leader_mode == "stop"  # set back
-    wait_for(lambda: True)
     rec.close()

@@ -1,0 +1,118 @@
+"""The tuning bench in real Chromium: a step test and a 3 x 3 sweep run from the page, the best
+point applied and used on the next tick; the Lyapunov monitor shows each follower's V trend;
+what cannot run says why."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from app.live.service import Service
+from app.live.tick import TickState
+
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_for
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+
+@pytest.fixture(scope="module")
+def service():
+    """The built-in simulated team with truth feedback (the tuning bench is the same with vision)."""
+    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=7)
+    seen: list[TickState] = []
+    lock = threading.Lock()
+
+    def keep(state: TickState) -> None:
+        with lock:
+            seen.append(state)
+            del seen[:-3000]
+
+    svc.loop.subscribe(keep)
+    svc.seen = seen  # type: ignore[attr-defined]
+    svc.start()
+    yield svc
+    svc.close()
+
+
+@pytest.fixture(scope="module")
+def page(service):
+    with chromium_browser() as browser:
+        pg = browser.new_page(viewport={"width": 1500, "height": 1400})
+        pg.goto(service.url)
+        pg.wait_for_selector(".uplot canvas", timeout=30_000)
+        settle(pg)
+        pg.get_by_text("Tuning", exact=True).first.click(timeout=30_000)
+        pg.get_by_text("Lyapunov monitor", exact=True).first.click(timeout=30_000)
+        yield pg
+
+
+def _type(page, label: str, text: str) -> None:
+    ident = control_id(page, label)
+    box = page.locator(f'input[id="{ident}"], [id="{ident}"] input').first
+    if not box.count():  # a text field: its input has an id of its own, in the label's row
+        box = page.locator("label", has_text=label).first.locator("xpath=ancestor::div[3]//input").first
+    box.fill(text)
+    box.press("Enter")
+
+
+def test_a_step_test_from_the_page_adds_a_scored_row(page, service):
+    wait_for(lambda: service.loop.last is not None and service.loop.last.t > 6.0, 60.0, "the team to settle")
+    _type(page, "Measure for (s)", "6")
+    wait_for(lambda: service.dashboard.tuning.window.value == 6.0, what="the window on the server")
+    page.get_by_role("button", name="Run test").click()
+    wait_for(lambda: len(service.tests.trials) == 1, 60.0, "the trial's row")
+    trial = service.tests.trials[0]
+    assert trial.status == "done" and trial.score is not None, trial.status
+    assert trial.test.kind == "offset" and trial.test.size == pytest.approx(0.10) and trial.test.window_s == 6.0
+    page.locator("tr[data-trial='1']").get_by_text("done").wait_for(timeout=30_000)
+    # the monitor: one row per follower, each saying whether its V falls, is flat or rises
+    page.locator("td[data-trend]").nth(2).wait_for(timeout=30_000)
+    assert page.locator("td[data-trend]").count() == 3
+
+
+def test_a_sweep_from_the_page_applies_its_best_point_on_the_next_tick(page, service):
+    _type(page, "Range 1", "1:4:3")
+    _type(page, "Range 2", "0.05:0.2:3")
+    tuning = service.dashboard.tuning
+    wait_for(lambda: tuning.range1.value == "1:4:3" and tuning.range2.value == "0.05:0.2:3", what="the ranges")
+    page.get_by_role("button", name="Run sweep").click()
+    wait_for(lambda: tuning.result is not None, 240.0, "the sweep's result")
+    result = tuning.result
+    assert result is not None and len(result.gains) == 9 and all(s is not None for s in result.scores)
+    page.get_by_text("sweep: done, 9 of 9 points").first.wait_for(timeout=30_000)
+    ARTIFACTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "tuning.png"), full_page=True)
+    best = result.best()
+    assert best is not None
+    k_w2, k_f1 = result.values(best)
+    page.get_by_role("button", name="Apply best").click()
+    wait_for(lambda: service.store.get().gains.k_w2 == pytest.approx(k_w2)
+             and service.store.get().gains.k_f1 == pytest.approx(k_f1), what="the best point's gains in the store")
+    version = service.store.get().version
+    wait_for(lambda: any(s.params_version >= version for s in list(service.seen)), what="a tick with them")
+    first = next(s for s in list(service.seen) if s.params_version >= version)
+    assert first.gains.k_w2 == pytest.approx(k_w2) and first.gains.k_f1 == pytest.approx(k_f1)
+    # trial 1 ran with the defaults: applying its row sets them back
+    trial_gains = service.tests.trials[0].gains
+    page.get_by_role("button", name="Apply trial's gains").click()
+    wait_for(lambda: service.store.get().gains == trial_gains, what="trial 1's gains in the store")
+
+
+def test_what_cannot_run_says_why_and_runs_nothing(page, service):
+    _type(page, "Range 1", "4:1:3")
+    wait_for(lambda: service.dashboard.tuning.range1.value == "4:1:3", what="the reversed range")
+    page.get_by_role("button", name="Run sweep").click()
+    page.get_by_text("reversed", exact=False).first.wait_for(timeout=30_000)
+    _type(page, "Range 1", "1:40:3")
+    wait_for(lambda: service.dashboard.tuning.range1.value == "1:40:3", what="the range beyond the bound")
+    page.get_by_role("button", name="Run sweep").click()
+    page.get_by_text("(0, 20]", exact=False).first.wait_for(timeout=30_000)
+    trials = len(service.tests.trials)
+    page.get_by_role("button", name="STOP", exact=True).click()
+    wait_for(lambda: service.store.get().stop, what="STOP")
+    page.get_by_role("button", name="Run test").click()
+    page.get_by_text("STOP is engaged", exact=False).first.wait_for(timeout=30_000)
+    assert len(service.tests.trials) == trials and service.tests.status == "idle"
+    page.get_by_role("button", name="Release STOP").click()
+    wait_for(lambda: not service.store.get().stop, what="STOP released")
