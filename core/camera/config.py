@@ -51,7 +51,36 @@ class DetectSettings:
     min_value: int = 50
     min_area_px: int = 12
     merge_distance_px: float = 12.0  # same-hue blobs closer than this are one rectangle (fig. 10)
-    merge_hue_deg: float = 20.0
+    merge_hue_deg: float = 8.0  # a rectangle's pieces differ by a degree or two; under MIN_HUE_SEPARATION_DEG
+
+
+MIN_HUE_SEPARATION_DEG = 12.0  # two markers' hues at least this far apart (measured: docs/calibration.md)
+
+
+def hue_distance_deg(a: float, b: float) -> float:
+    """The angle between two hues on the colour circle, degrees in [0, 180]."""
+    d = abs((a - b) % 360.0)
+    return min(d, 360.0 - d)
+
+
+def too_close_hues(hues_deg: tuple[float, ...] | list[float],
+                   min_deg: float = MIN_HUE_SEPARATION_DEG) -> tuple[int, int] | None:
+    """The first pair of indices whose hues are closer than ``min_deg``, or None."""
+    for i in range(len(hues_deg)):
+        for j in range(i + 1, len(hues_deg)):
+            if hue_distance_deg(hues_deg[i], hues_deg[j]) < min_deg:
+                return i, j
+    return None
+
+
+def check_team_hues(hues_deg: tuple[float, ...] | list[float], where: str) -> None:
+    """ValueError (one line) when two markers' hues are closer than MIN_HUE_SEPARATION_DEG."""
+    pair = too_close_hues(hues_deg)
+    if pair is not None:
+        i, j = pair
+        raise ValueError(f"{where}: markers {i + 1} and {j + 1} have hues {hues_deg[i]:g} and {hues_deg[j]:g} deg,"
+                         f" {hue_distance_deg(hues_deg[i], hues_deg[j]):g} deg apart; two markers need at least"
+                         f" {MIN_HUE_SEPARATION_DEG:g} deg (one behind the other they would look like one robot)")
 
 
 @dataclass(frozen=True)
@@ -127,6 +156,10 @@ def _parse_model(t: Table) -> CameraModel:
 def _parse_render(t: Table) -> RenderSettings:
     d = RenderSettings()
     hues = _number_list(t, "hues_deg", 0.0, 360.0, 1, default=d.hues_deg, unit="deg")
+    try:
+        check_team_hues(hues, t.key("hues_deg"))
+    except ValueError as exc:
+        raise ConfigError(f"{t.source}: {exc}") from None
     fl = t.table("follower")
     follower = BoxLook(
         length_m=fl.number("length_m", 0.02, 2.0, default=d.follower.length_m, unit="m"),
@@ -208,7 +241,8 @@ def parse_camera(text: str, source: str) -> CameraConfig:
         min_value=dt.integer("min_value", 0, 255, default=dd.min_value),
         min_area_px=dt.integer("min_area_px", 1, 10**7, default=dd.min_area_px),
         merge_distance_px=dt.number("merge_distance_px", 0.0, 1e4, default=dd.merge_distance_px, unit="px"),
-        merge_hue_deg=dt.number("merge_hue_deg", 0.0, 180.0, default=dd.merge_hue_deg, unit="deg"),
+        merge_hue_deg=dt.number("merge_hue_deg", 0.0, MIN_HUE_SEPARATION_DEG - 2.0, default=dd.merge_hue_deg, unit="deg"
+                                " (under the smallest hue separation of two markers, so two are never one blob)"),
     )
     dt.finish()
     ct = top.table("calibration")

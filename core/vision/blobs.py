@@ -3,6 +3,13 @@
 Used by ``omniformation locate``, by the synthetic calibration and by the pipeline when it
 searches for a lost follower by colour. Pieces of one colour lying close together are one
 rectangle (paper fig. 10: a rectangle split by a reflection or by the image's distortion).
+
+Two followers' markers are never joined: pieces merge only when their hues are within
+``merge_hue_deg`` (a rectangle's pieces differ by a degree or two), which must stay under
+``MIN_HUE_SEPARATION_DEG``, and never when each lies nearest a different one of the team's
+known hues. Markers closer in hue than ``MIN_HUE_SEPARATION_DEG`` are refused by the config
+(core.camera.config): one standing behind the other would blend into one blob and a robot
+would silently disappear.
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from core.camera.config import DetectSettings
+from core.camera.config import MIN_HUE_SEPARATION_DEG, DetectSettings, hue_distance_deg, too_close_hues
 
 
 @dataclass(frozen=True)
@@ -25,9 +32,15 @@ class Blob:
     bbox: tuple[int, int, int, int]  # x, y, w, h
 
 
-def hue_distance_deg(a: float, b: float) -> float:
-    d = abs((a - b) % 360.0)
-    return min(d, 360.0 - d)
+def nearest_hue(hue_deg: float, hues_deg: tuple[float, ...] | list[float]) -> int:
+    """Index of the hue in ``hues_deg`` nearest ``hue_deg`` (-1 for none)."""
+    if not hues_deg:
+        return -1
+    return min(range(len(hues_deg)), key=lambda k: hue_distance_deg(hue_deg, hues_deg[k]))
+
+
+__all__ = ["MIN_HUE_SEPARATION_DEG", "Blob", "find_blobs", "hue_distance_deg", "merge_blobs", "nearest_hue",
+           "too_close_hues"]
 
 
 def saturated_mask(hsv: np.ndarray, area_mask: np.ndarray | None, detect: DetectSettings) -> np.ndarray:
@@ -45,8 +58,9 @@ def circular_mean_hue_deg(hue_opencv: np.ndarray) -> float:
 
 
 def find_blobs(bgr: np.ndarray, area_mask: np.ndarray | None, detect: DetectSettings,
-               hsv: np.ndarray | None = None) -> list[Blob]:
-    """Every saturated blob of at least ``min_area_px`` pixels, same-hue neighbours merged."""
+               hsv: np.ndarray | None = None, known_hues: tuple[float, ...] = ()) -> list[Blob]:
+    """Every saturated blob of at least ``min_area_px`` pixels, same-hue neighbours merged
+    (never two nearest different ``known_hues``)."""
     if hsv is None:
         hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)
     sat = saturated_mask(hsv, area_mask, detect)
@@ -59,7 +73,7 @@ def find_blobs(bgr: np.ndarray, area_mask: np.ndarray | None, detect: DetectSett
         sub = labels[y:y + h, x:x + w] == k
         hue = circular_mean_hue_deg(hsv[y:y + h, x:x + w, 0][sub])
         pieces.append(Blob(hue, float(centroids[k, 0]), float(centroids[k, 1]), area, (x, y, w, h)))
-    merged = merge_blobs(pieces, detect)
+    merged = merge_blobs(pieces, detect, known_hues)
     return [b for b in merged if b.area_px >= detect.min_area_px]
 
 
@@ -69,8 +83,9 @@ def _gap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> float:
     return math.hypot(dx, dy)
 
 
-def merge_blobs(pieces: list[Blob], detect: DetectSettings) -> list[Blob]:
-    """Join same-hue pieces whose boxes lie within ``merge_distance_px`` (area-weighted)."""
+def merge_blobs(pieces: list[Blob], detect: DetectSettings, known_hues: tuple[float, ...] = ()) -> list[Blob]:
+    """Join same-hue pieces whose boxes lie within ``merge_distance_px`` (area-weighted);
+    two pieces nearest different ``known_hues`` (two followers' markers) are never joined."""
     blobs = sorted(pieces, key=lambda b: -b.area_px)
     changed = True
     while changed:
@@ -78,7 +93,8 @@ def merge_blobs(pieces: list[Blob], detect: DetectSettings) -> list[Blob]:
         out: list[Blob] = []
         for b in blobs:
             for i, a in enumerate(out):
-                if hue_distance_deg(a.hue_deg, b.hue_deg) <= detect.merge_hue_deg and _gap(a.bbox, b.bbox) <= detect.merge_distance_px:
+                if hue_distance_deg(a.hue_deg, b.hue_deg) <= detect.merge_hue_deg and _gap(a.bbox, b.bbox) <= detect.merge_distance_px \
+                        and nearest_hue(a.hue_deg, known_hues) == nearest_hue(b.hue_deg, known_hues):
                     area = a.area_px + b.area_px
                     x0, y0 = min(a.bbox[0], b.bbox[0]), min(a.bbox[1], b.bbox[1])
                     x1 = max(a.bbox[0] + a.bbox[2], b.bbox[0] + b.bbox[2])

@@ -39,7 +39,7 @@ from core.camera.gamma import Gamma
 from core.geometry import reexpress_in_new_frame, wrap_angle
 from core.types import BoolArray, FloatArray, Image, IntArray
 from core.vision.background import BackgroundAccumulator, motion_blob
-from core.vision.blobs import find_blobs, hue_distance_deg, saturated_mask
+from core.vision.blobs import MIN_HUE_SEPARATION_DEG, find_blobs, hue_distance_deg, nearest_hue, saturated_mask
 from core.vision.heading import HeadingBank, arc_measurements, fit_heading_line
 from core.vision.tracking import Track, camshift, hue_histogram
 
@@ -148,11 +148,18 @@ class VisionPipeline:
         self._anchor_turn[i] = 0.0
         self._anchor_travel[i] = 0.0
 
-    def _learn(self, frame: Image, bbox: tuple[int, int, int, int]) -> Track | None:
-        """The follower's rectangle at the motion blob: its window and hue histogram.
+    def _known_hues(self, but: int) -> tuple[float, ...]:
+        """The hues learned for every follower except ``but``."""
+        return tuple(f.track.hue_deg for k, f in enumerate(self.followers) if k != but and f.track is not None)
+
+    def _learn(self, frame: Image, bbox: tuple[int, int, int, int], i: int) -> Track | None:
+        """Follower i's rectangle at the motion blob: its window and hue histogram.
 
         The blob is where the robot was and now is; a dark-blue rectangle on a dark body can
         hardly change the grey image, so the rectangle is looked for around the blob too.
+        Another follower's marker near it (one standing behind the other) is told apart by the
+        hues already learned: pieces nearest another's hue are neither merged with it nor taken
+        for it, and its pixels stay out of this follower's colour.
         """
         x, y, w, h = bbox
         pad = 6 + int(0.6 * max(w, h))
@@ -161,7 +168,10 @@ class VisionPipeline:
         x1, y1 = min(wid, x + w + pad), min(hgt, y + h + pad)
         roi = frame[y0:y1, x0:x1]
         hsv = cv2.cvtColor(roi, cv2.COLOR_BGR2HSV)
-        blobs = find_blobs(roi, self.mask[y0:y1, x0:x1], self.detect, hsv=hsv)
+        others = self._known_hues(i)
+        blobs = find_blobs(roi, self.mask[y0:y1, x0:x1], self.detect, hsv=hsv, known_hues=others)
+        blobs = [b for b in blobs if not others
+                 or hue_distance_deg(b.hue_deg, others[nearest_hue(b.hue_deg, others)]) >= MIN_HUE_SEPARATION_DEG / 2]
         if not blobs:
             return None
         cx, cy = x + w / 2 - x0, y + h / 2 - y0
@@ -172,11 +182,22 @@ class VisionPipeline:
         near = np.minimum(np.abs(hue - best.hue_deg), 360.0 - np.abs(hue - best.hue_deg)) <= self.settings.hue_tolerance_deg
         sel = np.zeros(sat.shape, np.uint8)
         sel[by:by + bh, bx:bx + bw] = 255
+        for other in others:  # a pixel nearer another follower's hue is that follower's
+            near &= np.minimum(np.abs(hue - best.hue_deg), 360.0 - np.abs(hue - best.hue_deg)) \
+                < np.minimum(np.abs(hue - other), 360.0 - np.abs(hue - other))
         m = cv2.bitwise_and(sat, sel)
         m[~near] = 0
         hist = hue_histogram(hsv, m)
         return Track(hist, best.hue_deg, (x0 + bx - 2, y0 + by - 2, bw + 4, bh + 4), float(best.area_px),
                      u=x0 + best.u, v=y0 + best.v, mass_px=float(best.area_px))
+
+    def _keep_colours_apart(self) -> None:
+        """Each tracker's back-projection counts only hues nearer its own colour than any other
+        follower's: two markers close in hue never pull one window (core.vision.tracking)."""
+        hues = [f.track.hue_deg if f.track is not None else math.nan for f in self.followers]
+        for i, f in enumerate(self.followers):
+            if f.track is not None:
+                f.track.keep_apart(tuple(h for k, h in enumerate(hues) if k != i and math.isfinite(h)))
 
     def _track_all(self, frame: Image) -> None:
         """CAMSHIFT every follower that has a colour; update position and tracked.
@@ -216,13 +237,16 @@ class VisionPipeline:
         lost = [i for i, f in enumerate(self.followers) if f.track is not None and not f.tracked]
         if not lost:
             return
-        blobs = find_blobs(np.asarray(frame), self.mask, self.detect)
+        owners = [k for k, f in enumerate(self.followers) if f.track is not None]
+        known = tuple(self.followers[k].track.hue_deg for k in owners)  # type: ignore[union-attr]  # owners have one
+        blobs = find_blobs(np.asarray(frame), self.mask, self.detect, known_hues=known)
         taken = [f.track.window for f in self.followers if f.track is not None and f.tracked]
         for i in lost:
             f = self.followers[i]
             t = f.track
             assert t is not None
             cands = [b for b in blobs if hue_distance_deg(b.hue_deg, t.hue_deg) <= self.settings.hue_tolerance_deg
+                     and owners[nearest_hue(b.hue_deg, known)] == i
                      and b.area_px >= self.settings.min_mass_fraction * t.area_px
                      and not any(_overlaps(b.bbox, w) for w in taken)]
             if not cands:
@@ -329,13 +353,14 @@ class VisionPipeline:
         found = np.zeros(self.n, dtype=bool)
         for i, f in enumerate(self.followers):
             x, y, w, h = (int(v) for v in windows[i])
-            track = self._learn(frame, (x, y, w, h)) if w > 0 and h > 0 else None
+            track = self._learn(frame, (x, y, w, h), i) if w > 0 and h > 0 else None
             if track is None or not math.isfinite(float(headings[i])):
                 continue
             f.track, f.tracked = track, True
             self.positions[i] = self._to_leader(track.u, track.v)
             self._start_heading(i, float(headings[i]))
             found[i] = True
+        self._keep_colours_apart()
         self._enter_tracking()
         return found
 
@@ -371,12 +396,13 @@ class VisionPipeline:
             blob = motion_blob(self._base, background, self.mask, s.diff_threshold, s.min_blob_px,
                                self.detect.merge_distance_px)
             if blob is not None:
-                track = self._learn(frame, blob.bbox)
+                track = self._learn(frame, blob.bbox, i)
                 if track is not None:
                     f = self.followers[i]
                     f.track = track
                     f.tracked = True
                     self.positions[i] = self._to_leader(track.u, track.v)
+                    self._keep_colours_apart()
         self._base = background  # the discriminant is the next follower's base
         if self.probing + 1 < self.n:
             self.phase = "probe"

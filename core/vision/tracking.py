@@ -98,6 +98,22 @@ class Track:
     def __post_init__(self) -> None:
         self.lut = hue_lookup(self.hist)
 
+    def keep_apart(self, other_hues_deg: tuple[float, ...]) -> None:
+        """Count no hue byte nearer another follower's colour than this one's (the histogram
+        is widened by a bin each side, which would reach a neighbour 15 deg away)."""
+        lut = hue_lookup(self.hist)
+        if other_hues_deg:
+            deg = np.arange(256) * 2.0 % 360.0  # OpenCV hue bytes are degrees / 2 (180+: wrap)
+
+            def dist(h: float) -> np.ndarray:
+                d = np.abs(deg - h) % 360.0
+                return np.minimum(d, 360.0 - d)
+
+            own = dist(self.hue_deg)
+            nearer_other = np.min(np.stack([dist(h) for h in other_hues_deg]), axis=0) < own
+            lut[nearer_other] = 0
+        self.lut = np.ascontiguousarray(lut)
+
 
 def _roi(window: tuple[int, int, int, int], margin: int, width: int, height: int) -> tuple[int, int, int, int]:
     x, y, w, h = window
