@@ -13,7 +13,7 @@ from app.files import (SYNTHETIC_CAMERA, UserError, check_new_file, display_path
                        load_table, read_image, require_gamma, write_table)
 
 if TYPE_CHECKING:
-    from core.camera.gamma import GammaFit
+    from core.camera.gamma import GammaFit, MatchingTable
 
 
 def register(sub: "argparse._SubParsersAction[Parser]") -> None:
@@ -39,7 +39,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     cal.add_argument("--bearing-offset", type=float_in(-360.0, 360.0, "deg", lo_inclusive=True), metavar="DEG",
                      help="leader bearing that appears straight up (deg)")
     cal.add_argument("--flip", action="store_true", help="the image is mirrored left/right")
-    cal.add_argument("--out", type=Path, required=True, help="camera.toml to write")
+    cal.add_argument("--out", type=Path, required=True, help="camera.toml to write (never over an existing file"
+                                                             " unless --overwrite)")
+    cal.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     cal.add_argument("--save-table", type=Path, help="also write the matching table used (CSV)")
     cal.add_argument("--seed", type=seed, default=0, help="noise seed for --synthetic (default 0)")
     cal.set_defaults(func=cmd_calibrate)
@@ -110,6 +112,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if (args.table is None) == (args.synthetic is None):
         raise UserError("give either TABLE.csv or --synthetic CAMERA.toml (not both)")
     check_new_file(args.out, "camera file", ".toml")
+    if args.out.exists() and not args.overwrite:
+        raise UserError(f"{args.out}: exists; give another --out, or --overwrite to replace it")
     if args.save_table is not None:
         check_new_file(args.save_table, "matching table", ".csv")
     if args.synthetic is not None:
@@ -131,14 +135,30 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         source = display_path(args.table)
         working_area, detect = None, None
         degree = args.degree if args.degree is not None else 3
-        flip = args.flip
-        offset = args.bearing_offset if args.bearing_offset is not None else 0.0
+        flip, offset = _mounting(table, args, source)
     try:
         fit = fit_gamma(table, center=tuple(args.center) if args.center else None, sectors=args.sectors,
                         degree=degree, bearing_offset_deg=offset, flip=flip, source=source)
     except CalibrationError as exc:
         raise UserError(str(exc)) from None
     _report(fit)
+    from core.camera.quality import WARN_CM, coverage_warnings, held_out_error
+
+    held = held_out_error(table, fit.gamma, fit.gamma.degree)
+    worst_rms = max(s.rms_cm for s in fit.sectors)
+    print(f"held-out error (markers the fit did not see; {held.refits} refits): median {held.median_cm:.2f} cm,"
+          f" p95 {held.p95_cm:.2f} cm (the fit's own residuals: worst sector RMS {worst_rms:.2f} cm)")
+    warnings = coverage_warnings(table)
+    if held.p95_cm > WARN_CM:
+        warnings.insert(0, f"positions may be off by more than {WARN_CM:g} cm: held-out p95 {held.p95_cm:.1f} cm;"
+                           " measure more bearings or distances (docs/calibration.md)")
+    for w in warnings:
+        print(f"warning: {w}")
+    bad = [s for s in fit.sectors if abs(s.bearing_correction_deg) > 45.0]
+    if bad:
+        raise UserError(f"{source}: sector at {bad[0].bearing_deg:g} deg needs a bearing correction of"
+                        f" {bad[0].bearing_correction_deg:+.1f} deg (at most 45): the camera is turned or mirrored"
+                        " otherwise than given; leave out --bearing-offset and --flip to have them read from the table")
     if working_area is None:
         # the calibrated radii, a little widened: outside them Γ extrapolates
         working_area = WorkingArea(max(0.0, fit.gamma.r_min_px - 5.0), fit.gamma.r_max_px + 5.0)
@@ -148,13 +168,42 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     assert detect is not None
     header = (f"Camera calibration (Γ, paper §3) made by: omniformation calibrate from {source}\n"
               f"{fit.gamma.n_sectors} sectors, degree {fit.gamma.degree}; worst sector residual RMS"
-              f" {max(s.rms_cm for s in fit.sectors):.2f} cm")
+              f" {worst_rms:.2f} cm; held-out error median {held.median_cm:.2f} cm, p95 {held.p95_cm:.2f} cm"
+              + "".join(f"\nwarning: {w}" for w in warnings))
     args.out.write_text(gamma_toml(fit.gamma, working_area, detect, header), encoding="utf-8")
     print(f"wrote {display_path(args.out)}")
     if args.save_table is not None:
         write_table(table, args.save_table)
         print(f"wrote {display_path(args.save_table)}")
     return 0
+
+
+def _mounting(table: "MatchingTable", args: argparse.Namespace, source: str) -> tuple[bool, float]:
+    """The flip and bearing offset to fit with: read from the table when it tells (and then
+    any given must agree), else as given (default: not mirrored, not turned)."""
+    from core.camera.gamma import estimate_center
+    from core.camera.quality import detect_mounting
+
+    given_flip, given_offset = bool(args.flip), args.bearing_offset
+    if args.center is not None:
+        centre = (float(args.center[0]), float(args.center[1]))
+    elif len(table) >= 6:
+        centre = estimate_center(table)
+    else:
+        return given_flip, given_offset if given_offset is not None else 0.0
+    m = detect_mounting(table, centre)
+    if m is None or not m.certain:
+        return given_flip, given_offset if given_offset is not None else 0.0
+    told = f"turned by {m.offset_deg:+.1f} deg" + (" and mirrored" if m.flip else "")
+    use = f"--bearing-offset {m.offset_deg:.1f}" + (" --flip" if m.flip else "")
+    differs = (args.flip and not m.flip) or (given_offset is not None and
+                                             abs((given_offset - m.offset_deg + 180.0) % 360.0 - 180.0) > 20.0)
+    if differs:
+        raise UserError(f"{source}: the table shows the camera {told}, not as given; use {use}"
+                        " (or leave both out: calibrate then reads them from the table)")
+    if given_offset is None or m.flip != given_flip:
+        print(f"{source}: the markers show the camera {told}: fitted with {use}")
+    return m.flip, given_offset if given_offset is not None else round(m.offset_deg, 1)
 
 
 def cmd_locate(args: argparse.Namespace) -> int:

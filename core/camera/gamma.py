@@ -84,7 +84,32 @@ def parse_table(text: str, source: str) -> MatchingTable:
             values[name].append(value)
     if len(values["metres"]) == 0:
         raise CalibrationError(f"{source}: no rows after the header")
-    return MatchingTable(*(np.array(values[c], dtype=np.float64) for c in TABLE_COLUMNS))
+    table = MatchingTable(*(np.array(values[c], dtype=np.float64) for c in TABLE_COLUMNS))
+    repeated = repeated_rows(table)
+    if repeated:
+        raise CalibrationError(f"{source}: the same marker more than once: " + "; ".join(repeated))
+    return table
+
+
+DUPLICATE_PX = 3.0  # the same marker measured twice this close: a duplicate; farther: a contradiction
+
+
+def repeated_rows(table: MatchingTable, first_line: int = 2) -> list[str]:
+    """Every pair of rows that state the same (bearing, distance), by file line: a duplicate
+    (the pixels agree) or a contradiction (they do not)."""
+    out = []
+    seen: dict[tuple[float, float], int] = {}
+    for k in range(len(table)):
+        key = (round(float(table.bearing_deg[k]) % 360.0, 6), round(float(table.metres[k]), 6))
+        if key in seen:
+            j = seen[key]
+            gap = math.hypot(table.u[k] - table.u[j], table.v[k] - table.v[j])
+            what = "a duplicate" if gap <= DUPLICATE_PX else "contradictory"
+            out.append(f"lines {j + first_line} and {k + first_line} ({key[0]:g} deg, {key[1]:g} m) are {what},"
+                       f" pixels {gap:.1f} px apart")
+        else:
+            seen[key] = k
+    return out
 
 
 @dataclass(frozen=True)

@@ -136,3 +136,73 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
     res = main_cli(*args)
     assert res.returncode == 2, res.stdout + res.stderr
     assert message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+def _synthetic_table(model, path):
+    """A table of the synthetic mirror model as a person measures it (4 bearings x 15 distances)."""
+    from app.files import write_table
+    from core.camera.gamma import MatchingTable
+    from core.camera.model import bearing_range_to_xy
+
+    rng = np.random.default_rng(5)
+    rows = []
+    for b in (0.0, 90.0, 180.0, 270.0):
+        for d in [round(0.4 + 0.1 * i, 2) for i in range(15)]:
+            xy = bearing_range_to_xy(np.array(math.radians(b)), np.array(d))
+            u, v = model.project(np.array([float(xy[0]), float(xy[1]), 0.102]))
+            rows.append((b, d, u + rng.normal(0, 0.3), v + rng.normal(0, 0.3)))
+    a = np.array(rows)
+    table = MatchingTable(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
+    write_table(table, path)
+    return table
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_a_turned_or_mirrored_camera_calibrates_into_a_file_locate_and_run_accept(tmp_path, flip):
+    """Every rotation (in 13 deg steps, and the odd 89.4) and both mirrorings: calibrate reads
+    them from the table and writes a file that loads and places the markers right."""
+    from core.camera.config import parse_camera
+    from core.camera.model import CameraModel, bearing_range_to_xy
+
+    for turn in [*range(0, 360, 13), 89.4, 359.0]:
+        model = CameraModel(bearing_offset_deg=float(turn), flip=flip, tilt_deg=1.0)
+        table = _synthetic_table(model, tmp_path / f"t{turn}.csv")
+        out = tmp_path / f"c{turn}.toml"
+        res = main_cli("calibrate", str(tmp_path / f"t{turn}.csv"), "--out", str(out))
+        assert res.returncode == 0, (turn, res.stderr)
+        assert "the markers show the camera" in res.stdout or abs(turn) < 1 and not flip, (turn, res.stdout)
+        gamma = parse_camera(out.read_text(), out.name).gamma  # what locate and run load
+        assert gamma is not None and gamma.flip == flip
+        xy = bearing_range_to_xy(np.radians(table.bearing_deg), table.metres)
+        err = np.linalg.norm(gamma.pixel_to_leader(table.u, table.v) - xy, axis=1)
+        assert err.max() < 0.03, (turn, err.max())
+    # a turn given that the table contradicts is refused with the option to use
+    res = main_cli("calibrate", str(tmp_path / "t91.csv"), "--out",
+                   str(tmp_path / "x.toml"), "--bearing-offset", "0")
+    assert res.returncode == 2 and "use --bearing-offset 91" in res.stderr, res.stderr
+    assert not (tmp_path / "x.toml").exists()
+    # an existing camera file is never replaced without --overwrite
+    first = tmp_path / "c0.toml"
+    before = first.read_text()
+    res = main_cli("calibrate", str(tmp_path / "t0.csv"), "--out", str(first))
+    assert res.returncode == 2 and "--overwrite" in res.stderr and first.read_text() == before
+    assert main_cli("calibrate", str(tmp_path / "t0.csv"), "--out", str(first), "--overwrite").returncode == 0
+
+
+def test_calibrate_reports_the_held_out_error_and_warns_on_gaps(tmp_path):
+    from app.files import write_table
+    from core.camera.model import CameraModel
+
+    table = _synthetic_table(CameraModel(tilt_deg=2.0), tmp_path / "full.csv")
+    res = main_cli("calibrate", str(tmp_path / "full.csv"), "--out", str(tmp_path / "full.toml"))
+    assert res.returncode == 0 and "held-out error" in res.stdout and "warning" not in res.stdout, res.stdout
+    assert "held-out error median" in (tmp_path / "full.toml").read_text()
+    keep = (table.bearing_deg != 90.0) & ((table.metres < 0.75) | (table.metres > 1.45) | (table.bearing_deg != 0.0))
+    from core.camera.gamma import MatchingTable
+
+    write_table(MatchingTable(*(np.asarray(c)[keep] for c in (table.bearing_deg, table.metres, table.u, table.v))),
+                tmp_path / "gappy.csv")
+    res = main_cli("calibrate", str(tmp_path / "gappy.csv"), "--out", str(tmp_path / "gappy.toml"))
+    assert res.returncode == 0, res.stderr
+    assert "warning: no bearing between 0 and 180 deg" in res.stdout, res.stdout
+    assert "warning: bearing 0 deg: no marker between 0.7 and 1.5 m" in res.stdout, res.stdout

@@ -1,0 +1,79 @@
+"""A calibration that knows how good it is: the held-out error against fresh markers, the
+coverage warnings, and the camera's turn and mirroring read from the table."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from core.camera.gamma import MatchingTable, estimate_center, fit_gamma
+from core.camera.model import CameraModel, bearing_range_to_xy
+from core.camera.quality import coverage_warnings, detect_mounting, held_out_error, position_errors_cm
+
+MARKER_H = 0.102  # the markers' height above the floor (the synthetic rig's)
+DISTANCES = [round(0.4 + 0.1 * i, 2) for i in range(15)]
+
+
+def measured(model: CameraModel, bearings, distances, rng, noise_px=0.3) -> MatchingTable:
+    """A table as a person measures it: each marker's pixel, give or take the blob's noise."""
+    rows = []
+    for b in bearings:
+        for d in distances:
+            xy = bearing_range_to_xy(np.array(math.radians(b)), np.array(d))
+            u, v = model.project(np.array([float(xy[0]), float(xy[1]), MARKER_H]))
+            rows.append((b, d, u + rng.normal(0, noise_px), v + rng.normal(0, noise_px)))
+    a = np.array(rows)
+    return MatchingTable(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
+
+
+@pytest.mark.parametrize("bearings", [4, 6, 8])
+def test_the_held_out_error_is_within_1_cm_of_the_error_on_fresh_markers(bearings):
+    rng = np.random.default_rng(bearings)
+    model = CameraModel(tilt_deg=2.0, cx=324.0 + 12.0)  # tilted 2 deg, off-centre by 12 px
+    table = measured(model, [360.0 / bearings * k for k in range(bearings)], DISTANCES, rng)
+    fit = fit_gamma(table)
+    held = held_out_error(table, fit.gamma, fit.gamma.degree)
+    fresh_b, fresh_d = rng.uniform(0, 360, 400), rng.uniform(0.45, 1.75, 400)
+    fresh = [measured(model, [b], [d], rng) for b, d in zip(fresh_b, fresh_d)]
+    err = np.concatenate([position_errors_cm(fit.gamma, t) for t in fresh])
+    assert abs(held.median_cm - np.median(err)) <= 1.0, (held, np.median(err))
+    assert abs(held.p95_cm - np.percentile(err, 95)) <= 1.0, (held, np.percentile(err, 95))
+    assert held.refits > bearings
+
+
+def test_coverage_gaps_are_named():
+    rng = np.random.default_rng(0)
+    model = CameraModel()
+    wide = measured(model, [0.0, 120.0, 240.0], DISTANCES, rng)
+    assert any("no bearing between 0 and 120 deg" in w for w in coverage_warnings(wide))
+    sparse = measured(model, [0.0, 90.0, 180.0, 270.0], [0.4, 0.5, 0.6, 1.4, 1.5, 1.6], rng)
+    lines = coverage_warnings(sparse)
+    assert any("bearing 90 deg: no marker between 0.6 and 1.4 m" in w for w in lines), lines
+    full = measured(model, [0.0, 90.0, 180.0, 270.0], DISTANCES, rng)
+    assert coverage_warnings(full) == []
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_the_table_tells_how_the_camera_is_turned_and_mirrored(flip):
+    rng = np.random.default_rng(1)
+    for turn in (0.0, 37.0, 90.0, 179.0, 250.0, 359.0):
+        model = CameraModel(bearing_offset_deg=turn, flip=flip)
+        table = measured(model, [0.0, 90.0, 180.0, 270.0], DISTANCES, rng)
+        m = detect_mounting(table, estimate_center(table))
+        assert m is not None and m.certain and m.flip == flip
+        assert abs((m.offset_deg - turn + 180.0) % 360.0 - 180.0) < 3.0, (turn, m)
+
+
+def test_repeated_markers_in_a_table_are_reported_row_by_row():
+    from core.camera.gamma import CalibrationError, parse_table
+
+    text = ("bearing_deg,metres,u,v\n0,0.5,320,150\n90,0.5,250,240\n0,0.5,320.5,150.2\n90,0.5,262,240\n"
+            "180,0.5,320,330\n")
+    with pytest.raises(CalibrationError) as exc:
+        parse_table(text, "t.csv")
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert "lines 2 and 4 (0 deg, 0.5 m) are a duplicate, pixels 0.5 px apart" in msg
+    assert "lines 3 and 5 (90 deg, 0.5 m) are contradictory, pixels 12.0 px apart" in msg
