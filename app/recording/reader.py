@@ -250,6 +250,7 @@ class _Scan:
         self.topic_of: dict[int, str] = {}
         self.schema_name: dict[int, str] = {}
         self.channels: dict[str, str] = {}
+        self.encoding: dict[str, str] = {}  # topic -> message encoding (json; protobuf for Foxglove's own)
         self.metadata: dict[str, str] = {}
         self.places: list[tuple[int, int]] = []
         # per tick and per frame: log time (ns), chunk number, offset in the chunk (compact: 24 bytes each)
@@ -325,6 +326,7 @@ class _Scan:
         c = Channel.read(ReadDataStream(io.BytesIO(body)))
         self.topic_of[c.id] = c.topic
         self.channels[c.topic] = self.schema_name.get(c.schema_id, "")
+        self.encoding[c.topic] = c.message_encoding
 
     def _take_chunk(self, body: bytes) -> None:
         contents = _chunk_contents(body)
@@ -420,8 +422,14 @@ def read_recording(path: Path) -> Recording:
     def tick(_: int, data: bytes) -> dict[str, Any]:
         return dict(json.loads(data))
 
+    protobuf_frames = scan.encoding.get(IMAGE_TOPIC) == "protobuf"
+
     def frame(k: int, data: bytes) -> tuple[float, bytes]:
-        import base64
+        if protobuf_frames:  # Foxglove's CompressedImage (recordings since the published schemas)
+            from app.recording.foxglove import decode_image
+
+            return float(frame_t[k]), decode_image(data)
+        import base64  # older recordings: JSON with the JPEG in base64
 
         return float(frame_t[k]), base64.b64decode(json.loads(data)["data"])
 

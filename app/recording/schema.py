@@ -1,8 +1,9 @@
 """What a recording holds: its channels, their schemas, and the payloads both ways
 (a TickState or Params to JSON and back).
 
-Channels (JSON message encoding, JSON-schema schemas, so a recording opens in Foxglove /
-Lichtblick as well as in `omniformation replay`):
+Channels (our own in JSON with JSON-schema schemas; /tf, /camera/image and /scan in protobuf
+with Foxglove's own published schemas, app.recording.foxglove; so a recording opens in
+Foxglove / Lichtblick as well as in `omniformation replay`):
 
 =========================== =============================== ==========================================
 topic                       schema                          what
@@ -33,7 +34,6 @@ each), so an hour of a session (1.2 GB) holds 1,200 of them (0.7 MB), not 4,800.
 
 from __future__ import annotations
 
-import base64
 import dataclasses
 import math
 from typing import Any
@@ -85,30 +85,6 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                        " limits: 1 eq. 4, 2 eq. 12, 4 v limit, 8 omega limit, 16 safety filter"},
             "v_rate": {"type": ["array", "null"], "description": "dV/dt per follower, m^2/s (eq. 21)"},
         },
-    },
-    "foxglove.LaserScan": {
-        "type": "object",
-        "title": "foxglove.LaserScan",
-        "description": "The free-space scan of the omnidirectional image (core.vision.freespace), in the leader frame;"
-                       " null: free as far as the camera's working ring reaches",
-        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
-                       "pose": {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}},
-                       "start_angle": {"type": "number"}, "end_angle": {"type": "number"},
-                       "ranges": _NUM_ARRAY, "intensities": _NUM_ARRAY},
-    },
-    "foxglove.FrameTransforms": {
-        "type": "object",
-        "title": "foxglove.FrameTransforms",
-        "properties": {"transforms": {"type": "array", "items": {
-            "type": "object", "title": "foxglove.FrameTransform",
-            "properties": {"timestamp": _TIME, "parent_frame_id": {"type": "string"},
-                           "child_frame_id": {"type": "string"}, "translation": _VEC3, "rotation": _QUAT}}}},
-    },
-    "foxglove.CompressedImage": {
-        "type": "object",
-        "title": "foxglove.CompressedImage",
-        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
-                       "data": {"type": "string", "contentEncoding": "base64"}, "format": {"type": "string"}},
     },
     "omniformation.Event": {
         "type": "object", "title": "omniformation.Event",
@@ -178,8 +154,9 @@ def _stamp(ns: int) -> dict[str, int]:
 
 
 def image_payload(ns: int, jpeg: bytes) -> dict[str, Any]:
-    """A foxglove.CompressedImage message."""
-    return {"timestamp": _stamp(ns), "frame_id": "camera", "data": base64.b64encode(jpeg).decode(), "format": "jpeg"}
+    """A foxglove.CompressedImage message (encoded as protobuf by app.recording.foxglove). Its
+    frame is the leader's, which /tf places: the camera looks along the leader's vertical axis."""
+    return {"timestamp": _stamp(ns), "frame_id": "leader", "data": jpeg, "format": "jpeg"}
 
 
 def _yaw_quat(yaw: float) -> dict[str, float]:

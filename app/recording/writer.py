@@ -32,6 +32,7 @@ from mcap.writer import CompressionType, Writer
 from app.live.params import Params
 from core.types import Image
 from app.live.tick import TickState
+from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
 from app.recording.schema import (CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS,
                                   TF_TOPIC, TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
                                   params_payload, scan_payload, tick_payload, transforms_payload)
@@ -156,8 +157,12 @@ class Recorder:
         try:
             self._writer.start(profile="", library="omniformation")
             for topic, schema in TOPIC_SCHEMA.items():
-                sid = self._writer.register_schema(schema, "jsonschema", json.dumps(SCHEMAS[schema]).encode())
-                self._channels[topic] = self._writer.register_channel(topic, "json", sid)
+                if topic in PROTOBUF_TOPICS:  # Foxglove's own schema, from its package
+                    sid = self._writer.register_schema(schema, "protobuf", schema_data(PROTOBUF_TOPICS[topic]))
+                    self._channels[topic] = self._writer.register_channel(topic, "protobuf", sid)
+                else:
+                    sid = self._writer.register_schema(schema, "jsonschema", json.dumps(SCHEMAS[schema]).encode())
+                    self._channels[topic] = self._writer.register_channel(topic, "json", sid)
             self._writer.add_metadata("omniformation", {**metadata, "start_ns": str(self.start_ns)})
         except OSError as exc:
             self._file.close()
@@ -255,7 +260,7 @@ class Recorder:
                 if not ok:
                     continue
                 payload = image_payload(ns, buf.tobytes())
-            data = json.dumps(payload, separators=(",", ":")).encode()
+            data = encode(topic, payload) if topic in PROTOBUF_TOPICS else json.dumps(payload, separators=(",", ":")).encode()
             try:
                 self._writer.add_message(self._channels[topic], log_time=ns, data=data, publish_time=ns)
                 if self.free_floor_bytes and self._file.tell() != written:  # a chunk went to disk: look again

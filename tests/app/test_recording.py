@@ -63,6 +63,51 @@ def test_round_trip_every_tick_as_published(tmp_path):
     assert back.channels["/tf"] == "foxglove.FrameTransforms"
 
 
+def test_foxglove_channels_carry_foxgloves_own_schemas_and_decode_from_the_file_alone(tmp_path):
+    """/tf, /camera/image and /scan are protobuf with the FileDescriptorSet of Foxglove's
+    published package; a reader that knows nothing of ours (only the file) decodes them, and
+    the image's frame is one /tf defines, so Foxglove's 3D panel can place it."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    from mcap.reader import make_reader
+
+    from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.live.params import MAX_FOLLOWERS
+    from app.recording.foxglove import PROTOBUF_TOPICS, schema_data
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    store = ParamsStore(Params(n_followers=2))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=2, camera=config.camera())
+    rec = Recorder(tmp_path / "f.mcap", {"scenario": "test"}, store.get(), frame_rate_hz=10.0)
+    loop.subscribe(rec.on_tick)
+    for _ in range(40):
+        loop.tick()
+    rec.close()
+    frames: dict[str, set[str]] = {"defined": set(), "used": set()}
+    seen = set()
+    with (tmp_path / "f.mcap").open("rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(topics=list(PROTOBUF_TOPICS)):
+            assert channel.message_encoding == "protobuf" and schema.encoding == "protobuf"
+            assert schema.data == schema_data(PROTOBUF_TOPICS[channel.topic])  # the package's own
+            fds = descriptor_pb2.FileDescriptorSet.FromString(schema.data)
+            pool = descriptor_pool.DescriptorPool()
+            for fd in fds.file:
+                pool.Add(fd)
+            cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+            msg = cls.FromString(message.data)  # from the file alone
+            seen.add(channel.topic)
+            if channel.topic == "/tf":
+                for t in msg.transforms:
+                    frames["defined"] |= {t.parent_frame_id, t.child_frame_id}
+            else:
+                frames["used"].add(msg.frame_id)
+            if channel.topic == "/camera/image":
+                assert msg.format == "jpeg" and msg.data[:2] == b"\xff\xd8"
+    assert seen == {"/tf", "/camera/image"}  # no obstacles: no scan
+    assert frames["used"] <= frames["defined"], frames
+    back = read_recording(tmp_path / "f.mcap")
+    assert len(back.frames) >= 3 and back.frames[0][1][:2] == b"\xff\xd8"  # replay reads them
+
+
 def test_a_recorder_killed_with_sigkill_still_replays_up_to_its_last_chunk(tmp_path):
     path = tmp_path / "killed.mcap"
     proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
@@ -322,15 +367,17 @@ def test_a_run_with_obstacles_records_the_scan_and_the_report_counts_the_clearan
     assert "goal" in out.stdout and "closest follower body to an obstacle" in out.stdout
     rec = read_recording(path)
     assert rec.channels["/scan"] == "foxglove.LaserScan"
+    from app.recording.foxglove import decode
+
     scans = []
     with path.open("rb") as f:
         for _schema, _channel, message in make_reader(f).iter_messages(topics=["/scan"]):
-            scans.append(json.loads(message.data))
+            scans.append(decode("/scan", message.data))
     assert len(scans) > 200  # 10 a second once the start-up is over
     scan = scans[-1]
-    assert scan["frame_id"] == "leader" and len(scan["ranges"]) == 360
-    assert scan["end_angle"] - scan["start_angle"] == pytest.approx(np.radians(359.0))
-    assert any(r is not None for s_ in scans for r in s_["ranges"])  # the boxes were seen
+    assert scan.frame_id == "leader" and len(scan.ranges) == 360
+    assert scan.end_angle - scan.start_angle == pytest.approx(np.radians(359.0))
+    assert any(np.isfinite(r) for s_ in scans for r in s_.ranges)  # the boxes were seen
     ticks = [tick_from_payload(t) for t in rec.ticks[-5:]]
     assert all(t.goal == (0.0, 5.0) and t.obstacles is not None for t in ticks)
     rep = run_cli("report", str(path), "--out", str(tmp_path / "rep"))
@@ -339,3 +386,29 @@ def test_a_run_with_obstacles_records_the_scan_and_the_report_counts_the_clearan
     assert summary["obstacle_clearance_cm"] >= 10.0 and summary["obstacle_hits"] == 0
     assert summary["collisions"] == 0 and summary["boundary_exits"] == 0
     assert (tmp_path / "rep" / "safety.png").stat().st_size > 10_000
+
+
+def test_recordings_made_before_the_published_schemas_still_replay_their_frames(tmp_path):
+    """Older recordings carry /camera/image as JSON with the JPEG in base64: still read."""
+    import base64
+
+    import cv2
+    from mcap.writer import Writer
+
+    store = ParamsStore(Params(n_followers=2))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+    state = loop.tick()
+    jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 90, np.uint8))[1].tobytes()
+    with (tmp_path / "old.mcap").open("wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="omniformation")
+        tick_ch = w.register_channel("/omniformation/tick", "json", w.register_schema("omniformation.Tick", "jsonschema", b"{}"))
+        img_ch = w.register_channel("/camera/image", "json",
+                                    w.register_schema("foxglove.CompressedImage", "jsonschema", b"{}"))
+        w.add_message(tick_ch, log_time=0, publish_time=0, data=json.dumps(tick_payload(state), separators=(",", ":")).encode())
+        w.add_message(img_ch, log_time=0, publish_time=0, data=json.dumps(
+            {"timestamp": {"sec": 0, "nsec": 0}, "frame_id": "camera", "format": "jpeg",
+             "data": base64.b64encode(jpeg).decode()}).encode())
+        w.finish()
+    back = read_recording(tmp_path / "old.mcap")
+    assert len(back.frames) == 1 and back.frames[0][1] == jpeg
