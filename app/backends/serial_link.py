@@ -194,7 +194,8 @@ class SerialLink:
         with self._lock:
             for s in self.stats:
                 age = now - s.last_reply
-                flags = ("watchdog " if s.flags & p.FLAG_WATCHDOG else "") + ("stopped " if s.flags & p.FLAG_STOPPED else "")
+                flags = ("watchdog " if s.flags & p.FLAG_WATCHDOG else "") + ("stopped " if s.flags & p.FLAG_STOPPED else "") \
+                    + ("LOW BATTERY " if s.flags & p.FLAG_LOW_BATTERY else "")
                 parts.append(f"{_name(s.address)} rtt {s.rtt_mean_ms:.1f} ms, answered {s.answered}/{s.sent},"
                              f" late {s.late}, lost {s.lost}, crc {s.crc_errors}, "
                              f"{s.battery_mv / 1000:.2f} V" + (f", {flags.strip()}" if flags else "")

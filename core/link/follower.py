@@ -4,7 +4,8 @@ Pure functions on a frozen state, so the same rules are tested here and run by t
 emulator (`omniformation emulate-follower`) behind a real pseudo-terminal. The rules are
 those of docs/follower-protocol.md:
 
-* SET_VELOCITY sets the wheel targets (v ± w·b/2) and resets the command age;
+* SET_VELOCITY sets the wheel targets (v ± w·b/2, both scaled together at the motors' limit)
+  and resets the command age;
 * STOP sets them to zero at once and raises FLAG_STOPPED until the next SET_VELOCITY;
 * a command older than WATCHDOG_S sets them to zero and raises FLAG_WATCHDOG;
 * PING only answers with STATUS (it does not feed the watchdog);
@@ -61,8 +62,17 @@ class FollowerState:
         return abs(self.wheel_l_mps) > 1e-4 or abs(self.wheel_r_mps) > 1e-4
 
 
-def _clamp(x: float, m: float) -> float:
-    return max(-m, min(m, x))
+def wheel_targets(v: float, w: float, hw: FollowerHardware) -> tuple[float, float]:
+    """(left, right) m/s for body velocity (v, w): v ∓ w·b/2, and if the faster wheel is over
+    the motors' limit both are scaled by the same factor, so the robot keeps its path's
+    curvature and only goes slower (docs/follower-protocol.md)."""
+    half = w * hw.wheel_base_m / 2
+    left, right = v - half, v + half
+    big = max(abs(left), abs(right))
+    if big > hw.wheel_speed_max_mps:
+        k = hw.wheel_speed_max_mps / big
+        left, right = left * k, right * k
+    return left, right
 
 
 def step_follower(s: FollowerState, hw: FollowerHardware, dt: float) -> FollowerState:
@@ -89,10 +99,8 @@ def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tupl
     if frame.address not in (s.address, p.BROADCAST):
         return s, None
     if frame.msg_type == p.MSG_SET_VELOCITY:
-        v, w = p.decode_velocity(frame)
-        half = w * hw.wheel_base_m / 2
-        s = dataclasses.replace(s, target_l_mps=_clamp(v - half, hw.wheel_speed_max_mps),
-                                target_r_mps=_clamp(v + half, hw.wheel_speed_max_mps), command_age_s=0.0,
+        left, right = wheel_targets(*p.decode_velocity(frame), hw)
+        s = dataclasses.replace(s, target_l_mps=left, target_r_mps=right, command_age_s=0.0,
                                 flags=s.flags & ~(p.FLAG_WATCHDOG | p.FLAG_STOPPED))
     elif frame.msg_type == p.MSG_STOP:
         s = dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0, flags=s.flags | p.FLAG_STOPPED)

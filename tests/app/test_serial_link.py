@@ -200,3 +200,35 @@ def test_one_port_per_follower():
         robots[0].close()
     with pytest.raises(ValueError, match="3 ports for 2 followers"):
         make_link("a,b,c", 2)
+
+
+def test_the_host_numbers_frames_per_line_and_tick_and_broadcasts_only_stop():
+    """docs/follower-protocol.md: one sequence counter per line; all of one tick's frames
+    share it; it goes up by one per tick; the only broadcast the host sends is STOP."""
+    end = PtyEndpoint()
+    link = SerialLink(end.path, 3)
+    parser = p.FrameParser()
+    frames: list[p.Frame] = []
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        for _ in range(4):
+            link.send(Commands(np.full(3, 0.05), np.zeros(3)))
+            time.sleep(1 / 30)
+        def four_ticks() -> bool:
+            frames.extend(parser.feed(end.read(0.05)))
+            return len([f for f in frames if f.msg_type == p.MSG_SET_VELOCITY]) >= 12
+
+        wait_for(four_ticks, 5, "4 ticks of frames")
+    finally:
+        link.close()
+    frames += parser.feed(end.read(0.3))
+    end.close()
+    velocity = [f for f in frames if f.msg_type == p.MSG_SET_VELOCITY]
+    ticks: dict[int, list[int]] = {}
+    for f in velocity:
+        ticks.setdefault(f.seq, []).append(f.address)
+    assert all(sorted(a) == [1, 2, 3] for a in ticks.values())  # one sequence for the whole tick
+    seqs = sorted(ticks)
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # one more per tick
+    broadcast = {f.msg_type for f in frames if f.address == p.BROADCAST}
+    assert broadcast == {p.MSG_STOP}  # on close: STOP to each robot, then once more to all

@@ -192,3 +192,13 @@ def test_every_example_frame_in_the_protocol_document_is_valid():
     status = p.decode_status(p.FrameParser().feed(bytes.fromhex(examples[4]))[0])
     assert status == p.Status(7400, p.FLAG_WATCHDOG, 0xFFFF, 123456)
     assert "0x29B1" in doc and "0.5 s" in doc
+
+
+def test_wheels_at_their_limit_are_scaled_together_so_the_path_keeps_its_curvature():
+    from core.link.follower import FollowerHardware, wheel_targets
+
+    hw = FollowerHardware()
+    left, right = wheel_targets(0.4, 2.0, hw)  # 0.28 and 0.52 m/s asked, 0.45 the most
+    assert max(abs(left), abs(right)) == pytest.approx(hw.wheel_speed_max_mps)
+    assert (right - left) / hw.wheel_base_m / ((left + right) / 2) == pytest.approx(2.0 / 0.4)
+    assert wheel_targets(0.1, 0.5, hw) == pytest.approx((0.1 - 0.03, 0.1 + 0.03))  # within limits: as asked

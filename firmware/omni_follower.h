@@ -1,0 +1,85 @@
+/*
+ * omniformation reference follower firmware: the follower protocol of
+ * docs/follower-protocol.md, the watchdog and differential-drive odometry,
+ * in portable C99 for a small microcontroller.
+ *
+ * One `of_follower` is one robot. The firmware calls:
+ *   of_init()     once, with the robot's address and its hardware numbers;
+ *   of_receive()  with every byte (or run of bytes) the UART received;
+ *   of_tick()     often (every 1-10 ms) from the main loop.
+ * and provides the functions under "HAL" below (hardware access); nothing else
+ * touches the hardware. No dynamic memory, no floating-point printf, no OS.
+ */
+#ifndef OMNI_FOLLOWER_H
+#define OMNI_FOLLOWER_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#define OF_SYNC0 0xA5u
+#define OF_SYNC1 0x5Au
+#define OF_BROADCAST 0xFFu
+#define OF_MAX_PAYLOAD 32u
+#define OF_HEADER_LEN 6u
+#define OF_MAX_FRAME (OF_HEADER_LEN + OF_MAX_PAYLOAD + 2u)
+
+#define OF_MSG_SET_VELOCITY 0x01u
+#define OF_MSG_STOP 0x02u
+#define OF_MSG_PING 0x03u
+#define OF_MSG_ACK 0x81u
+#define OF_MSG_STATUS 0x82u
+
+#define OF_FLAG_WATCHDOG 0x01u
+#define OF_FLAG_STOPPED 0x02u
+#define OF_FLAG_LOW_BATTERY 0x04u
+
+#define OF_WATCHDOG_MS 500u      /* no SET_VELOCITY for this long: wheels to zero, WATCHDOG */
+#define OF_PARTIAL_FRAME_MS 20u  /* a frame not complete this long after its last byte is dropped */
+
+/* What the robot is: set by the builder. */
+typedef struct {
+    float wheel_base_m;         /* distance between the wheels */
+    float wheel_speed_max_mps;  /* the faster wheel is never asked for more (both scaled together) */
+    uint16_t low_battery_mv;    /* LOW_BATTERY below this (e.g. 6800 for a 2S Li-ion pack) */
+} of_hardware;
+
+typedef struct {
+    uint32_t frames_ok;
+    uint32_t crc_errors;
+    uint32_t length_errors;
+    uint32_t type_errors;
+    uint32_t partial_dropped;   /* frames cut off (OF_PARTIAL_FRAME_MS of silence inside one) */
+    uint32_t skipped_bytes;
+} of_counters;
+
+typedef struct {
+    uint8_t address;
+    of_hardware hw;
+    void *ctx;                  /* handed to every HAL call: the builder's own state */
+    uint8_t buf[OF_MAX_FRAME];
+    size_t len;
+    uint32_t last_byte_ms;
+    uint32_t last_command_ms;
+    int commanded;              /* a SET_VELOCITY was ever received */
+    uint8_t flags;
+    float target_left_mps;
+    float target_right_mps;
+    of_counters count;
+} of_follower;
+
+/* ---- HAL: the builder provides these (firmware/host_sim.c has POSIX ones) ---- */
+void hal_uart_write(void *ctx, const uint8_t *data, size_t n);
+void hal_set_wheel_targets(void *ctx, float left_mps, float right_mps);
+void hal_read_encoders(void *ctx, int32_t *left_ticks, int32_t *right_ticks);
+void hal_measured_wheel_speeds(void *ctx, float *left_mps, float *right_mps);
+uint16_t hal_battery_mv(void *ctx);
+/* optional: told when the robot stops by itself or by STOP (a LED, a log line) */
+void hal_event(void *ctx, const char *what);
+
+/* ---- the firmware ---- */
+uint16_t of_crc16(const uint8_t *data, size_t n);
+void of_init(of_follower *f, uint8_t address, const of_hardware *hw, void *ctx, uint32_t now_ms);
+void of_receive(of_follower *f, const uint8_t *data, size_t n, uint32_t now_ms);
+void of_tick(of_follower *f, uint32_t now_ms);
+
+#endif

@@ -1,0 +1,201 @@
+"""The reference follower firmware (firmware/, portable C), built here with `cc` and run
+behind a real pseudo-terminal: it answers as docs/follower-protocol.md says (each point a
+firmware author had to guess is answered there and checked here), the service holds the
+formation with it, and it stops on STOP, when the service is interrupted and, by its own
+watchdog, when the service dies."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import serial
+
+from app.backends.serial_link import SerialLink
+from app.live.loop import ServiceLoop
+from app.live.params import Params, ParamsStore, default_slots
+from core.link import protocol as p
+
+from tests.helpers import ROOT, serve_then_signal, wait_for
+
+FIRMWARE = ROOT / "firmware"
+
+
+@pytest.fixture(scope="module")
+def firmware_bin(tmp_path_factory) -> Path:
+    cc = shutil.which("cc") or shutil.which("gcc")
+    assert cc, "a C compiler (cc) is needed to build the reference firmware"
+    out = tmp_path_factory.mktemp("fw") / "follower_sim"
+    build = subprocess.run([cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2",
+                            str(FIRMWARE / "omni_follower.c"), str(FIRMWARE / "host_sim.c"), "-o", str(out), "-lm"],
+                           capture_output=True, text=True)
+    assert build.returncode == 0, build.stderr
+    return out
+
+
+class Firmware:
+    """The built firmware serving robots 1..3 on a pty; its event lines are collected."""
+
+    def __init__(self, binary: Path, link: Path, *extra: str) -> None:
+        self.link = link
+        self.proc = subprocess.Popen([str(binary), "--link-path", str(link), *extra], stdout=subprocess.PIPE, text=True)
+        assert self.proc.stdout is not None
+        first = self.proc.stdout.readline()
+        assert first.startswith("firmware followers 1,2,3 on"), first
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.strip())
+
+    def events(self, robot: int) -> list[str]:
+        return [ln.split(": ", 1)[1] for ln in list(self.lines) if f" robot {robot}: " in f" {ln}"
+                and "ms robot" in ln]
+
+    def still(self, robot: int) -> bool:
+        """Its wheels stopped since they last moved."""
+        motion = [e for e in self.events(robot) if e in ("moving", "still")]
+        return motion[-1:] == ["still"]
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.proc.wait(10)
+        self._reader.join(5)
+
+
+@pytest.fixture
+def firmware(firmware_bin, tmp_path):
+    fw = Firmware(firmware_bin, tmp_path / "followers")
+    yield fw
+    fw.close()
+    assert not fw.link.exists()  # its link is gone with it
+
+
+def _ask(port: serial.Serial, frame: p.Frame, wait_s: float = 0.3) -> list[p.Frame]:
+    port.reset_input_buffer()
+    port.write(p.encode_frame(frame))
+    parser = p.FrameParser()
+    deadline = time.monotonic() + wait_s
+    out: list[p.Frame] = []
+    while time.monotonic() < deadline:
+        out += parser.feed(port.read(64))
+    return out
+
+
+def test_the_firmware_answers_as_the_protocol_document_says(firmware):
+    port = serial.Serial(str(firmware.link), 115200, timeout=0.02)
+    try:
+        # PING before anything was commanded: STATUS with WATCHDOG, command age "never" (doc example)
+        (st,) = _ask(port, p.ping(2, 9))
+        assert (st.address, st.seq, st.msg_type) == (2, 9, p.MSG_STATUS)
+        status = p.decode_status(st)
+        assert status.battery_mv == 7400 and status.flags == p.FLAG_WATCHDOG and status.command_age_ms == 0xFFFF
+        # the document's SET_VELOCITY example, byte for byte: answered by an ACK with the same sequence
+        (ack,) = _ask(port, p.Frame(1, 7, p.MSG_SET_VELOCITY, bytes.fromhex("6400 06ff")))
+        assert (ack.address, ack.seq, ack.msg_type) == (1, 7, p.MSG_ACK)
+        # broadcast: obeyed, never answered
+        assert _ask(port, p.ping(p.BROADCAST, 10), 0.15) == []
+        # STOP neither feeds nor resets the watchdog's clock: the command age runs on
+        _ask(port, p.set_velocity(3, 11, 0.1, 0.0), 0.2)
+        _ask(port, p.stop(3, 12), 0.1)
+        (st3,) = _ask(port, p.ping(3, 13))
+        s3 = p.decode_status(st3)
+        assert s3.flags & p.FLAG_STOPPED and s3.command_age_ms >= 250
+        # a frame cut off is forgotten after 20 ms of silence; the next one is answered
+        port.write(p.encode_frame(p.ping(2, 14))[:5])
+        time.sleep(0.06)
+        assert [f.seq for f in _ask(port, p.ping(2, 15))] == [15]
+        # a header with a length over 32 is refused at once (before any CRC), the next frame is answered
+        assert [f.seq for f in _ask(port, p.Frame(2, 16, p.MSG_PING, b""), 0.2)] == [16]
+        port.write(bytes([0xA5, 0x5A, 2, 17, 3, 200]))
+        assert [f.seq for f in _ask(port, p.ping(2, 18))] == [18]
+        # wheels are scaled together at their limit: the path keeps its curvature (w / v = 5)
+        for k in range(30):
+            _ask(port, p.set_velocity(1, 20 + k, 0.4, 2.0), 0.03)
+        a = p.decode_ack(_ask(port, p.set_velocity(1, 60, 0.4, 2.0))[0])
+        assert a.w_rps / a.v_mps == pytest.approx(5.0, rel=0.03) and a.v_mps < 0.36
+        # the watchdog: 0.5 s without SET_VELOCITY and the robot stops by itself
+        wait_for(lambda: "watchdog" in firmware.events(1), 3.0, "robot 1's watchdog")
+    finally:
+        port.close()
+
+
+def test_the_service_holds_the_formation_with_the_firmware_and_stop_stops_it(firmware):
+    store = ParamsStore(Params(n_followers=3, slots=default_slots(3), leader_mode="straight"), fixed_followers=3)
+    link = SerialLink(str(firmware.link), 3)
+    loop = ServiceLoop(store, rate_hz=30.0, seed=4, link=link)
+    seen: list = []
+    loop.subscribe(lambda s: seen.append(s))
+    thread = threading.Thread(target=loop.run, daemon=True)
+    thread.start()
+    try:
+        wait_for(lambda: seen and seen[-1].t > 25.0, 90.0, "25 s of the team on the firmware")
+        last = [s for s in list(seen) if s.t > 20.0]
+        err = np.array([np.linalg.norm(s.p_d - s.p_true, axis=1) for s in last])
+        assert np.sqrt(np.mean(err**2)) < 0.02, np.sqrt(np.mean(err**2, axis=0))  # in formation, moving
+        assert last[-1].link_state.endswith(": ok"), last[-1].link_state
+        assert all("moving" in firmware.events(r) for r in (1, 2, 3))
+        store.update("browser:1", stop=True)
+        wait_for(lambda: all(firmware.still(r) for r in (1, 2, 3)), 10.0, "every robot still")
+    finally:
+        loop.stop()
+        thread.join(10)
+    # the loop's end sends STOP to every robot
+    wait_for(lambda: all("STOP" in firmware.events(r) for r in (1, 2, 3)), 5.0, "STOP for every robot")
+
+
+def test_interrupting_the_service_stops_the_robots_and_killing_it_leaves_them_to_their_watchdog(firmware):
+    moving = lambda: all("moving" in firmware.events(r) for r in (1, 2, 3))  # noqa: E731
+    run = serve_then_signal("--port", "0", "--feedback", "truth", "--no-record", "--link", f"serial:{firmware.link}",
+                            until=moving, sig=signal.SIGINT)
+    assert run.returncode == 0, run.stderr
+    wait_for(lambda: all("STOP" in firmware.events(r) for r in (1, 2, 3)), 5.0, "STOP for every robot")
+    wait_for(lambda: all(firmware.still(r) for r in (1, 2, 3)), 5.0, "every robot still")
+    before = {r: len(firmware.events(r)) for r in (1, 2, 3)}
+    # now a service that dies without a word: only the robots' own watchdog can stop them
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
+                             "--no-record", "--link", f"serial:{firmware.link}"], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_for(lambda: all("moving" in firmware.events(r)[before[r]:] for r in (1, 2, 3)), 90.0,
+                 "the robots moving again")
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    for r in (1, 2, 3):
+        wait_for(lambda r=r: "watchdog" in firmware.events(r)[before[r]:], 5.0, f"robot {r}'s watchdog")
+        wait_for(lambda r=r: firmware.still(r), 5.0, f"robot {r} still")
+        after = firmware.events(r)[before[r]:]
+        since = after[len(after) - 1 - after[::-1].index("moving"):]  # from the last time it started moving
+        assert "watchdog" in since and "STOP" not in since, after  # no STOP came: its own watchdog stopped it
+
+
+def test_a_low_battery_is_flagged_by_the_robot_and_shown_by_the_host(firmware_bin, tmp_path):
+    fw = Firmware(firmware_bin, tmp_path / "low", "--battery-mv", "6500")  # under the 6800 mV threshold
+    link = SerialLink(str(fw.link), 3)
+    try:
+        from core.types import Commands
+
+        def shown() -> bool:
+            link.send(Commands(np.zeros(3), np.zeros(3)))
+            time.sleep(1 / 30)
+            return link.detail().count("LOW BATTERY") == 3
+
+        wait_for(shown, 10.0, "LOW BATTERY for every robot on the host's status")
+        assert "6.50 V" in link.detail()  # from STATUS, answering the host's PING
+    finally:
+        link.close()
+        fw.close()
