@@ -13,6 +13,7 @@ import math
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import os
 
@@ -186,3 +187,54 @@ def open_frame_source(spec: str, fps: float | None = None) -> FrameSource:
         return CaptureSource(spec, is_file=True, fps=fps)
     raise ValueError(f"--camera {spec!r}: not a camera index (0, 1, ...), a /dev/video* device, a video file"
                      " or a folder of images")
+
+
+class SyntheticMarkerRig:
+    """The synthetic rig standing in for a real camera while calibrating: an empty floor seen
+    through the rig's model (tilted, off-centre, as its config says) with markers where a
+    helper put them. ``place`` is the helper: the calibration page asks for each marker where
+    its guide wants it, and the helper puts it there give or take ``placement_sd_m``, as a
+    person with a tape measure would. The pictures are rendered, and the page finds the marker
+    in them as in a real camera's (core.camera.guide.find_marker)."""
+
+    def __init__(self, config: Any, seed: int = 0, placement_sd_m: float = 0.003) -> None:
+        from core.camera.synthetic import renderer_for
+
+        self.name = f"synthetic rig {config.source}"
+        self.config = config
+        self._renderer = renderer_for(config, clutter=False, distractor=False)
+        self._rng = np.random.default_rng(seed)
+        self.placement_sd_m = placement_sd_m
+        self._markers: list[tuple[float, float]] = []
+        self._frame: np.ndarray | None = None
+        self._k = 0
+        self._lock = threading.Lock()
+
+    @property
+    def state(self) -> str:
+        return "ok"
+
+    def place(self, markers: list[tuple[float, float]]) -> None:
+        """Markers at (bearing deg, distance m), leader frame (bearing 0 ahead, counter-clockwise)."""
+        from core.camera.model import bearing_range_to_xy
+
+        rows = []
+        for b, d in markers:
+            db = self._rng.normal(0.0, self.placement_sd_m)
+            xy = bearing_range_to_xy(np.array(math.radians(b)), np.array(d + db))
+            rows.append([float(xy[0]), float(xy[1]), math.radians(b) + math.pi / 2])
+        followers = np.array(rows, dtype=np.float64).reshape(-1, 3)
+        frame = self._renderer.render(np.array([0.0, 0.0, math.pi / 2]), followers, 0.0, self._rng)
+        with self._lock:
+            self._markers = list(markers)
+            self._frame = frame
+            self._k += 1
+
+    def latest(self) -> tuple[np.ndarray | None, float, int]:
+        if self._frame is None:
+            self.place([])  # nothing placed yet: the empty floor
+        with self._lock:
+            return self._frame, time.monotonic(), self._k
+
+    def close(self) -> None:
+        pass

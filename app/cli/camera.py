@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app.cli.args import Parser, float_in, int_in, seed
+from app.cli.args import Parser, bind_error, float_in, int_in, port, seed, token_arg
 from app.files import (SYNTHETIC_CAMERA, UserError, check_new_file, display_path, load_camera, load_scenario,
                        load_table, read_image, require_gamma, write_table)
 
@@ -39,11 +39,21 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     cal.add_argument("--bearing-offset", type=float_in(-360.0, 360.0, "deg", lo_inclusive=True), metavar="DEG",
                      help="leader bearing that appears straight up (deg)")
     cal.add_argument("--flip", action="store_true", help="the image is mirrored left/right")
-    cal.add_argument("--out", type=Path, required=True, help="camera.toml to write (never over an existing file"
-                                                             " unless --overwrite)")
+    cal.add_argument("--out", type=Path, help="camera.toml to write (never over an existing file unless --overwrite);"
+                                              " with --page, what the page's Save proposes (default camera.toml)")
     cal.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     cal.add_argument("--save-table", type=Path, help="also write the matching table used (CSV)")
     cal.add_argument("--seed", type=seed, default=0, help="noise seed for --synthetic (default 0)")
+    cal.add_argument("--page", action="store_true", help="serve the calibration page: a live camera (--camera) or"
+                                                         " the synthetic rig (--synthetic), a guided table, Save")
+    cal.add_argument("--camera", metavar="SOURCE", help="--page: a camera index, device, video file or folder")
+    cal.add_argument("--tilt", type=float_in(-10.0, 10.0, "deg", lo_inclusive=True),
+                     help="--page --synthetic: tilt the rig's mirror this much (a flawed rig to calibrate)")
+    cal.add_argument("--off-centre", type=float_in(-50.0, 50.0, "px", lo_inclusive=True), metavar="PX",
+                     help="--page --synthetic: move the mirror's centre this far right in the image")
+    cal.add_argument("--host", default="127.0.0.1", help="--page: address to serve on (default 127.0.0.1)")
+    cal.add_argument("--port", type=port, default=8080, help="--page: port (default 8080)")
+    cal.add_argument("--token", type=token_arg, help="--page: the token clients must present (else made up off loopback)")
     cal.set_defaults(func=cmd_calibrate)
 
     loc = sub.add_parser("locate", help="find the coloured rectangles in one picture and print where they are",
@@ -109,8 +119,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from core.camera.gamma import CalibrationError, fit_gamma
     from core.camera.synthetic import synthetic_table
 
+    if args.page:
+        return _calibration_page(args)
+    if args.camera is not None or args.tilt is not None or args.off_centre is not None:
+        raise UserError("--camera, --tilt and --off-centre go with --page")
     if (args.table is None) == (args.synthetic is None):
         raise UserError("give either TABLE.csv or --synthetic CAMERA.toml (not both)")
+    if args.out is None:
+        raise UserError("--out camera.toml is needed (the camera file to write)")
     check_new_file(args.out, "camera file", ".toml")
     if args.out.exists() and not args.overwrite:
         raise UserError(f"{args.out}: exists; give another --out, or --overwrite to replace it")
@@ -175,6 +191,61 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.save_table is not None:
         write_table(table, args.save_table)
         print(f"wrote {display_path(args.save_table)}")
+    return 0
+
+
+def _calibration_page(args: argparse.Namespace) -> int:
+    import dataclasses
+    import signal
+    import sys
+
+    from app.backends.camera import SyntheticMarkerRig, open_frame_source
+    from app.contracts import FrameSource
+    from app.dashboard.calibration_panel import CalibrationService
+    from app.dashboard.gate import is_loopback
+    from core.camera.config import DetectSettings
+
+    if args.table is not None:
+        raise UserError("--page builds the table in the browser: give --camera SOURCE or --synthetic CAMERA.toml, no TABLE")
+    if (args.camera is None) == (args.synthetic is None):
+        raise UserError("--page needs either --camera SOURCE (a real camera) or --synthetic CAMERA.toml (not both)")
+    save_as = args.out or Path("camera.toml")
+    if save_as.suffix.lower() != ".toml":
+        raise UserError(f"--out {save_as}: the camera file must be a .toml file")
+    if args.synthetic is not None:
+        camera = load_camera(args.synthetic)
+        if camera.model is None:
+            raise UserError(f"{display_path(args.synthetic)}: has no [model], so it cannot stand in for a camera")
+        model = camera.model
+        if args.tilt is not None:
+            model = model.replace(tilt_deg=args.tilt)
+        if args.off_centre is not None:
+            model = model.replace(cx=model.cx + args.off_centre)
+        camera = dataclasses.replace(camera, model=model)
+        source: FrameSource = SyntheticMarkerRig(camera, seed=args.seed)
+        detect = camera.detect
+    else:
+        if args.tilt is not None or args.off_centre is not None:
+            raise UserError("--tilt and --off-centre shape the synthetic rig; a real camera is as it is")
+        try:
+            source = open_frame_source(args.camera)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        detect = DetectSettings()
+    try:
+        svc = CalibrationService(source, detect, save_as, host=args.host, port=args.port, token=args.token)
+    except OSError as exc:
+        raise UserError(bind_error(args.host, args.port, exc)) from None
+    if not is_loopback(args.host):
+        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the token)"
+              " may use the page", file=sys.stderr)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: svc.stop())
+    print(f"omniformation: calibration page at {svc.url}  (Ctrl-C to stop)", flush=True)
+    try:
+        svc.wait()
+    finally:
+        svc.close()
     return 0
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 import viser
@@ -38,6 +39,8 @@ class Dashboard:
         self.tuning = tuning(server) if tuning is not None else None
         self.monitor = LyapunovMonitor(server)
         self.plots = Plots(server)
+        self.extra: list[Callable[[], None]] = []  # other panels' redraws (the calibration preview), ~4 a second
+        self._extra_at = 0.0
 
     def publish(self, state: TickState) -> None:
         with self.server.atomic():
@@ -48,6 +51,11 @@ class Dashboard:
         if self.tuning is not None:
             self.tuning.update(state)
         self.plots.update(state)
+        now = time.monotonic()
+        if self.extra and now - self._extra_at >= 0.25:
+            self._extra_at = now
+            for fn in self.extra:
+                fn()
 
 
 class LatestStatePublisher:

@@ -25,6 +25,7 @@ from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile
 from app.backends.hardware import HardwareTeam
 from app.contracts import FollowerLink, FrameSource, Rig
 from app.dashboard import Dashboard, LatestStatePublisher
+from app.dashboard.calibration_panel import CalibrationPanel
 from app.dashboard.camera_panel import Overlay
 from app.dashboard.tuning_panel import TuningPanel
 from app.dashboard.gate import quietly, serve_gated
@@ -122,6 +123,12 @@ class Service:
                                (lambda: camera) if synthetic else None)
 
         self.dashboard = Dashboard(self.server, self.store, overlay, obstacles, tuning=tuning)
+        self.calibration: CalibrationPanel | None = None
+        if frames is not None and camera is not None:  # a real camera: recalibrate it from the live page
+            rig, gamma = camera
+            self.calibration = CalibrationPanel(self.server, frames, rig.detect, Path("camera.toml"),
+                                                centre=(gamma.cx, gamma.cy), area=rig.working_area)
+            self.dashboard.extra.append(self.calibration.refresh)
         self.recordings = RecordingsPanel(self.server, host, recordings, token=self.gate.token)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)

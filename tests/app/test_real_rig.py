@@ -155,6 +155,29 @@ def test_the_config_chooses_frames_and_link_and_bad_values_are_refused(tmp_path)
         assert len(out.stderr.strip().splitlines()) == 1
 
 
+def test_the_live_page_of_a_real_camera_has_the_calibration_panel(tmp_path):
+    """With a real camera the live page can recalibrate it: the panel sees the camera's frames
+    and its mirror, starting from the calibration in use."""
+    from app.live.service import Service
+
+    render_frames(tmp_path, 10)
+    emulated = EmulatorThread()
+    link = SerialLink(emulated.path, 3)
+    frames = FolderSource(tmp_path, fps=30.0, loop=True)
+    calibration = load_camera(SYNTHETIC_CALIBRATED)
+    svc = Service(port=0, camera=(calibration, calibration.gamma), frames=frames, hardware=HardwareTeam(3, link))
+    try:
+        panel = svc.calibration
+        assert panel is not None and panel.cx.value == pytest.approx(calibration.gamma.cx, abs=0.1)
+        wait_for(lambda: frames.latest()[0] is not None, 10, "a frame")
+        assert "mirror circle: centre" in panel.propose_circle()
+        assert abs(panel.cx.value - calibration.gamma.cx) < 3 and abs(panel.cy.value - calibration.gamma.cy) < 3
+        assert panel.capture_marker().startswith(("capture refused", "captured"))  # the team's markers are in view
+    finally:
+        svc.close()
+        emulated.close()
+
+
 def test_a_real_rig_from_the_config_starts_observes_and_stops_cleanly(tmp_path):
     frames = tmp_path / "frames"
     frames.mkdir()

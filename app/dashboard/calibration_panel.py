@@ -1,0 +1,347 @@
+"""The calibration page: from an empty table to a saved camera file, in the browser.
+
+The live camera (a device, a video, a folder, or the synthetic rig) is shown with the
+mirror's circle, the working area and where the guide wants the next marker. "Propose from
+image" finds the mirror's circle (core.camera.guide.fit_mirror_circle); the centre and the
+working area's radii stay adjustable. The guide names the next marker's bearing and distance
+(4 bearings x 6 distances); the operator puts a marker there, confirms or corrects the
+bearing and distance, and presses Capture: the marker is found in the picture (exactly one,
+inside the working area, or the capture is refused saying why) and its pixel joins the table.
+From enough markers on, Γ is fitted after every capture (core.camera.gamma), with its
+held-out error and coverage warnings (core.camera.quality) and a figure of the coverage
+and the per-sector residuals. Save writes the camera TOML and the table's CSV (never over a
+file unless "Overwrite" is ticked); Load reads a table (CSV) or a camera file (its centre and
+working area).
+"""
+
+from __future__ import annotations
+
+import html
+import math
+import threading
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import viser
+
+from core.camera.config import DetectSettings, WorkingArea, gamma_toml
+from core.camera.gamma import CalibrationError, GammaFit, MatchingTable, fit_gamma
+from core.camera.guide import fit_mirror_circle, find_marker, guide_targets, next_target
+from core.camera.quality import HeldOut, coverage_warnings, held_out_error
+
+from app.contracts import FrameSource
+
+DEGREE = 3
+PREVIEW_WIDTH = 480
+
+
+def _assign(handle: Any, value: Any) -> None:
+    handle.value = value
+
+
+class CalibrationPanel:
+    def __init__(self, server: viser.ViserServer, source: FrameSource, detect: DetectSettings,
+                 save_as: Path, centre: tuple[float, float] | None = None,
+                 area: WorkingArea | None = None) -> None:
+        self.server = server
+        self.source = source
+        self.detect = detect
+        self.targets = guide_targets()
+        self.rows: list[tuple[float, float, float, float]] = []  # bearing deg, metres, u, v
+        self.fit: GammaFit | None = None
+        self.held: HeldOut | None = None
+        self.warnings: list[str] = []
+        self.fitted = 0  # markers the fit shown was made from
+        self.message = ""
+        self._lock = threading.Lock()
+        self._busy = threading.Lock()
+        frame = source.latest()[0]
+        h, w = (frame.shape[:2] if frame is not None else (480, 640))
+        cx, cy = centre if centre is not None else (w / 2, h / 2)
+        area = area or WorkingArea(0.2 * min(w, h) / 2, 0.8 * min(w, h) / 2)
+        gui = server.gui
+        with gui.add_folder("Calibration"):
+            self.preview = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="camera", format="jpeg")
+            self.propose = gui.add_button("Propose from image", hint="find the mirror's circle in the picture")
+            self.cx = gui.add_number("Centre x (px)", initial_value=round(cx, 1), step=0.5)
+            self.cy = gui.add_number("Centre y (px)", initial_value=round(cy, 1), step=0.5)
+            self.inner = gui.add_number("Area inner (px)", initial_value=round(area.inner_px, 1), step=1.0, min=0.0)
+            self.outer = gui.add_number("Area outer (px)", initial_value=round(area.outer_px, 1), step=1.0, min=1.0)
+            self.guide = gui.add_markdown("")
+            self.bearing = gui.add_number("Marker bearing (deg)", initial_value=0.0, step=1.0, min=-360.0, max=360.0)
+            self.distance = gui.add_number("Marker distance (m)", initial_value=0.5, step=0.01, min=0.05, max=10.0)
+            self.capture = gui.add_button("Capture", hint="find the marker in the picture and add it to the table")
+            self.undo = gui.add_button("Undo last capture", color="gray")
+            self.status = gui.add_markdown("")
+            self.quality = gui.add_html("")
+            self.figure = gui.add_image(np.full((8, 8, 3), 255, np.uint8), format="png", visible=False)
+            self.save_as = gui.add_text("Save as", initial_value=str(save_as))
+            self.overwrite = gui.add_checkbox("Overwrite", initial_value=False)
+            self.save = gui.add_button("Save camera file and table")
+            self.load_from = gui.add_text("Load from", initial_value="")
+            self.load = gui.add_button("Load", hint="a table (.csv) to go on from, or a camera file (.toml): its"
+                                                   " centre and working area")
+        self._wire()
+        self.show_next()
+
+    # -- what the operator does -----------------------------------------------------------
+    def propose_circle(self) -> str:
+        frame = self.source.latest()[0]
+        if frame is None:
+            return self._say("no picture from the camera yet")
+        c = fit_mirror_circle(frame)
+        if c is None:
+            return self._say("no mirror circle found in the picture: set the centre and radii by hand")
+        _assign(self.cx, round(c.cx, 1))
+        _assign(self.cy, round(c.cy, 1))
+        _assign(self.inner, round(0.22 * c.radius, 1))  # the leader's own body hides the middle
+        _assign(self.outer, round(0.8 * c.radius, 1))  # the floor ends before the rim (walls, sky)
+        return self._say(f"mirror circle: centre ({c.cx:.1f}, {c.cy:.1f}) px, radius {c.radius:.1f} px;"
+                         f" working area {0.22 * c.radius:.0f}..{0.8 * c.radius:.0f} px (adjust if needed)")
+
+    def capture_marker(self) -> str:
+        with self._busy:  # one capture at a time: a second click waits for the first to finish
+            return self._capture()
+
+    def _capture(self) -> str:
+        frame = self.source.latest()[0]
+        if frame is None:
+            return self._say("no picture from the camera yet")
+        b, d = float(self.bearing.value), float(self.distance.value)
+        if not (math.isfinite(b) and math.isfinite(d) and d > 0):
+            return self._say(f"bearing {b!r} deg and distance {d!r} m: give a bearing and a distance over 0 m")
+        inner, outer = float(self.inner.value), float(self.outer.value)
+        if not (math.isfinite(inner) and math.isfinite(outer) and 0 <= inner < outer):
+            return self._say(f"working area {inner!r}..{outer!r} px: the inner radius must be under the outer")
+        area = WorkingArea(inner, outer)
+        found = find_marker(frame, (float(self.cx.value), float(self.cy.value)), area, self.detect)
+        if isinstance(found, str):
+            return self._say(f"capture refused: {found}")
+        with self._lock:
+            same = [k for k, r in enumerate(self.rows) if abs((r[0] - b + 180) % 360 - 180) < 1e-6 and abs(r[1] - d) < 1e-6]
+            if same:
+                return self._say(f"capture refused: row {same[0] + 1} already has a marker at {b:g} deg, {d:g} m;"
+                                 " undo it or give another bearing or distance")
+            self.rows.append((b % 360.0, d, found.u, found.v))
+        self.show_next()
+        said = self._say(f"captured {len(self.rows)}: {b:g} deg, {d:g} m at pixel ({found.u:.1f}, {found.v:.1f})")
+        self._refit()
+        return said
+
+    def undo_last(self) -> str:
+        with self._lock:
+            if not self.rows:
+                return self._say("nothing to undo")
+            b, d, _, _ = self.rows.pop()
+        self._refit()
+        self.show_next()
+        return self._say(f"removed the capture at {b:g} deg, {d:g} m")
+
+    def save_files(self) -> str:
+        if self.fit is None:
+            return self._say("nothing to save yet: capture markers until the fit is made")
+        path = Path(str(self.save_as.value)).expanduser()
+        if path.suffix.lower() != ".toml":
+            return self._say(f"save as {path}: a camera file is a .toml")
+        table_path = path.with_suffix(".csv")
+        for target in (path, table_path):
+            if target.exists() and not self.overwrite.value:
+                return self._say(f"{target} exists: tick Overwrite to replace it, or give another name")
+        if not path.parent.is_dir():
+            return self._say(f"save as {path}: folder {path.parent} does not exist")
+        area = WorkingArea(float(self.inner.value), float(self.outer.value))
+        held = self.held
+        header = (f"Camera calibration (Γ, paper §3) made on the calibration page from {len(self.rows)} markers\n"
+                  f"{self.fit.gamma.n_sectors} sectors, degree {self.fit.gamma.degree}"
+                  + (f"; held-out error median {held.median_cm:.2f} cm, p95 {held.p95_cm:.2f} cm" if held else "")
+                  + "".join(f"\nwarning: {w}" for w in self.warnings))
+        from app.files import write_table
+
+        try:
+            path.write_text(gamma_toml(self.fit.gamma, area, self.detect, header), encoding="utf-8")
+            write_table(self.table(), table_path)
+        except OSError as exc:
+            return self._say(f"save as {path}: {exc.strerror or exc}")
+        return self._say(f"saved {path} and {table_path.name}")
+
+    def load_file(self) -> str:
+        path = Path(str(self.load_from.value)).expanduser()
+        from app.files import UserError, load_camera, load_table
+
+        try:
+            if path.suffix.lower() == ".csv":
+                t = load_table(path)
+                with self._lock:
+                    self.rows = [(float(b) % 360.0, float(d), float(u), float(v))
+                                 for b, d, u, v in zip(t.bearing_deg, t.metres, t.u, t.v)]
+                self._refit()
+                self.show_next()
+                return self._say(f"loaded {len(self.rows)} markers from {path}")
+            if path.suffix.lower() == ".toml":
+                cam = load_camera(path)
+                g = cam.gamma
+                if g is not None:
+                    _assign(self.cx, round(g.cx, 1))
+                    _assign(self.cy, round(g.cy, 1))
+                _assign(self.inner, cam.working_area.inner_px)
+                _assign(self.outer, cam.working_area.outer_px)
+                return self._say(f"loaded the centre and working area of {path}")
+        except UserError as exc:
+            return self._say(f"load: {exc}")
+        return self._say(f"load {path}: a table (.csv) or a camera file (.toml)")
+
+    # -- what follows ---------------------------------------------------------------------
+    def table(self) -> MatchingTable:
+        a = np.array(self.rows, dtype=np.float64).reshape(-1, 4)
+        return MatchingTable(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
+
+    def _refit(self) -> None:
+        """Fit Γ to the table as it is now; ``fitted`` says how many markers the shown fit used."""
+        n = len(self.rows)
+        if n < 6:
+            self.fit, self.held, self.warnings, self.fitted = None, None, [], n
+            self._show_quality(f"{n} markers: the fit needs at least 6 (and {DEGREE + 2} per bearing)")
+            return
+        table = self.table()
+        try:
+            fit = fit_gamma(table, degree=DEGREE, source="the captures")
+        except CalibrationError as exc:
+            self.fit, self.held, self.warnings, self.fitted = None, None, [], n
+            self._show_quality(f"not fitted yet: {exc}")
+            return
+        held = held_out_error(table, fit.gamma, fit.gamma.degree)
+        warnings = coverage_warnings(table)
+        if held.p95_cm > 3.0:
+            warnings.insert(0, f"positions may be off by more than 3 cm (held-out p95 {held.p95_cm:.1f} cm):"
+                               " capture more markers")
+        self.fit, self.held, self.warnings, self.fitted = fit, held, warnings, n
+        rows = "".join(f"<tr><td>{s.bearing_deg:g}</td><td>{s.points}</td><td>{s.rms_cm:.2f}</td>"
+                       f"<td>{s.max_cm:.2f}</td></tr>" for s in fit.sectors)
+        text = (f"<div data-held-out='{held.p95_cm:.3f}'>held-out error: median {held.median_cm:.2f} cm,"
+                f" p95 {held.p95_cm:.2f} cm</div>"
+                + "".join(f"<div style='color:#b35900'>warning: {html.escape(w)}</div>" for w in warnings)
+                + "<table style='font-size:11px'><tr><th>sector (deg)</th><th>markers</th><th>RMS (cm)</th>"
+                  "<th>max (cm)</th></tr>" + rows + "</table>")
+        self.quality.content = text
+        self._draw_figure()
+
+    def _show_quality(self, text: str) -> None:
+        self.quality.content = f"<div>{html.escape(text)}</div>"
+        self.figure.visible = False
+
+    def _draw_figure(self) -> None:
+        from matplotlib.figure import Figure
+
+        from app.recording.plots import figure_rgb
+
+        assert self.fit is not None
+        fig = Figure(figsize=(4.6, 2.4), constrained_layout=True)
+        ax: Any = fig.add_subplot(1, 2, 1, projection="polar")
+        ax.set_theta_zero_location("N")
+        tb = np.radians([t[0] for t in self.targets])
+        ax.scatter(tb, [t[1] for t in self.targets], s=14, facecolors="none", edgecolors="0.6")
+        ax.scatter(np.radians([r[0] for r in self.rows]), [r[1] for r in self.rows], s=10, color="tab:blue")
+        ax.set_title("coverage", fontsize=8)
+        ax.tick_params(labelsize=6)
+        bx = fig.add_subplot(1, 2, 2)
+        sectors = self.fit.sectors
+        bx.bar([f"{s.bearing_deg:g}" for s in sectors], [s.rms_cm for s in sectors], color="tab:blue")
+        if self.held is not None:
+            bx.axhline(self.held.p95_cm, color="tab:red", ls="--", lw=0.8, label="held-out p95")
+            bx.legend(fontsize=6)
+        bx.set_title("residual RMS per sector (cm)", fontsize=8)
+        bx.tick_params(labelsize=6)
+        self.figure.image = figure_rgb(fig)
+        self.figure.visible = True
+
+    def show_next(self) -> None:
+        """Ask for the next marker (the synthetic rig's helper puts it there)."""
+        target = next_target(self.targets, [(r[0], r[1]) for r in self.rows])
+        done = len(self.rows)
+        if target is None:
+            self.guide.content = f"**{done} markers captured**: the guide's {len(self.targets)} are done; more anywhere help."
+            return
+        b, d = target
+        self.guide.content = (f"**Next marker ({done + 1} of {len(self.targets)})**: bearing {b:g}° (0 ahead,"
+                              f" counter-clockwise), {d:g} m from the camera's axis")
+        _assign(self.bearing, b)
+        _assign(self.distance, d)
+        place = getattr(self.source, "place", None)
+        if callable(place):  # the synthetic rig's helper puts the marker where the guide asks
+            place([target])
+
+    def _say(self, text: str) -> str:
+        self.message = text
+        self.status.content = html.escape(text)
+        return text
+
+    def refresh(self) -> None:
+        """Redraw the preview: the picture, the mirror's centre, the working area, the target's direction."""
+        frame = self.source.latest()[0]
+        if frame is None:
+            return
+        img = np.ascontiguousarray(frame).copy()
+        c = (int(round(float(self.cx.value))), int(round(float(self.cy.value))))
+        for r in (float(self.inner.value), float(self.outer.value)):
+            if r > 0:
+                cv2.circle(img, c, int(round(r)), (0, 200, 255), 1, cv2.LINE_AA)
+        cv2.drawMarker(img, c, (0, 0, 255), cv2.MARKER_CROSS, 12, 1)
+        for _, _, u, v in self.rows:
+            cv2.circle(img, (int(round(u)), int(round(v))), 3, (255, 120, 0), -1)
+        scale = PREVIEW_WIDTH / img.shape[1]
+        if scale < 1:
+            img = cv2.resize(img, (PREVIEW_WIDTH, int(img.shape[0] * scale)), interpolation=cv2.INTER_AREA)
+        self.preview.image = img[..., ::-1]  # viser takes RGB
+
+    def _wire(self) -> None:
+        for button, action in ((self.propose, self.propose_circle), (self.capture, self.capture_marker),
+                               (self.undo, self.undo_last), (self.save, self.save_files), (self.load, self.load_file)):
+            def handler(event: viser.GuiEvent[Any], action: Any = action) -> None:
+                action()
+
+            button.on_click(handler)
+
+
+class CalibrationService:
+    """``omniformation calibrate --page``: the calibration page alone, for a rig (no robots)."""
+
+    def __init__(self, source: FrameSource, detect: DetectSettings, save_as: Path, host: str = "127.0.0.1",
+                 port: int = 8080, token: str | None = None) -> None:
+        from app.dashboard.gate import serve_gated
+
+        self.source = source
+        self.server, self.gate = serve_gated(host, port, token)
+        self.server.gui.configure_theme(control_width="large", dark_mode=False)
+        self.panel = CalibrationPanel(self.server, source, detect, save_as)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="omniformation-calibration", daemon=True)
+        self._thread.start()
+
+    @property
+    def url(self) -> str:
+        return self.gate.url
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.25):
+            try:
+                self.panel.refresh()
+            except Exception:  # noqa: BLE001 - a picture that cannot be drawn must not end the page
+                pass
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def wait(self) -> None:
+        while not self._stop.wait(0.2):
+            pass
+
+    def close(self) -> None:
+        from app.dashboard.gate import quietly
+
+        self._stop.set()
+        self._thread.join(5)
+        self.gate.close()
+        quietly(self.server.stop)
+        self.source.close()
