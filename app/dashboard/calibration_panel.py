@@ -1,9 +1,10 @@
 """The calibration page: from an empty table to a saved camera file, in the browser.
 
 The live camera (a device, a video, a folder, or the synthetic rig) is shown with the
-mirror's circle, the working area and where the guide wants the next marker. "Propose from
-image" finds the mirror's circle (core.camera.guide.fit_mirror_circle); the centre and the
-working area's radii stay adjustable. The guide names the next marker's bearing and distance
+mirror's centre and the working area drawn on it. "Propose from image" finds the mirror's
+circle (core.camera.guide.fit_mirror_circle); the centre and the working area's radii stay
+adjustable by dragging their sliders. How the camera is turned and mirrored is read from
+the markers (core.camera.quality.detect_mounting). The guide names the next marker's bearing and distance
 (4 bearings x 6 distances); the operator puts a marker there, confirms or corrects the
 bearing and distance, and presses Capture: the marker is found in the picture (exactly one,
 inside the working area, or the capture is refused saying why) and its pixel joins the table.
@@ -27,9 +28,9 @@ import numpy as np
 import viser
 
 from core.camera.config import DetectSettings, WorkingArea, gamma_toml
-from core.camera.gamma import CalibrationError, GammaFit, MatchingTable, fit_gamma
+from core.camera.gamma import CalibrationError, GammaFit, MatchingTable, estimate_center, fit_gamma
 from core.camera.guide import fit_mirror_circle, find_marker, guide_targets, next_target
-from core.camera.quality import HeldOut, coverage_warnings, held_out_error
+from core.camera.quality import HeldOut, coverage_warnings, detect_mounting, held_out_error
 
 from app.contracts import FrameSource
 
@@ -65,10 +66,15 @@ class CalibrationPanel:
         with gui.add_folder("Calibration"):
             self.preview = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="camera", format="jpeg")
             self.propose = gui.add_button("Propose from image", hint="find the mirror's circle in the picture")
-            self.cx = gui.add_number("Centre x (px)", initial_value=round(cx, 1), step=0.5)
-            self.cy = gui.add_number("Centre y (px)", initial_value=round(cy, 1), step=0.5)
-            self.inner = gui.add_number("Area inner (px)", initial_value=round(area.inner_px, 1), step=1.0, min=0.0)
-            self.outer = gui.add_number("Area outer (px)", initial_value=round(area.outer_px, 1), step=1.0, min=1.0)
+            reach = round(math.hypot(w, h) / 2)  # drag the sliders: the preview draws what they say
+            self.cx = gui.add_slider("Centre x (px)", min=0.0, max=float(w), step=0.5,
+                                     initial_value=min(float(w), max(0.0, round(cx, 1))))
+            self.cy = gui.add_slider("Centre y (px)", min=0.0, max=float(h), step=0.5,
+                                     initial_value=min(float(h), max(0.0, round(cy, 1))))
+            self.inner = gui.add_slider("Area inner (px)", min=0.0, max=float(reach), step=1.0,
+                                        initial_value=min(float(reach), round(area.inner_px, 1)))
+            self.outer = gui.add_slider("Area outer (px)", min=1.0, max=float(reach), step=1.0,
+                                        initial_value=min(float(reach), round(area.outer_px, 1)))
             self.guide = gui.add_markdown("")
             self.bearing = gui.add_number("Marker bearing (deg)", initial_value=0.0, step=1.0, min=-360.0, max=360.0)
             self.distance = gui.add_number("Marker distance (m)", initial_value=0.5, step=0.01, min=0.05, max=10.0)
@@ -205,8 +211,12 @@ class CalibrationPanel:
             self._show_quality(f"{n} markers: the fit needs at least 6 (and {DEGREE + 2} per bearing)")
             return
         table = self.table()
+        flip, offset = False, 0.0
+        mount = detect_mounting(table, estimate_center(table))  # a camera mounted turned or mirrored
+        if mount is not None and mount.certain:
+            flip, offset = mount.flip, round(mount.offset_deg, 1)
         try:
-            fit = fit_gamma(table, degree=DEGREE, source="the captures")
+            fit = fit_gamma(table, degree=DEGREE, source="the captures", flip=flip, bearing_offset_deg=offset)
         except CalibrationError as exc:
             self.fit, self.held, self.warnings, self.fitted = None, None, [], n
             self._show_quality(f"not fitted yet: {exc}")
@@ -219,8 +229,10 @@ class CalibrationPanel:
         self.fit, self.held, self.warnings, self.fitted = fit, held, warnings, n
         rows = "".join(f"<tr><td>{s.bearing_deg:g}</td><td>{s.points}</td><td>{s.rms_cm:.2f}</td>"
                        f"<td>{s.max_cm:.2f}</td></tr>" for s in fit.sectors)
+        mounted = (f"<div>the camera is turned by {offset:+.1f} deg{' and mirrored' if flip else ''} (read from"
+                   " the markers)</div>") if (flip or offset) else ""
         text = (f"<div data-held-out='{held.p95_cm:.3f}'>held-out error: median {held.median_cm:.2f} cm,"
-                f" p95 {held.p95_cm:.2f} cm</div>"
+                f" p95 {held.p95_cm:.2f} cm</div>" + mounted
                 + "".join(f"<div style='color:#b35900'>warning: {html.escape(w)}</div>" for w in warnings)
                 + "<table style='font-size:11px'><tr><th>sector (deg)</th><th>markers</th><th>RMS (cm)</th>"
                   "<th>max (cm)</th></tr>" + rows + "</table>")
