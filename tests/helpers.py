@@ -152,3 +152,18 @@ def control_id(page, label: str) -> str:
     return ident
 
 
+
+
+def keep_ticks(service: Any, limit: int = 3000) -> list[Any]:
+    """Subscribe to a service's loop and keep its last ``limit`` ticks (as ``service.seen``)."""
+    seen: list[Any] = []
+    lock = threading.Lock()
+
+    def keep(state: Any) -> None:
+        with lock:
+            seen.append(state)
+            del seen[:-limit]
+
+    service.loop.subscribe(keep)
+    service.seen = seen
+    return seen

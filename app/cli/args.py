@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from typing import NoReturn
+from typing import Any, NoReturn
 from collections.abc import Callable
 
 EXIT_USAGE = 2
@@ -77,3 +77,34 @@ def bind_error(host: str, port: int, exc: OSError) -> str:
     elif exc.errno == errno.EADDRNOTAVAIL:
         why += " (this machine has no such address: give one of its own, 127.0.0.1, or 0.0.0.0 for all)"
     return f"cannot serve on {host}:{port}: {why}"
+
+
+def serve_page(make: Callable[[], Any], host: str, port: int, what: str, started: Callable[[Any], str]) -> int:
+    """Serve a page until Ctrl-C or SIGTERM: ``make()`` builds the service (binding its port:
+    a port taken or an address not here is one line, exit 2), a warning when it is served off
+    loopback (``what``: what a browser with the token may do), the line ``started(svc)``."""
+    import signal
+    import sys
+
+    from app.dashboard.gate import is_loopback
+    from app.files import UserError
+
+    try:
+        svc = make()
+    except OSError as exc:
+        raise UserError(bind_error(host, port, exc)) from None
+    if not is_loopback(host):
+        print(f"omniformation: serving on {host}: only browsers that open the URL below (it carries the token)"
+              f" may {what}", file=sys.stderr)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: svc.stop())
+    if hasattr(svc, "start"):
+        svc.start()
+    print(started(svc), flush=True)
+    try:
+        svc.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        svc.close()
+    return 0

@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app.cli.args import Parser, bind_error, float_in, int_in, port, seed, token_arg
+from app.cli.args import Parser, float_in, int_in, port, seed, token_arg
 from app.files import (SYNTHETIC_CAMERA, UserError, check_new_file, display_path, load_camera, load_scenario,
                        load_table, read_image, require_gamma, write_table)
 
@@ -196,13 +196,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _calibration_page(args: argparse.Namespace) -> int:
     import dataclasses
-    import signal
-    import sys
 
     from app.backends.camera import SyntheticMarkerRig, open_frame_source
+    from app.cli.args import serve_page
     from app.contracts import FrameSource
     from app.dashboard.calibration_panel import CalibrationService
-    from app.dashboard.gate import is_loopback
     from core.camera.config import DetectSettings
 
     if args.table is not None:
@@ -232,21 +230,10 @@ def _calibration_page(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UserError(str(exc)) from None
         detect = DetectSettings()
-    try:
-        svc = CalibrationService(source, detect, save_as, host=args.host, port=args.port, token=args.token)
-    except OSError as exc:
-        raise UserError(bind_error(args.host, args.port, exc)) from None
-    if not is_loopback(args.host):
-        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the token)"
-              " may use the page", file=sys.stderr)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: svc.stop())
-    print(f"omniformation: calibration page at {svc.url}  (Ctrl-C to stop)", flush=True)
-    try:
-        svc.wait()
-    finally:
-        svc.close()
-    return 0
+    return serve_page(lambda: CalibrationService(source, detect, save_as, host=args.host, port=args.port,
+                                                 token=args.token),
+                      args.host, args.port, "use the page",
+                      lambda svc: f"omniformation: calibration page at {svc.url}  (Ctrl-C to stop)")
 
 
 def _mounting(table: "MatchingTable", args: argparse.Namespace, source: str) -> tuple[bool, float]:

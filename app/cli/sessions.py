@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app.cli.args import Parser, bind_error, port, token_arg
+from app.cli.args import Parser, port, token_arg
 from app.files import UserError, display_path
 
 if TYPE_CHECKING:
@@ -30,33 +30,16 @@ def load_recording(path: Path) -> "Recording":
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    import signal
-
+    from app.cli.args import serve_page
     from app.recording.replay import ReplayService
 
-    from app.dashboard.gate import is_loopback
-
     rec = load_recording(args.file)
-    try:
-        svc = ReplayService(rec, host=args.host, port=args.port, token=args.token)
-    except OSError as exc:
-        raise UserError(bind_error(args.host, args.port, exc)) from None
-    if not is_loopback(args.host):
-        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
-              " token) may see the recording", file=sys.stderr)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: svc.stop())
-    svc.start()
     t = rec.t
-    print(f"omniformation: replaying {display_path(args.file)} ({len(rec.ticks)} ticks, {t[-1] - t[0]:.1f} s,"
-          f" {len(rec.frames)} frames, {len(rec.events)} events) at {svc.url}  (Ctrl-C to stop)", flush=True)
-    try:
-        svc.wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        svc.close()
-    return 0
+    return serve_page(lambda: ReplayService(rec, host=args.host, port=args.port, token=args.token), args.host,
+                      args.port, "see the recording",
+                      lambda svc: f"omniformation: replaying {display_path(args.file)} ({len(rec.ticks)} ticks,"
+                                  f" {t[-1] - t[0]:.1f} s, {len(rec.frames)} frames, {len(rec.events)} events) at"
+                                  f" {svc.url}  (Ctrl-C to stop)")
 
 
 def cmd_report(args: argparse.Namespace) -> int:

@@ -40,6 +40,18 @@ READY_PHASES = ("truth", "tracking")
 TURN_MODES = ("stop", "straight", "circle")
 
 
+def team_not_ready(s: TickState | None, needs: str) -> str | None:
+    """Why the team as the last tick saw it cannot be measured (``needs``: what for), or None."""
+    if s is None:
+        return "the loop has not ticked yet"
+    if s.phase not in READY_PHASES:
+        return f"the vision start-up is not finished (phase {s.phase})"
+    lost = [f"F{i + 1}" for i in range(s.n) if not bool(s.tracked[i])]
+    if lost:
+        return f"{', '.join(lost)} not tracked: {needs}"
+    return None
+
+
 @dataclass(frozen=True)
 class Trial:
     """One row of the table: the test, the gains it ran with, and the scores (None: aborted)."""
@@ -151,17 +163,13 @@ class StepTests:
         return f"{r.test.label()}: measuring, {max(0.0, last.t - r.t0):.1f} of {r.test.window_s:g} s"
 
     def _why_not(self, test: StepTest, s: TickState | None) -> str | None:
-        if s is None:
-            return "the loop has not ticked yet"
-        if s.stopped:
+        if s is not None and s.stopped:
             return "STOP is engaged: release it first"
-        if s.paused:
+        if s is not None and s.paused:
             return "the loop is paused: resume it first"
-        if s.phase not in READY_PHASES:
-            return f"the vision start-up is not finished (phase {s.phase})"
-        lost = [f"F{i + 1}" for i in range(s.n) if not bool(s.tracked[i])]
-        if lost:
-            return f"{', '.join(lost)} not tracked: a step test needs every follower in view"
+        not_ready = team_not_ready(s, "a step test needs every follower in view")
+        if not_ready or s is None:
+            return not_ready or "the loop has not ticked yet"
         why = check_step_test(test, s.n)
         if why:
             return why
@@ -270,13 +278,9 @@ def live_base(state: TickState | None, params: Params, dynamics: FollowerDynamic
     where it is seen now; the leader holding its present twist): what a sweep starts from. The
     reason it cannot be made, as a string. The world's obstacles are not carried over: a sweep
     measures the controller, not the way round a box."""
-    if state is None:
-        return "the loop has not ticked yet"
-    if state.phase not in READY_PHASES:
-        return f"the vision start-up is not finished (phase {state.phase})"
-    lost = [f"F{i + 1}" for i in range(state.n) if not bool(state.tracked[i])]
-    if lost:
-        return f"{', '.join(lost)} not tracked: a sweep starts from where every follower is seen now"
+    not_ready = team_not_ready(state, "a sweep starts from where every follower is seen now")
+    if not_ready or state is None:
+        return not_ready or "the loop has not ticked yet"
     n = state.n
     slots = np.asarray(params.slots)[state.assignment][:n]
     scenario = Scenario(

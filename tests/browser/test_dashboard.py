@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import threading
 import time
 
 import numpy as np
@@ -13,7 +12,7 @@ from app.live.tick import TickState
 from app.live.service import Service
 
 from tests.helpers import ARTIFACTS
-from tests.helpers import chromium_browser, control_id, settle, wait_for
+from tests.helpers import chromium_browser, control_id, keep_ticks, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 
@@ -27,16 +26,7 @@ def service():
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=4, camera=config.camera(),
                   dynamics=config.dynamics)
-    seen: list[TickState] = []
-    lock = threading.Lock()
-
-    def keep(state: TickState) -> None:
-        with lock:
-            seen.append(state)
-            del seen[:-2000]
-
-    svc.loop.subscribe(keep)
-    svc.seen = seen  # type: ignore[attr-defined]
+    keep_ticks(svc, 2000)
     svc.start()
     yield svc
     svc.close()

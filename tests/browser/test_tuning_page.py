@@ -4,14 +4,12 @@ what cannot run says why."""
 
 from __future__ import annotations
 
-import threading
 
 import pytest
 
 from app.live.service import Service
-from app.live.tick import TickState
 
-from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 
@@ -20,16 +18,7 @@ playwright_api = pytest.importorskip("playwright.sync_api")
 def service():
     """The built-in simulated team with truth feedback (the tuning bench is the same with vision)."""
     svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=7)
-    seen: list[TickState] = []
-    lock = threading.Lock()
-
-    def keep(state: TickState) -> None:
-        with lock:
-            seen.append(state)
-            del seen[:-3000]
-
-    svc.loop.subscribe(keep)
-    svc.seen = seen  # type: ignore[attr-defined]
+    keep_ticks(svc, 3000)
     svc.start()
     yield svc
     svc.close()
