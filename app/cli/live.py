@@ -55,6 +55,14 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record to this file instead of recordings/")
     run.add_argument("--frames-hz", type=float_in(0.0, 100.0, "Hz", lo_inclusive=True), default=10.0,
                      help="camera frames per second in the recording (default 10, 0 = none)")
+    run.add_argument("--fleet", metavar="NAME", help="join this fleet on the Zenoh bus (docs/fleet-protocol.md)")
+    run.add_argument("--leader-id", metavar="ID", help="this leader's name in the fleet (with --fleet)")
+    run.add_argument("--zenoh-listen", action="append", default=[], metavar="tcp/HOST:PORT",
+                     help="--fleet: an endpoint to listen on (repeatable; multicast discovery is off)")
+    run.add_argument("--zenoh-connect", action="append", default=[], metavar="tcp/HOST:PORT",
+                     help="--fleet: a peer to connect to (repeatable)")
+    run.add_argument("--fleet-control", action="store_true",
+                     help="--fleet: take gains, formation and motion changes from the bus (STOP is always taken)")
     run.set_defaults(func=cmd_run)
 
 
@@ -68,6 +76,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     from app.live.config import load_service_config
 
     config = load_service_config(args.config, MAX_FOLLOWERS)
+    fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect, args.fleet_control)
+    if args.fleet is None and any(fleet_args):
+        raise UserError("--leader-id, --zenoh-listen, --zenoh-connect and --fleet-control go with --fleet NAME")
+    if args.fleet is not None:
+        from app.fleet.bridge import check_endpoint, check_name
+
+        try:
+            check_name(args.fleet, "--fleet")
+            check_name(args.leader_id or "", "--leader-id")
+            for endpoint in (*args.zenoh_listen, *args.zenoh_connect):
+                check_endpoint(endpoint)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
     scenario = load_scenario(args.scenario) if args.scenario else None
     if scenario is not None and scenario.n > MAX_FOLLOWERS:
         raise UserError(f"--scenario {args.scenario}: {scenario.n} followers; the live service drives 1..{MAX_FOLLOWERS}"
@@ -159,6 +180,21 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"omniformation: recording to {display_path(recorder.path)}", flush=True)
     # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
     # (even before the first tick ends), and the loop's own exit is what zeroes the robots.
+    bridge = None
+    if args.fleet is not None:
+        from app.fleet.bridge import FleetBridge
+
+        try:
+            bridge = FleetBridge(service.store, args.fleet, args.leader_id, args.zenoh_listen, args.zenoh_connect,
+                                 allow_control=args.fleet_control)
+        except Exception as exc:  # noqa: BLE001 - zenoh says why it cannot open (an endpoint taken, ...)
+            service.close()
+            if recorder is not None:
+                recorder.close()
+            raise UserError(f"--fleet {args.fleet}: cannot join the bus: {str(exc).splitlines()[0][:200]}") from None
+        service.loop.subscribe(bridge.on_tick)
+        print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"
+              f" ({'taking commands' if args.fleet_control else 'STOP only'} from it)", flush=True)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: service.loop.stop())
     service.start()
@@ -174,6 +210,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         pass
     finally:
         service.close()
+        if bridge is not None:
+            bridge.close()
         if recorder is not None:
             recorder.close()
             print(f"omniformation: recording finished: {display_path(recorder.path)} ({recorder.ticks} ticks)", flush=True)

@@ -1,0 +1,1 @@
+"""Several leaders on one bus (Eclipse Zenoh): each leader's bridge (bridge.py)."""

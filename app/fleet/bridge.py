@@ -1,0 +1,194 @@
+"""A leader on the fleet bus: its team's state, its events and its liveliness over Eclipse
+Zenoh, and the parameter changes addressed to it (paper §6: leaders that see each other and
+can take over each other's robots build on this). The key expressions and payloads are in
+docs/fleet-protocol.md; a plain Zenoh subscriber (or a ROS 2 system on rmw_zenoh) reads them.
+
+Zenoh runs in peer mode with multicast scouting off: a leader listens on and connects to the
+endpoints it is given (on loopback in the tests), and nothing else finds it.
+
+Who may command the robots over the bus: a fleet-wide STOP is always obeyed (stopping is
+always safe); anything else (gains, formation, leader motion, releasing STOP) only when the
+operator started the leader with ``--fleet-control``; otherwise it is refused and the refusal
+published as an event. A command is checked as the page's values are (app.live.params): bad
+values are refused or clamped with the notice published.
+
+The state is published from a thread of its own with the newest tick only (the robots' loop
+never waits on the network), the events from the parameter store's listeners.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+from typing import Any
+
+import numpy as np
+
+from app.dashboard import LatestStatePublisher
+from app.live.params import Params, ParamsStore
+from app.live.tick import TickState
+from app.recording.writer import params_events
+
+log = logging.getLogger(__name__)
+
+NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
+ENDPOINT = re.compile(r"(tcp|udp)/[A-Za-z0-9_.-]+:\d{1,5}|(tcp|udp)/\[[0-9a-fA-F:]+\]:\d{1,5}")
+SETTABLE = ("k_f1", "k_f2", "a", "k_w1", "k_w2", "slots", "leader_mode", "leader_speed_mps", "leader_turn_deg_s",
+            "stop", "safety", "safety_distance_m", "goal", "min_scale")
+
+
+def root(fleet: str) -> str:
+    return f"omniformation/{fleet}"
+
+
+def check_name(value: str, what: str) -> str:
+    """A fleet or leader name that is one key-expression chunk, else ValueError (one line)."""
+    if not NAME.fullmatch(value):
+        raise ValueError(f"{what} {value!r}: 1 to 32 characters of A-Z, a-z, 0-9, _ and - (it names keys on the bus)")
+    return value
+
+
+def check_endpoint(value: str) -> str:
+    if not ENDPOINT.fullmatch(value):
+        raise ValueError(f"endpoint {value!r}: must be tcp/HOST:PORT or udp/HOST:PORT (e.g. tcp/127.0.0.1:7447)")
+    return value
+
+
+def zenoh_config(listen: list[str], connect: list[str]) -> Any:
+    import zenoh
+
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("scouting/multicast/enabled", "false")
+    if listen:
+        c.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        c.insert_json5("connect/endpoints", json.dumps(connect))
+    return c
+
+
+def _num(x: Any) -> Any:
+    if isinstance(x, np.ndarray):
+        return [_num(v) for v in x.tolist()]
+    if isinstance(x, (list, tuple)):
+        return [_num(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        f = float(x)
+        return round(f, 5) if math.isfinite(f) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def state_payload(s: TickState, leader_id: str) -> dict[str, Any]:
+    """What a leader publishes each tick (docs/fleet-protocol.md): compact, SI units."""
+    return {
+        "leader_id": leader_id, "tick": s.tick, "t": _num(s.t), "leader": _num(s.leader),
+        "leader_twist": _num(list(s.leader_twist)), "p_est": _num(s.p_est), "a_est": _num(s.a_est),
+        "tracked": _num(s.tracked.astype(bool)), "p_d": _num(s.p_d), "error_m": _num(np.linalg.norm(s.p_d - s.p_est, axis=1)),
+        "commands": _num(s.commands), "gains": s.gains.as_dict(), "stopped": bool(s.stopped), "phase": s.phase,
+        "link_state": s.link_state, "rate_hz": _num(s.rate_hz),
+    }
+
+
+class FleetBridge:
+    """One leader's presence on the bus; ``on_tick`` is the loop's subscriber."""
+
+    def __init__(self, store: ParamsStore, fleet: str, leader_id: str, listen: list[str] | None = None,
+                 connect: list[str] | None = None, allow_control: bool = False) -> None:
+        import zenoh
+
+        self.store = store
+        self.fleet = check_name(fleet, "fleet")
+        self.leader_id = check_name(leader_id, "leader id")
+        self.allow_control = allow_control
+        self.base = f"{root(fleet)}/leader/{leader_id}"
+        self.session = zenoh.open(zenoh_config([check_endpoint(e) for e in listen or []],
+                                               [check_endpoint(e) for e in connect or []]))
+        self.commands_taken = 0
+        self.commands_refused = 0
+        self._state_pub = self.session.declare_publisher(f"{self.base}/state")
+        self._event_pub = self.session.declare_publisher(f"{self.base}/events")
+        self._token = self.session.liveliness().declare_token(f"{root(fleet)}/alive/{leader_id}")
+        self._subs = [self.session.declare_subscriber(f"{self.base}/cmd", self._on_command),
+                      self.session.declare_subscriber(f"{root(fleet)}/all/cmd", self._on_fleet_command)]
+        self._last_params = store.get()
+        self._t = 0.0
+        store.subscribe(self._on_params)
+        self._publisher = LatestStatePublisher(self._publish_state)
+
+    # -- out ------------------------------------------------------------------------------
+    def on_tick(self, s: TickState) -> None:
+        self._t = s.t
+        self._publisher(s)
+
+    def _publish_state(self, s: TickState) -> None:
+        self._state_pub.put(json.dumps(state_payload(s, self.leader_id), separators=(",", ":")))
+
+    def event(self, kind: str, detail: str) -> None:
+        self._event_pub.put(json.dumps({"leader_id": self.leader_id, "t": round(self._t, 3), "kind": kind,
+                                        "detail": detail}))
+
+    def _on_params(self, p: Params, source: str, notices: tuple[Any, ...]) -> None:
+        old, self._last_params = self._last_params, p
+        for kind, detail in params_events(old, p, source):
+            self.event(kind, f"{detail} ({source})")
+        if old.stop != p.stop:
+            self.event("stop", f"{'STOP: every follower at zero' if p.stop else 'STOP released'} ({source})")
+        for n in notices:
+            self.event("notice", n.message)
+
+    # -- in -------------------------------------------------------------------------------
+    def _changes(self, sample: Any) -> tuple[dict[str, Any], str]:
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+        except (ValueError, UnicodeDecodeError):
+            return {}, "not JSON"
+        if not isinstance(msg, dict) or not isinstance(msg.get("set"), dict):
+            return {}, 'must be {"set": {NAME: VALUE, ...}}'
+        unknown = [k for k in msg["set"] if k not in SETTABLE]
+        if unknown:
+            return {}, f"{unknown[0]!r} cannot be set over the bus (allowed: {', '.join(SETTABLE)})"
+        sender = str(msg.get("from", "?"))[:40]
+        return dict(msg["set"]), sender
+
+    def _apply(self, changes: dict[str, Any], sender: str) -> None:
+        try:
+            self.store.update(f"fleet:{sender}", **changes)
+            self.commands_taken += 1
+        except (ValueError, TypeError) as exc:
+            self.commands_refused += 1
+            self.event("refused", f"from {sender}: {exc}")
+
+    def _on_command(self, sample: Any) -> None:
+        changes, sender = self._changes(sample)
+        if not changes:
+            self.commands_refused += 1
+            self.event("refused", f"a command on {self.base}/cmd: {sender}")
+            return
+        if not self.allow_control and changes != {"stop": True}:
+            self.commands_refused += 1
+            self.event("refused", f"from {sender}: this leader takes only STOP over the bus (started without"
+                                  " --fleet-control)")
+            return
+        self._apply(changes, sender)
+
+    def _on_fleet_command(self, sample: Any) -> None:
+        changes, sender = self._changes(sample)
+        if changes != {"stop": True}:
+            self.commands_refused += 1
+            self.event("refused", f"fleet-wide commands are STOP only ({{\"set\": {{\"stop\": true}}}}), got {sender}"
+                       if not changes else f"fleet-wide commands are STOP only, got {sorted(changes)} from {sender}")
+            return
+        self._apply(changes, sender)
+
+    def close(self) -> None:
+        self._publisher.close()
+        for s in self._subs:
+            s.undeclare()  # type: ignore[no-untyped-call]  # zenoh's stubs leave these unannotated
+        self._token.undeclare()  # type: ignore[no-untyped-call]
+        self.session.close()  # type: ignore[no-untyped-call]

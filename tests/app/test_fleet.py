@@ -1,0 +1,154 @@
+"""A leader on the fleet bus, seen and commanded by a plain Zenoh session written from
+docs/fleet-protocol.md alone."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from app.fleet.bridge import FleetBridge
+from app.live.loop import ServiceLoop
+from app.live.params import Params, ParamsStore, default_slots
+
+from tests.helpers import ROOT, main_cli, wait_for
+
+zenoh = pytest.importorskip("zenoh")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Listener:
+    """What a third program does: connect, subscribe to the fleet's keys, watch liveliness."""
+
+    def __init__(self, endpoint: str, fleet: str) -> None:
+        c = zenoh.Config()
+        c.insert_json5("mode", '"peer"')
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        self.session = zenoh.open(c)
+        self.fleet = fleet
+        self.states: list[dict] = []
+        self.events: list[dict] = []
+        self.alive: list[tuple[str, str]] = []
+        self._lock = threading.Lock()
+        self._subs = [
+            self.session.declare_subscriber(f"omniformation/{fleet}/leader/*/state", self._state),
+            self.session.declare_subscriber(f"omniformation/{fleet}/leader/*/events", self._event),
+            self.session.liveliness().declare_subscriber(f"omniformation/{fleet}/alive/*", self._alive, history=True),
+        ]
+
+    def _state(self, s) -> None:
+        with self._lock:
+            self.states.append(json.loads(s.payload.to_bytes()))
+
+    def _event(self, s) -> None:
+        with self._lock:
+            self.events.append(json.loads(s.payload.to_bytes()))
+
+    def _alive(self, s) -> None:
+        with self._lock:
+            self.alive.append((str(s.key_expr), "put" if s.kind == zenoh.SampleKind.PUT else "delete"))
+
+    def send(self, key: str, payload: object) -> None:
+        self.session.put(f"omniformation/{self.fleet}/{key}", payload if isinstance(payload, bytes) else json.dumps(payload))
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def test_a_leader_is_seen_on_the_bus_and_takes_only_what_the_operator_allows():
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    store = ParamsStore(Params(n_followers=2, slots=default_slots(2), leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+    bridge = FleetBridge(store, "arena1", "L1", listen=[endpoint])
+    loop.subscribe(bridge.on_tick)
+    listener = Listener(endpoint, "arena1")
+    stop_ticking = threading.Event()
+
+    def ticking() -> None:
+        while not stop_ticking.wait(1 / 30):
+            loop.tick()
+
+    thread = threading.Thread(target=ticking, daemon=True)
+    thread.start()
+    try:
+        wait_for(lambda: ("omniformation/arena1/alive/L1", "put") in listener.alive, 10, "the leader's token")
+        wait_for(lambda: len(listener.states) > 5, 10, "the team's state")
+        st = listener.states[-1]
+        assert st["leader_id"] == "L1" and len(st["p_est"]) == 2 and len(st["error_m"]) == 2
+        assert set(st) >= {"tick", "t", "leader", "leader_twist", "a_est", "tracked", "p_d", "commands", "gains",
+                           "stopped", "phase", "link_state", "rate_hz"}
+        # without --fleet-control: a gain change is refused, STOP is taken
+        listener.send("leader/L1/cmd", {"set": {"k_f1": 0.2}, "from": "test"})
+        wait_for(lambda: any(e["kind"] == "refused" and "STOP" in e["detail"] for e in listener.events), 10,
+                 "the refusal")
+        assert store.get().gains.k_f1 == pytest.approx(0.1)
+        listener.send("all/cmd", {"set": {"stop": True}, "from": "test"})
+        wait_for(lambda: store.get().stop, 10, "the fleet-wide STOP")
+        wait_for(lambda: listener.states[-1]["stopped"], 10, "the state saying so")
+        # the fleet-wide key takes nothing but STOP; malformed commands change nothing
+        version = store.get().version
+        for key, bad in (("all/cmd", {"set": {"stop": False}}), ("leader/L1/cmd", b"{not json"),
+                         ("leader/L1/cmd", {"set": {"v_max": 5}}), ("leader/L1/cmd", [1, 2])):
+            listener.send(key, bad)
+        wait_for(lambda: sum(e["kind"] == "refused" for e in listener.events) >= 5, 10, "four more refusals")
+        assert store.get().version == version and store.get().stop
+        # with control: a gain change acts and is published as an event; NaN is refused
+        bridge.allow_control = True
+        listener.send("leader/L1/cmd", {"set": {"k_f1": 0.2, "stop": False}, "from": "dashboard"})
+        wait_for(lambda: store.get().gains.k_f1 == pytest.approx(0.2) and not store.get().stop, 10, "the change")
+        wait_for(lambda: any(e["kind"] == "gain" and "fleet:dashboard" in e["detail"] for e in listener.events), 10,
+                 "the gain event")
+        listener.send("leader/L1/cmd", {"set": {"k_w2": "fast"}})
+        wait_for(lambda: any("k_w2" in e["detail"] and e["kind"] == "refused" for e in listener.events), 10, "refused")
+        assert store.get().gains.k_w2 == pytest.approx(3.0)
+    finally:
+        stop_ticking.set()
+        thread.join(5)
+        bridge.close()
+    wait_for(lambda: ("omniformation/arena1/alive/L1", "delete") in listener.alive, 10, "the token gone")
+    listener.close()
+
+
+def test_a_killed_leader_process_loses_its_token():
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
+                             "--no-record", "--fleet", "arena2", "--leader-id", "L7", "--zenoh-listen", endpoint],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    listener = None
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline() for _ in range(2)]
+        assert any("on the fleet bus as arena2/L7 (STOP only from it)" in ln for ln in lines), lines
+        listener = Listener(endpoint, "arena2")
+        wait_for(lambda: ("omniformation/arena2/alive/L7", "put") in listener.alive, 30, "the token")
+        wait_for(lambda: len(listener.states) > 3, 30, "the state")
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        wait_for(lambda: ("omniformation/arena2/alive/L7", "delete") in listener.alive, 30, "the token gone with it")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if listener is not None:
+            listener.close()
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--leader-id", "L1"], "go with --fleet NAME"),
+    (["--fleet", "a/b", "--leader-id", "L1"], "--fleet 'a/b'"),
+    (["--fleet", "a", "--leader-id", "L*"], "--leader-id 'L*'"),
+    (["--fleet", "a", "--leader-id", "L1", "--zenoh-listen", "127.0.0.1:7447"], "tcp/HOST:PORT"),
+])
+def test_bad_fleet_arguments_are_one_line(args, words):
+    r = main_cli("run", "--port", "0", "--no-record", *args)
+    assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
