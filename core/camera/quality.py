@@ -12,9 +12,14 @@ elsewhere. Two refits tell more:
 
 Blending error grows with the square of the gap between bearings, so leaving a bearing out
 quadruples it; the estimate is e² = e_point² + max(0, e_bearing² − e_point²) / 16, for the
-median and for the 95th percentile. On the synthetic model (tilt 1–3°, centre 12 px off, 4, 6
-and 8 bearings, 0.3 px of pixel noise) it is within 0.7 cm of the error measured on 600
-fresh markers everywhere in the covered ring (tests/core/camera/test_quality.py).
+median and for the 95th percentile. A point left out of few (n on its bearing, a fit of p =
+degree + 1 coefficients) errs more than a fresh marker would, by about 1/sqrt(1 − (p/n)²)
+(least squares: the left-out residual grows by 1/(1 − h), h ≈ p/n, while a fresh marker
+brings its own noise): its errors are scaled back by that. On the synthetic model (tilt 1–3°,
+centre 12 px off, 4, 6 and 8 bearings of 15 distances, 0.3 px of pixel noise) the estimate
+is within 0.7 cm of the error measured on 600 fresh markers everywhere in the covered ring
+(tests/core/camera/test_quality.py); with the page's 24 captures (6 distances a bearing) its
+p95 is still 0.5–1 cm above the fresh markers' (docs/calibration.md).
 
 **Coverage.** Bearings more than 100° apart, and distances along a bearing more than 0.4 m
 apart, leave places where positions are interpolated far from any marker: said plainly.
@@ -79,7 +84,11 @@ def held_out_error(table: MatchingTable, gamma: Gamma, degree: int) -> HeldOut:
         except CalibrationError:
             continue
         refits += 1
-        point.extend(position_errors_cm(g, _subset(table, ~keep)))
+        # a point left out of n on its bearing leaves a fit of degree+1 coefficients on n-1: its
+        # error is larger than a fresh marker's by about 1/sqrt(1 - (p/n)^2) (least squares:
+        # the left-out residual grows by 1/(1-h), h ~ p/n; a fresh marker adds its own noise)
+        shrink = math.sqrt(max(0.0, 1.0 - ((degree + 1) / line.sum()) ** 2))
+        point.extend(shrink * position_errors_cm(g, _subset(table, ~keep)))
     bearings = np.unique(np.round(table.bearing_deg, 6))
     by_bearing: list[float] = []
     if len(bearings) >= 3:
