@@ -17,7 +17,7 @@ degree + 1 coefficients) errs more than a fresh marker would, by about 1/sqrt(1 
 (least squares: the left-out residual grows by 1/(1 − h), h ≈ p/n, while a fresh marker
 brings its own noise): its errors are scaled back by that. On the synthetic model (tilt 1–3°,
 centre 12 px off, 4, 6 and 8 bearings of 15 distances, 0.3 px of pixel noise) the estimate
-is within 0.7 cm of the error measured on 600 fresh markers everywhere in the covered ring
+is within 0.5 cm of the error measured on 400 fresh markers everywhere in the covered ring
 (tests/core/camera/test_quality.py); with the page's 24 captures (6 distances a bearing) its
 p95 is still 0.5–1 cm above the fresh markers' (docs/calibration.md).
 
