@@ -270,13 +270,18 @@ class Gate:
                 additional_headers={GATE_HEADER: self._secret}, open_timeout=30,
             ) as upstream:
                 async def pump(src: Any, dst: Any) -> None:
-                    async for message in src:
-                        await dst.send(message)
+                    try:
+                        async for message in src:
+                            await dst.send(message)
+                    except websockets.exceptions.ConnectionClosed:
+                        pass  # one side went away (a browser tab closed): the other is closed below
 
                 tasks = {asyncio.create_task(pump(client, upstream)), asyncio.create_task(pump(upstream, client))}
-                _, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+                done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
                 for task in pending:
                     task.cancel()
+                for task in done:
+                    task.exception()  # retrieved: never an "exception was never retrieved" on stderr
         except (websockets.exceptions.ConnectionClosed, OSError):
             pass
 
