@@ -357,6 +357,12 @@ class ServiceLoop:
         self._world.controller = ControllerState.initial(n)
         self._world.last_cmd = np.zeros((n, 2))
 
+    def close_team(self) -> None:
+        """For a loop that never ran: every follower to zero and the team's link closed (what
+        the end of :meth:`run` does)."""
+        self.halt_followers()
+        self._world.team.close()
+
     # -- pacing ---------------------------------------------------------------------------
     def run(self) -> None:
         """Tick at the configured rate until stop(); always leaves the followers at zero."""

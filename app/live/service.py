@@ -152,6 +152,8 @@ class Service:
         self.loop.stop()
         if self._thread is not None:
             self._thread.join(60.0)
+        else:  # never started: nothing else closes the team's link (a serial port left open would
+            self.loop.close_team()  # keep reading whatever device later gets its name)
         self.sweeps.cancel()
         self.publisher.close()
         self.recordings.close()

@@ -174,8 +174,9 @@ def test_the_live_page_of_a_real_camera_has_the_calibration_panel(tmp_path):
         assert abs(panel.cx.value - calibration.gamma.cx) < 3 and abs(panel.cy.value - calibration.gamma.cy) < 3
         assert panel.capture_marker().startswith(("capture refused", "captured"))  # the team's markers are in view
     finally:
-        svc.close()
+        svc.close()  # never started: closes the link itself
         emulated.close()
+    assert not link._thread.is_alive()  # its reader is gone: it cannot take a later pty's bytes
 
 
 def test_a_real_rig_from_the_config_starts_observes_and_stops_cleanly(tmp_path):
