@@ -33,13 +33,10 @@ from core.camera.guide import fit_mirror_circle, find_marker, guide_targets, nex
 from core.camera.quality import HeldOut, coverage_warnings, detect_mounting, held_out_error
 
 from app.contracts import FrameSource
+from app.dashboard.widgets import assign
 
 DEGREE = 3
 PREVIEW_WIDTH = 480
-
-
-def _assign(handle: Any, value: Any) -> None:
-    handle.value = value
 
 
 class CalibrationPanel:
@@ -100,10 +97,10 @@ class CalibrationPanel:
         c = fit_mirror_circle(frame)
         if c is None:
             return self._say("no mirror circle found in the picture: set the centre and radii by hand")
-        _assign(self.cx, round(c.cx, 1))
-        _assign(self.cy, round(c.cy, 1))
-        _assign(self.inner, round(0.22 * c.radius, 1))  # the leader's own body hides the middle
-        _assign(self.outer, round(0.8 * c.radius, 1))  # the floor ends before the rim (walls, sky)
+        assign(self.cx, round(c.cx, 1))
+        assign(self.cy, round(c.cy, 1))
+        assign(self.inner, round(0.22 * c.radius, 1))  # the leader's own body hides the middle
+        assign(self.outer, round(0.8 * c.radius, 1))  # the floor ends before the rim (walls, sky)
         return self._say(f"mirror circle: centre ({c.cx:.1f}, {c.cy:.1f}) px, radius {c.radius:.1f} px;"
                          f" working area {0.22 * c.radius:.0f}..{0.8 * c.radius:.0f} px (adjust if needed)")
 
@@ -189,10 +186,10 @@ class CalibrationPanel:
                 cam = load_camera(path)
                 g = cam.gamma
                 if g is not None:
-                    _assign(self.cx, round(g.cx, 1))
-                    _assign(self.cy, round(g.cy, 1))
-                _assign(self.inner, cam.working_area.inner_px)
-                _assign(self.outer, cam.working_area.outer_px)
+                    assign(self.cx, round(g.cx, 1))
+                    assign(self.cy, round(g.cy, 1))
+                assign(self.inner, cam.working_area.inner_px)
+                assign(self.outer, cam.working_area.outer_px)
                 return self._say(f"loaded the centre and working area of {path}")
         except UserError as exc:
             return self._say(f"load: {exc}")
@@ -278,8 +275,8 @@ class CalibrationPanel:
         b, d = target
         self.guide.content = (f"**Next marker ({done + 1} of {len(self.targets)})**: bearing {b:g}° (0 ahead,"
                               f" counter-clockwise), {d:g} m from the camera's axis")
-        _assign(self.bearing, b)
-        _assign(self.distance, d)
+        assign(self.bearing, b)
+        assign(self.distance, d)
         place = getattr(self.source, "place", None)
         if callable(place):  # the synthetic rig's helper puts the marker where the guide asks
             place([target])

@@ -33,6 +33,7 @@ from core.control.tuning import (LIMIT_NAMES, OFFSET_M, TURN_RPS, WINDOW_S, Step
                                  lyapunov_trend, parse_gain_range)
 from core.types import GAIN_BOUNDS
 
+from app.dashboard.widgets import assign
 from app.live.params import ParamsStore
 from app.live.sweep import SweepResult, SweepRunner
 from app.live.tick import TickState
@@ -45,11 +46,6 @@ REDRAW_S = 0.25
 LIMIT_RGB = ((230, 120, 20), (150, 60, 200), (200, 30, 30), (30, 110, 210), (20, 150, 90))
 TREND_TEXT = {-1: ("falling", "#1a7f37"), 0: ("flat", "#57606a"), 1: ("rising", "#cf222e")}
 SWEEP_GAINS = tuple(GAIN_BOUNDS)
-
-
-def _assign(handle: Any, value: Any) -> None:
-    """Set a widget's value from the server (viser types it read-only for some handles)."""
-    handle.value = value
 
 
 def _legend() -> str:
@@ -263,7 +259,7 @@ class TuningPanel:
                 self.sweep_message = f"refused: {why}"
             else:
                 self.sweep_message = "running"
-                _assign(self.progress, 0.0)
+                assign(self.progress, 0.0)
                 self.cancel_sweep.disabled = False
                 self.sweep_button.disabled = True
             self.sweep_status.content = f"sweep: {self.sweep_message}"
@@ -314,11 +310,11 @@ class TuningPanel:
                         f"<td>{html.escape(cells[2])}</td><td>{cells[-4]}</td><td>{cells[-3]}</td><td>{cells[-2]}</td>"
                         f"<td>{cells[-1]}</td><td>{html.escape(changed)}</td></tr>")
         self.table.content = f'<table style="font-size:11px;width:100%">{head}{"".join(body)}</table>'
-        _assign(self.row, trial.number)
+        assign(self.row, trial.number)
         self.status.content = f"step test: trial {trial.number} {trial.status}"
 
     def _on_progress(self, done: int, total: int) -> None:
-        _assign(self.progress, 100.0 * done / max(1, total))
+        assign(self.progress, 100.0 * done / max(1, total))
         self.sweep_status.content = f"sweep: {done} of {total} points"
 
     def _on_sweep(self, result: SweepResult) -> None:
@@ -333,7 +329,7 @@ class TuningPanel:
         labels = [f"{rank + 1}. {result.point_label(k)}" for rank, k in enumerate(order)] or ["none"]
         self._point_index = {label: k for label, k in zip(labels, order)}
         self.point.options = tuple(labels)
-        _assign(self.point, labels[0])
+        assign(self.point, labels[0])
         self.point.disabled = self.apply_point.disabled = self.apply_best.disabled = not order
         self.cancel_sweep.disabled = True
         self.sweep_button.disabled = False
@@ -347,7 +343,7 @@ class TuningPanel:
         if tuple(self.follower.options) != options:
             value = self.follower.value if self.follower.value in options else "F1"
             self.follower.options = options
-            _assign(self.follower, value)
+            assign(self.follower, value)
 
     def update(self, s: TickState) -> None:
         self.set_followers(s.n)

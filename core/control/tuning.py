@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from core.control.formation import heading_saturation, saturate_position_error
 from core.control.presets import FORMATION_PRESETS, formation_preset
 from core.types import GAIN_BOUNDS, FloatArray, Gains, IntArray
 
@@ -70,16 +71,16 @@ def limit_flags(
     command is rebuilt from eq. 10-11 (v = |ζ_r| cos ã, ω = ȧ_r + f(ã) + ω_l). A follower
     that may not move (``active`` false) has no flags."""
     err = np.asarray(p_d, dtype=np.float64) - np.asarray(p, dtype=np.float64)
-    mag = np.abs(err)
     g = gains
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = g.a * (g.k_f1 + g.k_f2 * np.tanh(mag)) / (g.k_f1 * (g.a + mag))
+    with np.errstate(invalid="ignore", divide="ignore"):  # at e = 0 the ratio is NaN: not saturated
+        ratio = saturate_position_error(err, g.k_f1, g.k_f2, g.a) / (g.k_f1 / g.a * err)
     flags = np.where(np.any(ratio < SATURATED_RATIO, axis=1), EQ4, 0)
     ae = np.asarray(a_err, dtype=np.float64)
-    flags |= np.where(np.abs(np.tanh(g.k_w2 * ae)) ** 3 > SATURATED_RATIO, EQ12, 0)
+    heading = heading_saturation(ae, g.k_w1, g.k_w2)  # eq. 12, as the controller computed it
+    flags |= np.where(np.abs(heading) > SATURATED_RATIO * g.k_w1, EQ12, 0)
     z = np.atleast_2d(np.asarray(zeta_r, dtype=np.float64))
     v_raw = np.hypot(z[:, 0], z[:, 1]) * np.cos(ae)
-    w_raw = np.asarray(a_r_dot, dtype=np.float64) + g.k_w1 * np.tanh(g.k_w2 * ae) ** 3 + w_l
+    w_raw = np.asarray(a_r_dot, dtype=np.float64) + heading + w_l
     c = np.atleast_2d(np.asarray(commands, dtype=np.float64))
     flags |= np.where(np.abs(c[:, 0] - v_raw) > CLAMP_EPS, V_LIMIT, 0)
     flags |= np.where(np.abs(c[:, 1] - w_raw) > CLAMP_EPS, W_LIMIT, 0)
