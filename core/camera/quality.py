@@ -12,14 +12,17 @@ elsewhere. Two refits tell more:
 
 Blending error grows with the square of the gap between bearings, so leaving a bearing out
 quadruples it; the estimate is e² = e_point² + max(0, e_bearing² − e_point²) / 16, for the
-median and for the 95th percentile. A point left out of few (n on its bearing, a fit of p =
-degree + 1 coefficients) errs more than a fresh marker would, by about 1/sqrt(1 − (p/n)²)
-(least squares: the left-out residual grows by 1/(1 − h), h ≈ p/n, while a fresh marker
-brings its own noise): its errors are scaled back by that. On the synthetic model (tilt 1–3°,
-centre 12 px off, 4, 6 and 8 bearings of 15 distances, 0.3 px of pixel noise) the estimate
-is within 0.5 cm of the error measured on 400 fresh markers everywhere in the covered ring
-(tests/core/camera/test_quality.py); with the page's 24 captures (6 distances a bearing) its
-p95 is still 0.5–1 cm above the fresh markers' (docs/calibration.md).
+median and for the 95th percentile. A point left out of few errs more than a fresh marker
+would: its bearing's range polynomial is a least-squares fit, where the left-out error of a
+point of leverage h_k has variance σ²/(1 − h_k), and a fresh marker, measured as the table
+was, σ²(1 + h̄) (h̄: the leverage averaged over the bearing's measured radii). Each left-out
+error is scaled by sqrt((1 − h_k)(1 + h̄)), with the exact leverages of that polynomial. (The
+rougher h ≈ p/n this replaced made the page's 6-a-bearing estimate 0.7 cm cautious on average
+in the tail; six markers on a cubic leave interior leverages of 0.45–0.6, not 0.67.) On the
+synthetic model (tilt 1–3°, centre 12 px off, 0.3 px of pixel noise) the estimate is within
+1 cm of the error measured on 400 fresh markers everywhere in the covered ring, for 4, 6 and 8
+bearings of 15 distances and for the page's 4 × 6 captures with 3 mm of placing error
+(tests/core/camera/test_quality.py).
 
 **Coverage.** Bearings more than 100° apart, and distances along a bearing more than 0.4 m
 apart, leave places where positions are interpolated far from any marker: said plainly.
@@ -38,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.camera.gamma import CalibrationError, Gamma, MatchingTable, fit_gamma
+from core.camera.gamma import RADIUS_UNIT_PX, CalibrationError, Gamma, MatchingTable, fit_gamma
 from core.camera.model import bearing_range_to_xy, image_bearing
 
 WARN_CM = 3.0  # positions off by more than this deserve a warning
@@ -65,12 +68,26 @@ class HeldOut:
     refits: int
 
 
+def _fresh_scale(radii: np.ndarray, r_k: float, degree: int) -> float:
+    """sqrt((1 - h_k)(1 + h̄)): a left-out error of the point at radius ``r_k`` of a bearing's
+    range polynomial (over ``radii``, that point included) made a fresh marker's (module
+    docstring)."""
+    design = np.vander(radii, degree + 1)
+    inv = np.linalg.pinv(design.T @ design)
+    x_k = np.vander(np.array([r_k]), degree + 1)[0]
+    h_k = float(x_k @ inv @ x_k)
+    grid = np.vander(np.linspace(float(radii.min()), float(radii.max()), 64), degree + 1)
+    h_bar = float(np.einsum("ij,jk,ik->i", grid, inv, grid).mean())
+    return math.sqrt(max(0.0, 1.0 - h_k) * (1.0 + h_bar))
+
+
 def held_out_error(table: MatchingTable, gamma: Gamma, degree: int) -> HeldOut:
     """The error to expect on markers the table does not have (see the module docstring)."""
     centre = (gamma.cx, gamma.cy)
     offset_deg = math.degrees(gamma.bearing_offset)
     point: list[float] = []
     refits = 0
+    radius = np.hypot(table.u - gamma.cx, table.v - gamma.cy) / RADIUS_UNIT_PX
     for k in range(len(table)):
         line = np.round(table.bearing_deg, 6) == round(float(table.bearing_deg[k]), 6)
         d = table.metres[line]
@@ -84,11 +101,7 @@ def held_out_error(table: MatchingTable, gamma: Gamma, degree: int) -> HeldOut:
         except CalibrationError:
             continue
         refits += 1
-        # a point left out of n on its bearing leaves a fit of degree+1 coefficients on n-1: its
-        # error is larger than a fresh marker's by about 1/sqrt(1 - (p/n)^2) (least squares:
-        # the left-out residual grows by 1/(1-h), h ~ p/n; a fresh marker adds its own noise)
-        shrink = math.sqrt(max(0.0, 1.0 - ((degree + 1) / line.sum()) ** 2))
-        point.extend(shrink * position_errors_cm(g, _subset(table, ~keep)))
+        point.extend(_fresh_scale(radius[line], radius[k], degree) * position_errors_cm(g, _subset(table, ~keep)))
     bearings = np.unique(np.round(table.bearing_deg, 6))
     by_bearing: list[float] = []
     if len(bearings) >= 3:

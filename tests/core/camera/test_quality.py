@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from core.camera.gamma import MatchingTable, estimate_center, fit_gamma
+from core.camera.guide import GUIDE_DISTANCES_M
 from core.camera.model import CameraModel, bearing_range_to_xy
 from core.camera.quality import coverage_warnings, detect_mounting, held_out_error, position_errors_cm
 
@@ -16,26 +17,35 @@ MARKER_H = 0.102  # the markers' height above the floor (the synthetic rig's)
 DISTANCES = [round(0.4 + 0.1 * i, 2) for i in range(15)]
 
 
-def measured(model: CameraModel, bearings, distances, rng, noise_px=0.3) -> MatchingTable:
-    """A table as a person measures it: each marker's pixel, give or take the blob's noise."""
+def measured(model: CameraModel, bearings, distances, rng, noise_px=0.3, place_m=0.0) -> MatchingTable:
+    """A table as a person measures it: each marker's pixel, give or take the blob's noise,
+    and the marker itself give or take ``place_m`` from where the table says it stands."""
     rows = []
     for b in bearings:
         for d in distances:
-            xy = bearing_range_to_xy(np.array(math.radians(b)), np.array(d))
+            xy = bearing_range_to_xy(np.array(math.radians(b)), np.array(d)) + rng.normal(0, place_m, 2)
             u, v = model.project(np.array([float(xy[0]), float(xy[1]), MARKER_H]))
             rows.append((b, d, u + rng.normal(0, noise_px), v + rng.normal(0, noise_px)))
     a = np.array(rows)
     return MatchingTable(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
 
 
-@pytest.mark.parametrize("bearings", [4, 6, 8])
-def test_the_held_out_error_is_within_1_cm_of_the_error_on_fresh_markers(bearings):
-    rng = np.random.default_rng(bearings)
-    model = CameraModel(tilt_deg=2.0, cx=324.0 + 12.0)  # tilted 2 deg, off-centre by 12 px
-    table = measured(model, [360.0 / bearings * k for k in range(bearings)], DISTANCES, rng)
+PAGE_PLAN = list(GUIDE_DISTANCES_M)  # the page's 24 captures: 4 bearings x 6 distances
+
+
+@pytest.mark.parametrize(("bearings", "distances", "place_m", "tilt"), [
+    (4, DISTANCES, 0.0, 2.0), (6, DISTANCES, 0.0, 2.0), (8, DISTANCES, 0.0, 2.0),
+    (4, PAGE_PLAN, 0.003, 1.0), (4, PAGE_PLAN, 0.003, 2.0), (5, PAGE_PLAN, 0.003, 2.0),
+])
+def test_the_held_out_error_is_within_1_cm_of_the_error_on_fresh_markers(bearings, distances, place_m, tilt):
+    rng = np.random.default_rng(bearings + int(10 * tilt))
+    model = CameraModel(tilt_deg=tilt, cx=324.0 + 12.0)  # tilted, off-centre by 12 px
+    table = measured(model, [360.0 / bearings * k for k in range(bearings)], distances, rng, place_m=place_m)
     fit = fit_gamma(table)
     held = held_out_error(table, fit.gamma, fit.gamma.degree)
-    fresh_b, fresh_d = rng.uniform(0, 360, 400), rng.uniform(0.45, 1.75, 400)
+    # fresh markers anywhere in the ring the table covers, placed exactly
+    lo = min(distances) + (0.05 if place_m == 0.0 else 0.0)
+    fresh_b, fresh_d = rng.uniform(0, 360, 400), rng.uniform(lo, max(distances), 400)
     fresh = [measured(model, [b], [d], rng) for b, d in zip(fresh_b, fresh_d)]
     err = np.concatenate([position_errors_cm(fit.gamma, t) for t in fresh])
     assert abs(held.median_cm - np.median(err)) <= 1.0, (held, np.median(err))
