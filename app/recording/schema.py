@@ -28,8 +28,9 @@ Crash safety: messages are written in zstd chunks of at most ``CHUNK_BYTES``; SI
 SIGTERM finish the file (summary and index). A file cut off by SIGKILL or power loss is
 still read up to its last complete chunk: at most ``CHUNK_BYTES`` of messages — about three
 seconds of a session with camera frames at 10 Hz — are lost. 1 MiB rather than smaller: the
-writer keeps one chunk index per chunk in memory until the file is closed (about 600 bytes
-each), so an hour of a session (1.2 GB) holds 1,200 of them (0.7 MB), not 4,800.
+writer keeps one chunk index per chunk in memory until the file is closed (about 400 bytes
+each without the per-chunk message indexes, which are not written: app.recording.writer),
+so an hour of a session (1.2 GB) holds 1,200 of them (0.5 MB), not 4,800.
 """
 
 from __future__ import annotations
