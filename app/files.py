@@ -23,9 +23,11 @@ if TYPE_CHECKING:
     from core.camera.config import CameraConfig
     from core.camera.gamma import Gamma, MatchingTable
     from core.config import Scenario
+    from core.fleet import FleetScenario
 
 STATIC_CONFIG = Path(static_config.__file__).resolve().parent
 SCENARIOS = STATIC_CONFIG / "scenarios"
+FLEETS = STATIC_CONFIG / "fleets"
 DEFAULT_CONFIG = STATIC_CONFIG / "default.toml"
 CAMERA_DIR = STATIC_CONFIG / "camera"
 SYNTHETIC_CAMERA = CAMERA_DIR / "synthetic.toml"
@@ -99,23 +101,37 @@ def read_text(path: Path, what: str) -> str:
 # ---------------------------------------------------------------- scenarios
 
 
-def scenario_names() -> list[str]:
-    return sorted(p.stem for p in SCENARIOS.glob("*.toml"))
+def scenario_names(folder: Path = SCENARIOS) -> list[str]:
+    return sorted(p.stem for p in folder.glob("*.toml"))
 
 
-def resolve_scenario_path(name_or_path: str) -> Path:
-    """A path as given, or a bare name from the shipped scenarios."""
+def resolve_scenario_path(name_or_path: str, folder: Path = SCENARIOS, what: str = "scenario") -> Path:
+    """A path as given, or a bare name from the shipped scenarios (or fleets)."""
     as_path = Path(name_or_path)
     if as_path.suffix == ".toml" or "/" in name_or_path or as_path.exists():
         if not as_path.is_file():
-            raise UserError(f"{name_or_path}: no such scenario file")
+            raise UserError(f"{name_or_path}: no such {what} file")
         return as_path
-    candidate = SCENARIOS / f"{name_or_path}.toml"
+    candidate = folder / f"{name_or_path}.toml"
     if not candidate.is_file():
         raise UserError(
-            f"scenario {name_or_path!r} not found: give a .toml path or one of {', '.join(scenario_names())}"
+            f"{what} {name_or_path!r} not found: give a .toml path or one of {', '.join(scenario_names(folder))}"
         )
     return candidate
+
+
+def load_fleet(name_or_path: str) -> FleetScenario:
+    """Read and validate a fleet scenario (static_config/fleets/); any problem is one line."""
+    from core.config import ConfigError
+    from core.fleet import parse_fleet
+
+    path = resolve_scenario_path(name_or_path, FLEETS, "fleet scenario")
+    try:
+        return parse_fleet(read_text(path, "fleet scenario"), display_path(path))
+    except ConfigError as exc:
+        raise UserError(str(exc)) from None
+    except ValueError as exc:
+        raise UserError(f"{display_path(path)}: {exc}") from None
 
 
 def load_scenario(name_or_path: str) -> Scenario:

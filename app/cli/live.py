@@ -55,6 +55,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record to this file instead of recordings/")
     run.add_argument("--frames-hz", type=float_in(0.0, 100.0, "Hz", lo_inclusive=True), default=10.0,
                      help="camera frames per second in the recording (default 10, 0 = none)")
+    run.add_argument("--arena", metavar="FLEET",
+                     help="lead a team in a fleet's shared arena (`omniformation arena FLEET` runs it; with"
+                          " --leader-id; the fleet's name is the scenario's unless --fleet gives one)")
     run.add_argument("--fleet", metavar="NAME", help="join this fleet on the Zenoh bus (docs/fleet-protocol.md)")
     run.add_argument("--leader-id", metavar="ID", help="this leader's name in the fleet (with --fleet)")
     run.add_argument("--zenoh-listen", action="append", default=[], metavar="tcp/HOST:PORT",
@@ -76,6 +79,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     from app.live.config import load_service_config
 
     config = load_service_config(args.config, MAX_FOLLOWERS)
+    fleet_scenario = None
+    if args.arena is not None:
+        from app.files import load_fleet
+
+        if args.scenario or args.camera or args.link or args.followers or args.leader:
+            raise UserError("--arena leads the arena's robots: it cannot be combined with --scenario, --camera,"
+                            " --link, --leader or --followers")
+        if args.feedback == "vision":
+            raise UserError("--arena: the leaders' cameras are not rendered from the arena yet; poses come from the"
+                            " arena's truth plus noise (--feedback truth, the default with --arena)")
+        fleet_scenario = load_fleet(args.arena)
+        ids = [ld.id for ld in fleet_scenario.leaders]
+        if args.leader_id not in ids:
+            raise UserError(f"--arena {args.arena}: --leader-id must be one of its leaders: {', '.join(ids)}"
+                            + (f" (got {args.leader_id!r})" if args.leader_id else ""))
+        args.fleet = args.fleet or fleet_scenario.name
+        args.feedback = "truth"
     fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect, args.fleet_control)
     if args.fleet is None and any(fleet_args):
         raise UserError("--leader-id, --zenoh-listen, --zenoh-connect and --fleet-control go with --fleet NAME")
@@ -141,6 +161,39 @@ def cmd_run(args: argparse.Namespace) -> int:
             frames = open_frame_source(args.camera, args.camera_fps)
         except ValueError as exc:
             raise UserError(str(exc)) from None
+    session = arena_team = None
+    params = None
+    if args.fleet is not None:  # on the bus before anything drives: an id taken, or no arena, ends here
+        from app.cli.fleet import open_bus
+        from app.fleet.bridge import name_taken
+
+        session = open_bus(args.zenoh_listen, args.zenoh_connect, f"--fleet {args.fleet}")
+        try:
+            if fleet_scenario is not None:
+                from app.fleet.arena_team import ArenaTeam, NoArena
+                from app.live.params import Params, default_slots
+
+                try:
+                    arena_team = ArenaTeam(session, args.fleet, args.leader_id, config.measurement.position_noise_m,
+                                           config.measurement.heading_noise_rad,
+                                           config.seed if args.seed is None else args.seed)
+                except NoArena as exc:
+                    raise UserError(f"--arena {args.arena}: {exc}") from None
+                if not arena_team.owned:
+                    raise UserError(f"--arena {args.arena}: {args.leader_id} owns no robot in the arena now (other"
+                                    " leaders adopted them); a leader needs at least one follower")
+                me = fleet_scenario.leaders[fleet_scenario.leader_index(args.leader_id)]
+                n_owned = len(arena_team.owned)
+                params = Params(n_followers=n_owned, slots=default_slots(n_owned), leader_mode=me.mode,  # type: ignore[arg-type]
+                                leader_speed_mps=me.speed_mps, leader_turn_deg_s=me.turn_deg_s)
+            if name_taken(session, args.fleet, args.leader_id):
+                raise UserError(f"--leader-id {args.leader_id}: a leader with this id is alive on fleet {args.fleet}"
+                                " already; every leader needs its own id")
+        except UserError:
+            if arena_team is not None:
+                arena_team.close()
+            session.close()  # type: ignore[attr-defined]
+            raise
     link = None
     if link_port:
         try:
@@ -158,9 +211,9 @@ def cmd_run(args: argparse.Namespace) -> int:
                           seed=config.seed if args.seed is None else args.seed, camera=camera,
                           dynamics=config.dynamics, noise=config.measurement,
                           link=None if real else link, frames=frames, hardware=hardware, recordings=args.recordings,
-                          token=args.token)
+                          token=args.token, arena=arena_team, params=params)
     except OSError as exc:
-        for closable in (hardware or link, frames):
+        for closable in (hardware or link, frames, arena_team):
             if closable is not None:
                 closable.close()
         raise UserError(bind_error(args.host, args.port, exc)) from None
@@ -180,19 +233,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"omniformation: recording to {display_path(recorder.path)}", flush=True)
     # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
     # (even before the first tick ends), and the loop's own exit is what zeroes the robots.
-    bridge = None
+    bridge = adopter = None
     if args.fleet is not None:
         from app.fleet.bridge import FleetBridge
 
-        try:
-            bridge = FleetBridge(service.store, args.fleet, args.leader_id, args.zenoh_listen, args.zenoh_connect,
-                                 allow_control=args.fleet_control)
-        except Exception as exc:  # noqa: BLE001 - zenoh says why it cannot open (an endpoint taken, ...)
-            service.close()
-            if recorder is not None:
-                recorder.close()
-            raise UserError(f"--fleet {args.fleet}: cannot join the bus: {str(exc).splitlines()[0][:200]}") from None
+        bridge = FleetBridge(service.store, args.fleet, args.leader_id, allow_control=args.fleet_control,
+                             session=session)
         service.loop.subscribe(bridge.on_tick)
+        if arena_team is not None:
+            from app.fleet.arena_team import Adopter
+
+            adopter = Adopter(session, args.fleet, args.leader_id, arena_team, service.store, event=bridge.event)
         print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"
               f" ({'taking commands' if args.fleet_control else 'STOP only'} from it)", flush=True)
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -210,8 +261,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         pass
     finally:
         service.close()
+        if adopter is not None:
+            adopter.close()
         if bridge is not None:
             bridge.close()
+        if session is not None:
+            session.close()  # type: ignore[attr-defined]
         if recorder is not None:
             recorder.close()
             print(f"omniformation: recording finished: {display_path(recorder.path)} ({recorder.ticks} ticks)", flush=True)

@@ -80,9 +80,9 @@ class Scene:
             self.controls.drive_to(event, (ox + t * dx, oy + t * dy), what="goal clicked")
     def _rebuild(self, n: int, state: TickState) -> None:
         s = self.server.scene
+        for line in self.active:  # children of /followers/i: first, or removing the frames took them already
+            line.remove()
         for h in self.followers + self.ghosts + self.slot_handles + self.trail_handles:
-            h.remove()
-        for h in self.active:
             h.remove()
         self.followers, self.ghosts, self.slot_handles, self.trail_handles = [], [], [], []
         self.active = [s.add_line_segments(f"/followers/{i}/constrained", _circle(0.22), colors=(220, 30, 30),

@@ -69,6 +69,19 @@ def zenoh_config(listen: list[str], connect: list[str]) -> Any:
     return c
 
 
+def open_session(listen: list[str], connect: list[str]) -> Any:
+    """A Zenoh peer session on these endpoints (checked first: ValueError names a bad one)."""
+    import zenoh
+
+    return zenoh.open(zenoh_config([check_endpoint(e) for e in listen], [check_endpoint(e) for e in connect]))
+
+
+def name_taken(session: Any, fleet: str, leader_id: str, timeout_s: float = 1.0) -> bool:
+    """Whether a leader with this id is alive on the fleet's bus already (its liveliness token)."""
+    replies = session.liveliness().get(f"{root(fleet)}/alive/{leader_id}", timeout=timeout_s)
+    return any(getattr(r, "ok", None) is not None for r in replies)
+
+
 def _num(x: Any) -> Any:
     if isinstance(x, np.ndarray):
         return [_num(v) for v in x.tolist()]
@@ -99,16 +112,16 @@ class FleetBridge:
     """One leader's presence on the bus; ``on_tick`` is the loop's subscriber."""
 
     def __init__(self, store: ParamsStore, fleet: str, leader_id: str, listen: list[str] | None = None,
-                 connect: list[str] | None = None, allow_control: bool = False) -> None:
-        import zenoh
-
+                 connect: list[str] | None = None, allow_control: bool = False, session: Any = None) -> None:
+        """``session``: one already open (then ``listen`` / ``connect`` are its business, and
+        closing the bridge leaves it open)."""
         self.store = store
         self.fleet = check_name(fleet, "fleet")
         self.leader_id = check_name(leader_id, "leader id")
         self.allow_control = allow_control
         self.base = f"{root(fleet)}/leader/{leader_id}"
-        self.session = zenoh.open(zenoh_config([check_endpoint(e) for e in listen or []],
-                                               [check_endpoint(e) for e in connect or []]))
+        self._own_session = session is None
+        self.session = session if session is not None else open_session(listen or [], connect or [])
         self.commands_taken = 0
         self.commands_refused = 0
         self._state_pub = self.session.declare_publisher(f"{self.base}/state")
@@ -189,6 +202,7 @@ class FleetBridge:
     def close(self) -> None:
         self._publisher.close()
         for s in self._subs:
-            s.undeclare()  # type: ignore[no-untyped-call]  # zenoh's stubs leave these unannotated
-        self._token.undeclare()  # type: ignore[no-untyped-call]
-        self.session.close()  # type: ignore[no-untyped-call]
+            s.undeclare()
+        self._token.undeclare()
+        if self._own_session:
+            self.session.close()

@@ -35,6 +35,7 @@ from core.types import Commands, FloatArray, IntArray
 
 from app.backends.hardware import HardwareTeam
 from app.backends.sim import SimTeam, spread_start
+from app.fleet.arena_team import ArenaTeam
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
 from app.live.feedback import TruthFeedback, VisionFeedback
 from app.live.params import Params, ParamsStore
@@ -94,6 +95,7 @@ class ServiceLoop:
         pipeline_settings: PipelineSettings | None = None,
         obstacles: tuple[Obstacle, ...] = (),
         switches: tuple[tuple[float, FloatArray], ...] = (),
+        arena: ArenaTeam | None = None,
     ) -> None:
         """``camera``: the synthetic rig and its calibrated Γ; with it the controller is fed
         by the vision pipeline on rendered frames, without it by ground truth plus noise.
@@ -104,7 +106,9 @@ class ServiceLoop:
         ``obstacles``: boxes in the simulated world (a scenario's): the synthetic camera draws
         them, truth feedback knows them; the filter and the goal mode keep clear of them.
         ``switches``: (time s, slots) a scenario's formation switches, applied as the operator's
-        would be (they count from the loop's start and from every reset)."""
+        would be (they count from the loop's start and from every reset).
+        ``arena``: this leader's robots in a fleet's shared arena (app.fleet.arena_team); the
+        arena steps the world, the loop sees its truth plus noise and drives the robots it owns."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
@@ -117,6 +121,7 @@ class ServiceLoop:
         self.link = link
         self.frames = frames
         self.hardware = hardware
+        self.arena = arena
         self.pipeline_settings = pipeline_settings or PipelineSettings()
         self.obstacles = tuple(obstacles)
         self.switches = tuple(switches)
@@ -164,6 +169,11 @@ class ServiceLoop:
             feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
                                       source=self.frames, settings=self.pipeline_settings)
             assignment = np.arange(n) % params.slots.shape[0]  # eq. 33 runs once the poses are known
+        elif self.arena is not None:  # a fleet's arena: the same robots after a reset, plus any adopted
+            self.arena.resize(n)
+            team = self.arena
+            feedback = TruthFeedback(self.arena)
+            assignment = assign_slots(self.arena.observe()[0], params.slots)
         else:
             if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
                 p0, a0 = self._initial_poses

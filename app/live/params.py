@@ -21,7 +21,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from core.control.presets import FORMATION_PRESETS, PRESET_REACH_M, formation_preset
+from core.control.presets import FORMATION_PRESETS, PRESET_REACH_M, default_formation, formation_preset
 from core.types import GAIN_BOUNDS, Bound, FloatArray, Gains
 
 LeaderMode = Literal["stop", "straight", "circle", "eq39", "goal"]
@@ -225,9 +225,7 @@ def _whole(key: str, value: Any) -> int:
     return int(number)
 
 
-def default_slots(n: int) -> FloatArray:
-    """A sensible formation for n followers: the paper's triangle for 2, a V or ring beyond."""
-    return formation_preset("paper triangle" if n <= 2 else "V" if n <= 5 else "ring", n)
+default_slots = default_formation  # the page's name for it
 
 
 __all__ = ["FORMATION_PRESETS", "PRESET_REACH_M", "formation_preset"]  # the page's presets live in core

@@ -23,6 +23,7 @@ from core.obstacles import Obstacle, as_array, surface_distance
 from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile
 
 from app.backends.hardware import HardwareTeam
+from app.fleet.arena_team import ArenaTeam
 from app.contracts import FollowerLink, FrameSource, Rig
 from app.dashboard import Dashboard, LatestStatePublisher
 from app.dashboard.calibration_panel import CalibrationPanel
@@ -82,12 +83,15 @@ class Service:
                  dynamics: FollowerDynamics | None = None, noise: MeasurementNoise | None = None,
                  link: FollowerLink | None = None, frames: FrameSource | None = None,
                  hardware: HardwareTeam | None = None, recordings: Path | None = None,
-                 token: str | None = None) -> None:
+                 token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None) -> None:
         """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
-        ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host."""
+        ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host.
+        ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
+        ``params``: the operator's starting values when no scenario gives them."""
         bound_native_heap()  # hours of frames in bounded resident memory (app.memory)
-        fixed = hardware.state.n if hardware is not None else getattr(link, "n", None)
-        self.store = ParamsStore(params_for(scenario, fixed or n_followers), fixed_followers=fixed)
+        fixed = hardware.state.n if hardware is not None else len(arena.owned) if arena is not None \
+            else getattr(link, "n", None)
+        self.store = ParamsStore(params or params_for(scenario, fixed or n_followers), fixed_followers=fixed)
         noise = scenario.measurement if scenario is not None else noise or DEFAULT_NOISE
         initial_poses = None
         if scenario is not None:
@@ -99,7 +103,7 @@ class Service:
                                 link=link, frames=frames, hardware=hardware,
                                 position_noise_m=noise.position_noise_m, heading_noise_rad=noise.heading_noise_rad,
                                 initial_poses=initial_poses, obstacles=obstacles,
-                                switches=scenario.switches if scenario is not None else ())
+                                switches=scenario.switches if scenario is not None else (), arena=arena)
         if obstacles:
             self.store.goal_check = goal_check_for(obstacles)
         self.server, self.gate = serve_gated(host, port, token)

@@ -21,6 +21,11 @@ FORMATION_PRESETS = ("paper triangle", "triangle ahead", "line abreast", "column
 PRESET_REACH_M = 1.5  # presets stay inside the camera's working ring
 
 
+def default_formation(n: int) -> FloatArray:
+    """A sensible formation for n followers: the paper's triangle for 2, a V or ring beyond."""
+    return formation_preset("paper triangle" if n <= 2 else "V" if n <= 5 else "ring", n)
+
+
 def formation_preset(name: str, n: int) -> FloatArray:
     """Slots (n, 2) in the leader frame for a named formation, shrunk to fit within 1.5 m."""
     slots = _preset_shape(name, n)

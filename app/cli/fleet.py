@@ -1,0 +1,102 @@
+"""`omniformation arena`: the shared world of a fleet (paper §6) on the Zenoh bus."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from app.cli.args import Parser, float_in
+from app.files import UserError
+
+
+def add_bus_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="tcp/HOST:PORT",
+                   help="an endpoint to listen on (repeatable; multicast discovery is off)")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="tcp/HOST:PORT",
+                   help="a peer to connect to (repeatable)")
+
+
+def register(sub: "argparse._SubParsersAction[Parser]") -> None:
+    arena = sub.add_parser(
+        "arena",
+        help="simulate one world for every leader of a fleet (docs/fleet-protocol.md)",
+        description="Step every leader and robot of a fleet scenario, publish the truth on the Zenoh bus, take"
+                    " each leader's commands for the robots it owns, and grant orphans to the leaders that claim"
+                    " them. Leaders join with `omniformation run --arena FLEET --leader-id ID`.",
+    )
+    arena.add_argument("fleet_scenario", metavar="FLEET", help="a fleet scenario: a name in static_config/fleets/ or a .toml")
+    arena.add_argument("--fleet", metavar="NAME", help="the fleet's name on the bus (default: the scenario's name)")
+    add_bus_args(arena)
+    arena.add_argument("--minutes", type=float_in(0.0, 7 * 24 * 60.0, "min"),
+                       help="stop after this long (default: until Ctrl-C)")
+    arena.add_argument("--status-every", type=float_in(0.0, 3600.0, "s", lo_inclusive=True), default=5.0,
+                       help="print a status line this often (s, default 5; 0: never)")
+    arena.add_argument("--summary", type=Path, metavar="FILE.json",
+                       help="write the arena's counts and the robots' owners here when it stops")
+    arena.set_defaults(func=cmd_arena)
+
+
+def open_bus(listen: list[str], connect: list[str], who: str) -> object:
+    from app.fleet.bridge import open_session
+
+    try:
+        return open_session(listen, connect)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    except Exception as exc:  # noqa: BLE001 - zenoh says why it cannot open (an endpoint taken, ...)
+        raise UserError(f"{who}: cannot join the bus: {str(exc).splitlines()[0][:200]}") from None
+
+
+def cmd_arena(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+    import time
+
+    from app.files import load_fleet
+    from app.fleet.arena import Arena
+    from app.fleet.bridge import check_name, root
+
+    scenario = load_fleet(args.fleet_scenario)
+    fleet = args.fleet or scenario.name
+    try:
+        check_name(fleet, "--fleet" if args.fleet else f"{args.fleet_scenario}: name")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    session = open_bus(args.zenoh_listen, args.zenoh_connect, f"arena {fleet}")
+    replies = session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)  # type: ignore[attr-defined]
+    if any(getattr(r, "ok", None) is not None for r in replies):
+        session.close()  # type: ignore[attr-defined]
+        raise UserError(f"fleet {fleet}: an arena runs on this bus already; one world per fleet")
+    arena = Arena(scenario, session, fleet)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    stepper = threading.Thread(target=arena.run, args=(stop,), name="omniformation-arena", daemon=True)
+    stepper.start()
+    print(f"omniformation: arena {fleet}: {len(scenario.leaders)} leaders, {scenario.robots} robots at"
+          f" {scenario.rate_hz:g} Hz; truth on {root(fleet)}/arena/truth (Ctrl-C to stop)", flush=True)
+    start = time.monotonic()
+    try:
+        while not stop.is_set():
+            stop.wait(args.status_every if args.status_every > 0 else 1.0)
+            if args.minutes is not None and time.monotonic() - start >= args.minutes * 60:
+                stop.set()
+            if args.status_every > 0 and not stop.is_set():
+                c = arena.counts
+                print(f"  t {arena.t:7.1f} s  alive {' '.join(sorted(arena.alive)) or '-'}  conflicts {c.conflicts}"
+                      f"  watchdog stops {c.watchdog_stops}  claims {c.claims_granted} granted,"
+                      f" {c.claims_refused} refused  malformed {c.malformed}", flush=True)
+    finally:
+        stop.set()
+        stepper.join(10.0)
+        summary = {"fleet": fleet, "t": round(arena.t, 3), **vars(arena.counts), "owners": list(arena.owners),
+                   "alive": sorted(arena.alive), "ever_alive": sorted(arena.ever_alive)}
+        arena.close()
+        session.close()  # type: ignore[attr-defined]
+        if args.summary is not None:
+            args.summary.write_text(json.dumps(summary, indent=1) + "\n")
+    c = arena.counts
+    print(f"omniformation: arena stopped after {arena.t:.1f} s: conflicts {c.conflicts}, watchdog stops"
+          f" {c.watchdog_stops}, claims {c.claims_granted} granted / {c.claims_refused} refused", flush=True)
+    return 0

@@ -1,0 +1,235 @@
+"""`omniformation arena FLEET`: one simulated world for every leader of a fleet (paper §6).
+
+The arena steps every leader and every robot (core.fleet.step_arena) at the scenario's rate
+and publishes the truth each step; the leaders (``run --arena FLEET --leader-id ID``) drive
+their own robots through it. It is also the robots' command channel, so it decides who may
+command which robot:
+
+* a leader's drive message names the robots it commands; a robot that is not that leader's
+  is not moved by it and the attempt counts as a **conflict** (never expected: 0);
+* a robot whose last command is older than the followers' watchdog (0.5 s,
+  docs/follower-protocol.md) stops by itself, as a real one does; a leader whose last twist
+  is that old stands still too;
+* a leader that joined and whose liveliness token is gone (process killed, network lost)
+  leaves orphans: a **claim** by a living leader for an orphan is granted once (the first
+  claim wins; the robot is then that leader's), any other claim is refused with the reason.
+  The robots of a leader that has not joined yet are nobody's to take.
+
+Key expressions and payloads: docs/fleet-protocol.md ("The arena").
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from core.fleet import ArenaState, FleetScenario, initial_arena, step_arena
+from core.link.protocol import WATCHDOG_S
+
+from app.fleet.bridge import root
+
+log = logging.getLogger(__name__)
+
+
+def robot_name(r: int) -> str:
+    return f"R{r + 1}"
+
+
+def robot_index(name: Any, count: int) -> int | None:
+    """R1 … RR to 0 … R−1; None for anything else."""
+    if not isinstance(name, str) or not name.startswith("R") or not name[1:].isdigit():
+        return None
+    r = int(name[1:]) - 1
+    return r if 0 <= r < count else None
+
+
+@dataclass
+class ArenaCounts:
+    steps: int = 0
+    drives: int = 0
+    conflicts: int = 0  # a robot commanded by a leader that does not own it (refused)
+    malformed: int = 0  # messages on the arena's keys that are not what docs/fleet-protocol.md says
+    claims_granted: int = 0
+    claims_refused: int = 0
+    watchdog_stops: int = 0  # robots stopped by their own watchdog (their leader went quiet)
+
+
+class Arena:
+    """The shared world on the bus. ``step()`` is its loop's one step (the caller paces it)."""
+
+    def __init__(self, scenario: FleetScenario, session: Any, fleet: str | None = None) -> None:
+        self.scenario = scenario
+        self.fleet = fleet or scenario.name
+        self.session = session
+        self.state: ArenaState = initial_arena(scenario)
+        self.ids = [ld.id for ld in scenario.leaders]
+        n_robots = self.state.robots.shape[0]
+        self.owners: list[str | None] = [self.ids[i] for i in scenario.owners]
+        self.commands = np.zeros((n_robots, 2))
+        self.command_t = np.full(n_robots, -math.inf)  # arena time of each robot's last command
+        self.commanded_by: list[str | None] = [None] * n_robots
+        self.twists = np.zeros((len(self.ids), 2))
+        self.twist_t = np.full(len(self.ids), -math.inf)
+        self.alive: set[str] = set()
+        self.ever_alive: set[str] = set()
+        self.counts = ArenaCounts()
+        self.t = 0.0
+        self.dt = 1.0 / scenario.rate_hz
+        self.watchdog_stopped = np.zeros(n_robots, dtype=bool)
+        self._lock = threading.Lock()
+        base = f"{root(self.fleet)}/arena"
+        self._truth_pub = session.declare_publisher(f"{base}/truth")
+        self._event_pub = session.declare_publisher(f"{base}/events")
+        self._token = session.liveliness().declare_token(f"{base}/alive")
+        self._subs = [
+            session.declare_subscriber(f"{base}/drive/*", self._on_drive),
+            session.liveliness().declare_subscriber(f"{root(self.fleet)}/alive/*", self._on_alive, history=True),
+        ]
+        self._claims = session.declare_queryable(f"{base}/claim", self._on_claim)
+
+    # -- in ------------------------------------------------------------------------------------
+    def _on_alive(self, sample: Any) -> None:
+        leader = str(sample.key_expr).rsplit("/", 1)[-1]
+        import zenoh
+
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(leader)
+                self.ever_alive.add(leader)
+            else:
+                self.alive.discard(leader)
+                orphans = [robot_name(r) for r, o in enumerate(self.owners) if o == leader]
+        if sample.kind != zenoh.SampleKind.PUT:
+            self.event("leader-lost", f"{leader}: its token is gone; orphans: {', '.join(orphans) or 'none'}")
+        else:
+            self.event("leader-joined", leader)
+
+    def _on_drive(self, sample: Any) -> None:
+        leader = str(sample.key_expr).rsplit("/", 1)[-1]
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+            twist = [float(v) for v in msg["twist"]]
+            commands = msg["commands"]
+            if len(twist) != 2 or not all(math.isfinite(v) for v in twist) or not isinstance(commands, dict):
+                raise ValueError
+            parsed = []
+            for name, vw in commands.items():
+                r = robot_index(name, len(self.owners))
+                v, w = (float(x) for x in vw)
+                if r is None or not (math.isfinite(v) and math.isfinite(w)):
+                    raise ValueError
+                parsed.append((r, v, w))
+        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+            with self._lock:
+                self.counts.malformed += 1
+            return
+        with self._lock:
+            if leader not in self.ids:
+                self.counts.malformed += 1
+                return
+            self.counts.drives += 1
+            i = self.ids.index(leader)
+            self.twists[i] = twist
+            self.twist_t[i] = self.t
+            for r, v, w in parsed:
+                if self.owners[r] != leader:
+                    self.counts.conflicts += 1
+                    continue
+                self.commands[r] = (v, w)
+                self.command_t[r] = self.t
+                self.commanded_by[r] = leader
+
+    def _on_claim(self, query: Any) -> None:
+        try:
+            msg = json.loads(query.payload.to_bytes() if query.payload is not None else b"")
+            leader, r = str(msg["leader"]), robot_index(msg["robot"], len(self.owners))
+            if r is None:
+                raise ValueError
+        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+            with self._lock:
+                self.counts.malformed += 1
+            query.reply(query.key_expr, json.dumps({"granted": False, "why": "a claim is"
+                                                    ' {"leader": ID, "robot": "R<n>"}'}))
+            return
+        with self._lock:
+            owner = self.owners[r]
+            if leader not in self.alive:
+                why = f"{leader} is not alive on the bus"
+            elif owner == leader:
+                why = ""
+            elif owner is not None and owner in self.alive:
+                why = f"{robot_name(r)} is {owner}'s, and {owner} is alive"
+            elif owner is not None and owner not in self.ever_alive:
+                why = f"{robot_name(r)} is {owner}'s, and {owner} has not joined yet"
+            else:  # its leader joined and is gone: an orphan
+                why = ""
+                self.owners[r] = leader
+                self.commands[r] = 0.0  # the new leader's first command moves it; nobody else's does
+                self.commanded_by[r] = None
+            granted = why == ""
+            if granted:
+                self.counts.claims_granted += 1
+            else:
+                self.counts.claims_refused += 1
+        query.reply(query.key_expr, json.dumps({"granted": granted, "robot": robot_name(r), "leader": leader,
+                                                "why": why}))
+        self.event("claim", f"{robot_name(r)} to {leader}: " + ("granted" if granted else f"refused ({why})"))
+
+    # -- out -----------------------------------------------------------------------------------
+    def event(self, kind: str, detail: str) -> None:
+        self._event_pub.put(json.dumps({"t": round(self.t, 3), "kind": kind, "detail": detail}))
+        log.info("arena %s: %s", kind, detail)
+
+    def truth(self) -> dict[str, Any]:
+        s = self.state
+        return {
+            "fleet": self.fleet, "tick": self.counts.steps, "t": round(self.t, 4),
+            "leaders": {lid: [round(float(v), 5) for v in s.leaders[i]] for i, lid in enumerate(self.ids)},
+            "robots": [[round(float(v), 5) for v in pose] for pose in s.robots],
+            "velocities": [[round(float(v), 5) for v in vel] for vel in s.robot_vel],
+            "hues_deg": list(self.scenario.hues_deg), "owners": list(self.owners),
+            "alive": sorted(self.alive), "lost": sorted(self.ever_alive - self.alive),
+            "watchdog": [bool(b) for b in self.watchdog_stopped],
+            "command_age": [round(float(a), 3) if math.isfinite(a) else None for a in self.t - self.command_t],
+            "conflicts": self.counts.conflicts,
+        }
+
+    # -- one step ------------------------------------------------------------------------------
+    def step(self) -> None:
+        with self._lock:
+            stale = self.t - self.command_t > WATCHDOG_S
+            newly = stale & ~self.watchdog_stopped & np.isfinite(self.command_t)
+            self.counts.watchdog_stops += int(newly.sum())
+            self.watchdog_stopped = stale
+            commands = np.where(stale[:, None], 0.0, self.commands)
+            twists = np.where((self.t - self.twist_t > WATCHDOG_S)[:, None], 0.0, self.twists)
+            self.state = step_arena(self.state, twists, commands, self.dt, self.scenario.dynamics)
+            self.t += self.dt
+            self.counts.steps += 1
+            payload = json.dumps(self.truth(), separators=(",", ":"))
+        self._truth_pub.put(payload)
+
+    def run(self, stop: threading.Event) -> None:
+        """Step at the scenario's rate until ``stop`` (late steps catch up, as the leaders' loop does)."""
+        deadline = time.monotonic()
+        while not stop.is_set():
+            self.step()
+            deadline += self.dt
+            delay = deadline - time.monotonic()
+            if delay < -3 * self.dt:
+                deadline = time.monotonic()
+            elif delay > 0:
+                stop.wait(delay)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._claims.undeclare()
+        self._token.undeclare()

@@ -1,0 +1,252 @@
+"""A leader's team in a shared arena (``run --arena FLEET --leader-id ID``), and the leader's
+part in orphan adoption (paper §6: "other leaders could adopt the 'orphan' followers").
+
+:class:`ArenaTeam` is a :class:`~app.contracts.Team` like the simulated one, but the world is
+the arena's: its state is the newest truth the arena published (this leader's pose, the
+robots it owns), and its commands and its own twist go to the arena as one drive message a
+tick. Truth older than ``STALE_TRUTH_S`` is a lost link: the loop then commands zero.
+
+:class:`Adopter` watches the other leaders' liveliness tokens. When one goes, every survivor
+runs :func:`core.fleet.adoption_plan` on the same truth; each claims from the arena only the
+robots the plan gives it (the arena grants each robot once), then adds a slot to its own
+formation for each robot granted: the loop takes the robot in on its next tick and drives it
+to the new slot.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from core.fleet import MAX_TEAM, adoption_plan, slot_for_newcomer
+from core.geometry import world_to_leader
+from core.sim.team import TeamState, measure_followers
+from core.types import BoolArray, Commands, FloatArray
+
+from app.fleet.arena import robot_index, robot_name
+from app.fleet.bridge import root
+from app.live.params import ParamsStore
+
+log = logging.getLogger(__name__)
+
+STALE_TRUTH_S = 0.3  # no truth for this long: the arena (the robots' channel) is lost
+
+
+class NoArena(RuntimeError):
+    pass
+
+
+class ArenaTeam:
+    """This leader's robots, as the arena tells them."""
+
+    def __init__(self, session: Any, fleet: str, leader_id: str, position_noise_m: float, heading_noise_rad: float,
+                 seed: int, wait_s: float = 10.0) -> None:
+        self.session = session
+        self.fleet = fleet
+        self.leader_id = leader_id
+        self.position_noise_m = position_noise_m
+        self.heading_noise_rad = heading_noise_rad
+        self.rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()
+        self._truth: dict[str, Any] | None = None
+        self._truth_at = -math.inf
+        self._got = threading.Event()
+        self._sub = session.declare_subscriber(f"{root(fleet)}/arena/truth", self._on_truth)
+        self._drive = session.declare_publisher(f"{root(fleet)}/arena/drive/{leader_id}")
+        if not self._got.wait(wait_s):
+            self._sub.undeclare()
+            raise NoArena(f"no arena publishes {root(fleet)}/arena/truth (waited {wait_s:g} s): start"
+                          f" `omniformation arena` first, and connect to it (--zenoh-connect)")
+        truth = self._truth
+        assert truth is not None
+        if leader_id not in truth["leaders"]:
+            self._sub.undeclare()
+            raise NoArena(f"leader id {leader_id!r} is not one of the arena's leaders ({', '.join(truth['leaders'])})")
+        self.owned: list[int] = [r for r, o in enumerate(truth["owners"]) if o == leader_id]  # in the order taken
+        self.active: list[int] = list(self.owned)  # the robots the loop drives (owned ones, up to the team's size)
+        self._twist: tuple[float, float] = (0.0, 0.0)
+        self._tick: int = 0
+        self.state: TeamState = self._state_from(truth)
+
+    # -- truth in --------------------------------------------------------------------------
+    def _on_truth(self, sample: Any) -> None:
+        try:
+            truth = json.loads(sample.payload.to_bytes())
+            if not isinstance(truth, dict) or "robots" not in truth or "leaders" not in truth:
+                return
+        except (ValueError, UnicodeDecodeError):
+            return
+        with self._lock:
+            self._truth = truth
+            self._truth_at = time.monotonic()
+        self._got.set()
+
+    def latest_truth(self) -> dict[str, Any] | None:
+        with self._lock:
+            return self._truth
+
+    def _state_from(self, truth: dict[str, Any]) -> TeamState:
+        leader = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
+        robots = np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3)
+        vel = np.asarray(truth.get("velocities", np.zeros((robots.shape[0], 2))), dtype=np.float64).reshape(-1, 2)
+        idx = np.asarray(self.active, dtype=np.int64)
+        return TeamState(leader, robots[idx].copy(), vel[idx].copy())
+
+    def resize(self, n: int) -> None:
+        """Drive the first ``n`` robots this leader owns (the loop's team size)."""
+        self.active = self.owned[:n]
+        truth = self.latest_truth()
+        if truth is not None:
+            self.state = self._state_from(truth)
+
+    def adopt(self, robot: int) -> None:
+        if robot not in self.owned:
+            self.owned.append(robot)
+
+    # -- the Team contract ----------------------------------------------------------------
+    @property
+    def link_state(self) -> str:
+        age = time.monotonic() - self._truth_at
+        return "arena" if age <= STALE_TRUTH_S else f"arena: no truth for {age:.1f} s"
+
+    @property
+    def link_lost(self) -> bool:
+        return time.monotonic() - self._truth_at > STALE_TRUTH_S
+
+    def link_detail(self) -> str:
+        return f"arena {self.fleet}: robots {', '.join(robot_name(r) for r in self.active)}"
+
+    def observe(self) -> tuple[FloatArray, FloatArray, BoolArray]:
+        truth = self.latest_truth()
+        if truth is not None:
+            self.state = self._state_from(truth)
+        p, a = measure_followers(self.state, self.rng, self.position_noise_m, self.heading_noise_rad)
+        return p, a, np.ones(len(a), dtype=bool)
+
+    def truth(self) -> tuple[FloatArray, FloatArray]:
+        return measure_followers(self.state, self.rng)
+
+    def send(self, commands: Commands) -> None:
+        v, w = np.asarray(commands.v, dtype=np.float64), np.asarray(commands.w, dtype=np.float64)
+        truth = self.latest_truth()
+        owners = truth["owners"] if truth is not None else []
+        # only the robots the arena says are this leader's: one another leader was granted is never commanded
+        mine = [(k, r) for k, r in enumerate(self.active) if k < len(v) and r < len(owners) and owners[r] == self.leader_id]
+        payload = {"tick": self._tick, "twist": [round(self._twist[0], 6), round(self._twist[1], 6)],
+                   "commands": {robot_name(r): [round(float(v[k]), 6), round(float(w[k]), 6)] for k, r in mine}}
+        self._tick += 1
+        self._drive.put(json.dumps(payload, separators=(",", ":")))
+
+    def advance(self, leader_twist: tuple[float, float], dt: float, t: float) -> None:
+        self._twist = (float(leader_twist[0]), float(leader_twist[1]))  # goes with the next tick's commands
+
+    def close(self) -> None:
+        self._twist = (0.0, 0.0)
+        self.send(Commands.zeros(len(self.active)))
+        self._drive.undeclare()
+        self._sub.undeclare()
+
+
+class Adopter:
+    """Claims this leader's share of a dead leader's robots and takes them into the team."""
+
+    def __init__(self, session: Any, fleet: str, leader_id: str, team: ArenaTeam, store: ParamsStore,
+                 event: Any = None) -> None:
+        self.session = session
+        self.fleet = fleet
+        self.leader_id = leader_id
+        self.team = team
+        self.store = store
+        self.event = event or (lambda kind, detail: None)
+        self.alive: set[str] = set()
+        self.adopted: list[tuple[int, float]] = []  # (robot, monotonic time granted)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._sub = session.liveliness().declare_subscriber(f"{root(fleet)}/alive/*", self._on_alive, history=True)
+        self._thread = threading.Thread(target=self._run, name="omniformation-adopter", daemon=True)
+        self._thread.start()
+
+    def _on_alive(self, sample: Any) -> None:
+        import zenoh
+
+        leader = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(leader)
+            else:
+                self.alive.discard(leader)
+        self._wake.set()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(1.0)  # also looks once a second: a claim refused for a moment is tried again
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            try:
+                self._adopt_orphans()
+            except Exception:  # noqa: BLE001 - adoption must never take the leader down
+                log.exception("adoption failed")
+
+    def _adopt_orphans(self) -> None:
+        truth = self.team.latest_truth()
+        if truth is None:
+            return
+        with self._lock:
+            alive = set(self.alive) | {self.leader_id}
+        owners: list[str | None] = list(truth["owners"])
+        lost = set(truth.get("lost", ())) - alive  # joined, and gone (as the arena and this leader both see it)
+        orphans = [r for r, o in enumerate(owners) if o is None or o in lost]
+        if not orphans or set(truth.get("alive", ())) - alive:
+            return  # nobody to adopt, or the arena knows of leaders this one has not heard of yet
+        leaders = {lid: (float(pose[0]), float(pose[1]), sum(1 for o in owners if o == lid))
+                   for lid, pose in truth["leaders"].items() if lid in alive}
+        robots = np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3)
+        plan = adoption_plan(orphans, robots[:, :2], leaders, MAX_TEAM)
+        mine = [r for r, lid in plan.items() if lid == self.leader_id]
+        for r in mine:
+            if self._claim(r):
+                self._take(r)
+
+    def _claim(self, r: int) -> bool:
+        payload = json.dumps({"leader": self.leader_id, "robot": robot_name(r)})
+        for reply in self.session.get(f"{root(self.fleet)}/arena/claim", payload=payload, timeout=2.0):
+            try:
+                answer = json.loads(reply.ok.payload.to_bytes())
+            except (AttributeError, ValueError, TypeError):
+                continue
+            if answer.get("granted") and robot_index(answer.get("robot"), 10_000) == r:
+                return True
+            self.event("refused", f"claim for {robot_name(r)}: {answer.get('why', '?')}")
+        return False
+
+    def _take(self, r: int) -> None:
+        truth = self.team.latest_truth()
+        assert truth is not None
+        # a slot on the side it comes from (core.fleet.slot_for_newcomer), in this leader's frame
+        leader = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
+        robot = np.asarray(truth["robots"][r], dtype=np.float64)
+        here = world_to_leader(robot[None, :2], leader[:2], float(leader[2]))[0]
+        current = self.store.get()
+        slots = current.slots[:current.n_followers]
+        self.team.adopt(r)
+        self.adopted.append((r, time.monotonic()))
+        n = len(self.team.owned)
+        self.store.fixed_followers = n
+        self.store.update(f"fleet:adopt {robot_name(r)}", n_followers=n,
+                          slots=np.vstack([slots, slot_for_newcomer(slots, here)]))
+        self.event("adopted", f"{robot_name(r)}: now follower {n} of {self.leader_id}")
+        log.info("adopted %s (team of %d)", robot_name(r), n)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(5.0)
+        self._sub.undeclare()

@@ -1,0 +1,244 @@
+"""A fleet in one arena (paper §6): the arena and three leader processes on loopback, watched
+by a plain Zenoh session as a third program would (docs/fleet-protocol.md).
+
+Times are the arena's own (the ``t`` of its truth), so a loaded machine slows the world and
+the clock together."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+
+from core.config import ConfigError
+from core.fleet import FleetScenario, adoption_plan, initial_arena, parse_fleet, step_arena
+from core.sim.team import FollowerDynamics
+
+from tests.helpers import ROOT, main_cli, wait_for
+
+zenoh = pytest.importorskip("zenoh")
+
+FLEET = "three_teams"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Watcher:
+    """Subscribes to the arena's truth and every leader's state."""
+
+    def __init__(self, endpoint: str) -> None:
+        c = zenoh.Config()
+        c.insert_json5("mode", '"peer"')
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        self.session = zenoh.open(c)
+        self.lock = threading.Lock()
+        self.truths: list[dict] = []
+        self.states: dict[str, list[tuple[float, dict]]] = {}  # leader -> (arena t when received, state)
+        self.subs = [self.session.declare_subscriber(f"omniformation/{FLEET}/arena/truth", self._truth),
+                     self.session.declare_subscriber(f"omniformation/{FLEET}/leader/*/state", self._state)]
+
+    def _truth(self, s) -> None:
+        with self.lock:
+            self.truths.append(json.loads(s.payload.to_bytes()))
+
+    def _state(self, s) -> None:
+        msg = json.loads(s.payload.to_bytes())
+        with self.lock:
+            t = self.truths[-1]["t"] if self.truths else 0.0
+            self.states.setdefault(msg["leader_id"], []).append((t, msg))
+
+    def arena_t(self) -> float:
+        with self.lock:
+            return self.truths[-1]["t"] if self.truths else 0.0
+
+    def last_truth(self) -> dict:
+        with self.lock:
+            return self.truths[-1]
+
+    def recent(self, leader: str, seconds: float) -> list[dict]:
+        with self.lock:
+            rows = self.states.get(leader, [])
+            if not rows:
+                return []
+            t_end = rows[-1][0]
+            return [m for t, m in rows if t >= t_end - seconds]
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def team_rms_m(states: list[dict]) -> float:
+    errs = [e for s in states for e in s["error_m"] if e is not None]
+    return math.sqrt(float(np.mean(np.square(errs)))) if errs else math.inf
+
+
+def _spawn(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "app.cli", *args], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    summary = tmp_path / "arena.json"
+    arena = _spawn("arena", FLEET, "--zenoh-listen", endpoint, "--status-every", "0", "--summary", str(summary))
+    procs: dict[str, subprocess.Popen] = {}
+    watcher = None
+    try:
+        assert arena.stdout is not None
+        assert "arena three_teams: 3 leaders, 9 robots" in arena.stdout.readline()
+        watcher = Watcher(endpoint)
+        for leader in ("L1", "L2", "L3"):
+            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--zenoh-connect", endpoint,
+                                   "--port", "0", "--no-record")
+        w = watcher
+        wait_for(lambda: sorted(w.last_truth()["alive"]) == ["L1", "L2", "L3"] if w.truths else False, 60,
+                 "three leaders alive")
+        # every team in formation while every leader moves: steady RMS over the last 2 s of its own state
+        wait_for(lambda: all(team_rms_m(w.recent(ld, 2.0)) <= 0.02 and w.recent(ld, 2.0)[-1]["leader_twist"][0] > 0.01
+                             for ld in ("L1", "L2", "L3")), 90, "every team in formation, moving")
+        rms = {ld: team_rms_m(w.recent(ld, 2.0)) for ld in ("L1", "L2", "L3")}
+        truth = w.last_truth()
+        assert truth["conflicts"] == 0
+        orphans = [r for r, o in enumerate(truth["owners"]) if o == "L2"]
+        assert orphans == [3, 4, 5]
+
+        # SIGKILL one leader: its robots stop by their own watchdog; the others adopt them
+        procs["L2"].send_signal(signal.SIGKILL)
+        procs["L2"].wait(10)
+        t_kill = w.arena_t()
+        wait_for(lambda: all(w.last_truth()["watchdog"][r] for r in orphans), 30, "the orphans' watchdogs")
+        stopped = w.last_truth()
+        # the robot's own watchdog: zero at most 0.5 s (and a step) after its last command
+        stop_after = [stopped["command_age"][r] for r in orphans]
+        assert all(a is not None and a <= 0.5 + 2 / 30 for a in stop_after), stop_after
+        wait_for(lambda: "L2" in w.last_truth()["lost"], 30, "L2 lost")
+        wait_for(lambda: all(w.last_truth()["owners"][r] in ("L1", "L3") for r in orphans), 30, "every orphan claimed")
+        t_claimed = w.arena_t() - t_kill
+        adopters = w.last_truth()["owners"]
+        # the plan: nearest living leader with room, ties by id -- both survivors agree, the arena granted each once
+        assert sum(o == "L1" for o in adopters) + sum(o == "L3" for o in adopters) == 9
+
+        def seated() -> bool:  # every team, adopted robots included, in its slots
+            return all(len(w.recent(ld, 1.0)[-1]["error_m"]) == adopters.count(ld)
+                       and max(w.recent(ld, 1.0)[-1]["error_m"]) <= 0.05 for ld in ("L1", "L3"))
+
+        wait_for(seated, 120, "every orphan in a slot")
+        t_seated = w.arena_t() - t_kill
+        print(f"arena: formation RMS {', '.join(f'{k} {v * 100:.2f} cm' for k, v in rms.items())}; orphans stopped"
+              f" {max(stop_after):.2f} s after their last command; claimed {t_claimed:.1f} s, all seated {t_seated:.1f} s (arena time) after the"
+              f" kill; owners {adopters}")
+        assert t_seated <= 15.0, t_seated
+        assert w.last_truth()["conflicts"] == 0
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs.values():
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        arena.send_signal(signal.SIGINT)
+        try:
+            arena.wait(30)
+        except subprocess.TimeoutExpired:
+            arena.kill()
+        if watcher is not None:
+            watcher.close()
+    counts = json.loads(summary.read_text())
+    assert counts["conflicts"] == 0 and counts["claims_granted"] == 3 and counts["malformed"] == 0, counts
+
+
+def _fleet(text: str) -> FleetScenario:
+    return parse_fleet(text, "f.toml")
+
+
+LEADER = '[[leaders]]\nid = "{id}"\nstart = [{x}, 0]\nfollowers = {n}\n'
+
+
+def test_a_fleet_scenario_is_checked_and_its_hues_are_fleet_wide():
+    sc = _fleet('name = "f"\n' + LEADER.format(id="A", x=0, n=3) + LEADER.format(id="B", x=3, n=2))
+    assert sc.robots == 5 and list(sc.owners) == [0, 0, 0, 1, 1]
+    assert sc.hues_deg == (0.0, 72.0, 144.0, 216.0, 288.0)
+    bad = {
+        'name = "f"\n' + LEADER.format(id="A", x=0, n=2) + LEADER.format(id="A", x=3, n=2): "every leader needs its own id",
+        'name = "f"\n' + LEADER.format(id="A", x=0, n=2) + 'hues_deg = [0, 100]\n' + LEADER.format(id="B", x=3, n=2)
+        + 'hues_deg = [200, 105]\n': "R2 (A) and R4 (B) have hues 100 and 105 deg, 5 deg apart",
+        'name = "f"\n' + LEADER.format(id="A", x=0, n=8) + LEADER.format(id="B", x=3, n=8)
+        + LEADER.format(id="C", x=6, n=8) + LEADER.format(id="D", x=9, n=8): "32 followers cannot carry hues",
+        'name = "f"\n' + LEADER.format(id="A/B", x=0, n=2): "leaders[1].id = 'A/B'",
+        'name = "f"\n' + LEADER.format(id="A", x=0, n=9): "leaders[1].followers = 9",
+    }
+    for text, words in bad.items():
+        with pytest.raises(ConfigError) as exc:
+            _fleet(text)
+        assert words in str(exc.value) and "\n" not in str(exc.value), str(exc.value)
+
+
+def test_the_adoption_rule_is_the_same_for_everyone_and_respects_room():
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0], [2.5, 0.0]])
+    leaders = {"B": (3.0, 0.0, 2), "A": (-1.0, 0.0, 7), "C": (2.0, 0.0, 8)}
+    plan = adoption_plan([3, 0, 1, 2], xy, leaders, capacity=8)
+    # robot 0: A nearest (1 m) and has room (7 -> 8); robot 1: A full now, B (2 m) beats C (full)
+    assert plan == {0: "A", 1: "B", 2: "B", 3: "B"}
+    assert adoption_plan([3, 0, 1, 2], xy, dict(reversed(list(leaders.items()))), capacity=8) == plan
+    tie = adoption_plan([0], np.array([[0.0, 0.0]]), {"Y": (1.0, 0.0, 0), "X": (-1.0, 0.0, 0)})
+    assert tie == {0: "X"}  # equally near: the lower id
+    assert adoption_plan([0], xy, {"A": (0.0, 0.0, 8)}, capacity=8) == {}  # nobody has room: left alone
+
+
+def test_the_arena_steps_every_robot_and_leader():
+    sc = _fleet('name = "f"\n' + LEADER.format(id="A", x=0, n=2) + LEADER.format(id="B", x=3, n=1))
+    s = initial_arena(sc)
+    twists = np.array([[0.1, 0.0], [0.0, 0.0]])
+    commands = np.array([[0.1, 0.0], [0.0, 0.0], [0.0, 1.0]])
+    for _ in range(30):
+        s = step_arena(s, twists, commands, 1 / 30, FollowerDynamics())
+    assert s.leaders[0, 1] == pytest.approx(0.1, abs=1e-6) and s.leaders[1, 1] == pytest.approx(0.0)
+    assert s.robots[0, 1] - initial_arena(sc).robots[0, 1] == pytest.approx(0.1, abs=1e-6)
+    assert s.robots[2, 2] - initial_arena(sc).robots[2, 2] == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("args, words", [
+    (["run", "--arena", FLEET, "--leader-id", "L9"], "--leader-id must be one of its leaders: L1, L2, L3"),
+    (["run", "--arena", FLEET, "--leader-id", "L1", "--feedback", "vision"], "not rendered from the arena yet"),
+    (["run", "--arena", FLEET, "--leader-id", "L1", "--scenario", "vee3"], "cannot be combined"),
+    (["run", "--arena", "nofleet", "--leader-id", "L1"], "fleet scenario 'nofleet' not found"),
+    (["arena", "nofleet"], "fleet scenario 'nofleet' not found"),
+    (["arena", FLEET, "--zenoh-listen", "127.0.0.1:1"], "tcp/HOST:PORT"),
+])
+def test_bad_arena_arguments_are_one_line(args, words):
+    r = main_cli(*args, *(["--port", "0", "--no-record"] if args[0] == "run" else []))
+    assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_a_leader_without_an_arena_says_so(tmp_path):
+    r = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--zenoh-connect", f"tcp/127.0.0.1:{_free_port()}",
+                 "--port", "0", "--no-record")
+    assert r.returncode == 2 and "no arena publishes omniformation/three_teams/arena/truth" in r.stderr, r.stderr
+
+
+def test_an_adopted_robot_joins_on_the_side_it_comes_from():
+    from core.control.presets import MIN_SPACING_M, default_formation
+    from core.fleet import slot_for_newcomer
+
+    slots = default_formation(3)
+    for newcomer in (np.array([3.0, 0.0]), np.array([-3.0, 0.2]), np.array([0.0, -2.0])):
+        new = slot_for_newcomer(slots, newcomer)
+        assert np.min(np.hypot(*(slots - new).T)) >= MIN_SPACING_M - 1e-9
+        assert 0.5 <= math.hypot(*new) <= 1.5 + 1e-9
+        assert np.sign(new[np.argmax(np.abs(newcomer))]) == np.sign(newcomer[np.argmax(np.abs(newcomer))]), new
+    assert np.array_equal(slot_for_newcomer(slots, np.array([3.0, 0.0])), slot_for_newcomer(slots, np.array([3.0, 0.0])))
