@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from app.cli.args import Parser, float_in
+from app.cli.args import Parser, bind_error, float_in, port, token_arg
 from app.files import UserError
 
 
@@ -35,6 +35,21 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     arena.add_argument("--summary", type=Path, metavar="FILE.json",
                        help="write the arena's counts and the robots' owners here when it stops")
     arena.set_defaults(func=cmd_arena)
+
+    page = sub.add_parser(
+        "fleet",
+        help="serve one page for a whole fleet: every team live, per-team controls, fleet-wide STOP",
+        description="Follow every leader of a fleet on the Zenoh bus (and the arena, when one runs) in one viser"
+                    " page; its controls reach each leader over the bus (docs/fleet-protocol.md).",
+    )
+    page.add_argument("--fleet", metavar="NAME", required=True, help="the fleet's name on the bus")
+    add_bus_args(page)
+    page.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; others need the token)")
+    page.add_argument("--port", type=port, default=8090, help="port (default 8090, 0 = any free port)")
+    page.add_argument("--token", type=token_arg, help="the token browsers must present on a non-loopback --host")
+    page.add_argument("--record", type=Path, metavar="FILE.mcap",
+                      help="record the whole fleet (a channel per leader) into this new file")
+    page.set_defaults(func=cmd_fleet)
 
 
 def open_bus(listen: list[str], connect: list[str], who: str) -> object:
@@ -99,4 +114,63 @@ def cmd_arena(args: argparse.Namespace) -> int:
     c = arena.counts
     print(f"omniformation: arena stopped after {arena.t:.1f} s: conflicts {c.conflicts}, watchdog stops"
           f" {c.watchdog_stops}, claims {c.claims_granted} granted / {c.claims_refused} refused", flush=True)
+    return 0
+
+
+def cmd_fleet(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from app.dashboard.gate import is_loopback, quietly, serve_gated
+    from app.files import check_new_file, display_path
+    from app.fleet.bridge import check_name
+    from app.fleet.dashboard import FleetView
+    from app.fleet.recorder import FleetRecorder
+
+    try:
+        check_name(args.fleet, "--fleet")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if args.record is not None:
+        check_new_file(args.record, "recording", ".mcap")
+        if args.record.exists():
+            raise UserError(f"{args.record}: exists; a recording is never written over another (give a new name)")
+    session = open_bus(args.zenoh_listen, args.zenoh_connect, f"fleet {args.fleet}")
+    try:
+        server, gate = serve_gated(args.host, args.port, args.token)
+    except OSError as exc:
+        session.close()  # type: ignore[attr-defined]
+        raise UserError(bind_error(args.host, args.port, exc)) from None
+    recorder = None
+    if args.record is not None:
+        try:
+            recorder = FleetRecorder(args.record)
+        except OSError as exc:
+            gate.close()
+            quietly(server.stop)
+            session.close()  # type: ignore[attr-defined]
+            raise UserError(f"{args.record}: cannot record: {exc.strerror or exc}") from None
+    view = FleetView(server, session, args.fleet, recorder)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    if not is_loopback(args.host):
+        import sys
+
+        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
+              " token) may see and command the fleet", file=sys.stderr)
+    print(f"omniformation: fleet {args.fleet} at {gate.url}  (Ctrl-C to stop)", flush=True)
+    if recorder is not None:
+        print(f"omniformation: recording the fleet to {display_path(recorder.path)}", flush=True)
+    try:
+        stop.wait()
+    finally:
+        view.close()
+        if recorder is not None:
+            recorder.close()
+            print(f"omniformation: fleet recording finished: {display_path(recorder.path)} ({recorder.written}"
+                  " messages)", flush=True)
+        gate.close()
+        quietly(server.stop)
+        session.close()  # type: ignore[attr-defined]
     return 0

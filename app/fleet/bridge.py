@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import re
+import time
 from typing import Any
 
 import numpy as np
@@ -140,7 +141,9 @@ class FleetBridge:
         self._publisher(s)
 
     def _publish_state(self, s: TickState) -> None:
-        self._state_pub.put(json.dumps(state_payload(s, self.leader_id), separators=(",", ":")))
+        payload = state_payload(s, self.leader_id)
+        payload["sent"] = round(time.time(), 6)  # wall clock, for a subscriber's latency on the same machine
+        self._state_pub.put(json.dumps(payload, separators=(",", ":")))
 
     def event(self, kind: str, detail: str) -> None:
         self._event_pub.put(json.dumps({"leader_id": self.leader_id, "t": round(self._t, 3), "kind": kind,

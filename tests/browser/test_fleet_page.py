@@ -1,0 +1,130 @@
+"""The fleet page in real Chromium: an arena and two leaders on a loopback Zenoh bus, one page
+for both; its fleet-wide STOP reaches every leader, a team's own controls reach that leader
+(or come back refused when its operator did not allow the bus to command it), and the whole
+fleet is recorded into one MCAP with a channel per leader."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+
+import pytest
+
+from app.dashboard.gate import quietly, serve_gated
+from app.files import load_fleet
+from app.fleet.arena import Arena
+from app.fleet.arena_team import ArenaTeam
+from app.fleet.bridge import FleetBridge, open_session
+from app.fleet.dashboard import FleetView
+from app.fleet.recorder import FleetRecorder
+from app.live.loop import ServiceLoop
+from app.live.params import Params, ParamsStore, default_slots
+
+from tests.helpers import ARTIFACTS, chromium_browser, settle, wait_for
+
+pytest.importorskip("playwright.sync_api")
+pytest.importorskip("zenoh")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Leader:
+    """A leader as `run --arena` makes one, without its own page: loop, arena team, bridge."""
+
+    def __init__(self, endpoint: str, fleet: str, leader_id: str, allow_control: bool) -> None:
+        self.session = open_session([], [endpoint])
+        self.team = ArenaTeam(self.session, fleet, leader_id, 0.003, 0.01, seed=1)
+        n = len(self.team.owned)
+        self.store = ParamsStore(Params(n_followers=n, slots=default_slots(n), leader_mode="straight",
+                                        leader_speed_mps=0.02), fixed_followers=n)
+        self.loop = ServiceLoop(self.store, rate_hz=30.0, arena=self.team)
+        self.bridge = FleetBridge(self.store, fleet, leader_id, allow_control=allow_control, session=self.session)
+        self.loop.subscribe(self.bridge.on_tick)
+        self.thread = threading.Thread(target=self.loop.run, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.loop.stop()
+        self.thread.join(10)
+        self.bridge.close()
+        self.session.close()
+
+
+def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    scenario = load_fleet("three_teams")
+    arena_session = open_session([endpoint], [])
+    arena = Arena(scenario, arena_session)
+    stop_arena = threading.Event()
+    stepper = threading.Thread(target=arena.run, args=(stop_arena,), daemon=True)
+    stepper.start()
+    leaders: list[Leader] = []
+    page_session = server = gate = view = recorder = None
+    try:
+        leaders = [Leader(endpoint, "three_teams", "L1", True), Leader(endpoint, "three_teams", "L2", False)]
+        page_session = open_session([], [endpoint])
+        server, gate = serve_gated("127.0.0.1", 0)
+        recorder = FleetRecorder(tmp_path / "fleet.mcap")
+        view = FleetView(server, page_session, "three_teams", recorder)
+        l1, l2 = leaders
+        with chromium_browser() as browser:
+            page = browser.new_page(viewport={"width": 1500, "height": 1200})
+            page.goto(gate.url)
+            page.get_by_text("Leader L1", exact=True).first.wait_for(timeout=60_000)
+            page.get_by_text("Leader L2", exact=True).first.wait_for(timeout=60_000)
+            settle(page)
+            # the status names both leaders and the arena (L3 never joined: its robots stand still)
+            page.get_by_text("leaders alive L1, L2", exact=False).first.wait_for(timeout=30_000)
+            page.get_by_text("9 robots", exact=False).first.wait_for(timeout=30_000)
+            page.get_by_text("3/3 followers tracked", exact=False).first.wait_for(timeout=30_000)
+
+            page.get_by_role("button", name="STOP every leader").click()
+            wait_for(lambda: l1.store.get().stop and l2.store.get().stop, 30, "every leader stopped")
+            wait_for(lambda: all(v == [0.0, 0.0] for v in l1.loop.last.commands.tolist()), 30, "L1 at zero")
+
+            # L1 takes the page's commands; L2's operator did not allow it (STOP only): refused, said so
+            page.get_by_role("button", name="Release STOP L1").click()
+            wait_for(lambda: not l1.store.get().stop, 30, "L1 released")
+            page.get_by_role("button", name="Release STOP L2").click()
+            page.get_by_text("L2: refused", exact=False).first.wait_for(timeout=30_000)
+            assert l2.store.get().stop
+            page.get_by_role("button", name="STOP L1", exact=True).click()
+            wait_for(lambda: l1.store.get().stop, 30, "L1 stopped again")
+            ARTIFACTS.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(ARTIFACTS / "fleet_page.png"))
+    finally:
+        if view is not None:
+            view.close()
+        if recorder is not None:
+            recorder.close()
+        if gate is not None:
+            gate.close()
+        if server is not None:
+            quietly(server.stop)
+        for ld in leaders:
+            ld.close()
+        if page_session is not None:
+            page_session.close()
+        stop_arena.set()
+        stepper.join(10)
+        arena.close()
+        arena_session.close()
+    # the whole fleet in one file: a channel per leader, the arena's truth, the events
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "fleet.mcap", "rb") as f:
+        counts: dict[str, int] = {}
+        stops = 0
+        for _, channel, message in make_reader(f).iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            if channel.topic == "/fleet/L2/events" and json.loads(message.data)["kind"] == "refused":
+                stops += 1
+    assert counts.get("/fleet/L1/state", 0) > 30 and counts.get("/fleet/L2/state", 0) > 30, counts
+    assert counts.get("/fleet/arena/truth", 0) > 30 and counts.get("/fleet/L1/events", 0) >= 2, counts
+    assert stops >= 1, counts
+    assert arena.counts.conflicts == 0
