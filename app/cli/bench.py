@@ -7,6 +7,7 @@ each figure is the median of several repeats. It lives in the app package
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
 from collections.abc import Callable
@@ -464,12 +465,14 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     print_fn(f"live loop at 30 Hz (vision in the loop) while the page's worker sweeps ({points} points, vision):"
              f" {sweeping_hz:.2f} Hz ({(sweeping_hz / 30 - 1) * 100:+.1f} % of 30; target within 1 %);"
              f" {alone_hz:.2f} Hz before it")
+    rates: tuple[float, float, float] | None | str
     try:
         rates = bench_loop_with_browsers()
     except Exception as exc:  # a browser that does not come up is a skipped figure, not a crash
-        print_fn(f"live loop with browsers: failed to open the pages ({type(exc).__name__}: {str(exc).splitlines()[0]})")
-        return results
-    if rates is None:
+        rates = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+    if isinstance(rates, str):
+        print_fn(f"live loop with browsers: failed to open the pages ({rates})")
+    elif rates is None:
         print_fn("live loop with browsers: skipped (needs Debian's chromium and playwright: make test installs both)")
     else:
         alone, served, watched = rates
@@ -480,7 +483,165 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
             f" {served:.2f} Hz ({(served / alone - 1) * 100:+.1f} %, target within 5 %); 3 browsers rendering"
             f" software WebGL on this same machine {watched:.2f} Hz ({(watched / alone - 1) * 100:+.1f} %)"
         )
+    try:
+        import zenoh  # noqa: F401
+    except ImportError:
+        print_fn("fleet: skipped (needs eclipse-zenoh: make test installs it)")
+        return results
+    p50, p99, samples = bench_fleet_latency()
+    results["fleet_state_latency_p99_ms"] = p99
+    print_fn(f"fleet: a leader's state to the fleet page on loopback: median {p50:.2f} ms, p99 {p99:.2f} ms over"
+             f" {samples} states (target p99 <= 5 ms)")
+    tick_ms = bench_arena_tick(10, 10)
+    results["arena_tick_ms_10x10"] = tick_ms
+    print_fn(f"fleet: arena step for 10 leaders x 10 followers (dynamics, truth, publish): {tick_ms:.2f} ms per tick"
+             f" ({tick_ms / (1000 / 30) * 100:.0f} % of a 30 Hz tick)")
+    held, slowest = bench_leader_processes()
+    results["leader_processes_at_30hz"] = held
+    print_fn(f"fleet: leader processes of 3 followers (vision in the loop, each its own synthetic camera) this"
+             f" machine holds at 30 Hz (within 1 %): {held}; slowest loop with 1..{len(slowest)} running:"
+             f" {', '.join(f'{r:.2f}' for r in slowest)} Hz")
     return results
+
+
+def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision") -> tuple[float, float, int]:
+    """(median ms, p99 ms, states) from a leader process publishing its state (`run --fleet`, vision
+    in the loop, 30 Hz) to the fleet page's subscriber (FleetView) in this process, on loopback."""
+    import socket
+    import subprocess
+    import sys
+    import time as _time
+
+    from app.dashboard.gate import quietly, serve_gated
+    from app.fleet.bridge import open_session
+    from app.fleet.dashboard import SWITCH_INTERVAL_S, FleetView
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    page_session = open_session([endpoint], [])
+    server, gate = serve_gated("127.0.0.1", 0)
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(SWITCH_INTERVAL_S)  # as `omniformation fleet` runs the page
+    view = FleetView(server, page_session, "bench")
+    leader = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record", "--fleet", "bench",
+                               "--leader-id", "L1", "--zenoh-connect", endpoint, "--feedback", feedback],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = _time.monotonic() + 120
+        while view.received < 60 and _time.monotonic() < deadline:  # past its start-up
+            _time.sleep(0.2)
+        view.latencies.clear()
+        _time.sleep(seconds)
+        lat = np.array(list(view.latencies)) * 1e3
+    finally:
+        leader.send_signal(2)
+        try:
+            leader.wait(30)
+        except subprocess.TimeoutExpired:
+            leader.kill()
+        view.close()
+        gate.close()
+        quietly(server.stop)
+        page_session.close()
+        sys.setswitchinterval(switch)
+    if lat.size == 0:
+        return float("nan"), float("nan"), 0
+    return float(np.median(lat)), float(np.percentile(lat, 99)), int(lat.size)
+
+
+def bench_arena_tick(leaders: int, followers: int, ticks: int = 300) -> float:
+    """Median ms of one arena step (every robot's dynamics, the truth built and published) for
+    ``leaders`` x ``followers`` (built directly: more robots than one fleet's hues allow)."""
+    import time as _time
+
+    from app.fleet.arena import Arena
+    from app.fleet.bridge import open_session
+    from core.fleet import FleetLeader, FleetScenario
+    from core.sim.team import FollowerDynamics
+
+    sc = FleetScenario("bench", "", tuple(FleetLeader(f"L{i + 1}", (3.0 * i, 0.0, math.pi / 2), followers, "straight",
+                                                      0.03, 0.0, tuple([0.0] * followers)) for i in range(leaders)),
+                       30.0, FollowerDynamics(actuator_tau_s=0.3, speed_max_mps=0.35, turn_max_rps=2.5))
+    session = open_session([], [])
+    arena = Arena(sc, session, "bench")
+    try:
+        arena.commands[:] = (0.05, 0.1)
+        arena.command_t[:] = 0.0
+        times = []
+        for _ in range(ticks):
+            arena.command_t[:] = arena.t  # every robot commanded this tick
+            t0 = _time.perf_counter()
+            arena.step()
+            times.append(_time.perf_counter() - t0)
+    finally:
+        arena.close()
+        session.close()
+    return float(np.median(times[20:]) * 1e3)
+
+
+def bench_leader_processes(max_processes: int = 4, seconds: float = 12.0) -> tuple[int, list[float]]:
+    """Start leader processes one more at a time (`run --fleet` with vision in the loop, 3
+    followers each, their pages served, no browser) and read every one's loop rate from the
+    bus; how many run at once with every loop within 1 % of 30 Hz, and the slowest rate at
+    each count."""
+    import json
+    import socket
+    import subprocess
+    import sys
+    import threading
+    import time as _time
+
+    from app.fleet.bridge import open_session
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    session = open_session([endpoint], [])
+    rates: dict[str, list[tuple[float, float]]] = {}
+    lock = threading.Lock()
+
+    def on_state(sample: Any) -> None:
+        msg = json.loads(sample.payload.to_bytes())
+        with lock:
+            rates.setdefault(msg["leader_id"], []).append((_time.monotonic(), float(msg.get("rate_hz") or 0.0)))
+
+    sub = session.declare_subscriber("omniformation/bench/leader/*/state", on_state)
+    procs: list[subprocess.Popen[bytes]] = []
+    slowest: list[float] = []
+    held = 0
+    try:
+        for k in range(1, max_processes + 1):
+            procs.append(subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record",
+                                           "--fleet", "bench", "--leader-id", f"L{k}", "--zenoh-connect", endpoint],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            deadline = _time.monotonic() + 120
+            while _time.monotonic() < deadline:  # every leader past its start-up (compiling, first frames)
+                with lock:
+                    ready = len(rates) == k and all(len(v) > 150 for v in rates.values())
+                if ready:
+                    break
+                _time.sleep(0.5)
+            t0 = _time.monotonic()
+            _time.sleep(seconds)
+            with lock:
+                window = [min(r for t, r in v if t >= t0) for v in rates.values() if any(t >= t0 for t, _ in v)]
+            low = min(window) if len(window) == k else 0.0
+            slowest.append(low)
+            if low < 29.7:
+                break
+            held = k
+    finally:
+        for p in procs:
+            p.send_signal(2)
+        for p in procs:
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        sub.undeclare()
+        session.close()
+    return held, slowest
 
 
 def bench_sweeps() -> tuple[float, float, float, float, int]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from app.cli.args import Parser, bind_error, float_in, port, token_arg
@@ -124,7 +125,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     from app.dashboard.gate import is_loopback, quietly, serve_gated
     from app.files import check_new_file, display_path
     from app.fleet.bridge import check_name
-    from app.fleet.dashboard import FleetView
+    from app.fleet.dashboard import SWITCH_INTERVAL_S, FleetView
     from app.fleet.recorder import FleetRecorder
 
     try:
@@ -150,13 +151,12 @@ def cmd_fleet(args: argparse.Namespace) -> int:
             quietly(server.stop)
             session.close()  # type: ignore[attr-defined]
             raise UserError(f"{args.record}: cannot record: {exc.strerror or exc}") from None
+    sys.setswitchinterval(SWITCH_INTERVAL_S)  # states reach the page's callbacks sooner (app.fleet.dashboard)
     view = FleetView(server, session, args.fleet, recorder)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     if not is_loopback(args.host):
-        import sys
-
         print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
               " token) may see and command the fleet", file=sys.stderr)
     print(f"omniformation: fleet {args.fleet} at {gate.url}  (Ctrl-C to stop)", flush=True)

@@ -141,9 +141,9 @@ class FleetBridge:
         self._publisher(s)
 
     def _publish_state(self, s: TickState) -> None:
-        payload = state_payload(s, self.leader_id)
-        payload["sent"] = round(time.time(), 6)  # wall clock, for a subscriber's latency on the same machine
-        self._state_pub.put(json.dumps(payload, separators=(",", ":")))
+        text = json.dumps(state_payload(s, self.leader_id), separators=(",", ":"))
+        # the wall clock as the last thing before it goes (a subscriber's latency on the same machine)
+        self._state_pub.put(f'{text[:-1]},"sent":{time.time():.6f}}}')
 
     def event(self, kind: str, detail: str) -> None:
         self._event_pub.put(json.dumps({"leader_id": self.leader_id, "t": round(self._t, 3), "kind": kind,
