@@ -240,6 +240,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         bridge = FleetBridge(service.store, args.fleet, args.leader_id, allow_control=args.fleet_control,
                              session=session)
         service.loop.subscribe(bridge.on_tick)
+        service.dashboard.extra.append(bridge.show_on(service.server))
+        if args.zenoh_connect and not arena_team:  # an arena leader knows it is connected (it had the truth)
+            import time
+
+            deadline = time.monotonic() + 3.0
+            while not bridge.peers() and time.monotonic() < deadline:
+                time.sleep(0.1)
+            if not bridge.peers():
+                print(f"omniformation: fleet bus: no peer answers at {', '.join(args.zenoh_connect)}; retrying in the"
+                      " background (the loop runs; the page says 'fleet: disconnected')", file=sys.stderr, flush=True)
         if arena_team is not None:
             from app.fleet.arena_team import Adopter
 

@@ -58,7 +58,7 @@ class ArenaTeam:
         self._truth_at = -math.inf
         self._got = threading.Event()
         self._sub = session.declare_subscriber(f"{root(fleet)}/arena/truth", self._on_truth)
-        self._drive = session.declare_publisher(f"{root(fleet)}/arena/drive/{leader_id}")
+        self._drive: Any = None  # declared at the first command: a leader refused at start-up never drives
         if not self._got.wait(wait_s):
             self._sub.undeclare()
             raise NoArena(f"no arena publishes {root(fleet)}/arena/truth (waited {wait_s:g} s): start"
@@ -141,15 +141,18 @@ class ArenaTeam:
         payload = {"tick": self._tick, "twist": [round(self._twist[0], 6), round(self._twist[1], 6)],
                    "commands": {robot_name(r): [round(float(v[k]), 6), round(float(w[k]), 6)] for k, r in mine}}
         self._tick += 1
+        if self._drive is None:
+            self._drive = self.session.declare_publisher(f"{root(self.fleet)}/arena/drive/{self.leader_id}")
         self._drive.put(json.dumps(payload, separators=(",", ":")))
 
     def advance(self, leader_twist: tuple[float, float], dt: float, t: float) -> None:
         self._twist = (float(leader_twist[0]), float(leader_twist[1]))  # goes with the next tick's commands
 
     def close(self) -> None:
-        self._twist = (0.0, 0.0)
-        self.send(Commands.zeros(len(self.active)))
-        self._drive.undeclare()
+        if self._drive is not None:  # it drove: its robots and itself to zero, as the last word
+            self._twist = (0.0, 0.0)
+            self.send(Commands.zeros(len(self.active)))
+            self._drive.undeclare()
         self._sub.undeclare()
 
 

@@ -123,6 +123,7 @@ class FleetBridge:
         self.base = f"{root(fleet)}/leader/{leader_id}"
         self._own_session = session is None
         self.session = session if session is not None else open_session(listen or [], connect or [])
+        self.endpoints = list(connect or []) + list(listen or [])
         self.commands_taken = 0
         self.commands_refused = 0
         self._state_pub = self.session.declare_publisher(f"{self.base}/state")
@@ -134,6 +135,29 @@ class FleetBridge:
         self._t = 0.0
         store.subscribe(self._on_params)
         self._publisher = LatestStatePublisher(self._publish_state)
+
+    def peers(self) -> int:
+        """How many Zenoh peers this leader's session is connected to now."""
+        return len(list(self.session.info.peers_zid()))
+
+    def status(self) -> str:
+        """The bus for people: connected, or disconnected (Zenoh keeps retrying; the loop runs)."""
+        n = self.peers()
+        if n:
+            return f"fleet {self.fleet}/{self.leader_id}: connected ({n} peer{'s' if n > 1 else ''})"
+        where = f" at {', '.join(self.endpoints)}" if self.endpoints else ""
+        return f"fleet {self.fleet}/{self.leader_id}: disconnected (no peer{where}; retrying)"
+
+    def show_on(self, server: Any) -> Any:
+        """A line on a leader's own page saying how its bus is; returns the redraw to call."""
+        line = server.gui.add_markdown(self.status())
+
+        def redraw() -> None:
+            text = self.status()
+            if line.content != text:
+                line.content = text
+
+        return redraw
 
     # -- out ------------------------------------------------------------------------------
     def on_tick(self, s: TickState) -> None:

@@ -110,6 +110,11 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         wait_for(lambda: all(team_rms_m(w.recent(ld, 2.0)) <= 0.02 and w.recent(ld, 2.0)[-1]["leader_twist"][0] > 0.01
                              for ld in ("L1", "L2", "L3")), 90, "every team in formation, moving")
         rms = {ld: team_rms_m(w.recent(ld, 2.0)) for ld in ("L1", "L2", "L3")}
+        # a second leader with an id on the bus already refuses to start, saying so
+        twin = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--zenoh-connect", endpoint, "--port", "0",
+                        "--no-record")
+        assert twin.returncode == 2 and "a leader with this id is alive on fleet three_teams" in twin.stderr, twin.stderr
+        assert len(twin.stderr.strip().splitlines()) == 1
         truth = w.last_truth()
         assert truth["conflicts"] == 0
         orphans = [r for r, o in enumerate(truth["owners"]) if o == "L2"]

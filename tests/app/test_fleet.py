@@ -152,3 +152,37 @@ def test_a_killed_leader_process_loses_its_token():
 def test_bad_fleet_arguments_are_one_line(args, words):
     r = main_cli("run", "--port", "0", "--no-record", *args)
     assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_an_unreachable_bus_is_said_and_retried_while_the_loop_runs():
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth", "--no-record",
+                             "--fleet", "arena3", "--leader-id", "L1", "--zenoh-connect", f"tcp/127.0.0.1:{port}"],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    session = None
+    try:
+        assert proc.stderr is not None and proc.stdout is not None
+        line = proc.stderr.readline()
+        assert "fleet bus: no peer answers at tcp/127.0.0.1:" in line and "retrying" in line, line
+        assert "dashboard at" in "".join(proc.stdout.readline() for _ in range(2))
+        # the bus comes up later: the leader finds it by itself and its states arrive
+        c = zenoh.Config()
+        c.insert_json5("mode", '"peer"')
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        session = zenoh.open(c)
+        states: list[dict] = []
+        sub = session.declare_subscriber("omniformation/arena3/leader/L1/state",
+                                         lambda s: states.append(json.loads(s.payload.to_bytes())))
+        wait_for(lambda: len(states) > 10, 60, "the leader's states once the bus is there")
+        assert states[-1]["tick"] > 30  # its loop ran all along
+        sub.undeclare()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        if session is not None:
+            session.close()
+    assert proc.returncode == 0

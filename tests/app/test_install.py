@@ -46,6 +46,9 @@ def test_the_installed_package_is_not_the_checkout(installed: Path, tmp_path: Pa
                          capture_output=True, text=True, check=True, cwd=tmp_path)
     for line in out.stdout.split():
         assert str(installed) in line and str(ROOT) not in line
+    shipped = Path(out.stdout.split()[1]).parent
+    for sub in ("scenarios/vee3.toml", "fleets/three_teams.toml", "camera/synthetic.toml"):
+        assert (shipped / sub).is_file(), sub  # the shipped config travels with the install
 
 
 def test_simulate_runs_from_an_unrelated_folder(installed: Path, tmp_path: Path) -> None:
