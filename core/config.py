@@ -267,13 +267,18 @@ def parse_gains(t: Table) -> Gains:
     return Gains(**values)
 
 
-def parse_scenario(text: str, source: str) -> Scenario:
-    """Parse a scenario TOML document; ``source`` names it in error messages."""
+def toml_document(text: str, source: str) -> Table:
+    """A TOML document's top table, or ConfigError naming ``source``."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    top = Table(data, source, "")
+    return Table(data, source, "")
+
+
+def parse_scenario(text: str, source: str) -> Scenario:
+    """Parse a scenario TOML document; ``source`` names it in error messages."""
+    top = toml_document(text, source)
     name = top.text("name")
     description = top.text("description", default="")
     duration = top.number("duration_s", 0.0, 86400.0, lo_open=True, unit="s")

@@ -16,13 +16,12 @@ MIN_HUE_SEPARATION_DEG apart.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 
 import numpy as np
 
 from core.camera.config import MIN_HUE_SEPARATION_DEG, hue_distance_deg
-from core.config import ConfigError, Table, parse_dynamics
+from core.config import ConfigError, parse_dynamics, toml_document
 from core.control.presets import MIN_SPACING_M, PRESET_REACH_M, default_formation
 from core.geometry import heading_leader_to_world, leader_to_world
 from core.sim.team import FollowerDynamics, followers_kernel, integrate_unicycle
@@ -83,11 +82,7 @@ def spread_hues(count: int, first_deg: float = 0.0) -> tuple[float, ...]:
 def parse_fleet(text: str, source: str) -> FleetScenario:
     """A fleet scenario (static_config/fleets/*.toml); ConfigError (one line) on anything wrong,
     clashing marker hues included."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    top = Table(data, source, "")
+    top = toml_document(text, source)
     name = top.text("name")
     description = top.text("description", default="")
     rate = top.number("rate_hz", 1.0, 200.0, default=30.0, unit="Hz")

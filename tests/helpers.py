@@ -24,6 +24,20 @@ SCENARIOS = ROOT / "static_config" / "scenarios"
 SAMPLES = ROOT / "recordings" / "samples"
 
 
+def interrupt(*procs: subprocess.Popen) -> None:
+    """Ctrl-C to every process still running (as a person stops them), then wait; killed only
+    if one does not end within 30 s."""
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in procs:
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(10)
+
+
 def wait_for(pred: Callable[[], object], timeout: float = 10.0, what: str = "condition") -> float:
     """Poll ``pred`` until it is true; the seconds it took. A time-out fails the test, naming ``what``."""
     start = time.monotonic()

@@ -20,7 +20,7 @@ from core.config import ConfigError
 from core.fleet import FleetScenario, adoption_plan, initial_arena, parse_fleet, step_arena
 from core.sim.team import FollowerDynamics
 
-from tests.helpers import ROOT, main_cli, wait_for
+from tests.helpers import ROOT, interrupt, main_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -154,19 +154,8 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         assert t_seated <= 15.0, t_seated
         assert w.last_truth()["conflicts"] == 0
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for p in procs.values():
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:
-                p.kill()
-        arena.send_signal(signal.SIGINT)
-        try:
-            arena.wait(30)
-        except subprocess.TimeoutExpired:
-            arena.kill()
+        interrupt(*procs.values())
+        interrupt(arena)  # the leaders first: the arena sees them go
         if watcher is not None:
             watcher.close()
     counts = json.loads(summary.read_text())

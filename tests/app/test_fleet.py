@@ -16,7 +16,7 @@ from app.fleet.bridge import FleetBridge
 from app.live.loop import ServiceLoop
 from app.live.params import Params, ParamsStore, default_slots
 
-from tests.helpers import ROOT, main_cli, wait_for
+from tests.helpers import ROOT, interrupt, main_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -178,11 +178,7 @@ def test_an_unreachable_bus_is_said_and_retried_while_the_loop_runs():
         assert states[-1]["tick"] > 30  # its loop ran all along
         sub.undeclare()
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        interrupt(proc)
         if session is not None:
             session.close()
     assert proc.returncode == 0
