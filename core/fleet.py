@@ -196,12 +196,18 @@ def adoption_plan(orphans: list[int], robot_xy: FloatArray, leaders: dict[str, t
     return plan
 
 
-def slot_for_newcomer(slots: FloatArray, newcomer: FloatArray, inner_m: float = 0.5) -> FloatArray:
+AVOID_M = 0.5  # a new slot keeps this far from other teams' bodies (they move about their own slots)
+
+
+def slot_for_newcomer(slots: FloatArray, newcomer: FloatArray, inner_m: float = 0.5,
+                      avoid: FloatArray | None = None) -> FloatArray:
     """Where an adopted robot joins a formation (leader frame): the free place nearest to where
     it stands now, so it drives in from its own side. Free: at least MIN_SPACING_M from every
     slot (the safety filter's barrier leaves a settled team alone), between ``inner_m`` and
     PRESET_REACH_M from the leader (where the camera sees it); a 5 cm grid, nearest first,
-    ties to the lower grid point: every leader computing it gets the same point."""
+    ties to the lower grid point: every leader computing it gets the same point. ``avoid``:
+    other teams' bodies (leader frame), kept AVOID_M away where there is room (a slot the
+    safety filter could never let a robot reach would hold it short for ever)."""
     step = 0.05
     axis = np.arange(-PRESET_REACH_M, PRESET_REACH_M + step / 2, step)
     gx, gy = np.meshgrid(axis, axis)
@@ -211,9 +217,23 @@ def slot_for_newcomer(slots: FloatArray, newcomer: FloatArray, inner_m: float = 
     if slots.size:
         gap = np.min(np.hypot(grid[:, None, 0] - slots[None, :, 0], grid[:, None, 1] - slots[None, :, 1]), axis=1)
         ok &= gap >= MIN_SPACING_M
+    if avoid is not None and len(avoid):
+        av = np.asarray(avoid, dtype=np.float64).reshape(-1, 2)
+        clear = np.min(np.hypot(grid[:, None, 0] - av[None, :, 0], grid[:, None, 1] - av[None, :, 1]), axis=1)
+        if np.any(ok & (clear >= AVOID_M)):
+            ok &= clear >= AVOID_M
     free = grid[ok]
     if free.shape[0] == 0:  # no room left in the ring: behind the rearmost slot
         rear = slots[np.argmin(slots[:, 1])] if slots.size else np.zeros(2)
         return np.array([rear[0], rear[1] - MIN_SPACING_M])
     d = np.hypot(free[:, 0] - newcomer[0], free[:, 1] - newcomer[1])
     return np.asarray(free[int(np.argmin(d))], dtype=np.float64)
+
+
+def closest_distance(state: ArenaState) -> float:
+    """The smallest centre-to-centre distance (m) between any two bodies of the arena, robots
+    and leaders alike (what the safety filter keeps above its min_distance_m)."""
+    xy = np.vstack([state.robots[:, :2], state.leaders[:, :2]])
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    d[np.diag_indices_from(d)] = np.inf
+    return float(d.min()) if d.size > 1 else math.inf

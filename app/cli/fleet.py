@@ -102,7 +102,8 @@ def cmd_arena(args: argparse.Namespace) -> int:
                 c = arena.counts
                 print(f"  t {arena.t:7.1f} s  alive {' '.join(sorted(arena.alive)) or '-'}  conflicts {c.conflicts}"
                       f"  watchdog stops {c.watchdog_stops}  claims {c.claims_granted} granted,"
-                      f" {c.claims_refused} refused  malformed {c.malformed}", flush=True)
+                      f" {c.claims_refused} refused  malformed {c.malformed}  closest {arena.gap_m * 100:.0f} cm"
+                      f" (contacts {c.contacts})", flush=True)
     finally:
         stop.set()
         stepper.join(10.0)
@@ -114,7 +115,8 @@ def cmd_arena(args: argparse.Namespace) -> int:
             args.summary.write_text(json.dumps(summary, indent=1) + "\n")
     c = arena.counts
     print(f"omniformation: arena stopped after {arena.t:.1f} s: conflicts {c.conflicts}, watchdog stops"
-          f" {c.watchdog_stops}, claims {c.claims_granted} granted / {c.claims_refused} refused", flush=True)
+          f" {c.watchdog_stops}, claims {c.claims_granted} granted / {c.claims_refused} refused, closest two bodies"
+          f" {c.closest_m * 100:.0f} cm apart (closer than 0.25 m: {c.contacts} steps)", flush=True)
     return 0
 
 

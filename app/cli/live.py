@@ -161,7 +161,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             frames = open_frame_source(args.camera, args.camera_fps)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-    session = arena_team = None
+    session = arena_team = token = None
     params = None
     if args.fleet is not None:  # on the bus before anything drives: an id taken, or no arena, ends here
         from app.cli.fleet import open_bus
@@ -179,17 +179,26 @@ def cmd_run(args: argparse.Namespace) -> int:
                                            config.seed if args.seed is None else args.seed)
                 except NoArena as exc:
                     raise UserError(f"--arena {args.arena}: {exc}") from None
-                if not arena_team.owned:
-                    raise UserError(f"--arena {args.arena}: {args.leader_id} owns no robot in the arena now (other"
-                                    " leaders adopted them); a leader needs at least one follower")
-                me = fleet_scenario.leaders[fleet_scenario.leader_index(args.leader_id)]
-                n_owned = len(arena_team.owned)
-                params = Params(n_followers=n_owned, slots=default_slots(n_owned), leader_mode=me.mode,  # type: ignore[arg-type]
-                                leader_speed_mps=me.speed_mps, leader_turn_deg_s=me.turn_deg_s)
             if name_taken(session, args.fleet, args.leader_id):
                 raise UserError(f"--leader-id {args.leader_id}: a leader with this id is alive on fleet {args.fleet}"
                                 " already; every leader needs its own id")
-        except UserError:
+            if arena_team is not None and fleet_scenario is not None:
+                if not arena_team.owned:  # it comes back after its robots were adopted: alive, empty-handed
+                    from app.fleet.bridge import root
+
+                    token = session.liveliness().declare_token(f"{root(args.fleet)}/alive/{args.leader_id}")  # type: ignore[attr-defined]
+                    print(f"omniformation: {args.leader_id} owns no robot in the arena now (other leaders adopted"
+                          " them); waiting for the operator to hand one over (the fleet page's Hand over)",
+                          flush=True)
+                    arena_team.wait_for_robots()
+                me = fleet_scenario.leaders[fleet_scenario.leader_index(args.leader_id)]
+                n_owned = len(arena_team.owned)
+                slots = default_slots(n_owned) if token is None else arena_team.slots_for_owned()
+                params = Params(n_followers=n_owned, slots=slots, leader_mode=me.mode,  # type: ignore[arg-type]
+                                leader_speed_mps=me.speed_mps, leader_turn_deg_s=me.turn_deg_s)
+        except (UserError, KeyboardInterrupt):
+            if token is not None:
+                token.undeclare()
             if arena_team is not None:
                 arena_team.close()
             session.close()  # type: ignore[attr-defined]
@@ -238,7 +247,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from app.fleet.bridge import FleetBridge
 
         bridge = FleetBridge(service.store, args.fleet, args.leader_id, allow_control=args.fleet_control,
-                             session=session)
+                             session=session, token=token)
         service.loop.subscribe(bridge.on_tick)
         service.dashboard.extra.append(bridge.show_on(service.server))
         if args.zenoh_connect and not arena_team:  # an arena leader knows it is connected (it had the truth)

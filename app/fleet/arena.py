@@ -30,12 +30,15 @@ from typing import Any
 
 import numpy as np
 
-from core.fleet import ArenaState, FleetScenario, initial_arena, step_arena
+from core.control.safety import SafetySettings
+from core.fleet import MAX_TEAM, ArenaState, FleetScenario, closest_distance, initial_arena, step_arena
 from core.link.protocol import WATCHDOG_S
 
 from app.fleet.bridge import root
 
 log = logging.getLogger(__name__)
+
+CONTACT_M = SafetySettings().min_distance_m  # two bodies' centres closer than this: the safety filter's limit broken
 
 
 def robot_name(r: int) -> str:
@@ -59,6 +62,8 @@ class ArenaCounts:
     claims_granted: int = 0
     claims_refused: int = 0
     watchdog_stops: int = 0  # robots stopped by their own watchdog (their leader went quiet)
+    contacts: int = 0  # steps on which two bodies came closer than CONTACT_M, centre to centre
+    closest_m: float = math.inf  # the smallest centre-to-centre distance between two bodies so far
 
 
 class Arena:
@@ -83,6 +88,7 @@ class Arena:
         self.t = 0.0
         self.dt = 1.0 / scenario.rate_hz
         self.watchdog_stopped = np.zeros(n_robots, dtype=bool)
+        self.gap_m = closest_distance(self.state)
         self._lock = threading.Lock()
         base = f"{root(self.fleet)}/arena"
         self._truth_pub = session.declare_publisher(f"{base}/truth")
@@ -93,6 +99,7 @@ class Arena:
             session.liveliness().declare_subscriber(f"{root(self.fleet)}/alive/*", self._on_alive, history=True),
         ]
         self._claims = session.declare_queryable(f"{base}/claim", self._on_claim)
+        self._handovers = session.declare_queryable(f"{base}/handover", self._on_handover)
 
     # -- in ------------------------------------------------------------------------------------
     def _on_alive(self, sample: Any) -> None:
@@ -179,8 +186,45 @@ class Arena:
             else:
                 self.counts.claims_refused += 1
         query.reply(query.key_expr, json.dumps({"granted": granted, "robot": robot_name(r), "leader": leader,
-                                                "why": why}))
+                                                "why": why, "tick": self.counts.steps}))
         self.event("claim", f"{robot_name(r)} to {leader}: " + ("granted" if granted else f"refused ({why})"))
+
+    def _on_handover(self, query: Any) -> None:
+        """The operator moves a robot to a leader (e.g. back to one that came back empty-handed):
+        granted to a living leader with room, never leaving a living leader without a follower."""
+        try:
+            msg = json.loads(query.payload.to_bytes() if query.payload is not None else b"")
+            to, r = str(msg["to"]), robot_index(msg["robot"], len(self.owners))
+            sender = str(msg.get("from", "?"))[:40]
+            if r is None:
+                raise ValueError
+        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+            with self._lock:
+                self.counts.malformed += 1
+            query.reply(query.key_expr, json.dumps({"granted": False, "why": "a handover is"
+                                                    ' {"robot": "R<n>", "to": ID, "from": WHO}'}))
+            return
+        with self._lock:
+            owner = self.owners[r]
+            mine = sum(1 for o in self.owners if o == to)
+            if to not in self.alive:
+                why = f"{to} is not alive on the bus"
+            elif owner == to:
+                why = f"{robot_name(r)} is {to}'s already"
+            elif mine >= MAX_TEAM:
+                why = f"{to} has {mine} followers, the most a team takes"
+            elif owner is not None and owner in self.alive and sum(1 for o in self.owners if o == owner) <= 1:
+                why = f"{robot_name(r)} is {owner}'s only follower"
+            else:
+                why = ""
+                self.owners[r] = to
+                self.commands[r] = 0.0
+                self.commanded_by[r] = None
+            granted = why == ""
+        query.reply(query.key_expr, json.dumps({"granted": granted, "robot": robot_name(r), "leader": to, "why": why,
+                                                "tick": self.counts.steps}))
+        self.event("handover", f"{robot_name(r)} from {owner} to {to} by {sender}: "
+                               + ("granted" if granted else f"refused ({why})"))
 
     # -- out -----------------------------------------------------------------------------------
     def event(self, kind: str, detail: str) -> None:
@@ -198,7 +242,7 @@ class Arena:
             "alive": sorted(self.alive), "lost": sorted(self.ever_alive - self.alive),
             "watchdog": [bool(b) for b in self.watchdog_stopped],
             "command_age": [round(float(a), 3) if math.isfinite(a) else None for a in self.t - self.command_t],
-            "conflicts": self.counts.conflicts,
+            "conflicts": self.counts.conflicts, "closest_m": round(self.gap_m, 4), "contacts": self.counts.contacts,
         }
 
     # -- one step ------------------------------------------------------------------------------
@@ -211,6 +255,9 @@ class Arena:
             commands = np.where(stale[:, None], 0.0, self.commands)
             twists = np.where((self.t - self.twist_t > WATCHDOG_S)[:, None], 0.0, self.twists)
             self.state = step_arena(self.state, twists, commands, self.dt, self.scenario.dynamics)
+            self.gap_m = closest_distance(self.state)
+            self.counts.closest_m = min(self.counts.closest_m, self.gap_m)
+            self.counts.contacts += int(self.gap_m < CONTACT_M)
             self.t += self.dt
             self.counts.steps += 1
             payload = json.dumps(self.truth(), separators=(",", ":"))
@@ -232,4 +279,5 @@ class Arena:
         for s in self._subs:
             s.undeclare()
         self._claims.undeclare()
+        self._handovers.undeclare()
         self._token.undeclare()

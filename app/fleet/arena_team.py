@@ -15,6 +15,7 @@ to the new slot.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -29,6 +30,7 @@ from core.geometry import world_to_leader
 from core.sim.team import TeamState, measure_followers
 from core.types import BoolArray, Commands, FloatArray
 
+from app.contracts import Observation
 from app.fleet.arena import robot_index, robot_name
 from app.fleet.bridge import root
 from app.live.params import ParamsStore
@@ -109,6 +111,52 @@ class ArenaTeam:
         if robot not in self.owned:
             self.owned.append(robot)
 
+    def others(self) -> tuple[FloatArray, FloatArray]:
+        """(robots (k, 2), leaders (m, 2)) in this leader's frame: every body of the arena that
+        is not this leader or one of the robots it drives."""
+        truth = self.latest_truth()
+        if truth is None:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        me = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
+        robots = np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3)
+        keep = np.ones(robots.shape[0], dtype=bool)
+        keep[[r for r in self.active if r < robots.shape[0]]] = False
+        leaders = np.array([pose[:2] for lid, pose in truth["leaders"].items() if lid != self.leader_id],
+                           dtype=np.float64).reshape(-1, 2)
+        return (np.asarray(world_to_leader(robots[keep, :2], me[:2], float(me[2]))).reshape(-1, 2),
+                np.asarray(world_to_leader(leaders, me[:2], float(me[2]))).reshape(-1, 2))
+
+    def wait_for_robots(self, poll_s: float = 0.2) -> None:
+        """Until the arena says this leader owns a robot (an operator handed one over): a leader
+        that comes back after its robots were adopted starts empty-handed."""
+        while not self.owned:
+            time.sleep(poll_s)
+            truth = self.latest_truth()
+            if truth is not None:
+                self.owned = [r for r, o in enumerate(truth["owners"]) if o == self.leader_id]
+        self.active = list(self.owned)
+        truth = self.latest_truth()
+        assert truth is not None
+        self.state = self._state_from(truth)
+
+    def slots_for_owned(self) -> FloatArray:
+        """A formation for the robots this leader owns now, each on the side it stands, clear
+        of the other teams (a leader that was handed robots after it came back)."""
+        truth = self.latest_truth()
+        assert truth is not None
+        me = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
+        robots = np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3)
+        here = np.asarray(world_to_leader(robots[self.owned, :2], me[:2], float(me[2]))).reshape(-1, 2)
+        others, leaders = self.others()
+        slots = np.zeros((0, 2))
+        for xy in here:
+            slots = np.vstack([slots, slot_for_newcomer(slots, xy, avoid=np.vstack([others, leaders]))])
+        return slots
+
+    def release(self, robot: int) -> None:
+        if robot in self.owned:
+            self.owned.remove(robot)
+
     # -- the Team contract ----------------------------------------------------------------
     @property
     def link_state(self) -> str:
@@ -156,8 +204,39 @@ class ArenaTeam:
         self._sub.undeclare()
 
 
+OTHER_ROBOT_RING_M = 0.10  # another team's robot, as the filter sees it: a ring of points this far out
+OTHER_LEADER_RING_M = 0.20  # another leader likewise (it is larger)
+
+
+def body_rings(centres: FloatArray, radius_m: float, points: int = 8) -> FloatArray:
+    """(k * points, 2) points on a circle of ``radius_m`` round each centre."""
+    ang = np.linspace(0.0, 2 * np.pi, points, endpoint=False)
+    ring = radius_m * np.column_stack([np.cos(ang), np.sin(ang)])
+    return np.asarray((centres[:, None, :] + ring[None, :, :]).reshape(-1, 2), dtype=np.float64)
+
+
+class ArenaFeedback:
+    """The arena's truth plus noise (as TruthFeedback), and every body that is not this team's
+    (other teams' robots, orphans, other leaders) as obstacle points the safety filter keeps
+    clear of: rings the size of each body, so two robots of different teams keep the filter's
+    distance from each other as two of one team do."""
+
+    def __init__(self, team: ArenaTeam) -> None:
+        from app.live.feedback import TruthFeedback
+
+        self.team = team
+        self.inner = TruthFeedback(team)
+
+    def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
+        obs = self.inner.observe(dt, commands, error_norm)
+        robots, leaders = self.team.others()
+        points = np.vstack([body_rings(robots, OTHER_ROBOT_RING_M), body_rings(leaders, OTHER_LEADER_RING_M)])
+        return dataclasses.replace(obs, obstacles=points if len(points) else None)
+
+
 class Adopter:
-    """Claims this leader's share of a dead leader's robots and takes them into the team."""
+    """Claims this leader's share of a dead leader's robots and takes them into the team; takes
+    in a robot the operator hands to this leader and lets go of one handed away."""
 
     def __init__(self, session: Any, fleet: str, leader_id: str, team: ArenaTeam, store: ParamsStore,
                  event: Any = None) -> None:
@@ -169,6 +248,7 @@ class Adopter:
         self.event = event or (lambda kind, detail: None)
         self.alive: set[str] = set()
         self.adopted: list[tuple[int, float]] = []  # (robot, monotonic time granted)
+        self._changed_at: dict[int, int] = {}  # robot -> the arena tick of this leader's last change for it
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -194,14 +274,30 @@ class Adopter:
             if self._stop.is_set():
                 return
             try:
-                self._adopt_orphans()
+                self._sync()
             except Exception:  # noqa: BLE001 - adoption must never take the leader down
                 log.exception("adoption failed")
 
-    def _adopt_orphans(self) -> None:
+    def _sync(self) -> None:
+        """Orphans first (claim this leader's share), then follow the arena's word on who owns
+        what: a robot the operator handed to this leader is taken in, one handed away is let go."""
         truth = self.team.latest_truth()
         if truth is None:
             return
+        self._adopt_orphans(truth)
+        truth = self.team.latest_truth() or truth
+        tick = int(truth.get("tick", 0))
+        owners: list[str | None] = list(truth["owners"])
+        for r, o in enumerate(owners):
+            if o == self.leader_id and r not in self.team.owned and tick > self._changed_at.get(r, -1):
+                self._changed_at[r] = tick
+                self._take(r, truth, "handed over")
+        for r in list(self.team.owned):
+            if r < len(owners) and owners[r] != self.leader_id and tick > self._changed_at.get(r, -1):
+                self._changed_at[r] = tick
+                self._release(r, truth, owners[r])
+
+    def _adopt_orphans(self, truth: dict[str, Any]) -> None:
         with self._lock:
             alive = set(self.alive) | {self.leader_id}
         owners: list[str | None] = list(truth["owners"])
@@ -215,10 +311,13 @@ class Adopter:
         plan = adoption_plan(orphans, robots[:, :2], leaders, MAX_TEAM)
         mine = [r for r, lid in plan.items() if lid == self.leader_id]
         for r in mine:
-            if self._claim(r):
-                self._take(r)
+            granted_at = self._claim(r)
+            if granted_at is not None:
+                self._changed_at[r] = granted_at
+                self._take(r, truth, "adopted")
 
-    def _claim(self, r: int) -> bool:
+    def _claim(self, r: int) -> int | None:
+        """The arena's tick when it granted ``r`` to this leader, or None (refused, or no answer)."""
         payload = json.dumps({"leader": self.leader_id, "robot": robot_name(r)})
         for reply in self.session.get(f"{root(self.fleet)}/arena/claim", payload=payload, timeout=2.0):
             try:
@@ -226,27 +325,46 @@ class Adopter:
             except (AttributeError, ValueError, TypeError):
                 continue
             if answer.get("granted") and robot_index(answer.get("robot"), 10_000) == r:
-                return True
+                return int(answer.get("tick", 0))
             self.event("refused", f"claim for {robot_name(r)}: {answer.get('why', '?')}")
-        return False
+        return None
 
-    def _take(self, r: int) -> None:
-        truth = self.team.latest_truth()
-        assert truth is not None
-        # a slot on the side it comes from (core.fleet.slot_for_newcomer), in this leader's frame
+    def _in_my_frame(self, truth: dict[str, Any], r: int) -> FloatArray:
         leader = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
         robot = np.asarray(truth["robots"][r], dtype=np.float64)
-        here = world_to_leader(robot[None, :2], leader[:2], float(leader[2]))[0]
+        return np.asarray(world_to_leader(robot[None, :2], leader[:2], float(leader[2]))[0])
+
+    def _take(self, r: int, truth: dict[str, Any], how: str) -> None:
+        # a slot on the side it comes from (core.fleet.slot_for_newcomer), in this leader's frame
+        here = self._in_my_frame(truth, r)
         current = self.store.get()
         slots = current.slots[:current.n_followers]
+        robots, leaders = self.team.others()
+        new_slot = slot_for_newcomer(slots, here, avoid=np.vstack([robots[np.hypot(*(robots - here).T) > 1e-6]
+                                                                   if len(robots) else robots, leaders]))
         self.team.adopt(r)
         self.adopted.append((r, time.monotonic()))
         n = len(self.team.owned)
         self.store.fixed_followers = n
-        self.store.update(f"fleet:adopt {robot_name(r)}", n_followers=n,
-                          slots=np.vstack([slots, slot_for_newcomer(slots, here)]))
-        self.event("adopted", f"{robot_name(r)}: now follower {n} of {self.leader_id}")
-        log.info("adopted %s (team of %d)", robot_name(r), n)
+        self.store.update(f"fleet:{how} {robot_name(r)}", n_followers=n, slots=np.vstack([slots, new_slot]))
+        self.event(how, f"{robot_name(r)}: now follower {n} of {self.leader_id}")
+        log.info("%s %s (team of %d)", how, robot_name(r), n)
+
+    def _release(self, r: int, truth: dict[str, Any], to: str | None) -> None:
+        """The arena gave ``r`` to another leader: out of this team, with the slot nearest to it."""
+        if len(self.team.owned) <= 1:
+            return  # the arena never takes a living leader's last follower; nothing to follow without one
+        here = self._in_my_frame(truth, r)
+        current = self.store.get()
+        slots = current.slots[:current.n_followers]
+        keep = np.ones(slots.shape[0], dtype=bool)
+        keep[int(np.argmin(np.hypot(slots[:, 0] - here[0], slots[:, 1] - here[1])))] = False
+        self.team.release(r)
+        n = len(self.team.owned)
+        self.store.fixed_followers = n
+        self.store.update(f"fleet:handed over {robot_name(r)}", n_followers=n, slots=slots[keep])
+        self.event("released", f"{robot_name(r)}: handed over to {to}; {self.leader_id} keeps {n}")
+        log.info("released %s to %s (team of %d)", robot_name(r), to, n)
 
     def close(self) -> None:
         self._stop.set()

@@ -113,9 +113,11 @@ class FleetBridge:
     """One leader's presence on the bus; ``on_tick`` is the loop's subscriber."""
 
     def __init__(self, store: ParamsStore, fleet: str, leader_id: str, listen: list[str] | None = None,
-                 connect: list[str] | None = None, allow_control: bool = False, session: Any = None) -> None:
+                 connect: list[str] | None = None, allow_control: bool = False, session: Any = None,
+                 token: Any = None) -> None:
         """``session``: one already open (then ``listen`` / ``connect`` are its business, and
-        closing the bridge leaves it open)."""
+        closing the bridge leaves it open). ``token``: this leader's liveliness token when it
+        was declared already (a leader waiting for robots is alive before its loop runs)."""
         self.store = store
         self.fleet = check_name(fleet, "fleet")
         self.leader_id = check_name(leader_id, "leader id")
@@ -128,7 +130,8 @@ class FleetBridge:
         self.commands_refused = 0
         self._state_pub = self.session.declare_publisher(f"{self.base}/state")
         self._event_pub = self.session.declare_publisher(f"{self.base}/events")
-        self._token = self.session.liveliness().declare_token(f"{root(fleet)}/alive/{leader_id}")
+        self._token = token if token is not None else \
+            self.session.liveliness().declare_token(f"{root(fleet)}/alive/{leader_id}")
         self._subs = [self.session.declare_subscriber(f"{self.base}/cmd", self._on_command),
                       self.session.declare_subscriber(f"{root(fleet)}/all/cmd", self._on_fleet_command)]
         self._last_params = store.get()

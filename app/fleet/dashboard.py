@@ -129,6 +129,14 @@ class FleetView:
         self.status = gui.add_markdown("fleet: connecting ...", order=1)
         self.event_text = gui.add_markdown("", order=1000)
         self.stop_all.on_click(lambda _: self.send_all_stop())
+        with gui.add_folder("Hand over a robot", order=900, expand_by_default=False):
+            self.hand_robot = gui.add_dropdown("robot", options=("-",), initial_value="-")
+            self.hand_to = gui.add_dropdown("to leader", options=("-",), initial_value="-")
+            self.hand_button = gui.add_button("Hand over")
+        def hand(_: Any) -> None:
+            self.hand_over(str(self.hand_robot.value), str(self.hand_to.value))
+
+        self.hand_button.on_click(hand)
         self.panels: dict[str, LeaderPanel] = {}
         self._scene: dict[str, Any] = {}
         server.scene.add_grid("/grid", width=20, height=20, cell_size=0.5, plane="xy")
@@ -204,6 +212,25 @@ class FleetView:
         self.session.put(f"{root(self.fleet)}/leader/{leader_id}/cmd",
                          json.dumps({"set": changes, "from": "fleet-dashboard"}))
 
+    def hand_over(self, robot: str, to: str) -> str:
+        """Ask the arena to give ``robot`` to leader ``to`` (e.g. back to a leader that came back
+        empty-handed); the answer goes to the events and is returned."""
+        if robot == "-" or to == "-":
+            answer = "hand over: pick a robot and a leader first"
+        else:
+            answer = f"hand over {robot} to {to}: no arena answered"
+            payload = json.dumps({"robot": robot, "to": to, "from": "fleet-dashboard"})
+            for reply in self.session.get(f"{root(self.fleet)}/arena/handover", payload=payload, timeout=3.0):
+                try:
+                    got = json.loads(reply.ok.payload.to_bytes())
+                except (AttributeError, ValueError, TypeError):
+                    continue
+                answer = (f"hand over {robot} to {to}: " + ("done" if got.get("granted") else
+                                                             f"refused ({got.get('why', '?')})"))
+        with self._lock:
+            self.events.append(answer)
+        return answer
+
     def send_all_stop(self) -> None:
         self.session.put(f"{root(self.fleet)}/all/cmd", json.dumps({"set": {"stop": True}, "from": "fleet-dashboard"}))
 
@@ -238,6 +265,12 @@ class FleetView:
             self.status.content = (f"**fleet {self.fleet}**: leaders alive {', '.join(sorted(alive)) or 'none'};"
                                    f" {arena}{rec}")
             self.event_text.content = "**events**  \n" + "  \n".join(reversed(events)) if events else ""
+            robots = tuple(f"R{r + 1}" for r in range(len(truth["robots"]))) if truth else ("-",)
+            if tuple(self.hand_robot.options) != robots:
+                self.hand_robot.options = robots
+            leaders = tuple(sorted(alive)) or ("-",)
+            if tuple(self.hand_to.options) != leaders:
+                self.hand_to.options = leaders
             self._draw(truth, states)
 
     def _draw(self, truth: dict[str, Any] | None, states: dict[str, tuple[float, dict[str, Any]]]) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 from collections.abc import Callable
 
 import numpy as np
@@ -32,7 +33,9 @@ from core.vision.pipeline import PipelineSettings, VisionPipeline
 
 from app.contracts import FrameSource, Observation, Team
 from app.backends.sim import SimTeam
-from app.fleet.arena_team import ArenaTeam
+
+if TYPE_CHECKING:
+    from app.fleet.arena_team import ArenaTeam
 
 STALE_FRAME_S = 0.3  # a camera frame older than this is no ground for moving a robot
 SCAN_EVERY = 3  # frames between free-space scans (10 a second at 30 Hz, as a laser scanner gives them); the
@@ -43,7 +46,7 @@ class TruthFeedback:
     """Ground truth plus the configured noise: no camera, no start-up; the obstacles as the
     simulator knows them (the nearest point of each box to each robot)."""
 
-    def __init__(self, team: SimTeam | ArenaTeam, obstacles: tuple[Obstacle, ...] = ()) -> None:
+    def __init__(self, team: "SimTeam | ArenaTeam", obstacles: tuple[Obstacle, ...] = ()) -> None:
         self.team = team
         self.boxes = as_array(obstacles)
 

@@ -35,7 +35,7 @@ from core.types import Commands, FloatArray, IntArray
 
 from app.backends.hardware import HardwareTeam
 from app.backends.sim import SimTeam, spread_start
-from app.fleet.arena_team import ArenaTeam
+from app.fleet.arena_team import ArenaFeedback, ArenaTeam
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
 from app.live.feedback import TruthFeedback, VisionFeedback
 from app.live.params import Params, ParamsStore
@@ -172,7 +172,7 @@ class ServiceLoop:
         elif self.arena is not None:  # a fleet's arena: the same robots after a reset, plus any adopted
             self.arena.resize(n)
             team = self.arena
-            feedback = TruthFeedback(self.arena)
+            feedback = ArenaFeedback(self.arena)  # the truth, and the other teams as obstacles
             assignment = assign_slots(self.arena.observe()[0], params.slots)
         else:
             if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:

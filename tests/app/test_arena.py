@@ -150,9 +150,35 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         t_seated = w.arena_t() - t_kill
         print(f"arena: formation RMS {', '.join(f'{k} {v * 100:.2f} cm' for k, v in rms.items())}; orphans stopped"
               f" {max(stop_after):.2f} s after their last command; claimed {t_claimed:.1f} s, all seated {t_seated:.1f} s (arena time) after the"
-              f" kill; owners {adopters}")
+              f" kill; owners {adopters}; closest two bodies so far {min(tr['closest_m'] for tr in w.truths) * 100:.1f} cm apart")
         assert t_seated <= 15.0, t_seated
-        assert w.last_truth()["conflicts"] == 0
+        assert w.last_truth()["conflicts"] == 0 and w.last_truth()["contacts"] == 0
+
+        # L2 comes back empty-handed and waits; the operator hands it R5 back; its adopter lets go
+        procs["L2"] = _spawn("run", "--arena", FLEET, "--leader-id", "L2", "--zenoh-connect", endpoint, "--port", "0",
+                             "--no-record")
+        assert procs["L2"].stdout is not None
+        assert "L2 owns no robot in the arena now" in procs["L2"].stdout.readline()
+        wait_for(lambda: "L2" in w.last_truth()["alive"], 30, "L2 alive again")
+        giver = adopters[4]
+        replies = [json.loads(r.ok.payload.to_bytes()) for r in w.session.get(
+            f"omniformation/{FLEET}/arena/handover", payload=json.dumps({"robot": "R5", "to": "L2", "from": "test"}),
+            timeout=5.0)]
+        assert replies and replies[0]["granted"], replies
+        def l2_seated() -> bool:
+            last = w.recent("L2", 1.0)
+            return bool(last) and len(last[-1]["error_m"]) == 1 and last[-1]["error_m"][0] <= 0.05
+
+        try:
+            wait_for(l2_seated, 90, "R5 in L2's slot")
+        except AssertionError:
+            last = w.recent("L2", 1.0)
+            print("L2 now:", {k: last[-1][k] for k in ("tick", "p_est", "p_d", "error_m", "stopped", "phase")} if last
+                  else None, "owners", w.last_truth()["owners"])
+            raise
+        wait_for(lambda: len(w.recent(giver, 1.0)[-1]["error_m"]) == adopters.count(giver) - 1, 30,
+                 f"{giver} let R5 go")
+        assert w.last_truth()["conflicts"] == 0 and w.last_truth()["contacts"] == 0
     finally:
         interrupt(*procs.values())
         interrupt(arena)  # the leaders first: the arena sees them go
@@ -160,6 +186,9 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
             watcher.close()
     counts = json.loads(summary.read_text())
     assert counts["conflicts"] == 0 and counts["claims_granted"] == 3 and counts["malformed"] == 0, counts
+    assert counts["ever_alive"] == ["L1", "L2", "L3"]
+    # no two bodies (robots, leaders) ever closer than the safety filter's 0.25 m, centre to centre
+    assert counts["contacts"] == 0 and counts["closest_m"] >= 0.25, counts
 
 
 def _fleet(text: str) -> FleetScenario:

@@ -14,14 +14,14 @@ import pytest
 from app.dashboard.gate import quietly, serve_gated
 from app.files import load_fleet
 from app.fleet.arena import Arena
-from app.fleet.arena_team import ArenaTeam
+from app.fleet.arena_team import Adopter, ArenaTeam
 from app.fleet.bridge import FleetBridge, open_session
 from app.fleet.dashboard import FleetView
 from app.fleet.recorder import FleetRecorder
 from app.live.loop import ServiceLoop
 from app.live.params import Params, ParamsStore, default_slots
 
-from tests.helpers import ARTIFACTS, chromium_browser, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_for
 
 pytest.importorskip("playwright.sync_api")
 pytest.importorskip("zenoh")
@@ -45,12 +45,14 @@ class Leader:
         self.loop = ServiceLoop(self.store, rate_hz=30.0, arena=self.team)
         self.bridge = FleetBridge(self.store, fleet, leader_id, allow_control=allow_control, session=self.session)
         self.loop.subscribe(self.bridge.on_tick)
+        self.adopter = Adopter(self.session, fleet, leader_id, self.team, self.store, event=self.bridge.event)
         self.thread = threading.Thread(target=self.loop.run, daemon=True)
         self.thread.start()
 
     def close(self) -> None:
         self.loop.stop()
         self.thread.join(10)
+        self.adopter.close()
         self.bridge.close()
         self.session.close()
 
@@ -95,6 +97,34 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             assert l2.store.get().stop
             page.get_by_role("button", name="STOP L1", exact=True).click()
             wait_for(lambda: l1.store.get().stop, 30, "L1 stopped again")
+            # bad messages on the arena's keys are counted and dropped; a robot is moved by its owner only
+            base = "omniformation/three_teams/arena"
+            malformed, conflicts = arena.counts.malformed, arena.counts.conflicts
+            page_session.put(f"{base}/drive/L1", b"{not json")
+            page_session.put(f"{base}/drive/L1", json.dumps({"twist": [0, 0], "commands": {"R99": [1, 0]}}))
+            page_session.put(f"{base}/drive/L9", json.dumps({"twist": [0, 0], "commands": {}}))
+            page_session.put(f"{base}/drive/L2", json.dumps({"twist": [0, 0], "commands": {"R1": [0.3, 0.0]}}))
+            wait_for(lambda: arena.counts.malformed == malformed + 3 and arena.counts.conflicts == conflicts + 1, 30,
+                     "three malformed drives and one conflict")
+            replies = [json.loads(r.ok.payload.to_bytes()) for r in page_session.get(
+                f"{base}/claim", payload=json.dumps({"leader": "L2", "robot": "R1"}), timeout=5.0)]
+            assert replies and not replies[0]["granted"] and "L1 is alive" in replies[0]["why"], replies
+            replies = [json.loads(r.ok.payload.to_bytes()) for r in page_session.get(
+                f"{base}/claim", payload=b"nonsense", timeout=5.0)]
+            assert replies and not replies[0]["granted"], replies
+            assert arena.owners[0] == "L1"
+
+            # the operator hands a robot of the leader that never came (L3's R7) to L1: it joins L1's team
+            page.get_by_text("Hand over a robot", exact=True).first.click()
+            for label, option in (("robot", "R7"), ("to leader", "L1")):
+                page.locator(f'[id="{control_id(page, label)}"]').first.click()
+                page.get_by_role("option", name=option, exact=True).click()
+            wait_for(lambda: view.hand_robot.value == "R7" and view.hand_to.value == "L1", 30, "the two choices")
+            page.get_by_role("button", name="Hand over", exact=True).click()
+            page.get_by_text("hand over R7 to L1: done", exact=False).first.wait_for(timeout=30_000)
+            assert arena.owners[6] == "L1"
+            wait_for(lambda: l1.team.owned == [0, 1, 2, 6] and l1.store.get().n_followers == 4, 30, "R7 in L1's team")
+            wait_for(lambda: l1.loop.last is not None and l1.loop.last.n == 4, 30, "L1's loop driving four")
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "fleet_page.png"))
     finally:
@@ -127,4 +157,4 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
     assert counts.get("/fleet/L1/state", 0) > 30 and counts.get("/fleet/L2/state", 0) > 30, counts
     assert counts.get("/fleet/arena/truth", 0) > 30 and counts.get("/fleet/L1/events", 0) >= 2, counts
     assert stops >= 1, counts
-    assert arena.counts.conflicts == 0
+    assert arena.counts.conflicts == 1  # the one sent on purpose above: the leaders themselves never conflict
