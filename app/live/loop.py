@@ -270,6 +270,8 @@ class ServiceLoop:
         known = obs.obstacles if obs.obstacles is not None else np.zeros((0, 2))
         twist = self._leader_twist(params, known, world.err_norm, tracked, params.slots) if advance and world.ready \
             else (0.0, 0.0)
+        if params.stop and self.arena is not None:  # in an arena the loop drives the leader's base too: STOP stops it
+            twist = (0.0, 0.0)
         targets = params.slots[world.assignment] * np.array([self._nav[1], 1.0])  # narrowed for a gap (goal mode)
         if advance and world.ready:
             keep_out = params.safety_distance_m + 0.2 if params.safety else 0.0  # round the leader, not through it

@@ -88,6 +88,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             page.get_by_role("button", name="STOP every leader").click()
             wait_for(lambda: l1.store.get().stop and l2.store.get().stop, 30, "every leader stopped")
             wait_for(lambda: all(v == [0.0, 0.0] for v in l1.loop.last.commands.tolist()), 30, "L1 at zero")
+            wait_for(lambda: l2.loop.last.leader_twist == (0.0, 0.0), 30, "L2's own base stopped too")
 
             # L1 takes the page's commands; L2's operator did not allow it (STOP only): refused, said so
             page.get_by_role("button", name="Release STOP L1").click()
