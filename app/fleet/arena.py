@@ -57,7 +57,8 @@ def robot_index(name: Any, count: int) -> int | None:
 class ArenaCounts:
     steps: int = 0
     drives: int = 0
-    conflicts: int = 0  # a robot commanded by a leader that does not own it (refused)
+    conflicts: int = 0  # a robot commanded by a leader that knew it did not own it (refused)
+    late: int = 0  # a command from a robot's former owner that had not yet seen the truth of the change (refused)
     malformed: int = 0  # messages on the arena's keys that are not what docs/fleet-protocol.md says
     claims_granted: int = 0
     claims_refused: int = 0
@@ -80,6 +81,7 @@ class Arena:
         self.commands = np.zeros((n_robots, 2))
         self.command_t = np.full(n_robots, -math.inf)  # arena time of each robot's last command
         self.commanded_by: list[str | None] = [None] * n_robots
+        self.owner_since = np.zeros(n_robots, dtype=np.int64)  # the first truth tick that shows each owner
         self.twists = np.zeros((len(self.ids), 2))
         self.twist_t = np.full(len(self.ids), -math.inf)
         self.alive: set[str] = set()
@@ -124,6 +126,8 @@ class Arena:
             msg = json.loads(sample.payload.to_bytes())
             twist = [float(v) for v in msg["twist"]]
             commands = msg["commands"]
+            seen = msg.get("truth_tick")  # the newest truth the sender knew its robots by
+            seen_tick = int(seen) if isinstance(seen, int) and not isinstance(seen, bool) else None
             if len(twist) != 2 or not all(math.isfinite(v) for v in twist) or not isinstance(commands, dict):
                 raise ValueError
             parsed = []
@@ -147,7 +151,10 @@ class Arena:
             self.twist_t[i] = self.t
             for r, v, w in parsed:
                 if self.owners[r] != leader:
-                    self.counts.conflicts += 1
+                    if seen_tick is not None and seen_tick < self.owner_since[r]:
+                        self.counts.late += 1  # its former owner, before the truth told it: refused all the same
+                    else:
+                        self.counts.conflicts += 1
                     continue
                 self.commands[r] = (v, w)
                 self.command_t[r] = self.t
@@ -178,6 +185,7 @@ class Arena:
             else:  # its leader joined and is gone: an orphan
                 why = ""
                 self.owners[r] = leader
+                self.owner_since[r] = self.counts.steps + 1
                 self.commands[r] = 0.0  # the new leader's first command moves it; nobody else's does
                 self.commanded_by[r] = None
             granted = why == ""
@@ -218,6 +226,7 @@ class Arena:
             else:
                 why = ""
                 self.owners[r] = to
+                self.owner_since[r] = self.counts.steps + 1
                 self.commands[r] = 0.0
                 self.commanded_by[r] = None
             granted = why == ""
@@ -242,7 +251,7 @@ class Arena:
             "alive": sorted(self.alive), "lost": sorted(self.ever_alive - self.alive),
             "watchdog": [bool(b) for b in self.watchdog_stopped],
             "command_age": [round(float(a), 3) if math.isfinite(a) else None for a in self.t - self.command_t],
-            "conflicts": self.counts.conflicts, "closest_m": round(self.gap_m, 4), "contacts": self.counts.contacts,
+            "conflicts": self.counts.conflicts, "late": self.counts.late, "closest_m": round(self.gap_m, 4), "contacts": self.counts.contacts,
         }
 
     # -- one step ------------------------------------------------------------------------------

@@ -186,7 +186,8 @@ class ArenaTeam:
         owners = truth["owners"] if truth is not None else []
         # only the robots the arena says are this leader's: one another leader was granted is never commanded
         mine = [(k, r) for k, r in enumerate(self.active) if k < len(v) and r < len(owners) and owners[r] == self.leader_id]
-        payload = {"tick": self._tick, "twist": [round(self._twist[0], 6), round(self._twist[1], 6)],
+        payload = {"tick": self._tick, "truth_tick": int(truth["tick"]) if truth is not None else None,
+                   "twist": [round(self._twist[0], 6), round(self._twist[1], 6)],
                    "commands": {robot_name(r): [round(float(v[k]), 6), round(float(w[k]), 6)] for k, r in mine}}
         self._tick += 1
         if self._drive is None:
