@@ -160,6 +160,14 @@ class Arena:
                 self.command_t[r] = self.t
                 self.commanded_by[r] = leader
 
+    def _give(self, r: int, leader: str) -> None:
+        """Robot ``r`` is ``leader``'s from the next truth on (under the lock): standing until its
+        new owner's first command; nobody else's moves it."""
+        self.owners[r] = leader
+        self.owner_since[r] = self.counts.steps + 1
+        self.commands[r] = 0.0
+        self.commanded_by[r] = None
+
     def _on_claim(self, query: Any) -> None:
         try:
             msg = json.loads(query.payload.to_bytes() if query.payload is not None else b"")
@@ -184,10 +192,7 @@ class Arena:
                 why = f"{robot_name(r)} is {owner}'s, and {owner} has not joined yet"
             else:  # its leader joined and is gone: an orphan
                 why = ""
-                self.owners[r] = leader
-                self.owner_since[r] = self.counts.steps + 1
-                self.commands[r] = 0.0  # the new leader's first command moves it; nobody else's does
-                self.commanded_by[r] = None
+                self._give(r, leader)
             granted = why == ""
             if granted:
                 self.counts.claims_granted += 1
@@ -225,10 +230,7 @@ class Arena:
                 why = f"{robot_name(r)} is {owner}'s only follower"
             else:
                 why = ""
-                self.owners[r] = to
-                self.owner_since[r] = self.counts.steps + 1
-                self.commands[r] = 0.0
-                self.commanded_by[r] = None
+                self._give(r, to)
             granted = why == ""
         query.reply(query.key_expr, json.dumps({"granted": granted, "robot": robot_name(r), "leader": to, "why": why,
                                                 "tick": self.counts.steps}))
