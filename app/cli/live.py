@@ -86,16 +86,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.scenario or args.camera or args.link or args.followers or args.leader:
             raise UserError("--arena leads the arena's robots: it cannot be combined with --scenario, --camera,"
                             " --link, --leader or --followers")
-        if args.feedback == "vision":
-            raise UserError("--arena: the leaders' cameras are not rendered from the arena yet; poses come from the"
-                            " arena's truth plus noise (--feedback truth, the default with --arena)")
         fleet_scenario = load_fleet(args.arena)
         ids = [ld.id for ld in fleet_scenario.leaders]
         if args.leader_id not in ids:
             raise UserError(f"--arena {args.arena}: --leader-id must be one of its leaders: {', '.join(ids)}"
                             + (f" (got {args.leader_id!r})" if args.leader_id else ""))
         args.fleet = args.fleet or fleet_scenario.name
-        args.feedback = "truth"
     fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect, args.fleet_control)
     if args.fleet is None and any(fleet_args):
         raise UserError("--leader-id, --zenoh-listen, --zenoh-connect and --fleet-control go with --fleet NAME")
@@ -176,7 +172,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 try:
                     arena_team = ArenaTeam(session, args.fleet, args.leader_id, config.measurement.position_noise_m,
                                            config.measurement.heading_noise_rad,
-                                           config.seed if args.seed is None else args.seed)
+                                           config.seed if args.seed is None else args.seed,
+                                           hues_deg=fleet_scenario.hues_deg)
                 except NoArena as exc:
                     raise UserError(f"--arena {args.arena}: {exc}") from None
             if name_taken(session, args.fleet, args.leader_id):

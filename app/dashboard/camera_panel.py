@@ -16,7 +16,7 @@ from app.live.tick import TickState
 REDRAW_S = 0.1
 SCALE = 0.5  # 640x480 -> 320x240
 
-PHASE_TEXT = {"base": "start-up: base background (everyone still)", "probe": "start-up: probing F{i}",
+PHASE_TEXT = {"find": "start-up: finding the team by its marker hues", "base": "start-up: base background (everyone still)", "probe": "start-up: probing F{i}",
               "heading": "start-up: first headings (all drive forward)", "tracking": "tracking"}
 
 

@@ -307,5 +307,5 @@ class Controls:
 
 
 def _phase_text(s: TickState) -> str:
-    return {"base": "start-up: base background", "probe": f"start-up: probing F{s.probing + 1}",
+    return {"find": "start-up: finding the team by hue", "base": "start-up: base background", "probe": f"start-up: probing F{s.probing + 1}",
             "heading": "start-up: first headings", "tracking": "tracking"}.get(s.phase, s.phase)

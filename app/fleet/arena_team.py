@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from core.fleet import MAX_TEAM, adoption_plan, slot_for_newcomer
-from core.geometry import world_to_leader
+from core.geometry import heading_world_to_leader, world_to_leader
 from core.sim.team import TeamState, measure_followers
 from core.types import BoolArray, Commands, FloatArray
 
@@ -48,8 +48,11 @@ class ArenaTeam:
     """This leader's robots, as the arena tells them."""
 
     def __init__(self, session: Any, fleet: str, leader_id: str, position_noise_m: float, heading_noise_rad: float,
-                 seed: int, wait_s: float = 10.0) -> None:
+                 seed: int, wait_s: float = 10.0, hues_deg: tuple[float, ...] = ()) -> None:
+        """``hues_deg``: every robot's marker hue, in robot order (the fleet scenario's): what
+        this leader's camera draws and the pipeline looks for."""
         self.session = session
+        self.hues_deg = tuple(hues_deg)
         self.fleet = fleet
         self.leader_id = leader_id
         self.position_noise_m = position_noise_m
@@ -125,6 +128,32 @@ class ArenaTeam:
                            dtype=np.float64).reshape(-1, 2)
         return (np.asarray(world_to_leader(robots[keep, :2], me[:2], float(me[2]))).reshape(-1, 2),
                 np.asarray(world_to_leader(leaders, me[:2], float(me[2]))).reshape(-1, 2))
+
+    # -- what this leader's camera sees (vision in the arena) --------------------------------
+    def scene(self) -> FloatArray:
+        """Every robot, then every other leader: (R + L - 1, 3) poses (x, y, a) in this
+        leader's frame, from the newest truth; the team's state moves to the same truth, so the
+        camera's floor and its bodies agree."""
+        truth = self.latest_truth()
+        assert truth is not None
+        self.state = self._state_from(truth)
+        me = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
+        bodies = np.vstack([np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3),
+                            np.array([pose for lid, pose in truth["leaders"].items() if lid != self.leader_id],
+                                     dtype=np.float64).reshape(-1, 3)])
+        xy = np.asarray(world_to_leader(bodies[:, :2], me[:2], float(me[2]))).reshape(-1, 2)
+        return np.column_stack([xy, heading_world_to_leader(bodies[:, 2], float(me[2]))])
+
+    def scene_hues(self) -> tuple[float, ...]:
+        """The marker hue of each body of :meth:`scene` (NaN: a leader, no marker)."""
+        truth = self.latest_truth()
+        assert truth is not None
+        return self.hues_deg + (math.nan,) * (len(truth["leaders"]) - 1)
+
+    def team_hues(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """(the hues of the robots this leader drives, in the team's order; every other robot's)."""
+        own = tuple(self.hues_deg[r] for r in self.active)
+        return own, tuple(h for r, h in enumerate(self.hues_deg) if r not in self.active)
 
     def wait_for_robots(self, poll_s: float = 0.2) -> None:
         """Until the arena says this leader owns a robot (an operator handed one over): a leader
@@ -217,21 +246,25 @@ def body_rings(centres: FloatArray, radius_m: float, points: int = 8) -> FloatAr
 
 
 class ArenaFeedback:
-    """The arena's truth plus noise (as TruthFeedback), and every body that is not this team's
-    (other teams' robots, orphans, other leaders) as obstacle points the safety filter keeps
-    clear of: rings the size of each body, so two robots of different teams keep the filter's
-    distance from each other as two of one team do."""
+    """The team's poses from ``inner`` (the arena's truth plus noise, as TruthFeedback, or this
+    leader's camera rendered from the arena and the vision pipeline), and every body that is
+    not this team's (other teams' robots, orphans, other leaders) as obstacle points the safety
+    filter keeps clear of: rings the size of each body, so two robots of different teams keep
+    the filter's distance from each other as two of one team do. Those bodies come from the
+    arena's truth, as the other leaders' published states would give them in a real fleet."""
 
-    def __init__(self, team: ArenaTeam) -> None:
+    def __init__(self, team: ArenaTeam, inner: Any = None) -> None:
         from app.live.feedback import TruthFeedback
 
         self.team = team
-        self.inner = TruthFeedback(team)
+        self.inner = inner if inner is not None else TruthFeedback(team)
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
         obs = self.inner.observe(dt, commands, error_norm)
         robots, leaders = self.team.others()
         points = np.vstack([body_rings(robots, OTHER_ROBOT_RING_M), body_rings(leaders, OTHER_LEADER_RING_M)])
+        if obs.obstacles is not None and len(obs.obstacles):  # the camera's own free-space scan too
+            points = np.vstack([points, obs.obstacles])
         return dataclasses.replace(obs, obstacles=points if len(points) else None)
 
 

@@ -104,6 +104,7 @@ def state_payload(s: TickState, leader_id: str) -> dict[str, Any]:
         "leader_id": leader_id, "tick": s.tick, "t": _num(s.t), "leader": _num(s.leader),
         "leader_twist": _num(list(s.leader_twist)), "p_est": _num(s.p_est), "a_est": _num(s.a_est),
         "tracked": _num(s.tracked.astype(bool)), "p_d": _num(s.p_d), "error_m": _num(np.linalg.norm(s.p_d - s.p_est, axis=1)),
+        "p_true": _num(s.p_true),
         "commands": _num(s.commands), "gains": s.gains.as_dict(), "stopped": bool(s.stopped), "phase": s.phase,
         "link_state": s.link_state, "rate_hz": _num(s.rate_hz),
     }

@@ -15,7 +15,7 @@ the time and leader motion since the frame before), and a camera with no fresh f
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 from collections.abc import Callable
 
@@ -70,6 +70,13 @@ class VisionFeedback:
     settings: PipelineSettings = field(default_factory=PipelineSettings)
     obstacles: tuple[Obstacle, ...] = ()  # the synthetic world's boxes (a scenario's), drawn by its camera
     scan: ScanSettings | None = None  # the free-space scan's heights (default: the synthetic rig's)
+    # a fleet's arena: the synthetic camera draws every body of ``scene()`` ((k, 3) poses, leader frame) with
+    # the marker hues ``scene_hues`` (NaN: none), not only the team; the team's own hues are known
+    # (``hues_deg``, the start-up finds them by colour) and ``foreign_hues_deg`` are never taken for ours
+    scene: Callable[[], FloatArray] | None = None
+    scene_hues: tuple[float, ...] = ()
+    hues_deg: tuple[float, ...] | None = None
+    foreign_hues_deg: tuple[float, ...] = ()
     renderer: Renderer | None = field(init=False, default=None)
     pipeline: VisionPipeline | None = field(init=False, default=None)
     scanner: FreeSpaceScanner | None = field(init=False, default=None)
@@ -80,7 +87,10 @@ class VisionFeedback:
             model = self.rig.model
             if model is None:
                 raise ValueError(f"{self.rig.source}: the simulated camera needs a [model]")
-            self.renderer = world_renderer(self.rig, self.obstacles)
+            rig = self.rig
+            if self.scene is not None:  # the arena's bodies, each in its own hue; no furniture the arena does not have
+                rig = replace(rig, render=replace(rig.render, hues_deg=self.scene_hues, clutter=False, distractor=False))
+            self.renderer = world_renderer(rig, self.obstacles)
             self._make_pipeline((model.width, model.height))
         self._rng = np.random.default_rng(self.seed + 1)
         self._prev_leader = self.team.state.leader.copy()
@@ -94,23 +104,26 @@ class VisionFeedback:
 
     def _make_pipeline(self, size: tuple[int, int]) -> None:
         self.pipeline = VisionPipeline(self.team.state.n, self.gamma, self.rig.working_area, self.rig.detect,
-                                       size, np.random.default_rng(self.seed), self.settings)
+                                       size, np.random.default_rng(self.seed), self.settings, self.hues_deg,
+                                       self.foreign_hues_deg)
         heights = self.scan or (scan_settings_for(self.rig) if self.rig.model is not None else ScanSettings())
         self.scanner = FreeSpaceScanner(self.gamma, self.rig.working_area, heights)
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
-        state = self.team.state
         t0 = time.perf_counter()
+        bodies = self.scene() if self.scene is not None and self.source is None else None  # first: it may move the team's state
+        state = self.team.state
         self._t += dt
         self._since_frame += dt
         camera_state = ""
         if self.source is None:
             assert self.renderer is not None
-            p_true, a_true = self.team.truth()
+            if bodies is None:
+                p_true, a_true = self.team.truth()
+                bodies = np.column_stack([p_true, a_true])
             # rendered where the pipeline looks; the whole frame only when the dashboard or the
             # recorder asks for it, on their threads
-            frame: Image | None = self.renderer.frame(state.leader, np.column_stack([p_true, a_true]),
-                                                      self._t - dt, self._rng)
+            frame: Image | None = self.renderer.frame(state.leader, bodies, self._t - dt, self._rng)
         else:
             frame, t_frame, count = self.source.latest()
             camera_state = self.source.state

@@ -172,8 +172,16 @@ class ServiceLoop:
         elif self.arena is not None:  # a fleet's arena: the same robots after a reset, plus any adopted
             self.arena.resize(n)
             team = self.arena
-            feedback = ArenaFeedback(self.arena)  # the truth, and the other teams as obstacles
-            assignment = assign_slots(self.arena.observe()[0], params.slots)
+            if self.camera is not None:  # its camera rendered from the arena; the team found by its known hues
+                own, foreign = self.arena.team_hues()
+                vision = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
+                                        settings=self.pipeline_settings, scene=self.arena.scene,
+                                        scene_hues=self.arena.scene_hues(), hues_deg=own, foreign_hues_deg=foreign)
+                feedback = ArenaFeedback(self.arena, vision)  # and the other teams as obstacles
+                assignment = np.arange(n) % params.slots.shape[0]  # eq. 33 runs once the poses are known
+            else:
+                feedback = ArenaFeedback(self.arena)  # the truth, and the other teams as obstacles
+                assignment = assign_slots(self.arena.observe()[0], params.slots)
         else:
             if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
                 p0, a0 = self._initial_poses

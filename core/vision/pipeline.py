@@ -2,6 +2,11 @@
 
 Phases
 ------
+``find``      instead of ``base`` and ``probe`` when the team's marker hues are known (a fleet's
+              arena assigns them, and other teams' robots move in view, which the background
+              differencing of §3.1 would take for ours): each follower is looked for by its
+              hue in the whole working area, never a blob nearer another robot's hue; its
+              window and colour are learned there as after a probe. Then ``heading``.
 ``base``      everyone still: the base background (mean of K grey frames, working area only).
 ``probe``     follower i makes a short forward move (the pipeline asks for it through
               ``VisionOutput.manoeuvre``), stops, the discriminant background is built,
@@ -62,11 +67,12 @@ class PipelineSettings:
     kalman_sigma0_deg: float = 8.0
     kalman_process_deg: float = 6.0  # per sqrt(s)
     kalman_measurement_deg: float = 6.0
+    find_timeout_s: float = 3.0  # known hues: go on with the followers found by then (the rest are looked for later)
 
 
-Phase = Literal["base", "probe", "heading", "tracking"]
-"""The pipeline's phases: base background (§3.1), probing each follower (§3.1), first
-headings (§3.2), tracking for formation control (§3.3)."""
+Phase = Literal["find", "base", "probe", "heading", "tracking"]
+"""The pipeline's phases: finding the team by known hues (a fleet), base background (§3.1),
+probing each follower (§3.1), first headings (§3.2), tracking for formation control (§3.3)."""
 PHASES: tuple[Phase, ...] = get_args(Phase)
 Stage = Literal["settle", "collect", "move", "run"]
 """Within a start-up phase: wait for stillness, collect background frames, make the manoeuvre;
@@ -109,8 +115,17 @@ class VisionPipeline:
         image_size: tuple[int, int],
         rng: np.random.Generator,
         settings: PipelineSettings = PipelineSettings(),
+        hues_deg: tuple[float, ...] | None = None,
+        foreign_hues_deg: tuple[float, ...] = (),
     ) -> None:
+        """``hues_deg``: the followers' marker hues when they are known (start-up by ``find``
+        instead of probing); ``foreign_hues_deg``: other robots' markers that may be in view
+        (another team's), never taken for a follower's."""
+        if hues_deg is not None and len(hues_deg) != n:
+            raise ValueError(f"{len(hues_deg)} known hues for {n} followers")
         self.n = n
+        self.given_hues = None if hues_deg is None else tuple(float(h) for h in hues_deg)
+        self.foreign_hues = tuple(float(h) for h in foreign_hues_deg)
         self.gamma = gamma
         self.area = working_area
         self.detect = detect
@@ -131,7 +146,7 @@ class VisionPipeline:
         self._anchor = np.full((n, 2), np.nan)
         self._anchor_turn = np.zeros(n)
         self._anchor_travel = np.zeros(n)
-        self.phase: Phase = "base"
+        self.phase: Phase = "base" if self.given_hues is None else "find"
         self.probing = -1
         self._timer = 0.0
         self._stage: Stage = "settle"
@@ -149,8 +164,11 @@ class VisionPipeline:
         self._anchor_travel[i] = 0.0
 
     def _known_hues(self, but: int) -> tuple[float, ...]:
-        """The hues learned for every follower except ``but``."""
-        return tuple(f.track.hue_deg for k, f in enumerate(self.followers) if k != but and f.track is not None)
+        """The hues of every marker but follower ``but``'s: the other followers' (learned, or
+        given), and the foreign ones."""
+        own = tuple(f.track.hue_deg if f.track is not None else self.given_hues[k] if self.given_hues is not None
+                    else math.nan for k, f in enumerate(self.followers) if k != but)
+        return tuple(h for h in own if math.isfinite(h)) + self.foreign_hues
 
     def _learn(self, frame: Image, bbox: tuple[int, int, int, int], i: int) -> Track | None:
         """Follower i's rectangle at the motion blob: its window and hue histogram.
@@ -197,7 +215,7 @@ class VisionPipeline:
         hues = [f.track.hue_deg if f.track is not None else math.nan for f in self.followers]
         for i, f in enumerate(self.followers):
             if f.track is not None:
-                f.track.keep_apart(tuple(h for k, h in enumerate(hues) if k != i and math.isfinite(h)))
+                f.track.keep_apart(tuple(h for k, h in enumerate(hues) if k != i and math.isfinite(h)) + self.foreign_hues)
 
     def _track_all(self, frame: Image) -> None:
         """CAMSHIFT every follower that has a colour; update position and tracked.
@@ -238,7 +256,9 @@ class VisionPipeline:
         if not lost:
             return
         owners = [k for k, f in enumerate(self.followers) if f.track is not None]
-        known = tuple(self.followers[k].track.hue_deg for k in owners)  # type: ignore[union-attr]  # owners have one
+        # a blob nearest a foreign hue (another team's robot) is nobody's here: owner -1
+        known = tuple(self.followers[k].track.hue_deg for k in owners) + self.foreign_hues  # type: ignore[union-attr]
+        owners += [-1] * len(self.foreign_hues)
         blobs = find_blobs(np.asarray(frame), self.mask, self.detect, known_hues=known)
         taken = [f.track.window for f in self.followers if f.track is not None and f.tracked]
         for i in lost:
@@ -260,6 +280,32 @@ class VisionPipeline:
             if self.headings.active[i]:
                 self._set_anchor(i)
             taken.append(t.window)
+
+    def _find_by_hue(self, frame: Image, ids: list[int]) -> list[int]:
+        """Look for followers ``ids`` (no colour learned yet) by their given hues in the whole
+        working area; learn the window and colour of each found. Returns the ones found."""
+        assert self.given_hues is not None
+        every = self.given_hues + self.foreign_hues  # follower i is index i here
+        blobs = find_blobs(np.asarray(frame), self.mask, self.detect, known_hues=every)
+        taken = [f.track.window for f in self.followers if f.track is not None]
+        found = []
+        for i in ids:
+            cands = [b for b in blobs if nearest_hue(b.hue_deg, every) == i
+                     and hue_distance_deg(b.hue_deg, every[i]) <= self.settings.hue_tolerance_deg
+                     and not any(_overlaps(b.bbox, w) for w in taken)]
+            if not cands:
+                continue
+            track = self._learn(frame, max(cands, key=lambda b: b.area_px).bbox, i)
+            if track is None:
+                continue
+            f = self.followers[i]
+            f.track, f.tracked = track, True
+            self.positions[i] = self._to_leader(track.u, track.v)
+            taken.append(track.window)
+            found.append(i)
+        if found:
+            self._keep_colours_apart()
+        return found
 
     # -- the state machine ---------------------------------------------------------------
 
@@ -291,7 +337,12 @@ class VisionPipeline:
         tracking = False
         measured = np.full(n, np.nan)
 
-        if self.phase == "base":
+        if self.phase == "find":  # known hues: everyone waits while the team is found by colour
+            self._find_by_hue(frame, [i for i, f in enumerate(self.followers) if f.track is None])
+            if all(f.track is not None for f in self.followers) or self._timer >= s.find_timeout_s:
+                self.phase = "heading"
+                self._next_stage("move")
+        elif self.phase == "base":
             self._collect_background(frame, first=True)
         elif self.phase == "probe":
             i = self.probing
@@ -318,6 +369,10 @@ class VisionPipeline:
             tracking = True
             self._track_all(frame)
             self._search_lost(frame)
+            if self.given_hues is not None:  # not found at the start-up (hidden then): looked for by hue
+                missing = [i for i, f in enumerate(self.followers) if f.track is None]
+                for i in self._find_by_hue(frame, missing) if missing else ():
+                    self._start_heading(i, math.pi / 2)  # not seen moving: assumed aligned; the first arc corrects it
             started = self.headings.active
             self._anchor_turn += np.where(started, cmd[:, 1] * dt, 0.0)
             self._anchor_travel += np.where(started, cmd[:, 0] * dt, 0.0)
