@@ -498,8 +498,8 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
              f" ({tick_ms / (1000 / 30) * 100:.0f} % of a 30 Hz tick)")
     held, slowest = bench_leader_processes()
     results["leader_processes_at_30hz"] = held
-    print_fn(f"fleet: leader processes of 3 followers (vision in the loop, each its own synthetic camera) this"
-             f" machine holds at 30 Hz (within 1 %): {held}; slowest loop with 1..{len(slowest)} running:"
+    print_fn(f"fleet: leader processes of 3 followers in one arena (vision in the loop, each camera rendered from the"
+             f" arena) this machine holds at 30 Hz (within 1 %): {held}; slowest loop with 1..{len(slowest)} running:"
              f" {', '.join(f'{r:.2f}' for r in slowest)} Hz")
     return results
 
@@ -580,24 +580,33 @@ def bench_arena_tick(leaders: int, followers: int, ticks: int = 300) -> float:
     return float(np.median(times[20:]) * 1e3)
 
 
-def bench_leader_processes(max_processes: int = 4, seconds: float = 12.0) -> tuple[int, list[float]]:
-    """Start leader processes one more at a time (`run --fleet` with vision in the loop, 3
-    followers each, their pages served, no browser) and read every one's loop rate from the
-    bus; how many run at once with every loop within 1 % of 30 Hz, and the slowest rate at
-    each count."""
+def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0) -> tuple[int, list[float]]:
+    """Start an arena for ``max_processes`` teams of 3 (side by side, every robot in its
+    fleet-wide hue), then leader processes one more at a time (`run --arena`, each rendering
+    its camera from the arena with the other teams in view, the vision pipeline in the loop,
+    its page served, no browser) and read every one's loop rate from the bus; how many run at
+    once with every loop within 1 % of 30 Hz, and the slowest rate at each count. The arena
+    steps every team, joined or not, all along."""
     import json
     import socket
     import subprocess
     import sys
+    import tempfile
     import threading
     import time as _time
+    from pathlib import Path
 
     from app.fleet.bridge import open_session
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         endpoint = f"tcp/127.0.0.1:{sock.getsockname()[1]}"
-    session = open_session([endpoint], [])
+    tmp = tempfile.TemporaryDirectory(prefix="omniformation-bench-")
+    fleet = Path(tmp.name) / "bench_fleet.toml"
+    fleet.write_text('name = "bench"\nrate_hz = 30\n' + "".join(
+        f'[[leaders]]\nid = "L{k + 1}"\nstart = [{2.2 * k:.1f}, 0.0]\nheading_deg = 90\nfollowers = 3\n'
+        f'mode = "straight"\nspeed_mps = 0.03\n' for k in range(max_processes)))
+    session = open_session([], [endpoint])
     rates: dict[str, list[tuple[float, float]]] = {}
     lock = threading.Lock()
 
@@ -607,13 +616,16 @@ def bench_leader_processes(max_processes: int = 4, seconds: float = 12.0) -> tup
             rates.setdefault(msg["leader_id"], []).append((_time.monotonic(), float(msg.get("rate_hz") or 0.0)))
 
     sub = session.declare_subscriber("omniformation/bench/leader/*/state", on_state)
+    arena = subprocess.Popen([sys.executable, "-m", "app.cli", "arena", str(fleet), "--zenoh-listen", endpoint,
+                              "--status-every", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     procs: list[subprocess.Popen[bytes]] = []
     slowest: list[float] = []
     held = 0
     try:
         for k in range(1, max_processes + 1):
             procs.append(subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record",
-                                           "--fleet", "bench", "--leader-id", f"L{k}", "--zenoh-connect", endpoint],
+                                           "--arena", str(fleet), "--leader-id", f"L{k}", "--feedback", "vision",
+                                           "--zenoh-connect", endpoint],
                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             deadline = _time.monotonic() + 120
             while _time.monotonic() < deadline:  # every leader past its start-up (compiling, first frames)
@@ -639,8 +651,14 @@ def bench_leader_processes(max_processes: int = 4, seconds: float = 12.0) -> tup
                 p.wait(30)
             except subprocess.TimeoutExpired:
                 p.kill()
+        arena.send_signal(2)
+        try:
+            arena.wait(30)
+        except subprocess.TimeoutExpired:
+            arena.kill()
         sub.undeclare()
         session.close()
+        tmp.cleanup()
     return held, slowest
 
 

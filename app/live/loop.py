@@ -108,7 +108,9 @@ class ServiceLoop:
         ``switches``: (time s, slots) a scenario's formation switches, applied as the operator's
         would be (they count from the loop's start and from every reset).
         ``arena``: this leader's robots in a fleet's shared arena (app.fleet.arena_team); the
-        arena steps the world, the loop sees its truth plus noise and drives the robots it owns."""
+        arena steps the world and the loop drives the robots it owns; with ``camera`` it sees them
+        through its camera rendered from the arena (the team found by its known hues), without it
+        through the arena's truth plus noise."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
