@@ -9,7 +9,9 @@ command which robot:
   is not moved by it and the attempt counts as a **conflict** (never expected: 0);
 * a robot whose last command is older than the followers' watchdog (0.5 s,
   docs/follower-protocol.md) stops by itself, as a real one does; a leader whose last twist
-  is that old stands still too;
+  is that old stands still too. A real robot's timer runs continuously; the arena steps, so a
+  command that would pass 0.5 s of age during a step is zeroed for the whole step: a robot
+  never moves on a command older than 0.5 s;
 * a leader that joined and whose liveliness token is gone (process killed, network lost)
   leaves orphans: a **claim** by a living leader for an orphan is granted once (the first
   claim wins; the robot is then that leader's), any other claim is refused with the reason.
@@ -259,12 +261,13 @@ class Arena:
     # -- one step ------------------------------------------------------------------------------
     def step(self) -> None:
         with self._lock:
-            stale = self.t - self.command_t > WATCHDOG_S
+            # would pass the watchdog's age before this step ends: zero for the whole step
+            stale = self.t + self.dt - self.command_t > WATCHDOG_S + 1e-9
             newly = stale & ~self.watchdog_stopped & np.isfinite(self.command_t)
             self.counts.watchdog_stops += int(newly.sum())
             self.watchdog_stopped = stale
             commands = np.where(stale[:, None], 0.0, self.commands)
-            twists = np.where((self.t - self.twist_t > WATCHDOG_S)[:, None], 0.0, self.twists)
+            twists = np.where((self.t + self.dt - self.twist_t > WATCHDOG_S + 1e-9)[:, None], 0.0, self.twists)
             self.state = step_arena(self.state, twists, commands, self.dt, self.scenario.dynamics)
             self.gap_m = closest_distance(self.state)
             self.counts.closest_m = min(self.counts.closest_m, self.gap_m)
