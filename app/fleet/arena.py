@@ -95,7 +95,7 @@ class Arena:
         self.gap_m = closest_distance(self.state)
         self._lock = threading.Lock()
         base = f"{root(self.fleet)}/arena"
-        self._truth_pub = session.declare_publisher(f"{base}/truth")
+        self._truth_pub = session.declare_publisher(f"{base}/truth", express=True)  # every step, at once
         self._event_pub = session.declare_publisher(f"{base}/events")
         self._token = session.liveliness().declare_token(f"{base}/alive")
         self._subs = [

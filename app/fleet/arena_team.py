@@ -220,7 +220,8 @@ class ArenaTeam:
                    "commands": {robot_name(r): [round(float(v[k]), 6), round(float(w[k]), 6)] for k, r in mine}}
         self._tick += 1
         if self._drive is None:
-            self._drive = self.session.declare_publisher(f"{root(self.fleet)}/arena/drive/{self.leader_id}")
+            self._drive = self.session.declare_publisher(f"{root(self.fleet)}/arena/drive/{self.leader_id}",
+                                                      express=True)  # every tick, at once
         self._drive.put(json.dumps(payload, separators=(",", ":")))
 
     def advance(self, leader_twist: tuple[float, float], dt: float, t: float) -> None:

@@ -129,7 +129,7 @@ class FleetBridge:
         self.endpoints = list(connect or []) + list(listen or [])
         self.commands_taken = 0
         self.commands_refused = 0
-        self._state_pub = self.session.declare_publisher(f"{self.base}/state")
+        self._state_pub = self.session.declare_publisher(f"{self.base}/state", express=True)  # not batched: latency
         self._event_pub = self.session.declare_publisher(f"{self.base}/events")
         self._token = token if token is not None else \
             self.session.liveliness().declare_token(f"{root(fleet)}/alive/{leader_id}")
