@@ -57,3 +57,23 @@ def bound_native_heap() -> bool:
         _trimmer = threading.Thread(target=trimming, name="omniformation-malloc-trim", daemon=True)
         _trimmer.start()
     return _done
+
+
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks",
+                 "keepcost")]
+
+
+def native_heap_mb() -> tuple[float, float, float] | None:
+    """glibc's own account of its heap (mallinfo2(3), glibc 2.33+): (MB in use in the heap
+    arenas, MB free inside them, MB in mmapped blocks); None elsewhere. Growth of the first is
+    memory held natively (by a C library); of the second, fragmentation."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        fn = libc.mallinfo2
+    except (OSError, AttributeError):
+        return None
+    fn.restype = _MallInfo2
+    info = fn()
+    return info.uordblks / 1e6, info.fordblks / 1e6, info.hblkhd / 1e6

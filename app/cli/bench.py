@@ -78,7 +78,10 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     svc.start()
     viewer = None
     chromium = shutil.which("chromium")
+    from app.memory import native_heap_mb
+
     samples: list[tuple[float, float, float]] = []  # (minutes, RSS MB, loop Hz over the last 10 s)
+    heaps: list[tuple[float, float, float]] = []  # glibc's heap: in use, free inside, mmapped (MB)
     try:
         if browsers and chromium:
             viewer = subprocess.Popen(["nice", "-n", "10", sys.executable, "-c", _VIEWER, chromium, svc.url,
@@ -94,7 +97,12 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
             samples.append(((now - start) / 60, _rss_mb(), (ticks - tick0) / (now - t0)))
             tick0, t0 = ticks, now
             m, rss, hz = samples[-1]
-            print_fn(f"  {m:6.1f} min  RSS {rss:7.1f} MB  loop {hz:6.2f} Hz")
+            heap = native_heap_mb()
+            if heap is not None:
+                heaps.append(heap)
+            print_fn(f"  {m:6.1f} min  RSS {rss:7.1f} MB  loop {hz:6.2f} Hz"
+                     + ("" if heap is None else f"  heap: in use {heap[0]:6.1f} MB, free {heap[1]:5.1f} MB,"
+                                                f" mmapped {heap[2]:5.1f} MB"))
     finally:
         if viewer is not None:
             if viewer.stdin:
@@ -114,6 +122,11 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     rss_at = np.array([s[1] for s in steady])
     slope = float(np.polyfit(minutes_at, rss_at, 1)[0]) * 60 if len(steady) >= 2 else 0.0
     rates = [s[2] for s in samples[1:]] or [s[2] for s in samples] or [0.0]
+    if len(heaps) == len(samples) and len(steady) >= 2:  # where the growth is: held by C code, or fragmentation
+        cut = len(samples) - len(steady)
+        grow = [float(np.polyfit(minutes_at, np.array([h[k] for h in heaps[cut:]]), 1)[0]) * 60 for k in range(3)]
+        print_fn(f"soak: glibc heap per hour: in use {grow[0]:+.2f} MB, free inside {grow[1]:+.2f} MB,"
+                 f" mmapped {grow[2]:+.2f} MB (the rest of RSS: Python's own arenas, libraries' own allocators)")
     print_fn(f"soak: {minutes:g} min, {browsers} browser(s), recording {size / 1e6:.0f} MB: RSS growth {slope:+.2f} MB"
              f" per hour after the first {warm_min:g} min (the charts' 5-min history full; target <= 2); loop {min(rates):.2f}..{max(rates):.2f} Hz in 10 s"
              " windows (target within 1 % of 30 Hz: 29.7..30.3)")
