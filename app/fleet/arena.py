@@ -261,13 +261,14 @@ class Arena:
     # -- one step ------------------------------------------------------------------------------
     def step(self) -> None:
         with self._lock:
-            # would pass the watchdog's age before this step ends: zero for the whole step
-            stale = self.t + self.dt - self.command_t > WATCHDOG_S + 1e-9
+            # a command from before this is past the watchdog's age before this step ends: zero for the whole step
+            expired_before = self.t + self.dt - WATCHDOG_S - 1e-9
+            stale = self.command_t < expired_before
             newly = stale & ~self.watchdog_stopped & np.isfinite(self.command_t)
             self.counts.watchdog_stops += int(newly.sum())
             self.watchdog_stopped = stale
             commands = np.where(stale[:, None], 0.0, self.commands)
-            twists = np.where((self.t + self.dt - self.twist_t > WATCHDOG_S + 1e-9)[:, None], 0.0, self.twists)
+            twists = np.where((self.twist_t < expired_before)[:, None], 0.0, self.twists)
             self.state = step_arena(self.state, twists, commands, self.dt, self.scenario.dynamics)
             self.gap_m = closest_distance(self.state)
             self.counts.closest_m = min(self.counts.closest_m, self.gap_m)

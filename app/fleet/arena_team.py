@@ -114,20 +114,28 @@ class ArenaTeam:
         if robot not in self.owned:
             self.owned.append(robot)
 
+    def _bodies_here(self, truth: dict[str, Any]) -> tuple[FloatArray, FloatArray]:
+        """(every robot (R, 3), every other leader (L - 1, 3)) as poses (x, y, a) in this
+        leader's frame, from ``truth``."""
+        me = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
+        bodies = np.vstack([np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3),
+                            np.array([pose for lid, pose in truth["leaders"].items() if lid != self.leader_id],
+                                     dtype=np.float64).reshape(-1, 3)])
+        xy = np.asarray(world_to_leader(bodies[:, :2], me[:2], float(me[2]))).reshape(-1, 2)
+        here = np.column_stack([xy, heading_world_to_leader(bodies[:, 2], float(me[2]))])
+        r = len(truth["robots"])
+        return here[:r], here[r:]
+
     def others(self) -> tuple[FloatArray, FloatArray]:
         """(robots (k, 2), leaders (m, 2)) in this leader's frame: every body of the arena that
         is not this leader or one of the robots it drives."""
         truth = self.latest_truth()
         if truth is None:
             return np.zeros((0, 2)), np.zeros((0, 2))
-        me = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
-        robots = np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3)
+        robots, leaders = self._bodies_here(truth)
         keep = np.ones(robots.shape[0], dtype=bool)
         keep[[r for r in self.active if r < robots.shape[0]]] = False
-        leaders = np.array([pose[:2] for lid, pose in truth["leaders"].items() if lid != self.leader_id],
-                           dtype=np.float64).reshape(-1, 2)
-        return (np.asarray(world_to_leader(robots[keep, :2], me[:2], float(me[2]))).reshape(-1, 2),
-                np.asarray(world_to_leader(leaders, me[:2], float(me[2]))).reshape(-1, 2))
+        return robots[keep, :2], leaders[:, :2]
 
     # -- what this leader's camera sees (vision in the arena) --------------------------------
     def scene(self) -> FloatArray:
@@ -137,12 +145,7 @@ class ArenaTeam:
         truth = self.latest_truth()
         assert truth is not None
         self.state = self._state_from(truth)
-        me = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
-        bodies = np.vstack([np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3),
-                            np.array([pose for lid, pose in truth["leaders"].items() if lid != self.leader_id],
-                                     dtype=np.float64).reshape(-1, 3)])
-        xy = np.asarray(world_to_leader(bodies[:, :2], me[:2], float(me[2]))).reshape(-1, 2)
-        return np.column_stack([xy, heading_world_to_leader(bodies[:, 2], float(me[2]))])
+        return np.vstack(self._bodies_here(truth))
 
     def scene_hues(self) -> tuple[float, ...]:
         """The marker hue of each body of :meth:`scene` (NaN: a leader, no marker)."""

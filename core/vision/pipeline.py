@@ -44,7 +44,7 @@ from core.camera.gamma import Gamma
 from core.geometry import reexpress_in_new_frame, wrap_angle
 from core.types import BoolArray, FloatArray, Image, IntArray
 from core.vision.background import BackgroundAccumulator, motion_blob
-from core.vision.blobs import MIN_HUE_SEPARATION_DEG, find_blobs, hue_distance_deg, nearest_hue, saturated_mask
+from core.vision.blobs import MIN_HUE_SEPARATION_DEG, Blob, find_blobs, hue_distance_deg, nearest_hue, saturated_mask
 from core.vision.heading import HeadingBank, arc_measurements, fit_heading_line
 from core.vision.tracking import Track, camshift, hue_histogram
 
@@ -163,11 +163,17 @@ class VisionPipeline:
         self._anchor_turn[i] = 0.0
         self._anchor_travel[i] = 0.0
 
-    def _known_hues(self, but: int) -> tuple[float, ...]:
-        """The hues of every marker but follower ``but``'s: the other followers' (learned, or
-        given), and the foreign ones."""
-        own = tuple(f.track.hue_deg if f.track is not None else self.given_hues[k] if self.given_hues is not None
-                    else math.nan for k, f in enumerate(self.followers) if k != but)
+    def _marker_hue(self, k: int) -> float:
+        """Follower k's hue: learned, else given, else NaN (not known yet)."""
+        track = self.followers[k].track
+        if track is not None:
+            return track.hue_deg
+        return self.given_hues[k] if self.given_hues is not None else math.nan
+
+    def _known_hues(self, but: int | None = None) -> tuple[float, ...]:
+        """The hues of every marker known (but follower ``but``'s): the followers' and the
+        foreign ones."""
+        own = (self._marker_hue(k) for k in range(self.n) if k != but)
         return tuple(h for h in own if math.isfinite(h)) + self.foreign_hues
 
     def _learn(self, frame: Image, bbox: tuple[int, int, int, int], i: int) -> Track | None:
@@ -249,17 +255,17 @@ class VisionPipeline:
             if t.misses >= s.lost_after_frames or (seen[k] and not inside[k]):
                 self.followers[i].tracked = False
 
-    def _search_lost(self, frame: Image) -> None:
-        """Look for lost followers by colour in the whole working area (§3.3, recovery)."""
-        # by index: comparing followers (dataclasses holding arrays) with == is no way to find one
-        lost = [i for i, f in enumerate(self.followers) if f.track is not None and not f.tracked]
-        if not lost:
-            return
+    def _blobs(self, frame: Image) -> list[Blob]:
+        """Every colour blob in the whole working area, pieces nearest different known markers
+        never joined."""
+        return find_blobs(np.asarray(frame), self.mask, self.detect, known_hues=self._known_hues())
+
+    def _search_lost(self, lost: list[int], blobs: list[Blob]) -> None:
+        """Look for lost followers ``lost`` among the frame's ``blobs`` by colour (§3.3, recovery)."""
         owners = [k for k, f in enumerate(self.followers) if f.track is not None]
         # a blob nearest a foreign hue (another team's robot) is nobody's here: owner -1
         known = tuple(self.followers[k].track.hue_deg for k in owners) + self.foreign_hues  # type: ignore[union-attr]
         owners += [-1] * len(self.foreign_hues)
-        blobs = find_blobs(np.asarray(frame), self.mask, self.detect, known_hues=known)
         taken = [f.track.window for f in self.followers if f.track is not None and f.tracked]
         for i in lost:
             f = self.followers[i]
@@ -281,12 +287,11 @@ class VisionPipeline:
                 self._set_anchor(i)
             taken.append(t.window)
 
-    def _find_by_hue(self, frame: Image, ids: list[int]) -> list[int]:
-        """Look for followers ``ids`` (no colour learned yet) by their given hues in the whole
-        working area; learn the window and colour of each found. Returns the ones found."""
+    def _find_by_hue(self, frame: Image, ids: list[int], blobs: list[Blob]) -> list[int]:
+        """Look for followers ``ids`` (no colour learned yet) by their given hues among the
+        frame's ``blobs``; learn the window and colour of each found. Returns the ones found."""
         assert self.given_hues is not None
         every = self.given_hues + self.foreign_hues  # follower i is index i here
-        blobs = find_blobs(np.asarray(frame), self.mask, self.detect, known_hues=every)
         taken = [f.track.window for f in self.followers if f.track is not None]
         found = []
         for i in ids:
@@ -338,7 +343,7 @@ class VisionPipeline:
         measured = np.full(n, np.nan)
 
         if self.phase == "find":  # known hues: everyone waits while the team is found by colour
-            self._find_by_hue(frame, [i for i, f in enumerate(self.followers) if f.track is None])
+            self._find_by_hue(frame, [i for i, f in enumerate(self.followers) if f.track is None], self._blobs(frame))
             if all(f.track is not None for f in self.followers) or self._timer >= s.find_timeout_s:
                 self.phase = "heading"
                 self._next_stage("move")
@@ -368,10 +373,15 @@ class VisionPipeline:
         else:
             tracking = True
             self._track_all(frame)
-            self._search_lost(frame)
-            if self.given_hues is not None:  # not found at the start-up (hidden then): looked for by hue
-                missing = [i for i, f in enumerate(self.followers) if f.track is None]
-                for i in self._find_by_hue(frame, missing) if missing else ():
+            # by index: comparing followers (dataclasses holding arrays) with == is no way to find one
+            lost = [i for i, f in enumerate(self.followers) if f.track is not None and not f.tracked]
+            # known hues: one not found at the start-up (hidden then) is looked for by hue
+            missing = [i for i, f in enumerate(self.followers) if f.track is None] if self.given_hues is not None else []
+            if lost or missing:  # one search of the whole frame serves both
+                blobs = self._blobs(frame)
+                if lost:
+                    self._search_lost(lost, blobs)
+                for i in self._find_by_hue(frame, missing, blobs) if missing else ():
                     self._start_heading(i, math.pi / 2)  # not seen moving: assumed aligned; the first arc corrects it
             started = self.headings.active
             self._anchor_turn += np.where(started, cmd[:, 1] * dt, 0.0)
