@@ -520,18 +520,15 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
 def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision") -> tuple[float, float, int]:
     """(median ms, p99 ms, states) from a leader process publishing its state (`run --fleet`, vision
     in the loop, 30 Hz) to the fleet page's subscriber (FleetView) in this process, on loopback."""
-    import socket
     import subprocess
     import sys
     import time as _time
 
     from app.dashboard.gate import quietly, serve_gated
-    from app.fleet.bridge import open_session
+    from app.fleet.bridge import loopback_endpoint, open_session
     from app.fleet.dashboard import SWITCH_INTERVAL_S, FleetView
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    endpoint = loopback_endpoint()
     page_session = open_session([endpoint], [])
     server, gate = serve_gated("127.0.0.1", 0)
     switch = sys.getswitchinterval()
@@ -601,7 +598,6 @@ def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0) -> tup
     once with every loop within 1 % of 30 Hz, and the slowest rate at each count. The arena
     steps every team, joined or not, all along."""
     import json
-    import socket
     import subprocess
     import sys
     import tempfile
@@ -609,11 +605,9 @@ def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0) -> tup
     import time as _time
     from pathlib import Path
 
-    from app.fleet.bridge import open_session
+    from app.fleet.bridge import loopback_endpoint, open_session
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    endpoint = loopback_endpoint()
     tmp = tempfile.TemporaryDirectory(prefix="omniformation-bench-")
     fleet = Path(tmp.name) / "bench_fleet.toml"
     fleet.write_text('name = "bench"\nrate_hz = 30\n' + "".join(

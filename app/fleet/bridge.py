@@ -57,6 +57,16 @@ def check_endpoint(value: str) -> str:
     return value
 
 
+def loopback_endpoint() -> str:
+    """A TCP endpoint on a loopback port free at the time of asking: a bus of its own for a bench
+    or a test (the port is let go before Zenoh listens on it)."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+
+
 def zenoh_config(listen: list[str], connect: list[str]) -> Any:
     import zenoh
 

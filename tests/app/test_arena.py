@@ -16,6 +16,7 @@ import threading
 import numpy as np
 import pytest
 
+from app.fleet.bridge import loopback_endpoint
 from core.config import ConfigError
 from core.fleet import FleetScenario, adoption_plan, initial_arena, parse_fleet, step_arena
 from core.sim.team import FollowerDynamics
@@ -25,14 +26,6 @@ from tests.helpers import ROOT, interrupt, main_cli, wait_for
 zenoh = pytest.importorskip("zenoh")
 
 FLEET = "three_teams"
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Watcher:
@@ -93,7 +86,7 @@ def _spawn(*args: str) -> subprocess.Popen:
 
 
 def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = loopback_endpoint()
     summary = tmp_path / "arena.json"
     arena = _spawn("arena", FLEET, "--zenoh-listen", endpoint, "--status-every", "0", "--summary", str(summary))
     procs: dict[str, subprocess.Popen] = {}
@@ -262,7 +255,7 @@ def test_bad_arena_arguments_are_one_line(args, words):
 
 
 def test_a_leader_without_an_arena_says_so(tmp_path):
-    r = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--zenoh-connect", f"tcp/127.0.0.1:{_free_port()}",
+    r = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--zenoh-connect", loopback_endpoint(),
                  "--port", "0", "--no-record")
     assert r.returncode == 2 and "no arena publishes omniformation/three_teams/arena/truth" in r.stderr, r.stderr
 

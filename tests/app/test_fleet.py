@@ -5,26 +5,19 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 import threading
 
 import pytest
 
-from app.fleet.bridge import FleetBridge
+from app.fleet.bridge import FleetBridge, loopback_endpoint
 from app.live.loop import ServiceLoop
 from app.live.params import Params, ParamsStore, default_slots
 
 from tests.helpers import ROOT, interrupt, main_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Listener:
@@ -67,7 +60,7 @@ class Listener:
 
 
 def test_a_leader_is_seen_on_the_bus_and_takes_only_what_the_operator_allows():
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = loopback_endpoint()
     store = ParamsStore(Params(n_followers=2, slots=default_slots(2), leader_mode="straight"))
     loop = ServiceLoop(store, rate_hz=30.0, seed=1)
     bridge = FleetBridge(store, "arena1", "L1", listen=[endpoint])
@@ -121,7 +114,7 @@ def test_a_leader_is_seen_on_the_bus_and_takes_only_what_the_operator_allows():
 
 
 def test_a_killed_leader_process_loses_its_token():
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = loopback_endpoint()
     proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
                              "--no-record", "--fleet", "arena2", "--leader-id", "L7", "--zenoh-listen", endpoint],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -155,9 +148,9 @@ def test_bad_fleet_arguments_are_one_line(args, words):
 
 
 def test_an_unreachable_bus_is_said_and_retried_while_the_loop_runs():
-    port = _free_port()
+    endpoint = loopback_endpoint()
     proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth", "--no-record",
-                             "--fleet", "arena3", "--leader-id", "L1", "--zenoh-connect", f"tcp/127.0.0.1:{port}"],
+                             "--fleet", "arena3", "--leader-id", "L1", "--zenoh-connect", endpoint],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     session = None
     try:
@@ -169,7 +162,7 @@ def test_an_unreachable_bus_is_said_and_retried_while_the_loop_runs():
         c = zenoh.Config()
         c.insert_json5("mode", '"peer"')
         c.insert_json5("scouting/multicast/enabled", "false")
-        c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        c.insert_json5("listen/endpoints", json.dumps([endpoint]))
         session = zenoh.open(c)
         states: list[dict] = []
         sub = session.declare_subscriber("omniformation/arena3/leader/L1/state",

@@ -6,7 +6,6 @@ fleet is recorded into one MCAP with a channel per leader."""
 from __future__ import annotations
 
 import json
-import socket
 import threading
 
 import pytest
@@ -15,7 +14,7 @@ from app.dashboard.gate import quietly, serve_gated
 from app.files import load_fleet
 from app.fleet.arena import Arena
 from app.fleet.arena_team import Adopter, ArenaTeam
-from app.fleet.bridge import FleetBridge, open_session
+from app.fleet.bridge import FleetBridge, loopback_endpoint, open_session
 from app.fleet.dashboard import FleetView
 from app.fleet.recorder import FleetRecorder
 from app.live.loop import ServiceLoop
@@ -25,12 +24,6 @@ from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_
 
 pytest.importorskip("playwright.sync_api")
 pytest.importorskip("zenoh")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Leader:
@@ -58,7 +51,7 @@ class Leader:
 
 
 def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_path):
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = loopback_endpoint()
     scenario = load_fleet("three_teams")
     arena_session = open_session([endpoint], [])
     arena = Arena(scenario, arena_session)
