@@ -93,3 +93,27 @@ def test_simulate_with_vision_adds_the_estimates(tmp_path):
     after = t >= 0
     assert np.all(table[after, col["f1_tracked"]] == 1.0)
     assert np.all(np.abs(table[after, col["f1_x_est"]] - table[after, col["f1_x"]]) < 0.03)
+
+
+def test_the_soaks_gc_monitor_counts_each_collection_once_and_lets_go():
+    import gc
+
+    from app.cli.bench import _GcPauses
+
+    pauses = _GcPauses()
+    gc.disable()  # only the collections this test asks for
+    try:
+        before = list(pauses.counts)
+        gc.collect(2)
+        gc.collect(0)
+        assert pauses.counts[2] == before[2] + 1 and pauses.counts[0] >= before[0] + 1
+        worst = pauses.take()
+        assert worst > 0.0 and pauses.worst[0] >= worst
+        assert pauses.take() == 0.0  # the window starts again after each take()
+    finally:
+        pauses.close()
+        gc.enable()
+    assert pauses._on not in gc.callbacks
+    counted = list(pauses.counts)
+    gc.collect(2)
+    assert pauses.counts == counted
