@@ -8,6 +8,7 @@ each figure is the median of several repeats. It lives in the app package
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import time
 from collections.abc import Callable
@@ -77,11 +78,20 @@ class _GcPauses:
         self._gc.callbacks.remove(self._on)
 
 
+def _stolen_s() -> float:
+    """CPU time the hypervisor gave to others while this machine's CPUs wanted it, since boot
+    (/proc/stat's steal, all CPUs); 0 where there is no such count."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
 def _rss_mb() -> float:
     with open("/proc/self/statm") as f:
         pages = int(f.read().split()[1])
-    import os
-
     return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
@@ -115,6 +125,7 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     from app.memory import native_heap_mb
 
     samples: list[tuple[float, float, float]] = []  # (minutes, RSS MB, loop Hz over the last 10 s)
+    stalls: list[tuple[float, float, float]] = []  # the window's longest tick gap, steal, longest gc (s)
     heaps: list[tuple[float, float, float]] = []  # glibc's heap: in use, free inside, mmapped (MB)
     pauses = _GcPauses()
     try:
@@ -125,17 +136,22 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
             if "ready" not in ready:
                 raise RuntimeError(f"the browser did not come up: {ready.strip()!r}")
         start = _time.monotonic()
-        tick0, t0 = svc.loop.tick_count, start
+        tick0, t0, stolen0 = svc.loop.tick_count, start, _stolen_s()
+        svc.loop.take_longest_gap()
         while _time.monotonic() - start < minutes * 60:
             _time.sleep(10.0)
             now, ticks = _time.monotonic(), svc.loop.tick_count
             samples.append(((now - start) / 60, _rss_mb(), (ticks - tick0) / (now - t0)))
-            tick0, t0 = ticks, now
+            stolen = _stolen_s()
+            stalls.append((svc.loop.take_longest_gap(), stolen - stolen0, pauses.take()))
+            tick0, t0, stolen0 = ticks, now, stolen
             m, rss, hz = samples[-1]
+            gap, steal, gc_s = stalls[-1]
             heap = native_heap_mb()
             if heap is not None:
                 heaps.append(heap)
-            print_fn(f"  {m:6.1f} min  RSS {rss:7.1f} MB  loop {hz:6.2f} Hz  gc {pauses.take() * 1e3:5.1f} ms"
+            print_fn(f"  {m:6.1f} min  RSS {rss:7.1f} MB  loop {hz:6.2f} Hz (longest gap {gap * 1e3:4.0f} ms,"
+                     f" steal {steal * 1e3:4.0f} ms, gc {gc_s * 1e3:5.1f} ms)"
                      + ("" if heap is None else f"  heap: in use {heap[0]:6.1f} MB, free {heap[1]:5.1f} MB,"
                                                 f" mmapped {heap[2]:5.1f} MB"))
     finally:
@@ -163,6 +179,14 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
         grow = [float(np.polyfit(minutes_at, np.array([h[k] for h in heaps[cut:]]), 1)[0]) * 60 for k in range(3)]
         print_fn(f"soak: glibc heap per hour: in use {grow[0]:+.2f} MB, free inside {grow[1]:+.2f} MB,"
                  f" mmapped {grow[2]:+.2f} MB (the rest of RSS: Python's own arenas, libraries' own allocators)")
+    slow = [(s, st) for s, st in zip(samples[1:], stalls[1:]) if abs(s[2] - 30.0) > 0.3]
+    print_fn(f"soak: {len(slow)} of {len(rates)} windows outside 29.7..30.3 Hz" + "".join(
+        f"; {s[0]:.1f} min {s[2]:.2f} Hz (longest gap {st[0] * 1e3:.0f} ms, steal {st[1] * 1e3:.0f} ms, gc {st[2] * 1e3:.0f} ms)"
+        for s, st in slow[:10]))
+    if len(steady) >= 4:  # does the growth slow down (filling up) or hold (a leak)?
+        half = len(steady) // 2
+        late = float(np.polyfit(minutes_at[half:], rss_at[half:], 1)[0]) * 60
+        print_fn(f"soak: RSS growth over the later half (from {minutes_at[half]:.0f} min) {late:+.2f} MB per hour")
     print_fn(f"soak: garbage collections {pauses.counts[0]} / {pauses.counts[1]} / {pauses.counts[2]} (generation 0 / 1"
              f" / 2), the longest {pauses.worst[0] * 1e3:.1f} ms (generation {pauses.worst[1]})")
     print_fn(f"soak: {minutes:g} min, {browsers} browser(s), recording {size / 1e6:.0f} MB: RSS growth {slope:+.2f} MB"

@@ -142,6 +142,7 @@ class ServiceLoop:
         self._steps_done = store.get().step_requests
         self._mode = ("", 0.0)
         self.achieved_rate_hz = 0.0
+        self._longest_gap_s = 0.0  # between two tick starts, since the last take_longest_gap()
         self._publish_ms: dict[str, float] = {}
         self.last: TickState | None = None
         self._safety: SafetySettings | None = None
@@ -386,6 +387,12 @@ class ServiceLoop:
         self._world.team.close()
 
     # -- pacing ---------------------------------------------------------------------------
+    def take_longest_gap(self) -> float:
+        """The longest time between two tick starts since the last call, in seconds (a stall
+        shows here: the loop does not catch up on more than CATCH_UP_TICKS ticks)."""
+        gap, self._longest_gap_s = self._longest_gap_s, 0.0
+        return gap
+
     def run(self) -> None:
         """Tick at the configured rate until stop(); always leaves the followers at zero."""
         next_deadline = time.monotonic()
@@ -397,6 +404,8 @@ class ServiceLoop:
                     self.tick()
                 except Exception as exc:  # noqa: BLE001 - the robots must stop, the service must live
                     self._on_fault(exc)
+                if window:
+                    self._longest_gap_s = max(self._longest_gap_s, start - window[-1])
                 window.append(start)
                 if len(window) >= 2 and window[-1] > window[0]:
                     self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
