@@ -20,6 +20,7 @@ from app.dashboard.controls import Controls
 from app.dashboard.plots import Plots
 from app.dashboard.scene import Scene
 from app.dashboard.tuning_panel import LyapunovMonitor, TuningPanel
+from app.dashboard.widgets import on_page_thread
 from app.live.tick import TickState
 from app.live.params import ParamsStore
 
@@ -42,7 +43,11 @@ class Dashboard:
         self.extra: list[Callable[[], None]] = []  # other panels' redraws (the calibration preview), ~4 a second
         self._extra_at = 0.0
 
-    def publish(self, state: TickState) -> None:
+    def publish(self, state: TickState) -> bool:
+        """Draw ``state``, on viser's own thread (widgets.on_page_thread); whether it was drawn."""
+        return on_page_thread(self.server, lambda: self._draw(state))
+
+    def _draw(self, state: TickState) -> None:
         with self.server.atomic():
             self.scene.update(state)
             self.controls.update_status(state)
@@ -66,7 +71,8 @@ class LatestStatePublisher:
     that is superseded before it could be drawn is skipped (the plots keep their time axis).
     """
 
-    def __init__(self, publish: Callable[[TickState], None]) -> None:
+    def __init__(self, publish: Callable[[TickState], bool | None]) -> None:
+        """``publish`` returns False for a state it could not draw (counted as skipped)."""
         self._publish = publish
         self._cv = threading.Condition()
         self._state: TickState | None = None
@@ -93,8 +99,10 @@ class LatestStatePublisher:
                 state, self._state = self._state, None
             assert state is not None  # the wait above ends with a state, or on close
             try:
-                self._publish(state)
-                self.published += 1
+                if self._publish(state) is False:
+                    self.skipped += 1
+                else:
+                    self.published += 1
             except Exception:  # a broken view must not take the page down with it
                 logging.getLogger(__name__).exception("dashboard publish failed")
 

@@ -33,7 +33,7 @@ from core.camera.guide import fit_mirror_circle, find_marker, guide_targets, nex
 from core.camera.quality import HeldOut, coverage_warnings, detect_mounting, held_out_error
 
 from app.contracts import FrameSource
-from app.dashboard.widgets import assign
+from app.dashboard.widgets import assign, on_page_thread
 
 DEGREE = 3
 PREVIEW_WIDTH = 480
@@ -335,7 +335,7 @@ class CalibrationService:
     def _run(self) -> None:
         while not self._stop.wait(0.25):
             try:
-                self.panel.refresh()
+                on_page_thread(self.server, self.panel.refresh)  # widgets.on_page_thread says why
             except Exception:  # noqa: BLE001 - a picture that cannot be drawn must not end the page
                 pass
 

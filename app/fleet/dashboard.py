@@ -28,7 +28,7 @@ import viser
 from core.geometry import leader_to_world
 
 from app.dashboard.scene import yaw_wxyz
-from app.dashboard.widgets import assign
+from app.dashboard.widgets import assign, on_page_thread
 from app.fleet.bridge import root
 from app.fleet.recorder import FleetRecorder
 
@@ -238,7 +238,7 @@ class FleetView:
     def _refresh_loop(self) -> None:
         while not self._stop.wait(REFRESH_S):
             try:
-                self.refresh()
+                on_page_thread(self.server, self.refresh)  # viser's thread: widgets.on_page_thread says why
             except Exception:  # noqa: BLE001 - a drawing error must not end the page
                 import logging
 

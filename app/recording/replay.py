@@ -19,6 +19,7 @@ import viser
 
 from app.dashboard import Dashboard
 from app.dashboard.gate import quietly, serve_gated
+from app.dashboard.widgets import on_page_thread
 from app.live.tick import TickState
 from app.live.params import ParamsStore
 from app.recording.reader import Recording, params_from_recording
@@ -152,9 +153,12 @@ class ReplayService:
             self.unreadable += 1
             self.event_text.content = f"**tick {k} could not be shown** ({type(exc).__name__}); playback goes on"
             return
-        self.dashboard.publish(state)
-        self.timeline.value = round(float(self.t[k]), 3)  # type: ignore[misc]  # viser's stubs: read-only on the base handle
-        self.published += 1
+        def draw() -> None:
+            self.dashboard.publish(state)
+            self.timeline.value = round(float(self.t[k]), 3)  # type: ignore[misc]  # viser's stubs: read-only on the base handle
+
+        if on_page_thread(self.dashboard.server, draw):
+            self.published += 1
 
     def run(self) -> None:
         self.seek(0)

@@ -1,0 +1,97 @@
+"""The page is drawn on viser's own thread (app.dashboard.widgets.on_page_thread says why)."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import viser
+
+from app.dashboard.widgets import on_page_thread
+from app.live.service import Service
+
+
+def loop_thread_ident(server: viser.ViserServer) -> int:
+    seen: list[int] = []
+    ran = threading.Event()
+
+    def note() -> None:
+        seen.append(threading.get_ident())
+        ran.set()
+
+    server.get_event_loop().call_soon_threadsafe(note)
+    assert ran.wait(30.0)
+    return seen[0]
+
+
+@pytest.fixture
+def server():
+    s = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    yield s
+    s.stop()
+
+
+def test_the_live_dashboard_draws_every_state_on_viser_thread():
+    svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0)
+    drawn_on: list[int] = []
+    enough = threading.Event()
+
+    def note() -> None:  # an extra panel's redraw happens inside the dashboard's drawing
+        drawn_on.append(threading.get_ident())
+        if len(drawn_on) >= 3:
+            enough.set()
+
+    svc.dashboard.extra.append(note)
+    svc.start()
+    try:
+        assert enough.wait(120.0), "the dashboard drew nothing"
+        loop_ident = loop_thread_ident(svc.server)
+    finally:
+        svc.close()
+    assert set(drawn_on) == {loop_ident}
+    assert svc.publisher.published >= 3
+
+
+def test_a_page_call_runs_on_viser_thread_and_hands_back_its_error(server):
+    loop_ident = loop_thread_ident(server)
+    ran_on: list[int] = []
+    assert on_page_thread(server, lambda: ran_on.append(threading.get_ident()))
+    assert ran_on == [loop_ident]
+
+    def fails() -> None:
+        raise ValueError("a view that cannot be drawn")
+
+    with pytest.raises(ValueError, match="cannot be drawn"):
+        on_page_thread(server, fails)
+
+    def nested() -> None:  # already on viser's thread: runs at once, no waiting on itself
+        assert on_page_thread(server, lambda: ran_on.append(threading.get_ident()))
+
+    assert on_page_thread(server, nested)
+    assert ran_on == [loop_ident, loop_ident]
+
+
+def test_a_page_call_that_cannot_run_in_time_never_runs_late(server):
+    release, blocking = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        blocking.set()
+        release.wait(60.0)
+
+    holder = threading.Thread(target=on_page_thread, args=(server, hold, 120.0))
+    holder.start()
+    assert blocking.wait(30.0)
+    late: list[str] = []
+    assert on_page_thread(server, lambda: late.append("drawn"), timeout_s=0.2) is False
+    release.set()
+    holder.join(30.0)
+    assert on_page_thread(server, lambda: late.append("next"))  # viser's thread is free again
+    assert late == ["next"]  # the one given up on was never drawn, not even after
+
+
+def test_a_stopped_server_draws_nothing_and_does_not_hang():
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    server.stop()
+    drawn: list[int] = []
+    assert on_page_thread(server, lambda: drawn.append(1), timeout_s=1.0) is False
+    assert drawn == []
