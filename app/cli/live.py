@@ -244,7 +244,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from app.fleet.bridge import FleetBridge
 
         bridge = FleetBridge(service.store, args.fleet, args.leader_id, allow_control=args.fleet_control,
-                             session=session, token=token)
+                             session=session, token=token, on_twin=service.loop.stop)
         service.loop.subscribe(bridge.on_tick)
         service.dashboard.extra.append(bridge.show_on(service.server))
         if args.zenoh_connect and not arena_team:  # an arena leader knows it is connected (it had the truth)
@@ -287,6 +287,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             recorder.close()
             print(f"omniformation: recording finished: {display_path(recorder.path)} ({recorder.ticks} ticks)", flush=True)
     print("omniformation: stopped; all followers commanded to zero", flush=True)
+    if bridge is not None and bridge.twin is not None:  # it missed its twin at start and gave way to it
+        raise UserError(bridge.twin)
     return 0
 
 

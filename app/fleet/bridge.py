@@ -22,7 +22,9 @@ import json
 import logging
 import math
 import re
+import secrets
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -87,10 +89,21 @@ def open_session(listen: list[str], connect: list[str]) -> Any:
     return zenoh.open(zenoh_config([check_endpoint(e) for e in listen], [check_endpoint(e) for e in connect]))
 
 
-def name_taken(session: Any, fleet: str, leader_id: str, timeout_s: float = 1.0) -> bool:
-    """Whether a leader with this id is alive on the fleet's bus already (its liveliness token)."""
-    replies = session.liveliness().get(f"{root(fleet)}/alive/{leader_id}", timeout=timeout_s)
-    return any(getattr(r, "ok", None) is not None for r in replies)
+def name_taken(session: Any, fleet: str, leader_id: str, within_s: float = 2.0) -> bool:
+    """Whether a leader with this id is alive on the fleet's bus already (its liveliness token).
+
+    A session answers from the tokens it has heard of, at once; a session opened a moment ago
+    may not have heard of them yet (on a loaded machine that took seconds here), so it asks
+    again for ``within_s``. A leader that still misses its twin stands down as soon as it
+    sees the other's states (FleetBridge: the one that started later gives way)."""
+    deadline = time.monotonic() + within_s
+    while True:
+        replies = session.liveliness().get(f"{root(fleet)}/alive/{leader_id}", timeout=1.0)
+        if any(getattr(r, "ok", None) is not None for r in replies):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.1)
 
 
 def _num(x: Any) -> Any:
@@ -125,10 +138,17 @@ class FleetBridge:
 
     def __init__(self, store: ParamsStore, fleet: str, leader_id: str, listen: list[str] | None = None,
                  connect: list[str] | None = None, allow_control: bool = False, session: Any = None,
-                 token: Any = None) -> None:
+                 token: Any = None, on_twin: Callable[[], None] | None = None) -> None:
         """``session``: one already open (then ``listen`` / ``connect`` are its business, and
         closing the bridge leaves it open). ``token``: this leader's liveliness token when it
-        was declared already (a leader waiting for robots is alive before its loop runs)."""
+        was declared already (a leader waiting for robots is alive before its loop runs).
+        ``on_twin``: called once if another leader with this id started first (this one must
+        stop its robots and end; :attr:`twin` says why)."""
+        self.instance = secrets.token_hex(4)  # this process among leaders that share an id by mistake
+        self.started = time.time()  # wall clock: both twins compare the same two numbers
+        self.twin: str | None = None
+        self._on_twin = on_twin
+        self._twins_seen: set[str] = set()
         self.store = store
         self.fleet = check_name(fleet, "fleet")
         self.leader_id = check_name(leader_id, "leader id")
@@ -144,7 +164,8 @@ class FleetBridge:
         self._token = token if token is not None else \
             self.session.liveliness().declare_token(f"{root(fleet)}/alive/{leader_id}")
         self._subs = [self.session.declare_subscriber(f"{self.base}/cmd", self._on_command),
-                      self.session.declare_subscriber(f"{root(fleet)}/all/cmd", self._on_fleet_command)]
+                      self.session.declare_subscriber(f"{root(fleet)}/all/cmd", self._on_fleet_command),
+                      self.session.declare_subscriber(f"{self.base}/state", self._on_own_id_state)]
         self._last_params = store.get()
         self._t = 0.0
         store.subscribe(self._on_params)
@@ -181,7 +202,8 @@ class FleetBridge:
     def _publish_state(self, s: TickState) -> None:
         text = json.dumps(state_payload(s, self.leader_id), separators=(",", ":"))
         # the wall clock as the last thing before it goes (a subscriber's latency on the same machine)
-        self._state_pub.put(f'{text[:-1]},"sent":{time.time():.6f}}}')
+        self._state_pub.put(f'{text[:-1]},"instance":"{self.instance}","started":{self.started:.6f},'
+                            f'"sent":{time.time():.6f}}}')
 
     def event(self, kind: str, detail: str) -> None:
         self._event_pub.put(json.dumps({"leader_id": self.leader_id, "t": round(self._t, 3), "kind": kind,
@@ -197,6 +219,37 @@ class FleetBridge:
             self.event("notice", n.message)
 
     # -- in -------------------------------------------------------------------------------
+    def _on_own_id_state(self, sample: Any) -> None:
+        """States under this leader's own id: its own, or a twin's (docs/fleet-protocol.md,
+        "One leader per id"). Of two twins the one that started later stands down; both
+        compare the same (started, instance) pairs, so exactly one of them does."""
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+        except (ValueError, UnicodeDecodeError):
+            return
+        if not isinstance(msg, dict):
+            return
+        other = msg.get("instance")
+        if other == self.instance:
+            return
+        other = str(other)[:16] if other is not None else "?"
+        started = msg.get("started")
+        # a leader that does not say when it started (an older version) is taken as the first
+        other_started = float(started) if isinstance(started, (int, float)) and math.isfinite(started) else -math.inf
+        if (other_started, other) < (self.started, self.instance):
+            if self.twin is not None:
+                return
+            self.twin = (f"--leader-id {self.leader_id}: a leader with this id is alive on fleet {self.fleet} already"
+                         f" (it started first); this one stood down and stopped its robots; every leader needs"
+                         " its own id")
+            log.warning("%s", self.twin)
+            self.event("twin", f"a second {self.leader_id} ({self.instance}) found {other} running first and stood down")
+            if self._on_twin is not None:
+                self._on_twin()
+        elif other not in self._twins_seen:
+            self._twins_seen.add(other)
+            self.event("twin", f"a second {self.leader_id} ({other}) appeared; it started later and stands down")
+
     def _changes(self, sample: Any) -> tuple[dict[str, Any], str]:
         try:
             msg = json.loads(sample.payload.to_bytes())
