@@ -77,3 +77,55 @@ def native_heap_mb() -> tuple[float, float, float] | None:
     fn.restype = _MallInfo2
     info = fn()
     return info.uordblks / 1e6, info.fordblks / 1e6, info.hblkhd / 1e6
+
+
+def python_heap_mb() -> tuple[float, float, int] | None:
+    """Python's own small-object allocator (pymalloc), as ``sys._debugmallocstats()`` reports it:
+    (MB in the arenas it holds from the system, MB of those in live objects, the process's
+    threads); None where that report is missing. Growth of the second is live Python objects;
+    of the first alone, arenas kept by a few objects each (fragmentation); of the threads,
+    stacks. The report goes to file descriptor 2, so for the moment it takes (milliseconds)
+    that descriptor points at a temporary file; whatever else was written meanwhile is passed on.
+    For a measuring run (the soak), not for a service."""
+    import os
+    import re
+    import tempfile
+
+    report = getattr(sys, "_debugmallocstats", None)
+    if report is None:
+        return None
+    with tempfile.TemporaryFile() as tmp:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        try:
+            os.dup2(tmp.fileno(), 2)
+            report()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        text = tmp.read().decode("utf-8", "replace")
+    start, end = text.find("Small block threshold"), text.find("arena map counts")
+    tails = list(re.finditer(r"[^\n]*each =\s*[\d,]+\n", text))  # the report's last part: free lists
+    if start < 0 or end < 0:
+        if text:
+            os.write(2, text.encode())
+        return None
+    stop = tails[-1].end() if tails else len(text)
+    others = text[:start] + text[stop:]
+    if others.strip():  # another thread's words, written meanwhile
+        os.write(2, others.encode())
+
+    def number(label: str) -> int | None:
+        m = re.search(rf"# {label}\s*=\s*([\d,]+)", text[start:end])
+        return int(m.group(1).replace(",", "")) if m else None
+
+    arenas, in_blocks = number("arenas allocated current"), number("bytes in allocated blocks")
+    if arenas is None or in_blocks is None:
+        return None
+    try:
+        with open("/proc/self/status") as f:
+            threads = next(int(line.split()[1]) for line in f if line.startswith("Threads:"))
+    except (OSError, StopIteration, ValueError):
+        threads = threading.active_count()
+    return arenas * 1048576 / 1e6, in_blocks / 1e6, threads

@@ -122,11 +122,12 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     svc.start()
     viewer = None
     chromium = shutil.which("chromium")
-    from app.memory import native_heap_mb
+    from app.memory import native_heap_mb, python_heap_mb
 
     samples: list[tuple[float, float, float]] = []  # (minutes, RSS MB, loop Hz over the last 10 s)
     stalls: list[tuple[float, float, float]] = []  # the window's longest tick gap, steal, longest gc (s)
     heaps: list[tuple[float, float, float]] = []  # glibc's heap: in use, free inside, mmapped (MB)
+    pythons: list[tuple[float, float, float, int]] = []  # each minute: (minutes, pymalloc's arenas MB, in objects MB, threads)
     pauses = _GcPauses()
     try:
         if browsers and chromium:
@@ -154,6 +155,11 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
                      f" steal {steal * 1e3:4.0f} ms, gc {gc_s * 1e3:5.1f} ms)"
                      + ("" if heap is None else f"  heap: in use {heap[0]:6.1f} MB, free {heap[1]:5.1f} MB,"
                                                 f" mmapped {heap[2]:5.1f} MB"))
+            if len(samples) % 6 == 0:  # once a minute: pymalloc's report walks every arena
+                py = python_heap_mb()
+                if py is not None:
+                    pythons.append((m, *py))
+                    print_fn(f"  {m:6.1f} min  python: arenas {py[0]:6.1f} MB, in objects {py[1]:6.1f} MB; threads {py[2]}")
     finally:
         pauses.close()
         if viewer is not None:
@@ -179,6 +185,12 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
         grow = [float(np.polyfit(minutes_at, np.array([h[k] for h in heaps[cut:]]), 1)[0]) * 60 for k in range(3)]
         print_fn(f"soak: glibc heap per hour: in use {grow[0]:+.2f} MB, free inside {grow[1]:+.2f} MB,"
                  f" mmapped {grow[2]:+.2f} MB (the rest of RSS: Python's own arenas, libraries' own allocators)")
+    later = [p for p in pythons if p[0] >= warm_min]
+    if len(later) >= 2:
+        at = np.array([p[0] for p in later])
+        arenas, objects = (float(np.polyfit(at, np.array([p[k] for p in later]), 1)[0]) * 60 for k in (1, 2))
+        print_fn(f"soak: Python's allocator per hour: arenas {arenas:+.2f} MB, live objects {objects:+.2f} MB;"
+                 f" threads {later[0][3]} -> {later[-1][3]}")
     slow = [(s, st) for s, st in zip(samples[1:], stalls[1:]) if abs(s[2] - 30.0) > 0.3]
     print_fn(f"soak: {len(slow)} of {len(rates)} windows outside 29.7..30.3 Hz" + "".join(
         f"; {s[0]:.1f} min {s[2]:.2f} Hz (longest gap {st[0] * 1e3:.0f} ms, steal {st[1] * 1e3:.0f} ms, gc {st[2] * 1e3:.0f} ms)"
