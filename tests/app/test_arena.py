@@ -6,6 +6,7 @@ the clock together."""
 
 from __future__ import annotations
 
+import bisect
 import json
 import math
 import signal
@@ -66,8 +67,10 @@ class Watcher:
             rows = self.states.get(leader, [])
             if not rows:
                 return []
-            t_end = rows[-1][0]
-            return [m for t, m in rows if t >= t_end - seconds]
+            # rows come in arena-time order: find the window's start, not scan every state so far
+            # (polled every 10 ms for minutes, the scan took a core from the leaders it watches)
+            start = bisect.bisect_left(rows, rows[-1][0] - seconds, key=lambda row: row[0])
+            return [m for _, m in rows[start:]]
 
     def close(self) -> None:
         self.session.close()
