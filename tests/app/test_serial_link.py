@@ -158,8 +158,9 @@ def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
                             until=moving)
     assert run.returncode == 0, run.stderr
     assert "all followers commanded to zero" in run.stdout
-    robots = emulated.emulator.snapshot()
-    assert all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps for r in robots.values())
+    # the service wrote STOP before it ended; the emulator (a thread here) takes it when it gets the CPU
+    wait_for(lambda: all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps
+                         for r in emulated.emulator.snapshot().values()), 30, "every robot to take the STOP")
     wait_for(lambda: not any(r.moving for r in emulated.emulator.snapshot().values()), 2, "the wheels to stop")
     assert all(abs(r.measured(hw)[0]) < 1e-3 for r in emulated.emulator.snapshot().values())
 
