@@ -95,6 +95,11 @@ def _rss_mb() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
+def _per_hour(minutes: Any, values: Any) -> float:
+    """The least-squares slope of ``values`` against ``minutes``, per hour."""
+    return float(np.polyfit(np.asarray(minutes, dtype=float), np.asarray(values, dtype=float), 1)[0]) * 60
+
+
 def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] = print,
              scenario: str | None = None) -> dict[str, float]:
     """The live service as `make run` serves it (or `run --scenario SCENARIO`), recording to a
@@ -178,17 +183,17 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     steady = [s for s in samples if s[0] >= warm_min] or samples
     minutes_at = np.array([s[0] for s in steady])
     rss_at = np.array([s[1] for s in steady])
-    slope = float(np.polyfit(minutes_at, rss_at, 1)[0]) * 60 if len(steady) >= 2 else 0.0
+    slope = _per_hour(minutes_at, rss_at) if len(steady) >= 2 else 0.0
     rates = [s[2] for s in samples[1:]] or [s[2] for s in samples] or [0.0]
     if len(heaps) == len(samples) and len(steady) >= 2:  # where the growth is: held by C code, or fragmentation
         cut = len(samples) - len(steady)
-        grow = [float(np.polyfit(minutes_at, np.array([h[k] for h in heaps[cut:]]), 1)[0]) * 60 for k in range(3)]
+        grow = [_per_hour(minutes_at, [h[k] for h in heaps[cut:]]) for k in range(3)]
         print_fn(f"soak: glibc heap per hour: in use {grow[0]:+.2f} MB, free inside {grow[1]:+.2f} MB,"
                  f" mmapped {grow[2]:+.2f} MB (the rest of RSS: Python's own arenas, libraries' own allocators)")
     later = [p for p in pythons if p[0] >= warm_min]
     if len(later) >= 2:
         at = np.array([p[0] for p in later])
-        arenas, objects = (float(np.polyfit(at, np.array([p[k] for p in later]), 1)[0]) * 60 for k in (1, 2))
+        arenas, objects = (_per_hour(at, [p[k] for p in later]) for k in (1, 2))
         print_fn(f"soak: Python's allocator per hour: arenas {arenas:+.2f} MB, live objects {objects:+.2f} MB;"
                  f" threads {later[0][3]} -> {later[-1][3]}")
     slow = [(s, st) for s, st in zip(samples[1:], stalls[1:]) if abs(s[2] - 30.0) > 0.3]
@@ -197,7 +202,7 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
         for s, st in slow[:10]))
     if len(steady) >= 4:  # does the growth slow down (filling up) or hold (a leak)?
         half = len(steady) // 2
-        late = float(np.polyfit(minutes_at[half:], rss_at[half:], 1)[0]) * 60
+        late = _per_hour(minutes_at[half:], rss_at[half:])
         print_fn(f"soak: RSS growth over the later half (from {minutes_at[half]:.0f} min) {late:+.2f} MB per hour")
     print_fn(f"soak: garbage collections {pauses.counts[0]} / {pauses.counts[1]} / {pauses.counts[2]} (generation 0 / 1"
              f" / 2), the longest {pauses.worst[0] * 1e3:.1f} ms (generation {pauses.worst[1]})")
