@@ -35,7 +35,7 @@ from app.live.loop import DEFAULT_NOISE, ServiceLoop
 from app.live.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
-from app.memory import bound_native_heap
+from app.memory import bound_native_heap, bound_python_heap
 
 
 
@@ -89,6 +89,7 @@ class Service:
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
         ``params``: the operator's starting values when no scenario gives them."""
         bound_native_heap()  # hours of frames in bounded resident memory (app.memory)
+        bound_python_heap()  # and of Python's small objects
         fixed = hardware.state.n if hardware is not None else len(arena.owned) if arena is not None \
             else getattr(link, "n", None)
         self.store = ParamsStore(params or params_for(scenario, fixed or n_followers), fixed_followers=fixed)

@@ -38,3 +38,38 @@ def test_glibcs_account_sees_a_large_block_held_natively():
     del block
     after = native_heap_mb()
     assert after is not None and after[2] < during[2] - 60.0
+
+
+_COLLECTOR = """
+import gc, threading, app.memory as m
+gc.disable()  # no automatic collection: only the collector's can free the cycle below
+m.FREEZE_AFTER_S, m.COLLECT_EVERY_S = 0.2, 0.2
+full = []
+gc.callbacks.append(lambda phase, info: full.append(1) if phase == "stop" and info["generation"] == 2 else None)
+assert gc.get_freeze_count() == 0
+m.bound_python_heap()
+m.bound_python_heap()  # once per process
+waited = threading.Event()
+for _ in range(1200):  # start-up is frozen first (within a minute); what is made after is the collector's
+    if gc.get_freeze_count() > 0 or waited.wait(0.05):
+        break
+freed = threading.Event()
+class Node:
+    def __del__(self):
+        freed.set()
+a, b = Node(), Node()
+a.other, b.other = b, a  # a cycle: reference counting never frees it
+del a, b
+print("freed" if freed.wait(60.0) else "kept", len(full) >= 1,
+      sum(t.name == "omniformation-gc" for t in threading.enumerate()))
+"""
+
+
+def test_the_collector_freezes_start_up_and_frees_cycles_no_automatic_collection_would():
+    # A subprocess: freezing and a collector thread are for the process's life, not pytest's.
+    import subprocess
+
+    out = subprocess.run([sys.executable, "-c", _COLLECTOR], capture_output=True, text=True, timeout=120,
+                         cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["freed", "True", "1"]
