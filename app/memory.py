@@ -18,7 +18,7 @@ the interpreter's free lists (about 18,000 blocks here) and frees the cycles tha
 oldest generation, so until then the small-object heap creeps up. Once the service has run a
 minute, what start-up made is frozen (gc.freeze: never scanned again, kept for the process's
 life, as it would be anyway) and a full collection runs once a minute: it scans only what was
-made since, milliseconds, from a thread of its own (the soak reports its pauses).
+made since (about 2 ms here), from a thread of its own (the soak reports its pauses).
 """
 
 from __future__ import annotations
