@@ -8,6 +8,7 @@ import sys
 import pytest
 
 from app.memory import native_heap_mb, python_heap_mb
+from tests.helpers import ROOT
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc and /proc")
 
@@ -69,7 +70,6 @@ def test_the_collector_freezes_start_up_and_frees_cycles_no_automatic_collection
     # A subprocess: freezing and a collector thread are for the process's life, not pytest's.
     import subprocess
 
-    out = subprocess.run([sys.executable, "-c", _COLLECTOR], capture_output=True, text=True, timeout=120,
-                         cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    out = subprocess.run([sys.executable, "-c", _COLLECTOR], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["freed", "True", "1"]
