@@ -112,6 +112,7 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     from pathlib import Path
 
     from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.live.loop import CATCH_UP_S
     from app.live.params import MAX_FOLLOWERS
     from app.live.service import Service
     from app.recording.session import start_recording
@@ -130,7 +131,7 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     from app.memory import native_heap_mb, python_heap_mb
 
     samples: list[tuple[float, float, float]] = []  # (minutes, RSS MB, loop Hz over the last 10 s)
-    stalls: list[tuple[float, float, float]] = []  # the window's longest tick gap, steal, longest gc (s)
+    stalls: list[tuple[float, float, float, int]] = []  # the window's longest tick gap, steal, longest gc (s), ticks skipped
     heaps: list[tuple[float, float, float]] = []  # glibc's heap: in use, free inside, mmapped (MB)
     pythons: list[tuple[float, float, float, int]] = []  # each minute: (minutes, pymalloc's arenas MB, in objects MB, threads)
     pauses = _GcPauses()
@@ -142,22 +143,23 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
             if "ready" not in ready:
                 raise RuntimeError(f"the browser did not come up: {ready.strip()!r}")
         start = _time.monotonic()
-        tick0, t0, stolen0 = svc.loop.tick_count, start, _stolen_s()
+        tick0, t0, stolen0, dropped0 = svc.loop.tick_count, start, _stolen_s(), svc.loop.ticks_dropped
         svc.loop.take_longest_gap()
         while _time.monotonic() - start < minutes * 60:
             _time.sleep(10.0)
             now, ticks = _time.monotonic(), svc.loop.tick_count
             samples.append(((now - start) / 60, _rss_mb(), (ticks - tick0) / (now - t0)))
             stolen = _stolen_s()
-            stalls.append((svc.loop.take_longest_gap(), stolen - stolen0, pauses.take()))
-            tick0, t0, stolen0 = ticks, now, stolen
+            dropped = svc.loop.ticks_dropped
+            stalls.append((svc.loop.take_longest_gap(), stolen - stolen0, pauses.take(), dropped - dropped0))
+            tick0, t0, stolen0, dropped0 = ticks, now, stolen, dropped
             m, rss, hz = samples[-1]
-            gap, steal, gc_s = stalls[-1]
+            gap, steal, gc_s, skipped = stalls[-1]
             heap = native_heap_mb()
             if heap is not None:
                 heaps.append(heap)
             print_fn(f"  {m:6.1f} min  RSS {rss:7.1f} MB  loop {hz:6.2f} Hz (longest gap {gap * 1e3:4.0f} ms,"
-                     f" steal {steal * 1e3:4.0f} ms, gc {gc_s * 1e3:5.1f} ms)"
+                     f" steal {steal * 1e3:4.0f} ms, gc {gc_s * 1e3:5.1f} ms" + (f", {skipped} ticks skipped" if skipped else "") + ")"
                      + ("" if heap is None else f"  heap: in use {heap[0]:6.1f} MB, free {heap[1]:5.1f} MB,"
                                                 f" mmapped {heap[2]:5.1f} MB"))
             if len(samples) % 6 == 0:  # once a minute: pymalloc's report walks every arena
@@ -198,8 +200,10 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
                  f" threads {later[0][3]} -> {later[-1][3]}")
     slow = [(s, st) for s, st in zip(samples[1:], stalls[1:]) if abs(s[2] - 30.0) > 0.3]
     print_fn(f"soak: {len(slow)} of {len(rates)} windows outside 29.7..30.3 Hz" + "".join(
-        f"; {s[0]:.1f} min {s[2]:.2f} Hz (longest gap {st[0] * 1e3:.0f} ms, steal {st[1] * 1e3:.0f} ms, gc {st[2] * 1e3:.0f} ms)"
-        for s, st in slow[:10]))
+        f"; {s[0]:.1f} min {s[2]:.2f} Hz (longest gap {st[0] * 1e3:.0f} ms, steal {st[1] * 1e3:.0f} ms, gc {st[2] * 1e3:.0f} ms,"
+        f" {st[3]} ticks skipped)" for s, st in slow[:10]))
+    print_fn(f"soak: {svc.loop.ticks_dropped} ticks skipped in all (the loop more than {CATCH_UP_S * 1e3:.0f} ms behind its"
+             f" schedule, in {sum(1 for st in stalls if st[3])} windows), {svc.loop.tick_count} run")
     if len(steady) >= 4:  # does the growth slow down (filling up) or hold (a leak)?
         half = len(steady) // 2
         late = _per_hour(minutes_at[half:], rss_at[half:])
@@ -209,7 +213,8 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     print_fn(f"soak: {minutes:g} min, {browsers} browser(s), recording {size / 1e6:.0f} MB: RSS growth {slope:+.2f} MB"
              f" per hour after the first {warm_min:g} min (the charts' 5-min history full; target <= 2); loop {min(rates):.2f}..{max(rates):.2f} Hz in 10 s"
              " windows (target within 1 % of 30 Hz: 29.7..30.3)")
-    return {"rss_growth_mb_per_h": slope, "hz_min": min(rates), "hz_max": max(rates)}
+    return {"rss_growth_mb_per_h": slope, "hz_min": min(rates), "hz_max": max(rates),
+            "ticks_skipped": float(svc.loop.ticks_dropped)}
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.live.loop import ServiceLoop
+from app.live.loop import CATCH_UP_S, ServiceLoop, next_tick
 from app.live.params import Params, ParamsStore
 from tests.helpers import main_cli, serve_then_signal
 
@@ -107,6 +107,49 @@ def test_run_paces_ticks_and_halts_followers_on_stop():
     assert np.all(loop._world.team.commands.v == 0.0)
     gap = loop.take_longest_gap()  # between two tick starts
     assert 0.0 < gap <= elapsed and loop.take_longest_gap() == 0.0
+
+
+def test_pacing_catches_up_a_short_stall_and_skips_past_a_long_one():
+    dt = 1 / 30
+    # on time, or early: wait for the next deadline
+    assert next_tick(10.0, 10.01, dt, CATCH_UP_S) == (10.0 + dt, 10.0 + dt - 10.01, 0)
+    # 150 ms late (a stall a shared machine sees a few times an hour): no wait, no tick lost; the
+    # deadlines stay on the schedule, so the next ticks also run at once until it is caught up
+    due, wait, skipped = next_tick(10.0, 10.0 + dt + 0.15, dt, CATCH_UP_S)
+    assert (due, skipped) == (10.0 + dt, 0) and wait < 0
+    for _ in range(4):
+        due, wait, skipped = next_tick(due, 10.0 + dt + 0.15, dt, CATCH_UP_S)
+        assert skipped == 0 and wait < 0
+    # 600 ms late: the schedule starts afresh from now and 18 ticks are counted as skipped
+    assert next_tick(10.0, 10.0 + dt + 0.6, dt, CATCH_UP_S) == (10.0 + dt + 0.6, 0.0, 18)
+    # a slow loop (5 Hz) still catches up on a few ticks, not on less than one
+    assert next_tick(0.0, 0.2 + 0.5, 0.2, 3 * 0.2)[2] == 0
+
+
+def test_a_stall_longer_than_the_catch_up_is_counted_as_skipped_ticks():
+    loop = ServiceLoop(ParamsStore(Params(leader_mode="straight")), rate_hz=50.0)
+    stalled = threading.Event()
+
+    def stall_once(_state):
+        if loop.tick_count >= 5 and not stalled.is_set():
+            stalled.set()
+            time.sleep(0.7)
+
+    loop.subscribe(stall_once)
+    th = threading.Thread(target=loop.run)
+    t0 = time.monotonic()
+    th.start()
+    deadline = time.monotonic() + 60
+    while loop.tick_count < 20 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    loop.stop()
+    th.join(10.0)
+    elapsed = time.monotonic() - t0
+    assert stalled.is_set() and not th.is_alive()
+    # 0.7 s at 50 Hz is 35 ticks; up to CATCH_UP_S of them (12) may be caught up, the rest are skipped
+    assert loop.ticks_dropped >= int((0.7 - CATCH_UP_S) * 50) - 1
+    # and what ran plus what was skipped never exceeds the schedule
+    assert loop.tick_count + loop.ticks_dropped <= 50 * elapsed + 2
 
 
 def test_the_service_stops_cleanly_on_sigterm():
