@@ -30,6 +30,7 @@ from app.recording.reader import Recording
 from app.recording.schema import json_floats, scenario_obstacles  # noqa: E402
 
 SETTLED_M = 0.03  # settled: the error stays under 3 cm to the end
+DISTANCE_BLOCK = 4096  # ticks at a time for the pairwise distances (bounded memory on an hour's recording)
 
 
 @dataclass(frozen=True)
@@ -66,11 +67,17 @@ class Series:
 
     def min_distance(self) -> np.ndarray:
         """(T,) the smallest centre distance between two robots (followers and the leader) per tick."""
-        pts = np.concatenate([np.zeros((len(self.t), 1, 2)), self.p], axis=1)
-        d = np.linalg.norm(pts[:, :, None, :] - pts[:, None, :, :], axis=-1)
-        m = pts.shape[1]
-        d[:, np.arange(m), np.arange(m)] = np.inf
-        return np.nanmin(d.reshape(len(self.t), -1), axis=1) if m > 1 else np.full(len(self.t), np.inf)
+        out = np.full(len(self.t), np.inf)
+        m = self.p.shape[1] + 1
+        if m < 2:
+            return out
+        for a in range(0, len(self.t), DISTANCE_BLOCK):  # in blocks: the pairwise arrays are m^2 per tick
+            p = self.p[a:a + DISTANCE_BLOCK]
+            pts = np.concatenate([np.zeros((len(p), 1, 2)), p], axis=1)
+            d = np.linalg.norm(pts[:, :, None, :] - pts[:, None, :, :], axis=-1)
+            d[:, np.arange(m), np.arange(m)] = np.inf
+            out[a:a + len(p)] = np.nanmin(d.reshape(len(p), -1), axis=1)
+        return out
 
 
 MAX_PLOTTED = 20_000  # points per line in a figure (every k-th tick of a longer recording)

@@ -412,3 +412,21 @@ def test_recordings_made_before_the_published_schemas_still_replay_their_frames(
         w.finish()
     back = read_recording(tmp_path / "old.mcap")
     assert len(back.frames) == 1 and back.frames[0][1] == jpeg
+
+
+def test_the_closest_two_robots_are_found_in_blocks_as_in_one_piece():
+    """report's pairwise distances go block by block (bounded memory on an hour's recording):
+    the same answer as one (T, m, m) array, across block edges and with a follower unseen (NaN)."""
+    from app.recording.report import DISTANCE_BLOCK, Series
+
+    rng = np.random.default_rng(5)
+    T, n = 2 * DISTANCE_BLOCK + 77, 3
+    p = rng.uniform(-2, 2, (T, n, 2))
+    p[DISTANCE_BLOCK - 1, 1] = np.nan
+    z = np.zeros((T, n))
+    s = Series(np.arange(T) / 30, np.zeros((T, 3)), np.zeros((T, n, 3)), p, p, z, z, z.astype(bool), np.zeros(T),
+               np.zeros((T, n, 2)), True)
+    pts = np.concatenate([np.zeros((T, 1, 2)), p], axis=1)
+    d = np.linalg.norm(pts[:, :, None] - pts[:, None], axis=-1)
+    d[:, np.arange(n + 1), np.arange(n + 1)] = np.inf
+    np.testing.assert_array_equal(s.min_distance(), np.nanmin(d.reshape(T, -1), axis=1))
