@@ -7,6 +7,7 @@ each figure is the median of several repeats. It lives in the app package
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import statistics
@@ -280,28 +281,50 @@ def bench_long_recording(minutes: float, print_fn: Callable[[str], None] = print
         print_fn(f"report failed: {proc.stderr.strip()[-300:]}")
     print_fn(f"report: {report_s:.1f} s, peak RSS {peak_mb:.0f} MB (targets for a 1-hour recording: <= 90 s,"
              " <= 400 MB)")
+    # replay in a fresh process too: its own peak memory, not this one's (which wrote the file)
+    proc = subprocess.run([sys.executable, "-c", "import sys; from app.cli.bench import replay_probe;"
+                           " replay_probe(sys.argv[1])", str(path)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        print_fn(f"replay failed: {proc.stderr.strip()[-300:]}")
+        return {"report_s": report_s, "report_peak_mb": peak_mb}
+    probe = json.loads(proc.stdout.strip().splitlines()[-1])
+    print_fn(f"replay: open and first frame {probe['first_s']:.2f} s (target <= 5 s; frame {probe['frame']});"
+             f" seek anywhere median {probe['seek_median_s']:.2f} s, max {probe['seek_max_s']:.2f} s (target <= 1 s);"
+             f" peak RSS {probe['peak_mb']:.0f} MB after {probe['seeks']} seeks")
+    import shutil
+
+    shutil.rmtree(folder, ignore_errors=True)
+    return {"report_s": report_s, "report_peak_mb": peak_mb, "replay_first_s": probe["first_s"],
+            "replay_seek_max_s": probe["seek_max_s"], "replay_peak_mb": probe["peak_mb"]}
+
+
+def replay_probe(path: str, seeks: int = 100) -> None:
+    """Open a recording for replay, show its first tick, then seek to `seeks` random places (the
+    timeline's seek: the plots' last 60 s and the state there); print the times and this
+    process's peak RSS as one JSON line (bench --long-recording runs it in a fresh process)."""
+    import resource
+    import time as _time
+    from pathlib import Path
+
     from app.recording.reader import read_recording
     from app.recording.replay import ReplayService
 
     t0 = _time.monotonic()
-    rec = read_recording(path)
+    rec = read_recording(Path(path))
     svc = ReplayService(rec, host="127.0.0.1", port=0)
     first = svc.state_at(0)  # the first tick with its frame, as published when the page opens
     first_s = _time.monotonic() - t0
-    seeks = []
+    times = []
     rng = np.random.default_rng(0)
-    for k in rng.integers(0, len(rec.ticks), 10):
+    for k in rng.integers(0, len(rec.ticks), seeks):
         t1 = _time.monotonic()
-        svc.seek(int(k))  # the timeline's seek: the plots' last 60 s and the state at k
-        seeks.append(_time.monotonic() - t1)
+        svc.seek(int(k))
+        times.append(_time.monotonic() - t1)
     svc.close()
     rec.close()
-    print_fn(f"replay: open and first frame {first_s:.2f} s (target <= 5 s; frame {first.frame is not None});"
-             f" seek anywhere median {np.median(seeks):.2f} s, max {max(seeks):.2f} s (target <= 1 s)")
-    import shutil
-
-    shutil.rmtree(folder, ignore_errors=True)
-    return {"report_s": report_s, "report_peak_mb": peak_mb, "replay_first_s": first_s, "replay_seek_max_s": max(seeks)}
+    print(json.dumps({"first_s": first_s, "frame": first.frame is not None, "seek_median_s": float(np.median(times)),
+                      "seek_max_s": max(times), "seeks": seeks,
+                      "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3}))
 
 
 def _median_seconds(fn: Callable[[], object], repeats: int, inner: int) -> float:

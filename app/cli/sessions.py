@@ -96,7 +96,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
 
 def cmd_rerun(args: argparse.Namespace) -> int:
     from app.recording.reader import params_from_recording, read_recording
-    from app.recording.report import series, summarise
+    from app.recording.report import summarise
     from app.recording.rerun import (frame_summary, parse_gains, recorded_calibration, rerun_frames, resimulate,
                                      write_frame_rerun)
     from core.config import ConfigError
@@ -136,7 +136,7 @@ def cmd_rerun(args: argparse.Namespace) -> int:
               + ", ".join(f"{k}={v:g}" for k, v in gains.as_dict().items()), flush=True)
         resimulate(rec, gains, settings, args.out, camera)
         new = read_recording(args.out)
-        old_sum, new_sum = summarise(rec, series(rec)), summarise(new, series(new))
+        old_sum, new_sum = summarise(rec), summarise(new)
         print("per follower: settling time (s) and steady error RMS (cm), recorded -> new")
         def settled(x: object) -> str:
             return "not settled" if x is None else f"{x}"

@@ -8,6 +8,9 @@ fell, and which saturation or limit was active), safety.png. summary.md and summ
 the settling time, steady-state error RMS and max, time not tracked; the STOP events.
 
 Errors use the true pose when the recording has one (simulation), else the estimate.
+The report reads the recording once, a block of ticks at a time (`scan`): the summary's
+numbers are tallied over every tick, the figures drawn from every k-th (at most MAX_PLOTTED
+points per line), so its memory does not grow with the recording's length.
 """
 
 from __future__ import annotations
@@ -53,18 +56,6 @@ class Series:
     v_rate: np.ndarray | None = None  # (T, n) its rate as the loop measured it (NaN: not recorded)
     limits: np.ndarray | None = None  # (T, n) core.control.tuning flags (NaN: not recorded)
 
-    def every(self, k: int) -> "Series":
-        """Every k-th row (views, no copies): what a figure needs of a long recording."""
-        if k <= 1:
-            return self
-
-        def cut(a: np.ndarray | None) -> np.ndarray | None:
-            return None if a is None else a[::k]
-
-        return Series(self.t[::k], self.leader[::k], self.followers_world[::k], self.p[::k], self.p_d[::k],
-                      self.a_est[::k], self.a_raw[::k], self.tracked[::k], self.v_lyap[::k], self.commands[::k],
-                      self.truth, cut(self.filter_acting), cut(self.v_each), cut(self.v_rate), cut(self.limits))
-
     def min_distance(self) -> np.ndarray:
         """(T,) the smallest centre distance between two robots (followers and the leader) per tick."""
         out = np.full(len(self.t), np.inf)
@@ -84,44 +75,270 @@ MAX_PLOTTED = 20_000  # points per line in a figure (every k-th tick of a longer
 SERIES_FIELDS = ("t", "leader", "followers_world", "p_true", "p_est", "p_d", "a_est", "a_raw", "tracked", "v_lyap",
                  "commands", "v_rate", "limits")
 PER_FOLLOWER_OPTIONAL = ("v_rate", "limits")  # not in recordings made before the Lyapunov monitor
+SAFETY_ACTING = ("on, changed", "on, infeasible", "on, no solver")  # the tick's safety status when the filter acted
 
 
-def series(rec: Recording) -> Series:
-    """The arrays the figures and the summary need, in one streaming pass over the ticks (the
-    recording's chunks are decoded one after the other): each tick's numbers go straight into
-    arrays made for the whole recording, so memory is those arrays, whatever the file's size."""
-    total = len(rec.ticks)
-    first = rec.ticks[0]
-    cols: dict[str, np.ndarray] = {}
-    for name in SERIES_FIELDS:
-        shape = json_floats(first.get(name) if first.get(name) is not None else first["a_est"]).shape
-        if name in PER_FOLLOWER_OPTIONAL:
-            shape = json_floats(first["a_est"]).shape
-        cols[name] = np.full((total, *shape), np.nan)
-    acting = np.zeros(total, dtype=bool)
-    has_filter = "safety" in first
-    for k, tk in enumerate(rec.ticks):
-        acting[k] = str(tk.get("safety", "")).startswith(("on, changed", "on, infeasible", "on, no solver"))
+class _Block:
+    """Column arrays for `size` ticks, filled one tick at a time (shapes from the recording's
+    first tick) and used again for the next block."""
+
+    def __init__(self, first: dict[str, Any], size: int) -> None:
+        self.cols: dict[str, np.ndarray] = {}
+        for name in SERIES_FIELDS:
+            like = first.get(name) if first.get(name) is not None and name not in PER_FOLLOWER_OPTIONAL else first["a_est"]
+            self.cols[name] = np.full((size, *json_floats(like).shape), np.nan)
+        self.cols["acting"] = np.zeros(size, dtype=bool)
+        self.size, self.rows = size, 0
+
+    def add(self, tk: dict[str, Any]) -> None:
+        k, cols = self.rows, self.cols
+        cols["acting"][k] = str(tk.get("safety", "")).startswith(SAFETY_ACTING)
         for name in SERIES_FIELDS:
             value = tk.get(name)
             if name == "a_raw" and value is None:
                 value = tk["a_est"]
             if value is None and name in PER_FOLLOWER_OPTIONAL:
+                cols[name][k] = np.nan
                 continue
             try:
                 cols[name][k] = value
             except (TypeError, ValueError):  # JSON null (a NaN when written) inside
                 cols[name][k] = json_floats(value)
-    start = float(rec.metadata.get("scenario_start_s", "0") or 0)
-    p_true = cols["p_true"]
-    truth = bool(np.isfinite(p_true).any())
+        self.rows += 1
+
+    def full(self) -> bool:
+        return self.rows == self.size
+
+    def taken(self) -> dict[str, np.ndarray]:
+        """The rows filled so far (views), and the block emptied for the next ticks."""
+        out = {name: a[:self.rows] for name, a in self.cols.items()}
+        self.rows = 0
+        return out
+
+
+def _series(cols: dict[str, np.ndarray], start: float, truth: bool, has_filter: bool) -> Series:
     return Series(
         t=cols["t"] - start, leader=cols["leader"], followers_world=cols["followers_world"],
-        p=p_true if truth else cols["p_est"], p_d=cols["p_d"], a_est=cols["a_est"], a_raw=cols["a_raw"],
+        p=cols["p_true"] if truth else cols["p_est"], p_d=cols["p_d"], a_est=cols["a_est"], a_raw=cols["a_raw"],
         tracked=cols["tracked"].astype(bool), v_lyap=np.nansum(cols["v_lyap"], axis=1),
-        commands=cols["commands"], truth=truth, filter_acting=acting if has_filter else None,
+        commands=cols["commands"], truth=truth, filter_acting=cols["acting"] if has_filter else None,
         v_each=cols["v_lyap"], v_rate=cols["v_rate"], limits=cols["limits"],
     )
+
+
+class _Episodes:
+    """Runs of consecutive ticks where a condition holds, counted across blocks."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.ticks = 0
+        self._last = False
+
+    def add(self, mask: np.ndarray) -> None:
+        if mask.size == 0:
+            return
+        m = mask.astype(np.int8)
+        self.count += int(np.count_nonzero(np.diff(np.concatenate([[int(self._last)], m])) == 1))
+        self.ticks += int(m.sum())
+        self._last = bool(m[-1])
+
+
+class _Moments:
+    """Sum of squares, count and maximum of the errors seen since the last reset."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.sq, self.count, self.max = 0.0, 0, -np.inf
+
+    def add(self, e: np.ndarray) -> None:
+        if e.size:
+            self.sq += float(np.sum(e**2))
+            self.count += e.size
+            self.max = max(self.max, float(e.max()))
+
+    def rms_max_cm(self) -> tuple[float | None, float | None]:
+        if not self.count:
+            return None, None
+        return round(float(np.sqrt(self.sq / self.count)) * 100, 3), round(self.max * 100, 3)
+
+
+class Tally:
+    """The summary's numbers for a whole recording, accumulated block after block of ticks: what
+    the recording's full arrays would give, in memory that does not grow with its length (a few
+    numbers per follower). The blocks must come in order, the recording's ticks each once."""
+
+    def __init__(self, n: int, t_end: float, gains: dict[str, Any], boxes: np.ndarray, truth: bool) -> None:
+        self.n, self.truth, self.boxes = n, truth, boxes
+        self.late_from = 0.75 * t_end  # not settled: the steady error is that of the last quarter
+        self.v_max, self.w_max = float(gains.get("v_max", np.inf)), float(gains.get("w_max", np.inf))
+        self._seen = 0  # ticks so far
+        self.first_valid_t = np.full(n, np.nan)
+        self.last_valid = np.full(n, -1)  # tick index
+        self.last_above = np.full(n, -1)  # the last tick whose error was >= SETTLED_M
+        self.settle_t = np.full(n, np.nan)  # the time of the tick after it
+        self._settle_next = np.zeros(n, dtype=bool)  # the last above was a block's last tick
+        self.since = [_Moments() for _ in range(n)]  # errors after the last above
+        self.late = [_Moments() for _ in range(n)]
+        self.not_tracked = np.zeros(n, dtype=np.int64)
+        self.min_distance = np.inf
+        self.collisions, self.near_misses, self.limit_hits, self.boundary_exits = (_Episodes() for _ in range(4))
+        self.obstacle_hits, self.obstacle_near = _Episodes(), _Episodes()
+        self.obstacle_clearance = np.inf
+        self.acting: int | None = None
+
+    def add(self, s: Series) -> None:
+        t, B = s.t, len(s.t)
+        if B == 0:
+            return
+        after = t >= 0
+        if self._settle_next.any():
+            self.settle_t[self._settle_next] = t[0]
+            self._settle_next[:] = False
+        err = np.linalg.norm(s.p_d - s.p, axis=-1)  # (B, n)
+        for i in range(self.n):
+            e = err[:, i]
+            ok = np.isfinite(e) & after
+            valid = np.flatnonzero(ok)
+            if valid.size:
+                if self.last_valid[i] < 0:
+                    self.first_valid_t[i] = t[valid[0]]
+                self.last_valid[i] = self._seen + valid[-1]
+                above = np.flatnonzero(ok & (e >= SETTLED_M))
+                if above.size:
+                    j = int(above[-1])
+                    self.last_above[i] = self._seen + j
+                    self.since[i].reset()
+                    if j + 1 < B:
+                        self.settle_t[i] = t[j + 1]
+                    else:
+                        self._settle_next[i] = True
+                    self.since[i].add(e[j + 1:][ok[j + 1:]])
+                else:
+                    self.since[i].add(e[ok])
+                self.late[i].add(e[ok & (t >= self.late_from)])
+            self.not_tracked[i] += int(np.count_nonzero(~s.tracked[after, i]))
+        close = s.min_distance()[after]
+        finite = close[np.isfinite(close)]
+        if finite.size:
+            self.min_distance = min(self.min_distance, float(finite.min()))
+        self.collisions.add(close < COLLISION_M)
+        self.near_misses.add(close < NEAR_MISS_M)
+        at_limit = (np.abs(s.commands[..., 0]) >= self.v_max - 1e-6) | (np.abs(s.commands[..., 1]) >= self.w_max - 1e-6)
+        self.limit_hits.add(at_limit[after].any(axis=1))
+        self.boundary_exits.add((np.linalg.norm(s.p, axis=-1) > BOUNDARY_M).any(axis=1)[after])
+        gap = obstacle_gap(self.boxes, s)
+        if gap is not None and after.any():
+            self.obstacle_clearance = min(self.obstacle_clearance, float(np.nanmin(gap[after])))
+            self.obstacle_hits.add(gap[after] <= 0.0)
+            self.obstacle_near.add(gap[after] < OBSTACLE_CLEARANCE_M)
+        if s.filter_acting is not None:
+            self.acting = (self.acting or 0) + int(np.count_nonzero(s.filter_acting[after]))
+        self._seen += B
+
+    def followers(self, dt: float) -> list[dict[str, Any]]:
+        out = []
+        for i in range(self.n):
+            if self.last_valid[i] < 0:
+                settle, steady = None, self.late[i]
+            elif self.last_above[i] < 0:
+                settle, steady = float(self.first_valid_t[i]), self.since[i]
+            elif self.last_above[i] == self.last_valid[i]:
+                settle, steady = None, self.late[i]  # not settled by the end
+            else:
+                settle, steady = float(self.settle_t[i]), self.since[i]
+            rms, peak = steady.rms_max_cm()
+            out.append({
+                "follower": i + 1,
+                "settling_time_s": None if settle is None else round(settle, 2),
+                "steady_error_rms_cm": rms,
+                "steady_error_max_cm": peak,
+                "time_not_tracked_s": round(float(self.not_tracked[i] * dt), 2),
+            })
+        return out
+
+    def safety(self, dt: float) -> dict[str, Any]:
+        """Robotarium's kind of per-run safety summary: collisions, near misses, actuator limit hits."""
+        near_obstacle = {} if not np.isfinite(self.obstacle_clearance) else {
+            "obstacle_clearance_cm": round(self.obstacle_clearance * 100, 1),
+            "obstacle_hits": self.obstacle_hits.count,
+            "obstacle_near_misses": self.obstacle_near.count,
+        }
+        return {"safety": {
+            "distances_from": "true poses" if self.truth else "estimated poses",
+            "min_distance_cm": round(self.min_distance * 100, 1) if np.isfinite(self.min_distance) else None,
+            "collisions": self.collisions.count,
+            "near_misses": self.near_misses.count,
+            "time_under_min_distance_s": round(float(self.near_misses.ticks * dt), 2),
+            "actuator_limit_hits": self.limit_hits.count,
+            "boundary_exits": self.boundary_exits.count,
+            **near_obstacle,
+            "filter_acting_s": None if self.acting is None else round(float(self.acting * dt), 2),
+        }}
+
+
+@dataclass(frozen=True)
+class Scan:
+    """What one pass over a recording gives the report: the figures' series (every k-th tick)
+    and the summary's tally (every tick)."""
+
+    shown: Series
+    tally: Tally
+    t_first: float
+    t_last: float
+    dt: float  # the median tick interval
+
+    @property
+    def truth(self) -> bool:
+        return self.shown.truth
+
+
+def scan(rec: Recording, block: int = DISTANCE_BLOCK, max_plotted: int = MAX_PLOTTED) -> Scan:
+    """Read a recording's ticks once, in order, `block` at a time (its chunks are decoded one
+    after the other): each block goes into the summary's tallies and its every k-th tick into
+    the figures' series. Memory is one block and `max_plotted` rows, whatever the file's length.
+
+    Errors use the true poses if any tick has them (simulation), else the estimates: both are
+    tallied, since which one the recording has is known only at its end."""
+    total = len(rec.ticks)
+    first = rec.ticks[0]
+    start = float(rec.metadata.get("scenario_start_s", "0") or 0)
+    every = max(1, -(-total // max_plotted))
+    n = json_floats(first["a_est"]).shape[0]
+    gains = rec.params[0][1].get("gains", {}) if rec.params else {}
+    t_end = float(rec.t[-1]) - start if len(rec.t) else 0.0
+    tallies = {truth: Tally(n, t_end, gains, recorded_obstacles(rec) if truth else np.zeros((0, 4)), truth)
+               for truth in (True, False)}
+    has_filter = "safety" in first
+    kept: list[dict[str, np.ndarray]] = []
+    truth = False
+    t_first = t_last = np.nan
+    rows = _Block(first, min(block, total))
+    k0 = 0  # the recording's index of the block's first tick
+
+    def flush() -> None:
+        nonlocal truth, t_first, t_last, k0
+        cols = rows.taken()
+        truth = truth or bool(np.isfinite(cols["p_true"]).any())
+        for which, tally in tallies.items():
+            tally.add(_series(cols, start, which, has_filter))
+        if k0 == 0:
+            t_first = float(cols["t"][0]) - start
+        t_last = float(cols["t"][-1]) - start
+        take = np.arange((-k0) % every, len(cols["t"]), every)  # the recording's every k-th tick
+        kept.append({name: a[take] for name, a in cols.items()})
+        k0 += len(cols["t"])
+
+    for tk in rec.ticks:
+        rows.add(tk)
+        if rows.full():
+            flush()
+    if rows.rows:
+        flush()
+    cols = {name: np.concatenate([c[name] for c in kept]) for name in kept[0]}
+    dt = float(np.median(np.diff(rec.t))) if len(rec.t) > 1 else 0.0
+    return Scan(_series(cols, start, truth, has_filter), tallies[truth], t_first, t_last, dt)
 
 
 COLLISION_M = 0.15  # two robot centres closer than this: their bodies (15 x 25 cm) touch
@@ -137,9 +354,8 @@ def recorded_obstacles(rec: Recording) -> np.ndarray:
     return as_array(scenario_obstacles(rec.metadata))
 
 
-def obstacle_gap(rec: Recording, s: Series) -> np.ndarray | None:
+def obstacle_gap(boxes: np.ndarray, s: Series) -> np.ndarray | None:
     """(T,) the closest follower body to an obstacle's surface (true poses), or None (no obstacles, no truth)."""
-    boxes = recorded_obstacles(rec)
     if len(boxes) == 0 or not s.truth:
         return None
     from core.config import ROBOT_RADIUS_M
@@ -151,72 +367,26 @@ def obstacle_gap(rec: Recording, s: Series) -> np.ndarray | None:
 
 
 def safety_summary(rec: Recording, s: Series, dt: float) -> dict[str, Any]:
-    """Robotarium's kind of per-run safety summary: collisions, near misses, actuator limit hits."""
-    d = s.min_distance()
-    after = s.t >= 0
-    close = d[after]
-
-    def episodes(mask: np.ndarray) -> int:  # runs of consecutive ticks
-        return int(np.count_nonzero(np.diff(np.concatenate([[0], mask.astype(np.int8)])) == 1))
-
-    limits = rec.params[0][1].get("gains", {}) if rec.params else {}
-    v_max, w_max = float(limits.get("v_max", np.inf)), float(limits.get("w_max", np.inf))
-    at_limit = (np.abs(s.commands[..., 0]) >= v_max - 1e-6) | (np.abs(s.commands[..., 1]) >= w_max - 1e-6)
-    out_of_ring = (np.linalg.norm(s.p, axis=-1) > BOUNDARY_M).any(axis=1)
-    gap = obstacle_gap(rec, s)
-    near_obstacle = {} if gap is None else {
-        "obstacle_clearance_cm": round(float(np.nanmin(gap[after])) * 100, 1),
-        "obstacle_hits": episodes(gap[after] <= 0.0),
-        "obstacle_near_misses": episodes(gap[after] < OBSTACLE_CLEARANCE_M),
-    }
-    return {"safety": {
-        "distances_from": "true poses" if s.truth else "estimated poses",
-        "min_distance_cm": round(float(np.nanmin(close)) * 100, 1) if close.size and np.isfinite(close).any() else None,
-        "collisions": episodes(close < COLLISION_M),
-        "near_misses": episodes(close < NEAR_MISS_M),
-        "time_under_min_distance_s": round(float(np.count_nonzero(close < NEAR_MISS_M) * dt), 2),
-        "actuator_limit_hits": episodes(at_limit[after].any(axis=1)),
-        "boundary_exits": episodes(out_of_ring[after]),
-        **near_obstacle,
-        "filter_acting_s": None if s.filter_acting is None else round(float(np.count_nonzero(s.filter_acting[after]) * dt), 2),
-    }}
+    """The safety summary of one whole series (see Tally.safety)."""
+    tally = Tally(s.p.shape[1], float(s.t[-1]) if len(s.t) else 0.0,
+                  rec.params[0][1].get("gains", {}) if rec.params else {},
+                  recorded_obstacles(rec) if s.truth else np.zeros((0, 4)), s.truth)
+    tally.add(s)
+    return tally.safety(dt)
 
 
-def summarise(rec: Recording, s: Series) -> dict[str, Any]:
-    err = np.linalg.norm(s.p_d - s.p, axis=-1)  # (T, n)
-    dt = float(np.median(np.diff(s.t))) if len(s.t) > 1 else 0.0
-    followers = []
-    for i in range(err.shape[1]):
-        e = err[:, i]
-        ok = np.isfinite(e) & (s.t >= 0)
-        above = np.flatnonzero(ok & (e >= SETTLED_M))
-        valid = np.flatnonzero(ok)
-        if valid.size == 0:
-            settle = None
-        elif above.size == 0:
-            settle = float(s.t[valid[0]])
-        elif above[-1] == valid[-1]:
-            settle = None  # not settled by the end
-        else:
-            settle = float(s.t[above[-1] + 1])
-        steady = ok & (s.t >= (settle if settle is not None else s.t[-1] * 0.75))
-        es = e[steady]
-        followers.append({
-            "follower": i + 1,
-            "settling_time_s": None if settle is None else round(settle, 2),
-            "steady_error_rms_cm": round(float(np.sqrt(np.mean(es**2))) * 100, 3) if es.size else None,
-            "steady_error_max_cm": round(float(es.max()) * 100, 3) if es.size else None,
-            "time_not_tracked_s": round(float((~s.tracked[s.t >= 0, i]).sum() * dt), 2),
-        })
+def summarise(rec: Recording, sc: Scan | None = None) -> dict[str, Any]:
+    """summary.json's contents (one pass over the recording unless `sc` is that pass)."""
+    sc = sc if sc is not None else scan(rec)
     stops = [e for e in rec.events if e.get("kind") == "stop"]
     return {
-        **safety_summary(rec, s, dt),
+        **sc.tally.safety(sc.dt),
         "recording": rec.path.name,
         "complete": rec.complete,
-        "duration_s": round(float(s.t[-1] - s.t[0]), 2),
-        "errors_from": "true poses" if s.truth else "estimated poses (no ground truth recorded)",
+        "duration_s": round(sc.t_last - sc.t_first, 2),
+        "errors_from": "true poses" if sc.truth else "estimated poses (no ground truth recorded)",
         "settled_means": f"error stays under {SETTLED_M * 100:.0f} cm to the end",
-        "followers": followers,
+        "followers": sc.tally.followers(sc.dt),
         "stop_events": [{"t": round(float(e["t"]), 2), "detail": e["detail"]} for e in stops],
         "events": len(rec.events),
         "lost_ticks": sum(g.ticks for g in rec.gaps()),
@@ -420,16 +590,16 @@ def _safety(s: Series, gap: np.ndarray | None, path: Path) -> None:
 
 
 def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], None] | None = None) -> list[Path]:
-    s = series(rec)
+    sc = scan(rec)  # one pass: every tick into the summary, every k-th into the figures
+    shown = sc.shown
     title = rec.metadata.get("scenario", rec.path.stem)
-    # a figure ~1000 px wide shows no more than this many points per line; the summary uses them all
-    shown = s.every(-(-len(s.t) // MAX_PLOTTED))
+    boxes = recorded_obstacles(rec)
     steps: list[tuple[str, Callable[[Path], None]]] = [
         ("trajectory.png", lambda p: _trajectory(shown, title, p)),
         ("errors.png", lambda p: _errors(shown, p)),
         ("headings.png", lambda p: _headings(shown, p)),
         ("lyapunov_commands.png", lambda p: _lyapunov_commands(shown, p)),
-        ("safety.png", lambda p: _safety(shown, obstacle_gap(rec, shown), p)),
+        ("safety.png", lambda p: _safety(shown, obstacle_gap(boxes, shown), p)),
         ("lyapunov.png", lambda p: _lyapunov_monitor(shown, p)),
     ]
     written = []
@@ -439,7 +609,7 @@ def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], 
         written.append(out / name)
         if progress:
             progress(k, total, name)
-    sm = summarise(rec, s)
+    sm = summarise(rec, sc)
     (out / "summary.json").write_text(json.dumps(sm, indent=2) + "\n", encoding="utf-8")
     (out / "summary.md").write_text(_summary_md(sm), encoding="utf-8")
     written += [out / "summary.json", out / "summary.md"]

@@ -117,3 +117,20 @@ def test_the_soaks_gc_monitor_counts_each_collection_once_and_lets_go():
     counted = list(pauses.counts)
     gc.collect(2)
     assert pauses.counts == counted
+
+
+def test_the_long_recording_benchs_replay_probe_opens_seeks_and_reports_its_own_memory():
+    """bench --long-recording measures replay in a fresh process with this probe: one JSON line."""
+    import json
+    import subprocess
+    import sys
+
+    from tests.helpers import ROOT, SAMPLES
+
+    out = subprocess.run(
+        [sys.executable, "-c", "import sys; from app.cli.bench import replay_probe; replay_probe(sys.argv[1], 3)",
+         str(SAMPLES / "experiment2-vision.mcap")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stderr
+    probe = json.loads(out.stdout.strip().splitlines()[-1])
+    assert probe["frame"] is True and probe["seeks"] == 3
+    assert 0 < probe["first_s"] and 0 < probe["seek_median_s"] <= probe["seek_max_s"] and probe["peak_mb"] > 50

@@ -430,3 +430,66 @@ def test_the_closest_two_robots_are_found_in_blocks_as_in_one_piece():
     d = np.linalg.norm(pts[:, :, None] - pts[:, None], axis=-1)
     d[:, np.arange(n + 1), np.arange(n + 1)] = np.inf
     np.testing.assert_array_equal(s.min_distance(), np.nanmin(d.reshape(T, -1), axis=1))
+
+
+def test_the_report_tallies_the_same_summary_whatever_the_block_and_plots_every_kth_tick():
+    """report reads a recording once, a block of ticks at a time (bounded memory on a long
+    recording): settling, steady error, episodes of collisions and limit hits carry across block
+    edges, so one tick per block gives the summary of one block for the whole file; the figures
+    get every k-th tick, at most max_plotted of them."""
+    from app.recording.report import scan, summarise
+
+    rec = read_recording(SAMPLES / "experiment2-vision.mcap")
+    whole = summarise(rec, scan(rec, block=len(rec.ticks)))
+    assert all(f["settling_time_s"] is not None for f in whole["followers"])
+    for block in (1, 7, 4096):
+        assert summarise(rec, scan(rec, block=block)) == whole, block
+    few = scan(rec, block=50, max_plotted=100)
+    k = -(-len(rec.ticks) // 100)
+    assert len(few.shown.t) == -(-len(rec.ticks) // k) <= 100
+    np.testing.assert_allclose(np.diff(few.shown.t), k / 30, atol=1e-3)
+    assert summarise(rec, few) == whole
+
+
+def test_the_tally_counts_episodes_and_settling_across_block_edges():
+    """The summary's tally fed a series whole or in pieces of 1, 7 or 50 ticks: the same numbers
+    (two collision episodes, one crossing a block edge; limit hits; a follower whose last error
+    above 3 cm is a block's last tick; one that never settles)."""
+    from dataclasses import fields, replace
+
+    from app.recording.report import Series, Tally
+
+    T = 300
+    t = np.arange(T) / 30.0
+    gap = np.full(T, 1.0)
+    gap[40:60] = 0.10
+    gap[200:215] = 0.12
+    p = np.zeros((T, 2, 2))
+    p[:, 0] = np.column_stack([-gap / 2, np.full(T, 1.0)])
+    p[:, 1] = np.column_stack([gap / 2, np.full(T, 1.0)])
+    p_d = p.copy()
+    p_d[:49, 0, 0] += np.linspace(0.5, 0.04, 49)  # follower 1: above 3 cm up to tick 48, then 1 cm
+    p_d[49:, 0, 0] += 0.01
+    p_d[:, 1, 1] += 0.05 + 0.01 * np.sin(t)  # follower 2: never settles
+    p[100:110, 1] = np.nan  # follower 2 unseen for a third of a second
+    commands = np.zeros((T, 2, 2))
+    commands[10:20, 0, 0] = 0.3
+    commands[48:52, 1, 1] = -2.0
+    tracked = np.ones((T, 2), bool)
+    tracked[100:110, 1] = False
+    s = Series(t, np.zeros((T, 3)), np.zeros((T, 2, 3)), p, p_d, np.zeros((T, 2)), np.zeros((T, 2)), tracked,
+               np.zeros(T), commands, True, np.arange(T) % 9 == 0)
+
+    def tally(block: int) -> tuple:
+        tl = Tally(2, float(t[-1]), {"v_max": 0.3, "w_max": 2.0}, np.zeros((0, 4)), True)
+        for a in range(0, T, block):
+            tl.add(replace(s, **{f.name: getattr(s, f.name)[a:a + block] for f in fields(s)
+                                 if isinstance(getattr(s, f.name), np.ndarray)}))
+        return tl.followers(1 / 30), tl.safety(1 / 30)
+
+    followers, safety = tally(T)
+    assert safety["safety"]["collisions"] == 2 and safety["safety"]["actuator_limit_hits"] == 2
+    assert followers[0]["settling_time_s"] == round(t[49], 2) and followers[0]["steady_error_max_cm"] == 1.0
+    assert followers[1]["settling_time_s"] is None and followers[1]["time_not_tracked_s"] == round(10 / 30, 2)
+    for block in (1, 7, 49, 50):
+        assert tally(block) == (followers, safety), block
