@@ -303,23 +303,22 @@ def replay_probe(path: str, seeks: int = 100) -> None:
     timeline's seek: the plots' last 60 s and the state there); print the times and this
     process's peak RSS as one JSON line (bench --long-recording runs it in a fresh process)."""
     import resource
-    import time as _time
     from pathlib import Path
 
     from app.recording.reader import read_recording
     from app.recording.replay import ReplayService
 
-    t0 = _time.monotonic()
+    t0 = time.monotonic()
     rec = read_recording(Path(path))
     svc = ReplayService(rec, host="127.0.0.1", port=0)
     first = svc.state_at(0)  # the first tick with its frame, as published when the page opens
-    first_s = _time.monotonic() - t0
+    first_s = time.monotonic() - t0
     times = []
     rng = np.random.default_rng(0)
     for k in rng.integers(0, len(rec.ticks), seeks):
-        t1 = _time.monotonic()
+        t1 = time.monotonic()
         svc.seek(int(k))
-        times.append(_time.monotonic() - t1)
+        times.append(time.monotonic() - t1)
     svc.close()
     rec.close()
     print(json.dumps({"first_s": first_s, "frame": first.frame is not None, "seek_median_s": float(np.median(times)),

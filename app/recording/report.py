@@ -188,6 +188,13 @@ class Tally:
         self.obstacle_clearance = np.inf
         self.acting: int | None = None
 
+    @classmethod
+    def of(cls, rec: Recording, n: int, t_end: float, truth: bool) -> "Tally":
+        """A tally for `rec`'s ticks: its first gains' limits, and its obstacles if `truth` (the
+        clearance is measured from true poses only)."""
+        gains = rec.params[0][1].get("gains", {}) if rec.params else {}
+        return cls(n, t_end, gains, recorded_obstacles(rec) if truth else np.zeros((0, 4)), truth)
+
     def add(self, s: Series) -> None:
         t, B = s.t, len(s.t)
         if B == 0:
@@ -306,10 +313,8 @@ def scan(rec: Recording, block: int = DISTANCE_BLOCK, max_plotted: int = MAX_PLO
     start = float(rec.metadata.get("scenario_start_s", "0") or 0)
     every = max(1, -(-total // max_plotted))
     n = json_floats(first["a_est"]).shape[0]
-    gains = rec.params[0][1].get("gains", {}) if rec.params else {}
     t_end = float(rec.t[-1]) - start if len(rec.t) else 0.0
-    tallies = {truth: Tally(n, t_end, gains, recorded_obstacles(rec) if truth else np.zeros((0, 4)), truth)
-               for truth in (True, False)}
+    tallies = {truth: Tally.of(rec, n, t_end, truth) for truth in (True, False)}
     has_filter = "safety" in first
     kept: list[dict[str, np.ndarray]] = []
     truth = False
@@ -368,9 +373,7 @@ def obstacle_gap(boxes: np.ndarray, s: Series) -> np.ndarray | None:
 
 def safety_summary(rec: Recording, s: Series, dt: float) -> dict[str, Any]:
     """The safety summary of one whole series (see Tally.safety)."""
-    tally = Tally(s.p.shape[1], float(s.t[-1]) if len(s.t) else 0.0,
-                  rec.params[0][1].get("gains", {}) if rec.params else {},
-                  recorded_obstacles(rec) if s.truth else np.zeros((0, 4)), s.truth)
+    tally = Tally.of(rec, s.p.shape[1], float(s.t[-1]) if len(s.t) else 0.0, s.truth)
     tally.add(s)
     return tally.safety(dt)
 
