@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from core.sim.team import TeamState, integrate_unicycle
-from core.types import Commands, FloatArray
+from core.types import BoolArray, Commands, FloatArray
 
 from app.contracts import FollowerLink
 
@@ -41,6 +41,11 @@ class HardwareTeam:
     @property
     def link_lost(self) -> bool:
         return self.link is not None and self.link.lost
+
+    def answering(self) -> BoolArray:
+        """Observe only (no link): nothing is sent anyway, every robot counts as answering."""
+        n = self.state.n
+        return np.ones(n, dtype=bool) if self.link is None else np.asarray(self.link.answering(), dtype=bool)[:n]
 
     def link_detail(self) -> str:
         parts = [x.detail() for x in (self.link, self.leader_link) if x is not None]

@@ -15,6 +15,16 @@ makes the link "ok". Per follower, every SET_VELOCITY written is exactly one of:
 so ``sent == answered + late + lost + pending`` at every moment. A frame that could not be
 written is not sent.
 
+A robot is alive only while it answers in time: a reply counts as an answer when it matches a
+frame sent within ``REPLY_TIMEOUT_S`` and arrives within it. Late replies, replies to frames whose
+write failed long ago and replies that answer nothing we sent show the robot is there but say
+nothing about now: they never make it (or the link) alive. Per robot, ``answering()`` is true only
+while its last two answers are each within the timeout of the one before and of now (one reply
+that happens to match a sequence number, as from a robot stuck repeating an old one, is not
+enough); a robot that is not answering is sent zero whatever the loop asks, and the loop counts it
+untracked. A robot that only ever answers late is "silent", and a link with no robot answering in
+time is "link lost", never "degraded".
+
 State for people and for the loop: "ok" while every follower answers; "degraded" when one
 is silent or loses more than ``DEGRADED_LOSS`` of its recent replies; "link lost" when the
 port is closed or no follower has answered for ``SILENT_S``. While the link is lost the
@@ -73,7 +83,8 @@ class FollowerLinkStats:
     recent: deque[bool] = field(default_factory=lambda: deque(maxlen=QUALITY_WINDOW))  # answered in time?
     rtt_ms: float = math.nan  # last round trip
     rtt_mean_ms: float = math.nan  # running mean
-    last_reply: float = -math.inf  # monotonic time
+    last_reply: float = -math.inf  # monotonic time of the last answer in time (see module doc)
+    prev_reply: float = -math.inf  # ... and of the one before it
     v_meas: float = 0.0
     w_meas: float = 0.0
     left_ticks: int = 0
@@ -115,7 +126,7 @@ class SerialLink:
         self._lock = threading.Lock()  # guards _port, _pending, stats
         self._pending: dict[tuple[int, int, int], float] = {}  # (address, sequence, request type) -> time written
         self._expired: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # given up on: a reply now is late
-        self._unsent: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # writes that failed (maybe went out)
+        self._unsent: OrderedDict[tuple[int, int, int], float] = OrderedDict()  # failed writes (maybe went out) -> when
         self._seq = 0
         self._stop_first = True  # a fresh port gets STOP for everyone before anything else
         self._next_ping = 0.0
@@ -140,8 +151,7 @@ class SerialLink:
         with self._lock:
             if self._port is None:
                 return False
-            last = max((s.last_reply for s in self.stats), default=-math.inf)
-        return now - last < SILENT_S
+            return any(_alive(s, now, SILENT_S) for s in self.stats)
 
     @property
     def lost(self) -> bool:
@@ -162,7 +172,7 @@ class SerialLink:
                 age = now - s.last_reply
                 recent = list(s.recent)
                 loss = 1.0 - sum(recent) / len(recent) if recent else 0.0
-                if age >= SILENT_S:
+                if not _alive(s, now, SILENT_S):
                     out.append("never answered" if not math.isfinite(age) else f"silent {age:.1f} s")
                 elif len(recent) >= QUALITY_WINDOW // 2 and loss > DEGRADED_LOSS:
                     out.append(f"{loss * 100:.0f} % lost")
@@ -202,6 +212,13 @@ class SerialLink:
                              + (f", silent {age:.1f} s" if age > SILENT_S and math.isfinite(age) else ""))
         return "; ".join(parts)
 
+    def answering(self) -> np.ndarray:
+        """(n,) bool per robot: its last two answers came in time, the last one within the reply
+        timeout of now. Only such a robot is sent anything but zero."""
+        now = self._clock()
+        with self._lock:
+            return np.array([_alive(s, now, REPLY_TIMEOUT_S) for s in self.stats], dtype=bool)
+
     def measured(self) -> tuple[FloatArray, FloatArray]:
         """(v, w) per follower from the encoders; zero where the odometry is stale."""
         now = self._clock()
@@ -219,6 +236,8 @@ class SerialLink:
         w = np.clip(np.nan_to_num(np.asarray(commands.w, dtype=float)), -self.w_max, self.w_max)
         if self.lost:  # nobody answers: nothing but zero goes out (it also asks for replies)
             v, w = np.zeros_like(v), np.zeros_like(w)
+        alive = self.answering()  # and a robot that does not answer gets zero until it does
+        v, w = v[:len(alive)] * alive[:len(v)], w[:len(alive)] * alive[:len(w)]
         now = self._clock()
         with self._lock:
             port = self._port
@@ -254,7 +273,7 @@ class SerialLink:
                 for key in keys:
                     self._pending.pop(key, None)
                     # a timed-out write may still have gone out: its reply is ours, not a stranger's
-                    self._unsent[key] = None
+                    self._unsent[key] = now
                 while len(self._unsent) > EXPIRED_KEPT:
                     self._unsent.popitem(last=False)
 
@@ -390,8 +409,8 @@ class SerialLink:
                     asked = [(f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type]
                     maybe = next((key for key in asked if key in self._unsent), None)
                     if maybe is not None:  # the answer to a write we counted as failed: not sent, not a stranger
-                        del self._unsent[maybe]
-                        s.last_reply = now
+                        if now - self._unsent.pop(maybe) <= REPLY_TIMEOUT_S:
+                            s.prev_reply, s.last_reply = s.last_reply, now
                         continue
                     late = next((key for key in asked if key in self._expired), None)
                     if late is None:
@@ -401,10 +420,14 @@ class SerialLink:
                     if late[2] == p.MSG_SET_VELOCITY:  # counted lost when given up on: it was late
                         s.lost -= 1
                         s.late += 1
-                    s.last_reply = now  # alive, but what it says is old news
-                    continue
+                    continue  # it is there, but what it says is old news: not an answer, not alive
                 t_sent = self._pending.pop(request)
-                s.last_reply = now
+                if now - t_sent > REPLY_TIMEOUT_S:  # matched, but after the timeout (not yet expired): late
+                    if request[2] == p.MSG_SET_VELOCITY:
+                        s.late += 1
+                        s.recent.append(False)
+                    continue
+                s.prev_reply, s.last_reply = s.last_reply, now
                 if f.msg_type == p.MSG_ACK:
                     a = p.decode_ack(f)
                     s.v_meas, s.w_meas, s.flags = a.v_mps, a.w_rps, a.flags
@@ -418,6 +441,12 @@ class SerialLink:
                 else:
                     st = p.decode_status(f)
                     s.battery_mv, s.flags = st.battery_mv, st.flags
+
+
+def _alive(s: FollowerLinkStats, now: float, within: float) -> bool:
+    """The robot answered in time within ``within`` of now, and the answer before came within the
+    reply timeout of it: two in a row, so one chance match of a repeated sequence number is not life."""
+    return now - s.last_reply < within and s.last_reply - s.prev_reply < REPLY_TIMEOUT_S
 
 
 def _name(address: int) -> str:
@@ -457,6 +486,9 @@ class PortPerFollowerLink:
 
     def detail(self) -> str:
         return "; ".join(link.detail() for link in self.links)
+
+    def answering(self) -> np.ndarray:
+        return np.concatenate([link.answering() for link in self.links])
 
     def measured(self) -> tuple[FloatArray, FloatArray]:
         parts = [link.measured() for link in self.links]

@@ -50,6 +50,10 @@ class SimTeam:
     def link_lost(self) -> bool:
         return self.link is not None and self.link.lost
 
+    def answering(self) -> BoolArray:
+        n = self.state.n
+        return np.ones(n, dtype=bool) if self.link is None else np.asarray(self.link.answering(), dtype=bool)[:n]
+
     def link_detail(self) -> str:
         return "" if self.link is None else self.link.detail()
 

@@ -178,14 +178,22 @@ class Controls:
             with event.client.gui.add_modal("Release STOP?") as modal:
                 event.client.gui.add_markdown(f"**{names} {'is' if len(lost) == 1 else 'are'} not tracked.** The"
                                               " others will move; the untracked stay at zero until the camera sees"
-                                              " them again.")
+                                              " them (and their link answers) again. *Release* lets the leader wait"
+                                              " where it is until every follower is tracked; *Release anyway* lets"
+                                              " it drive on at once.")
+                wait = event.client.gui.add_button("Release, leader waits", color="orange")
                 go = event.client.gui.add_button("Release anyway", color="red")
                 keep = event.client.gui.add_button("Keep STOP")
+
+                @wait.on_click
+                def _(inner: viser.GuiEvent[Any]) -> None:
+                    modal.close()
+                    self._update(inner, what="release, the leader waits for the team", stop=False)
 
                 @go.on_click
                 def _(inner: viser.GuiEvent[Any]) -> None:
                     modal.close()
-                    self._update(inner, what="release with followers untracked", stop=False)
+                    self._update(inner, what="release with followers untracked", stop=False, leader_hold=False)
 
                 @keep.on_click
                 def _(_: viser.GuiEvent[Any]) -> None:

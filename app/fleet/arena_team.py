@@ -199,6 +199,10 @@ class ArenaTeam:
     def link_lost(self) -> bool:
         return time.monotonic() - self._truth_at > STALE_TRUTH_S
 
+    def answering(self) -> BoolArray:
+        """The arena answers for every robot this leader owns (its truth is the robots' link)."""
+        return np.ones(self.state.n, dtype=bool)
+
     def link_detail(self) -> str:
         return f"arena {self.fleet}: robots {', '.join(robot_name(r) for r in self.active)}"
 

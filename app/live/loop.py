@@ -257,6 +257,21 @@ class ServiceLoop:
         profile = Eq39Profile(speed_mps=v, k1_rps=w)
         return profile.twist(self.t - self._mode[1])
 
+    def _leader_waits(self, params: Params, tracked: np.ndarray) -> str:
+        """Why the leader stands still this tick ('' when it may drive): STOP, or a release that waits
+        until every follower is tracked again (``Params.leader_hold``; the loop clears it then)."""
+        if params.stop:
+            return "STOP"
+        if not params.leader_hold:
+            return ""
+        lost = np.nonzero(~tracked)[0]
+        if not self._world.ready:
+            return "the team's start-up"
+        if len(lost) == 0:
+            self.store.update("loop", leader_hold=False)  # the team is whole again: the leader resumes
+            return ""
+        return "waiting for " + ", ".join(f"F{i + 1}" for i in lost) + " to be tracked"
+
     # -- one tick -------------------------------------------------------------------------
     def tick(self) -> TickState:
         stage: dict[str, float] = dict(self._publish_ms)
@@ -300,17 +315,21 @@ class ServiceLoop:
             world.assignment = assign_slots(p, params.slots, current=world.assignment, margin_m2=REASSIGN_MARGIN_M2)
             world.slot_version = slots_key
         known = obs.obstacles if obs.obstacles is not None else np.zeros((0, 2))
-        twist = self._leader_twist(params, known, world.err_norm, tracked, params.slots) if advance and world.ready \
-            else (0.0, 0.0)
-        if params.stop and self.arena is not None:  # in an arena the loop drives the leader's base too: STOP stops it
+        answering = np.asarray(world.team.answering(), dtype=bool)
+        tracked = tracked & answering  # a robot whose link does not answer is not one we may command
+        waiting = self._leader_waits(params, tracked)
+        if waiting or not (advance and world.ready):  # STOP stops the leader too (simulated, real base, arena)
             twist = (0.0, 0.0)
+            self._mode = (self._mode[0], self._mode[1] + (self.dt if advance else 0.0))  # a profile's clock waits too
+        else:
+            twist = self._leader_twist(params, known, world.err_norm, tracked, params.slots)
         targets = params.slots[world.assignment] * np.array([self._nav[1], 1.0])  # narrowed for a gap (goal mode)
         if advance and world.ready:
             keep_out = params.safety_distance_m + 0.2 if params.safety else 0.0  # round the leader, not through it
             world.slots = step_slots(world.slots, targets, self.dt, keep_out_m=keep_out)
         if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
             move = advance and not params.stop
-            manoeuvre = obs.manoeuvre if move else np.zeros((params.n_followers, 2))
+            manoeuvre = obs.manoeuvre * answering[:, None] if move else np.zeros((params.n_followers, 2))
             out = ControlOutput.idle(manoeuvre)
             flags = np.zeros(params.n_followers, dtype=np.int64)
         else:
@@ -331,6 +350,9 @@ class ServiceLoop:
         if world.team.link_lost:  # nobody answers: no command but zero until the robots do
             out = ControlOutput.idle(np.zeros((len(a), 2)))
             world.controller = ControllerState.initial(len(a))
+        elif not answering.all():  # and a robot that does not answer gets zero until it does
+            out = dataclasses.replace(out, commands=Commands(np.where(answering, out.commands.v, 0.0),
+                                                             np.where(answering, out.commands.w, 0.0)))
         world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
         world.err_norm = np.linalg.norm(world.slots.p_d - p, axis=1)
         if advance:  # eq. 21's V per follower, and its slope over the last RATE_WINDOW_S
@@ -365,7 +387,7 @@ class ServiceLoop:
             goal=params.goal if params.leader_mode == "goal" else None,
             heading=self._nav_out.heading if self._nav_out is not None else float("nan"),
             formation_scale=self._nav[1], goal_reached=self._nav_out is not None and self._nav_out.reached,
-            limits=flags, v_rate=v_rate,
+            limits=flags, v_rate=v_rate, leader_waits=waiting,
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)

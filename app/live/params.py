@@ -49,7 +49,10 @@ class Params:
     slots: FloatArray = field(default_factory=lambda: np.array([[-0.5, -0.3], [0.5, -0.3]]))
     n_followers: int = 2
     paused: bool = False
-    stop: bool = False  # the big STOP: every follower commanded (0, 0), the loop keeps observing
+    stop: bool = False  # the big STOP: every actuator commanded (0, 0), the leader too; the loop keeps observing
+    # after STOP is released the leader waits where it is until every follower is tracked again;
+    # STOP sets it, the loop clears it, "release anyway" releases without it
+    leader_hold: bool = False
     safety: bool = True  # the barrier-certificate filter on every command (core.control.safety)
     safety_distance_m: float = 0.25  # its minimum distance, centre to centre
     goal: tuple[float, float] | None = None  # leader mode "goal": where the leader drives (odometry frame, m)
@@ -145,10 +148,12 @@ class ParamsStore:
                         notices.append(Notice(key, f"followers = {value}: allowed 1..{MAX_FOLLOWERS}, set to {min(max(n, 1), MAX_FOLLOWERS)}"))
                         n = min(max(n, 1), MAX_FOLLOWERS)
                     new_values[key] = n
-                elif key in ("paused", "stop", "safety"):
+                elif key in ("paused", "stop", "safety", "leader_hold"):
                     if not isinstance(value, (bool, int, np.bool_)):
                         raise ValueError(f"{key} = {value!r}: must be true or false")
                     new_values[key] = bool(value)
+                    if key == "stop" and value and "leader_hold" not in changes:
+                        new_values["leader_hold"] = True  # a release waits for the team unless told otherwise
                 elif key == "safety_distance_m":
                     new_values[key] = _clamped(key, value, SAFETY_DISTANCE, notices)
                 elif key == "min_scale":

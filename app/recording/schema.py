@@ -85,6 +85,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "limits": {"type": ["array", "null"], "description": "per follower, bits of the active saturations and"
                        " limits: 1 eq. 4, 2 eq. 12, 4 v limit, 8 omega limit, 16 safety filter"},
             "v_rate": {"type": ["array", "null"], "description": "dV/dt per follower, m^2/s (eq. 21)"},
+            "leader_waits": {"type": "string", "description": "why the leader stands still (STOP, a release waiting"
+                             " for the team); empty when it may drive"},
         },
     },
     "omniformation.Event": {
@@ -220,6 +222,7 @@ def tick_from_payload(d: dict[str, Any], frame: np.ndarray | None = None) -> Tic
         formation_scale=float(d.get("formation_scale", 1.0)), goal_reached=bool(d.get("goal_reached", False)),
         limits=np.array(d["limits"], dtype=np.int64) if d.get("limits") is not None else None,
         v_rate=json_floats(d["v_rate"]) if d.get("v_rate") is not None else None,
+        leader_waits=str(d.get("leader_waits", "")),
     )
 
 

@@ -237,3 +237,68 @@ def test_counts_add_up_with_a_healthy_team(n):
     finally:
         link.close()
         line.close()
+
+
+def _acks(address: int, seq: int) -> bytes:
+    return p.encode_frame(p.ack(address, seq & 0xFF, p.Ack(0, 0, 0.0, 0.0, 0)))
+
+
+def stale_acker(behind: int) -> Callable[[bytes], bytes | None]:
+    """Robots that ACK every frame with the sequence number of one sent ``behind`` ticks earlier."""
+    parser = p.FrameParser()
+    return lambda data: b"".join(_acks(f.address, f.seq - behind) for f in parser.feed(data)
+                                 if f.msg_type == p.MSG_SET_VELOCITY)
+
+
+def fixed_acker(seq: int) -> Callable[[bytes], bytes | None]:
+    """Robots stuck repeating one old sequence number: once every 255 ticks it matches by chance."""
+    parser = p.FrameParser()
+    return lambda data: b"".join(_acks(f.address, seq) for f in parser.feed(data) if f.msg_type == p.MSG_SET_VELOCITY)
+
+
+@pytest.mark.parametrize("device, answering", [
+    ("stale by 10 ticks", set()),
+    ("stuck on one sequence number", set()),
+    ("only F1 answers", {1}),
+    ("echoing line", set()),
+])
+def test_a_robot_that_does_not_answer_in_time_is_sent_only_zero(device, answering):
+    """The loop drives (leader straight, followers far from their slots); on the wire, every
+    SET_VELOCITY to a robot that has not answered in time is zero. Counted frame by frame."""
+    from app.live.loop import ServiceLoop
+    from app.live.params import ParamsStore
+
+    behave = {"stale by 10 ticks": stale_acker(10), "stuck on one sequence number": fixed_acker(200),
+              "only F1 answers": acker(answer=lambda f: f.address == 1),
+              "echoing line": lambda data: data}[device]
+    line = Line(behave)
+    link = SerialLink(line.path, 3)
+    store = ParamsStore()
+    store.update("test", leader_mode="straight", n_followers=3)
+    loop = ServiceLoop(store, rate_hz=30.0, seed=1, link=link)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        states = []
+        ticks = 260 if device.startswith("stuck") else 100  # the stuck robot's number comes round at tick ~200
+        for _ in range(ticks):
+            states.append(loop.tick())
+            time.sleep(1 / 30)
+        written: dict[int, list[tuple[float, float]]] = {1: [], 2: [], 3: []}
+        for f in line.frames:
+            if f.msg_type == p.MSG_SET_VELOCITY and f.address in written:
+                written[f.address].append(p.decode_velocity(f))
+        moving = {a: sum(1 for v, w in cmds if v != 0.0 or w != 0.0) for a, cmds in written.items()}
+        print(f"\n{device}: SET_VELOCITY frames {[len(c) for c in written.values()]}, non-zero {moving}")
+        for a in (1, 2, 3):
+            assert len(written[a]) >= ticks - 5
+            if a in answering:
+                assert moving[a] > ticks // 2  # the robot that answers is driven: the count above can fail
+            else:
+                assert moving[a] == 0, f"F{a} does not answer in time yet was sent {moving[a]} moving commands"
+                assert not any(s.tracked[a - 1] for s in states[30:])  # and it counts as untracked for control
+        if not answering:
+            assert all(s.link_state.startswith("link lost") for s in states[30:])  # lost, never "degraded"
+    finally:
+        loop.halt_followers()
+        link.close()
+        line.close()
