@@ -27,6 +27,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--port", type=port, default=8080, help="port (default 8080, 0 = any free port)")
     run.add_argument("--token", type=token_arg, help="the token browsers must present on a non-loopback --host"
                                                       " (default: a new one each run, printed in the URL)")
+    run.add_argument("--viewer-token", type=token_arg,
+                     help="the token of a second, view-only URL: it shows everything and may press STOP, nothing else"
+                          " (default: a new one each run, printed)")
     run.add_argument("--config", type=Path, default=DEFAULT_CONFIG,
                      help="service config (default static_config/default.toml)")
     run.add_argument("--feedback", choices=("vision", "truth"),
@@ -78,6 +81,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from app.live.service import Service
     from app.live.config import load_service_config
 
+    if args.viewer_token is not None and args.viewer_token == args.token:
+        raise UserError("--viewer-token: must differ from --token (a viewer may not command the robots)")
     config = load_service_config(args.config, MAX_FOLLOWERS)
     fleet_scenario = None
     if args.arena is not None:
@@ -217,7 +222,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                           seed=config.seed if args.seed is None else args.seed, camera=camera,
                           dynamics=config.dynamics, noise=config.measurement,
                           link=None if real else link, frames=frames, hardware=hardware, recordings=args.recordings,
-                          token=args.token, arena=arena_team, params=params)
+                          token=args.token, viewer_token=args.viewer_token, arena=arena_team, params=params)
     except OSError as exc:
         for closable in (hardware or link, frames, arena_team):
             if closable is not None:
@@ -271,6 +276,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         source = "the vision pipeline on the synthetic camera" if camera else "the simulator's poses plus noise"
     via = f"; followers on serial {link.port_name}" if link is not None else "; observe only (no link)" if real else ""
     print(f"omniformation: dashboard at {service.url}  (poses from {source}{via}; Ctrl-C to stop)", flush=True)
+    print(f"omniformation: view only (watch and STOP, nothing else) at {service.gate.viewer_url}", flush=True)
     try:
         service.wait()
     except KeyboardInterrupt:

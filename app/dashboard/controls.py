@@ -287,8 +287,9 @@ class Controls:
         lines = [
             (f"**recorded{' (STOPPED)' if s.stopped else ''}** · t = {s.t:.1f} s · loop was {s.rate_hz:.1f} Hz"
              if self.replay else
-             f"**{'STOPPED — all followers at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
-             f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz"),
+             f"**{'STOPPED — the leader and every follower at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
+             + (f" · leader {s.leader_waits}" if s.leader_waits and not s.stopped else "")
+             + f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz"),
             f"stages (ms): {stages}",
             f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
             f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"

@@ -19,6 +19,16 @@ What it lets in:
   out as ``?token=…`` in the printed URL (as notebook servers do) and then kept by the
   browser as an HttpOnly, SameSite=Strict cookie.
 
+Two roles: a client that presents the token (or any client on loopback) is the **operator**; a
+client that presents the viewer token (``viewer_token``, a second printed URL) is a **viewer**: it
+sees everything and may press STOP, nothing else (the input filter refuses the rest).
+
+Every message a client sends goes through :class:`app.dashboard.input_filter.InputFilter` before
+viser sees it: only a value for a known control, of the right type and within its bounds, passes.
+A refused update is answered (to that client alone) with the value in force and a notice; the log
+says so at most once a second per client, in one line, and refused requests likewise at most once
+a second per reason.
+
 viser's own loopback port would let a local page around the gate, so the gate marks its
 upstream connections with a per-process secret header and refuses, before viser's own
 handlers run, any websocket on that port that does not carry it. That check reads viser's
@@ -36,8 +46,10 @@ import io
 import ipaddress
 import logging
 import secrets
+import math
 import socket
 import threading
+import time
 from dataclasses import dataclass
 from http.cookies import SimpleCookie
 from collections.abc import Callable
@@ -51,6 +63,9 @@ import websockets.exceptions
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 from websockets.typing import Subprotocol
+from viser._messages import GuiUpdateMessage
+
+from app.dashboard.input_filter import OPERATOR, VIEWER, InputFilter, Verdict
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -70,7 +85,13 @@ document.addEventListener("keydown", function (e) {
 }, true);
 </script>
 """
-MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit
+MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit (what the page is sent)
+MAX_CLIENT_MESSAGE = 1024 * 1024  # what a client may send in one message (the page's largest is a few hundred bytes)
+CONN_HEADER = "X-Omniformation-Connection"  # which gate connection an upstream websocket serves
+ROLE_HEADER = "X-Omniformation-Role"
+LOG_EVERY_S = 1.0  # a client's refused messages (and refused requests of one kind) are logged this often at most
+NOTICE_EVERY_S = 1.0  # a client is told of refused updates this often at most
+VIEWER_GREY_S = 1.5  # a viewer's controls are greyed out this long after it connects (the page is there by then)
 _BIND_TIMEOUT_S = 30.0
 
 
@@ -114,6 +135,35 @@ class GateCounts:
     origin: int = 0
     token: int = 0
     bypass: int = 0
+    messages: int = 0  # messages from let-in clients that the input filter refused
+
+
+class Throttle:
+    """At most one log line per key every ``every_s``; the line says how many were not logged."""
+
+    def __init__(self, every_s: float = LOG_EVERY_S) -> None:
+        self.every_s = every_s
+        self._last: dict[object, tuple[float, int]] = {}
+        self._lock = threading.Lock()
+
+    def due(self, key: object) -> int:
+        """-1: stay quiet; else how many were held back since the last line for this key."""
+        now = time.monotonic()
+        with self._lock:
+            last, held = self._last.get(key, (-math.inf, 0))
+            if now - last < self.every_s:
+                self._last[key] = (last, held + 1)
+                return -1
+            if len(self._last) > 4096:  # keys come and go with clients: forget the old ones
+                self._last = {k: v for k, v in self._last.items() if now - v[0] < self.every_s}
+            self._last[key] = (now, 0)
+            return held
+
+
+def one_line(text: str, limit: int = 200) -> str:
+    """Anything a client sent, safe for one log line."""
+    flat = " ".join(str(text).split())
+    return flat if len(flat) <= limit else flat[:limit - 3] + "..."
 
 
 class Gate:
@@ -122,11 +172,20 @@ class Gate:
     ``token``: required from clients when given; ``None`` on a non-loopback host makes one.
     """
 
-    def __init__(self, server: viser.ViserServer, host: str, port: int, token: str | None = None) -> None:
+    def __init__(self, server: viser.ViserServer, host: str, port: int, token: str | None = None,
+                 viewer_token: str | None = None) -> None:
         self.server = server
         self.host = host
         self.token = token if token is not None or is_loopback(host) else new_token()
+        self.viewer_token = viewer_token if viewer_token is not None else new_token()
+        if self.token and _same(self.viewer_token, self.token):
+            raise ValueError("the viewer token must differ from the operator's token")
         self.refused = GateCounts()
+        self.filter = InputFilter(server)
+        self.roles: dict[int, str] = {}  # viser client id -> OPERATOR or VIEWER
+        self._client_of: dict[str, int] = {}  # gate connection key -> viser client id
+        self._log_throttle = Throttle()
+        self._notice_throttle = Throttle(NOTICE_EVERY_S)
         self._secret = secrets.token_hex(16)
         self._upstream = server.get_port()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -152,6 +211,14 @@ class Gate:
         base = f"http://{shown}:{self.port}/"
         return base + (f"?token={self.token}" if self.token else "")
 
+    @property
+    def viewer_url(self) -> str:
+        """The URL for someone who may watch (and press STOP), nothing more."""
+        return self.url.split("?")[0] + f"?token={self.viewer_token}"
+
+    def role_of(self, client_id: int) -> str:
+        return self.roles.get(client_id, VIEWER)  # unknown: the least a client may do
+
     # -- viser's own port: only the gate may connect -------------------------------------
 
     def _guard_upstream(self) -> None:
@@ -171,8 +238,38 @@ class Gate:
                 if connection is not None:
                     await connection.close(1008, "connect through the dashboard's address")
                 raise NotThroughTheGate("a websocket on viser's loopback port without the gate's mark")
+            assert request is not None
+            self.roles[client.client_id] = OPERATOR if request.headers.get(ROLE_HEADER, "") == OPERATOR else VIEWER
+            self._client_of[request.headers.get(CONN_HEADER, "")] = client.client_id
+
+        def forget(client: Any) -> None:
+            self.roles.pop(client.client_id, None)
+            for key in [k for k, v in self._client_of.items() if v == client.client_id]:
+                del self._client_of[key]
 
         callbacks.insert(0, check)  # before viser's own handlers build anything for the client
+        self.server.on_client_disconnect(forget)
+        self.server.on_client_connect(self._greet)
+
+    def _greet(self, client: viser.ClientHandle) -> None:
+        """A viewer is told what it may do, and its copy of the page greys out every control but
+        STOP (the input filter refuses them whatever the page shows)."""
+        if self.role_of(client.client_id) != VIEWER:
+            return
+        client.add_notification("View only", "You may watch and press STOP. Other controls are the operator's.",
+                                with_close_button=True, color="blue")
+
+        def grey_out() -> None:  # after the page's controls reached it (they come on another queue)
+            connection = getattr(client, "_websock_connection", None)
+            if connection is None or client.client_id not in self.roles:
+                return
+            for uuid in list(self.server.gui._gui_input_handle_from_uuid):
+                if not self.filter.viewer_may(uuid):
+                    connection.queue_message(GuiUpdateMessage(uuid, {"disabled": True}))
+
+        timer = threading.Timer(VIEWER_GREY_S, grey_out)
+        timer.daemon = True
+        timer.start()
 
     # -- the checks ------------------------------------------------------------------------
 
@@ -219,12 +316,19 @@ class Gate:
             if origin != f"http://{host_header}":
                 self.refused.origin += 1
                 return f"Origin {origin!r} is not this page"
-        if self.token:
-            given, _ = self._token_from(request)
-            if not _same(given, self.token):
-                self.refused.token += 1
-                return "a token is required: open the URL the service printed (…/?token=…)"
+        if self.token and self.role(request) is None:
+            self.refused.token += 1
+            return "a token is required: open the URL the service printed (…/?token=…)"
         return ""
+
+    def role(self, request: Request) -> str | None:
+        """OPERATOR, VIEWER, or None (a token is required and none that counts was given)."""
+        given, _ = self._token_from(request)
+        if given and _same(given, self.viewer_token):
+            return VIEWER
+        if not self.token or _same(given, self.token):
+            return OPERATOR
+        return None
 
     # -- serving ---------------------------------------------------------------------------
 
@@ -232,7 +336,10 @@ class Gate:
                                request: Request) -> Response | None:
         why = self.refusal(request)
         if why:
-            log.warning("dashboard: refused %s: %s", connection.remote_address, why)
+            held = self._log_throttle.due(("request", why.split(" ")[0]))
+            if held >= 0:
+                log.warning("dashboard: refused %s: %s%s", connection.remote_address, one_line(why),
+                            f" (and {held} more like it not logged)" if held else "")
             return connection.respond(http.HTTPStatus.FORBIDDEN, f"omniformation: refused: {why}\n")
         if _is_upgrade(request):
             return None
@@ -264,10 +371,12 @@ class Gate:
 
     async def _handler(self, client: websockets.asyncio.server.ServerConnection) -> None:
         sub = [client.subprotocol] if client.subprotocol else None
+        role = (self.role(client.request) if client.request is not None else None) or VIEWER
+        key = secrets.token_hex(8)
         try:
             async with websockets.asyncio.client.connect(
                 f"ws://127.0.0.1:{self._upstream}/", subprotocols=sub, max_size=MAX_MESSAGE, compression=None,
-                additional_headers={GATE_HEADER: self._secret}, open_timeout=30,
+                additional_headers={GATE_HEADER: self._secret, CONN_HEADER: key, ROLE_HEADER: role}, open_timeout=30,
             ) as upstream:
                 async def pump(src: Any, dst: Any) -> None:
                     try:
@@ -276,7 +385,19 @@ class Gate:
                     except websockets.exceptions.ConnectionClosed:
                         pass  # one side went away (a browser tab closed): the other is closed below
 
-                tasks = {asyncio.create_task(pump(client, upstream)), asyncio.create_task(pump(upstream, client))}
+                async def checked(src: Any, dst: Any) -> None:
+                    """The client's messages, each judged by the input filter before viser sees it."""
+                    try:
+                        async for message in src:
+                            verdict = self.filter.judge(message, role)
+                            if verdict.forward:
+                                await dst.send(message)
+                            elif not verdict.quiet:
+                                self._refused_message(key, role, client.remote_address, verdict)
+                    except websockets.exceptions.ConnectionClosed:
+                        pass
+
+                tasks = {asyncio.create_task(checked(client, upstream)), asyncio.create_task(pump(upstream, client))}
                 done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
                 for task in pending:
                     task.cancel()
@@ -284,6 +405,23 @@ class Gate:
                     task.exception()  # retrieved: never an "exception was never retrieved" on stderr
         except (websockets.exceptions.ConnectionClosed, OSError):
             pass
+
+    def _refused_message(self, key: str, role: str, remote: Any, verdict: Verdict) -> None:
+        """Count it, log it (briefly), and tell that client alone what is in force."""
+        self.refused.messages += 1
+        held = self._log_throttle.due(("client", key))
+        if held >= 0:
+            log.warning("dashboard: refused from %s (%s): %s%s", remote, role, one_line(verdict.why),
+                        f" (and {held} more refused since the last line)" if held else "")
+        client = self.server.get_clients().get(self._client_of.get(key, -1))
+        if client is None:
+            return
+        handle = self.filter.handle(verdict.uuid) if verdict.uuid else None
+        connection = getattr(client, "_websock_connection", None)
+        if handle is not None and connection is not None:  # the browser shows the value it sent: put it back
+            connection.queue_message(GuiUpdateMessage(verdict.uuid, {"value": handle.value}))
+        if self._notice_throttle.due(("notice", key)) >= 0:
+            client.add_notification("Refused", one_line(verdict.why, 300), auto_close_seconds=6.0, color="yellow")
 
     def _run(self, port: int) -> None:
         loop = asyncio.new_event_loop()
@@ -294,7 +432,7 @@ class Gate:
             try:
                 server = await websockets.asyncio.server.serve(
                     self._handler, self.host, port, process_request=self._process_request,
-                    max_size=MAX_MESSAGE, compression=None,
+                    max_size=MAX_CLIENT_MESSAGE, compression=None,
                     select_subprotocol=lambda _, offered: next(
                         (Subprotocol(p) for p in offered if p.startswith("viser-v")), None),
                 )
@@ -330,12 +468,13 @@ def quietly(fn: Callable[[], T]) -> T:
         return fn()
 
 
-def serve_gated(host: str, port: int, token: str | None = None) -> tuple[viser.ViserServer, Gate]:
+def serve_gated(host: str, port: int, token: str | None = None,
+                viewer_token: str | None = None) -> tuple[viser.ViserServer, Gate]:
     """A viser server on a loopback port of its own, and the gate that serves it at host:port.
     Raises OSError (port taken, address not on this machine) with the viser server stopped."""
     server = quietly(lambda: viser.ViserServer(host="127.0.0.1", port=0, verbose=False))
     try:
-        gate = Gate(server, host, port, token)
+        gate = Gate(server, host, port, token, viewer_token)
     except BaseException:
         quietly(server.stop)
         raise

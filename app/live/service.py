@@ -83,7 +83,8 @@ class Service:
                  dynamics: FollowerDynamics | None = None, noise: MeasurementNoise | None = None,
                  link: FollowerLink | None = None, frames: FrameSource | None = None,
                  hardware: HardwareTeam | None = None, recordings: Path | None = None,
-                 token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None) -> None:
+                 token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None,
+                 viewer_token: str | None = None) -> None:
         """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
         ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host.
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
@@ -107,7 +108,7 @@ class Service:
                                 switches=scenario.switches if scenario is not None else (), arena=arena)
         if obstacles:
             self.store.goal_check = goal_check_for(obstacles)
-        self.server, self.gate = serve_gated(host, port, token)
+        self.server, self.gate = serve_gated(host, port, token, viewer_token)
         overlay = None
         if camera is not None:
             wa = camera[0].working_area
@@ -128,6 +129,7 @@ class Service:
                                (lambda: camera) if synthetic else None)
 
         self.dashboard = Dashboard(self.server, self.store, overlay, obstacles, tuning=tuning)
+        self.gate.filter.allow_viewer(self.dashboard.controls.stop_button)  # stopping is always safe
         self.calibration: CalibrationPanel | None = None
         if frames is not None and camera is not None:  # a real camera: recalibrate it from the live page
             rig, gamma = camera

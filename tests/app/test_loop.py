@@ -300,3 +300,52 @@ def test_a_goal_in_a_box_or_off_the_floor_is_refused_with_a_notice():
     assert store.get().goal == (0.0, 5.0) and "off the floor" in notices[0].message
     p, notices = store.update("browser:1", goal=(0.0, 3.5))
     assert p.goal == (0.0, 3.5) and not notices
+
+
+def test_stop_stops_the_leader_in_every_mode_and_a_release_waits_for_the_team():
+    """STOP: the leader's twist is exactly zero from the next tick and it does not move (straight,
+    circle, eq. 39, goal). Released while a follower is untracked, the leader waits where it is
+    until that follower is tracked again, then resumes; "release anyway" does not wait."""
+    import dataclasses
+
+    for mode in ("straight", "circle", "eq39", "goal"):
+        store = ParamsStore(Params(n_followers=2, leader_mode=mode, goal=(0.0, 3.0)))
+        loop = ServiceLoop(store, rate_hz=30.0, seed=4)
+        for _ in range(20):
+            s = loop.tick()
+        assert s.leader_twist != (0.0, 0.0), mode
+        store.update("test", stop=True)
+        held = [loop.tick() for _ in range(30)]
+        assert all(h.leader_twist == (0.0, 0.0) and h.leader_waits == "STOP" for h in held), mode
+        assert np.allclose(held[0].leader, held[-1].leader, atol=1e-12), mode  # it stands still
+        assert all(np.all(h.commands == 0.0) for h in held), mode
+
+    store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=4)
+    for _ in range(10):
+        loop.tick()
+    feedback = loop._world.feedback
+    healthy = feedback.observe
+    lost = {"F2": True}
+
+    def half_blind(dt, commands, error_norm):
+        obs = healthy(dt, commands, error_norm)
+        tracked = np.array(obs.tracked, dtype=bool)
+        tracked[1] = not lost["F2"]
+        return dataclasses.replace(obs, tracked=tracked)
+
+    feedback.observe = half_blind
+    store.update("test", stop=True)
+    loop.tick()
+    store.update("browser:1", stop=False)  # an ordinary release: the leader waits for F2
+    waiting = [loop.tick() for _ in range(15)]
+    assert all(w.leader_twist == (0.0, 0.0) and w.leader_waits == "waiting for F2 to be tracked" for w in waiting)
+    assert np.abs(waiting[-1].commands[0]).max() > 0 and np.all(waiting[-1].commands[1] == 0)  # F1 rejoins
+    lost["F2"] = False
+    resumed = [loop.tick() for _ in range(3)]
+    assert resumed[-1].leader_twist[0] > 0 and resumed[-1].leader_waits == "" and not store.get().leader_hold
+    lost["F2"] = True
+    store.update("test", stop=True)
+    loop.tick()
+    store.update("browser:1", stop=False, leader_hold=False)  # release anyway
+    assert loop.tick().leader_twist[0] > 0

@@ -101,14 +101,19 @@ def test_typed_desired_position_moves_the_slot(page, service):
     wait_for(lambda: service.loop.last.p_d[follower, 0] < -0.7, timeout=15.0, what="the desired position to move")
 
 
-def test_out_of_range_value_is_clamped_with_a_notice(page, service):
+def test_out_of_range_value_is_refused_and_the_box_shows_the_value_in_force(page, service):
+    """7 typed into a box that ends at 2 m never reaches viser: the store keeps its value, the box
+    is put back to it, and a notice says what is allowed."""
+    before = float(service.store.get().slots[1, 1])
+    refused = service.gate.refused.messages
     ident = control_id(page, "Slot 2 y")
     box = page.locator(f'input[id="{ident}"], [id="{ident}"] input').first
     box.fill("7")
     box.press("Enter")
-    wait_for(lambda: abs(service.store.get().slots[1, 1]) <= 2.0 and service.store.get().slots[1, 1] > 1.0,
-             what="slot 2 y clamped")
-    assert service.store.get().slots[1, 1] == pytest.approx(2.0)
+    wait_for(lambda: service.gate.refused.messages > refused, what="the gate to refuse 7")
+    page.get_by_text("must be a number in [-2, 2]").first.wait_for(timeout=10_000)
+    wait_for(lambda: abs(float(box.input_value()) - before) < 1e-6, what="the box to show the value in force again")
+    assert float(service.store.get().slots[1, 1]) == pytest.approx(before)
     assert service.loop.last is not None and service.loop.stopping is False
 
 
