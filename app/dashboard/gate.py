@@ -74,15 +74,71 @@ LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 COOKIE = "omniformation_token"
 GATE_HEADER = "X-Omniformation-Gate"
 # Escape, or Space outside a text field, presses the page's STOP button (viser has no keyboard
-# hook, so the gate adds it to the page it serves; the press goes the button's own way)
-KEYBOARD_STOP = b"""<script>
-document.addEventListener("keydown", function (e) {
-  var typing = /^(INPUT|TEXTAREA|SELECT)$/.test((document.activeElement || {}).tagName || "");
-  if (!(e.key === "Escape" || (e.key === " " && !typing))) return;
-  var stop = Array.prototype.find.call(document.querySelectorAll("button"),
-    function (b) { return b.textContent.trim() === "STOP"; });
-  if (stop && !stop.disabled) { stop.click(); e.preventDefault(); }
-}, true);
+# hook, so the gate adds it to the page it serves; the press goes the button's own way). And STOP
+# stays in view: a bar fixed to the window (outside viser's panel, which scrolls) carries a STOP
+# that presses the panel's own and the state line (running / stopped / why) copied from the
+# status, four times a second. Where the page has no STOP (a replay) the bar is not shown.
+KEYBOARD_STOP = b"""<style>
+#omni-stopbar { position: fixed; top: 8px; left: 50%; transform: translateX(-50%); z-index: 2147483000;
+  display: none; align-items: center; gap: 10px; max-width: min(720px, 70vw); padding: 6px 10px;
+  background: rgba(255, 255, 255, 0.94); border: 1px solid #c92a2a; border-radius: 8px;
+  box-shadow: 0 2px 8px rgba(0, 0, 0, 0.25); font: 13px/1.3 system-ui, sans-serif; color: #222; }
+#omni-stopbar button { background: #e03131; color: #fff; border: 0; border-radius: 6px; padding: 6px 18px;
+  font-weight: 700; font-size: 15px; cursor: pointer; }
+#omni-stopbar button:disabled { background: #f1a5a5; cursor: default; }
+#omni-stopstate { overflow: hidden; text-overflow: ellipsis; white-space: nowrap; }
+</style>
+<script>
+(function () {
+  var NAMES = ["STOP", "STOP every leader"];
+  function panelStop() {
+    return Array.prototype.find.call(document.querySelectorAll("button"), function (b) {
+      return NAMES.indexOf(b.textContent.trim()) >= 0 && !b.closest("#omni-stopbar");
+    });
+  }
+  function stateLine() {
+    var strong = Array.prototype.find.call(document.querySelectorAll("strong"), function (e) {
+      return /^(running|STOPPED|PAUSED|recorded)/.test(e.textContent.trim()) && !e.closest("#omni-stopbar");
+    });
+    if (!strong || !strong.parentNode) return "";
+    var text = "";
+    for (var n = strong; n && n.nodeName !== "BR"; n = n.nextSibling) text += n.textContent;
+    return text.trim();
+  }
+  function press() { var stop = panelStop(); if (stop && !stop.disabled) { stop.click(); return true; } return false; }
+  document.addEventListener("keydown", function (e) {
+    var typing = /^(INPUT|TEXTAREA|SELECT)$/.test((document.activeElement || {}).tagName || "");
+    if (!(e.key === "Escape" || (e.key === " " && !typing))) return;
+    if (press()) e.preventDefault();
+  }, true);
+  function bar() {
+    var el = document.getElementById("omni-stopbar");
+    if (el || !document.body) return el;
+    el = document.createElement("div");
+    el.id = "omni-stopbar";
+    el.setAttribute("role", "region");
+    el.setAttribute("aria-label", "emergency stop");
+    var b = document.createElement("button");
+    b.type = "button";
+    b.textContent = "STOP (Esc)";
+    b.title = "Stop the leader and every follower now (Escape or Space)";
+    b.addEventListener("click", press);
+    var t = document.createElement("span");
+    t.id = "omni-stopstate";
+    el.appendChild(b);
+    el.appendChild(t);
+    document.body.appendChild(el);
+    return el;
+  }
+  setInterval(function () {
+    var el = bar(), stop = panelStop();
+    if (!el) return;
+    el.style.display = stop ? "flex" : "none";
+    if (!stop) return;
+    el.firstChild.disabled = stop.disabled;
+    el.lastChild.textContent = stateLine();
+  }, 250);
+})();
 </script>
 """
 MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit (what the page is sent)
@@ -345,7 +401,7 @@ class Gate:
             return None
         response = await asyncio.to_thread(self._fetch, request)
         given, from_query = self._token_from(request)
-        if self.token and from_query:
+        if from_query and given and self.role(request) is not None:  # the operator's or the viewer's
             response.headers["Set-Cookie"] = f"{COOKIE}={given}; HttpOnly; SameSite=Strict; Path=/"
         return response
 

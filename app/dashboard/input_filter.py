@@ -153,8 +153,9 @@ class InputFilter:
             return Verdict(False, f"{name}: only its value may be changed, not {fields}", uuid)
         if role != OPERATOR and uuid not in self._viewer_may:
             return Verdict(False, f"{name}: this page is view only (only STOP may be pressed)", uuid)
-        if handle.disabled or not handle.visible:
-            return Verdict(False, f"{name}: {'disabled' if handle.disabled else 'hidden'} now", uuid)
+        disabled, visible = bool(getattr(handle, "disabled", False)), bool(getattr(handle, "visible", True))
+        if disabled or not visible:
+            return Verdict(False, f"{name}: {'disabled' if disabled else 'hidden'} now", uuid)
         why = _value_fault(handle, updates["value"])
         return Verdict(False, f"{name} = {_short(updates['value'])}: {why}", uuid) if why else PASS
 

@@ -20,7 +20,7 @@ import websockets.sync.client as wsc
 
 from app.dashboard.gate import COOKIE
 from app.live.service import Service
-from tests.helpers import ROOT, main_cli
+from tests.helpers import ROOT, main_cli, wait_for
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 
@@ -38,6 +38,18 @@ def ws_connect(port: int, host_name: str = "127.0.0.1", origin: str | None = "sa
         headers["Cookie"] = cookie
     return wsc.connect(f"ws://{host_name}:{port}{path}", sock=sock, subprotocols=[SUBPROTOCOL],
                        additional_headers=headers, open_timeout=10, max_queue=None)
+
+
+def as_a_browser(conn: wsc.ClientConnection) -> wsc.ClientConnection:
+    """What a page sends first: its camera. viser counts a client as connected (its clicks reach a
+    callback) only from then on."""
+    import msgspec
+
+    conn.send(msgspec.msgpack.encode({
+        "type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0], "fov": 1.0,
+        "near": 0.01, "far": 100.0, "image_height": 720, "image_width": 1280, "look_at": [0.0, 0.0, 0.0],
+        "up_direction": [0.0, 0.0, 1.0]}))
+    return conn
 
 
 def http_get(port: int, path: str = "/", host_name: str = "127.0.0.1") -> tuple[int, dict[str, str], bytes]:
@@ -157,58 +169,115 @@ def test_a_bad_token_argument_is_refused(bad):
 
 
 def _fuzz_values(rng) -> list:
-    return [float("nan"), float("inf"), float("-inf"), 1e308, -1e308, 0.0, -0.0, 1e-320, 2**63 - 1, -(2**63), True, None,
-            "", "fast", "1.5", [1, 2], {"a": 1}, b"\x00\xff", float(rng.normal()), float(rng.uniform(-5, 5)),
-            int(rng.integers(-100, 100)), "eq39", "warp"]
+    return [float("nan"), float("inf"), float("-inf"), 1e308, -1e308, 0.0, -0.0, 5e-324, 2**64 - 1, -(2**63), True,
+            False, None, "", "fast", "1.5", "0.2", [1, 2], [1.0, 2.0, 3.0], [[0.1, 0.2]], {"a": 1}, {"value": 1},
+            b"\x00\xff", float(rng.normal()), float(rng.uniform(-5, 5)), int(rng.integers(-100, 100)), "eq39",
+            "warp", "shift", [], "x" * 5000]
 
 
-def test_ten_thousand_random_and_malformed_gui_messages_leave_every_parameter_in_bounds(service):
-    """A same-origin client (the worst a let-in page can do) sends 10,000 GUI messages: valid
-    updates with hostile values to every input, unknown types, missing fields and random bytes."""
-    import math
+def _hostile_messages(service, rng, count: int) -> list[bytes]:
+    """``count`` messages of every type viser defines, each field given a random value (real control
+    ids and node names among them); GuiUpdateMessages that name props, callbacks and hostile values;
+    and random bytes."""
+    import dataclasses
 
     import msgspec
+    from viser import _messages as vm
+
+    handles = list(service.server.gui._gui_input_handle_from_uuid.values())
+    uuids = [h._impl.uuid for h in handles] + ["no-such-uuid"]
+    names = ["/slots/0", "/floor", "/leader", "/no/such/node", ""]
+    values = _fuzz_values(rng)
+    props = ["value", "update_cb", "sync_cb", "disabled", "visible", "label", "hint", "min", "max", "step", "options",
+             "removed", "is_button", "props", "order", "__class__"]
+    kinds = vm.Message.get_subclasses()
+    out: list[bytes] = []
+    while len(out) < count:
+        pick = rng.integers(0, 20)
+        if pick < 8:  # a control update: the value, or any other field
+            updates = {props[int(i)]: values[rng.integers(len(values))]
+                       for i in rng.choice(len(props), size=int(rng.integers(1, 3)), replace=False)}
+            msg = {"type": "GuiUpdateMessage", "uuid": uuids[rng.integers(len(uuids))], "updates": updates}
+        elif pick < 18:  # any message type, every field
+            kind = kinds[int(rng.integers(len(kinds)))]
+            msg = {"type": kind.__name__}
+            for f in dataclasses.fields(kind):
+                if f.name == "uuid":
+                    msg[f.name] = uuids[rng.integers(len(uuids))]
+                elif f.name == "name":
+                    msg[f.name] = names[rng.integers(len(names))]
+                else:
+                    msg[f.name] = values[rng.integers(len(values))]
+        elif pick < 19:
+            msg = {"type": ["NoSuchMessage", "GuiUpdateMessage", 7, None][rng.integers(4)]}
+        else:
+            out.append(rng.bytes(int(rng.integers(0, 64))))
+            continue
+        try:
+            out.append(msgspec.msgpack.encode(msg))
+        except (OverflowError, TypeError):
+            continue
+    return out
+
+
+def _shape(h) -> tuple:
+    return (type(h), *(getattr(h, k, None) for k in ("label", "disabled", "visible", "min", "max", "step", "options")),
+            len(h._impl.update_cb), h._impl.sync_cb is not None)
+
+
+def test_a_hostile_client_sending_every_message_type_changes_nothing_and_stop_still_works(service, capfd):
+    """10,000 messages of every type viser defines, every field, random values, from a let-in
+    client: no parameter leaves its bounds, no control loses what it does or its shape, the loop
+    keeps its rate and faults never, the log grows by less than 200 KB, and STOP pressed from a new
+    client afterwards stops the team on the next tick."""
+    import logging
+    import math
+
     import numpy as np
 
     from app.live.params import LEADER_MODES, LEADER_SPEED, LEADER_TURN, MAX_FOLLOWERS, SLOT_LIMIT_M
     from core.types import GAIN_BOUNDS
 
+    logged = []
+
+    class Count(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            logged.append(len(self.format(record)) + 1)
+
+    handler = Count()
+    logging.getLogger().addHandler(handler)
+    capfd.readouterr()
     rng = np.random.default_rng(11)
     controls = service.dashboard.controls
-    handles = [*controls.gains.values(), controls.mode, controls.speed, controls.turn, controls.n_slider,
-               *(h for pair in controls.slot_inputs for h in pair)]
-    uuids = [h._impl.uuid for h in handles] + ["no-such-uuid"]
-    values = _fuzz_values(rng)
+    handles = list(service.server.gui._gui_input_handle_from_uuid.values())
+    shape = {h._impl.uuid: _shape(h) for h in handles}
+    messages = _hostile_messages(service, rng, 10_000)
     ticks_before, faults_before = service.loop.tick_count, service.loop.faults
     start = time.monotonic()
-    sent = reconnects = 0
-    conn = ws_connect(service.gate.port)
+    reconnects = 0
+    conn = as_a_browser(ws_connect(service.gate.port))
     try:
-        while sent < 10_000:
-            kind = rng.integers(0, 10)
-            if kind < 7:
-                msg = {"type": "GuiUpdateMessage", "uuid": uuids[rng.integers(len(uuids))],
-                       "updates": {"value": values[rng.integers(len(values))]}}
-                data = msgspec.msgpack.encode(msg)
-            elif kind == 7:
-                data = msgspec.msgpack.encode({"type": ["NoSuchMessage", "GuiUpdateMessage"][rng.integers(2)]})
-            else:
-                data = rng.bytes(int(rng.integers(0, 64)))
+        for k, data in enumerate(messages):
             try:
                 conn.send(data)
-                sent += 1
-            except websockets.exceptions.ConnectionClosed:  # viser drops a client that sends garbage
+            except websockets.exceptions.ConnectionClosed:
                 reconnects += 1
                 conn = ws_connect(service.gate.port)
-            if sent % 500 == 0:
+            if k % 500 == 499:
                 time.sleep(0.05)  # let the callbacks run
     finally:
         conn.close()
     time.sleep(1.0)
     elapsed = time.monotonic() - start
     ticks = service.loop.tick_count - ticks_before
+    logging.getLogger().removeHandler(handler)
+    out, err = capfd.readouterr()
+    log_bytes = sum(logged) + len(out.encode()) + len(err.encode())
     print(f"\n10,000 messages in {elapsed:.1f} s over {reconnects + 1} connections; the loop ticked {ticks} times"
-          f" ({ticks / elapsed:.1f} Hz, set 30 Hz), faults {service.loop.faults - faults_before}")
+          f" ({ticks / elapsed:.2f} Hz, set 30 Hz), faults {service.loop.faults - faults_before}, refused"
+          f" {service.gate.refused.messages}, log {log_bytes / 1024:.1f} KB")
+    assert reconnects == 0  # nothing a client sends makes viser drop it
+    assert log_bytes < 200 * 1024
     p = service.store.get()
     for name, bound in GAIN_BOUNDS.items():
         value = getattr(p.gains, name)
@@ -218,8 +287,28 @@ def test_ten_thousand_random_and_malformed_gui_messages_leave_every_parameter_in
     assert LEADER_TURN.lo <= p.leader_turn_deg_s <= LEADER_TURN.hi and math.isfinite(p.leader_turn_deg_s)
     assert 1 <= p.n_followers <= MAX_FOLLOWERS
     assert np.all(np.isfinite(p.slots)) and np.all(np.abs(p.slots) <= SLOT_LIMIT_M)
+    for h in handles:  # every control keeps its kind, label, state and callbacks; values within its range
+        assert _shape(h) == shape[h._impl.uuid], h._impl.uuid
+        if isinstance(h, (viser.GuiSliderHandle, viser.GuiNumberHandle)):
+            assert math.isfinite(h.value) and abs(h.value) < 2**53
+            assert (h.min is None or h.value >= h.min) and (h.max is None or h.value <= h.max), h._impl.uuid
     assert service.loop.faults == faults_before  # nothing the page sent broke a tick
-    assert service.loop.last is not None and service.loop.last.tick >= ticks_before + 1
+    assert ticks > 0
+    # and STOP, pressed as a browser presses it, from a client that connects now
+    import msgspec
+
+    assert not p.stop
+    stopper = as_a_browser(ws_connect(service.gate.port))
+    try:
+        stopper.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": controls.stop_button._impl.uuid,
+                                             "updates": {"value": True}}))
+        wait_for(lambda: service.store.get().stop, 10, "STOP from a new client")
+    finally:
+        stopper.close()
+    version = service.store.get().version
+    wait_for(lambda: service.loop.last.params_version >= version, 10, "a tick after STOP")
+    assert service.loop.last.leader_twist == (0.0, 0.0) and np.all(service.loop.last.commands == 0.0)
+    service.store.update("test", stop=False, leader_hold=False)
 
 
 def test_a_token_with_any_characters_is_refused_not_crashed_on():

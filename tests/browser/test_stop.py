@@ -1,0 +1,163 @@
+"""STOP is absolute, in real Chromium: it stays in view wherever the panel is scrolled (1280×720),
+it stops the leader as well as the followers (and the recording says so tick by tick), and no
+message a client sent before can take it away from a page opened afterwards."""
+
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+import pytest
+
+from app.live.service import Service
+from app.recording.reader import read_recording
+from tests.app.test_access import as_a_browser, ws_connect
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, settle, wait_for
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+PAGE_MS = 30_000
+
+
+@pytest.fixture()
+def service(tmp_path):
+    """The built-in team on truth feedback, leader driving straight, recording to a file."""
+    from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.live.params import MAX_FOLLOWERS
+    from app.recording.session import start_recording
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=4, dynamics=config.dynamics,
+                  recordings=tmp_path)
+    keep_ticks(svc, 3000)
+    svc.recorder = start_recording(svc, config, None, None, None, 1.0, path=tmp_path / "stop.mcap")
+    svc.start()
+    yield svc
+    svc.close()
+    svc.recorder.close()
+
+
+def open_page(browser, url: str, width: int = 1280, height: int = 720):
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.goto(url)
+    page.wait_for_selector('canvas[data-engine^="three.js"]', timeout=PAGE_MS)
+    page.get_by_role("button", name="STOP", exact=True).wait_for(timeout=PAGE_MS)
+    settle(page)
+    return page
+
+
+def scroll_every_panel_to_the_bottom(page) -> None:
+    page.evaluate("""() => { for (const el of document.querySelectorAll('*')) {
+        if (el.scrollHeight > el.clientHeight + 20 && getComputedStyle(el).overflowY !== 'visible')
+            el.scrollTop = el.scrollHeight; } }""")
+
+
+def in_view_and_on_top(page, locator) -> bool:
+    box = locator.bounding_box()
+    if box is None:
+        return False
+    vw, vh = page.viewport_size["width"], page.viewport_size["height"]
+    if not (box["x"] >= 0 and box["y"] >= 0 and box["x"] + box["width"] <= vw and box["y"] + box["height"] <= vh):
+        return False
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    return bool(page.evaluate("([x, y]) => !!document.elementFromPoint(x, y).closest('#omni-stopbar')", [cx, cy]))
+
+
+def test_stop_stays_in_view_and_stops_the_leader_tick_by_tick_in_the_recording(service):
+    wait_for(lambda: service.loop.last is not None and service.loop.last.leader_twist[0] > 0, 30, "the leader to drive")
+    with chromium_browser() as browser:
+        page = open_page(browser, service.url)
+        scroll_every_panel_to_the_bottom(page)
+        bar_stop = page.locator("#omni-stopbar button")
+        wait_for(lambda: bar_stop.is_visible(), 10, "the STOP bar")
+        assert in_view_and_on_top(page, bar_stop), "STOP must stay in view when the panel is scrolled"
+        state = page.locator("#omni-stopstate")
+        wait_for(lambda: state.inner_text().startswith("running"), 10, "the state line in the bar")
+        ARTIFACTS.mkdir(exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "stop-bar-scrolled-1280x720.png"))
+        bar_stop.click()
+        wait_for(lambda: service.store.get().stop, 10, "STOP from the bar")
+        wait_for(lambda: "STOPPED" in state.inner_text(), 10, "the bar to say STOPPED")
+        version = service.store.get().version
+        wait_for(lambda: sum(1 for s in list(service.seen) if s.params_version >= version) > 45, 30, "1.5 s stopped")
+    service.loop.stop()
+    service._thread.join(30)
+    service.recorder.close()
+    rec = read_recording(service.recorder.path)
+    ticks = list(rec.ticks)
+    stopped = [k for k, d in enumerate(ticks) if d["stopped"]]
+    assert stopped and ticks[stopped[0] - 1]["leader_twist"][0] > 0  # it was driving the tick before
+    assert len(stopped) > 45
+    after = [ticks[k] for k in range(stopped[0], len(ticks))]
+    assert all(d["stopped"] for d in after)
+    assert all(d["leader_twist"] == [0.0, 0.0] for d in after), "the leader's twist is exactly zero once stopped"
+    leader = np.array([d["leader"] for d in after], dtype=float)
+    assert np.ptp(leader, axis=0).max() == 0.0, "the leader does not move while stopped"
+    assert all(np.all(np.array(d["commands"], dtype=float) == 0.0) for d in after)
+
+
+def _raw(conn, message: dict) -> None:
+    conn.send(msgspec.msgpack.encode(message))
+
+
+def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(service):
+    controls = service.dashboard.controls
+    stop_uuid = controls.stop_button._impl.uuid
+    trial = next(h for h in service.server.gui._gui_input_handle_from_uuid.values() if h.label == "Trial #")
+    gains_before = service.store.get().gains
+    conn = as_a_browser(ws_connect(service.gate.port))
+    try:
+        _raw(conn, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"update_cb": []}})
+        _raw(conn, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"disabled": True, "visible": False}})
+        _raw(conn, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"label": "go", "value": True}})
+        _raw(conn, {"type": "GuiUpdateMessage", "uuid": trial._impl.uuid, "updates": {"value": 2**64 - 1}})
+        _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["k_w1"]._impl.uuid, "updates": {"value": 5.0}})
+        _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["k_f1"]._impl.uuid, "updates": {"value": "0.2"}})
+        _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["a"]._impl.uuid, "updates": {"value": 5e-324}})
+        _raw(conn, {"type": "ShareUrlRequest"})
+        conn.send(b"\xc1 not msgpack")
+        wait_for(lambda: service.gate.refused.messages >= 9, 10, "the gate to refuse all nine")
+    finally:
+        conn.close()
+    assert controls.stop_button._impl.update_cb, "STOP keeps what it does"
+    assert not controls.stop_button.disabled and controls.stop_button.visible and controls.stop_button.label == "STOP"
+    assert trial.value == 1 and service.store.get().gains == gains_before
+    with chromium_browser() as browser:
+        page = open_page(browser, service.url)  # a new page loads (the huge number never reached viser)
+        page.keyboard.press("Escape")
+        wait_for(lambda: service.store.get().stop, 10, "Escape on a fresh page to stop the team")
+        version = service.store.get().version
+        wait_for(lambda: sum(1 for s in list(service.seen) if s.params_version >= version) > 3, 10, "ticks stopped")
+        for s in [s for s in list(service.seen) if s.params_version >= version]:
+            assert s.leader_twist == (0.0, 0.0) and np.all(s.commands == 0.0)
+        service.store.update("test", stop=False, leader_hold=False)
+        page.get_by_role("button", name="STOP", exact=True).click()  # and the panel's own button
+        wait_for(lambda: service.store.get().stop, 10, "the STOP button on a fresh page")
+
+
+def test_a_viewer_watches_and_may_stop_but_changes_nothing_else(service):
+    controls = service.dashboard.controls
+    with chromium_browser() as browser:
+        page = open_page(browser, service.gate.viewer_url)
+        page.get_by_text("View only").first.wait_for(timeout=PAGE_MS)
+        wait_for(lambda: page.get_by_role("button", name="Reset", exact=True).is_disabled(), 10,
+                 "the viewer's controls to grey out")
+        ident = control_id(page, "k_f1")
+        box = page.locator(f'[id="{ident}"] + div input').first
+        k_f1 = service.store.get().gains.k_f1
+        refused = service.gate.refused.messages
+        box.evaluate("el => { el.disabled = false; }")  # a viewer that un-greys its page is still refused
+        box.fill("0.3")
+        box.press("Enter")
+        wait_for(lambda: service.gate.refused.messages > refused, 10, "the gate to refuse the viewer's change")
+        assert service.store.get().gains.k_f1 == k_f1
+        page.locator("#omni-stopbar button").click()
+        wait_for(lambda: service.store.get().stop, 10, "the viewer's STOP")
+        assert controls.release_button.disabled is False
+        refused = service.gate.refused.messages
+        conn = as_a_browser(ws_connect(service.gate.port, path=f"/?token={service.gate.viewer_token}"))
+        try:
+            _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.release_button._impl.uuid,
+                        "updates": {"value": True}})
+            wait_for(lambda: service.gate.refused.messages > refused, 10, "the gate to refuse the viewer's release")
+        finally:
+            conn.close()
+        assert service.store.get().stop, "a viewer cannot release STOP"
