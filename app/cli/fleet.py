@@ -48,6 +48,8 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     page.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; others need the token)")
     page.add_argument("--port", type=port, default=8090, help="port (default 8090, 0 = any free port)")
     page.add_argument("--token", type=token_arg, help="the token browsers must present on a non-loopback --host")
+    page.add_argument("--viewer-token", type=token_arg,
+                      help="the token of a view-only URL (it may press STOP, nothing else; default: made up, printed)")
     page.add_argument("--record", type=Path, metavar="FILE.mcap",
                       help="record the whole fleet (a channel per leader) into this new file")
     page.set_defaults(func=cmd_fleet)
@@ -138,9 +140,11 @@ def cmd_fleet(args: argparse.Namespace) -> int:
         check_new_file(args.record, "recording", ".mcap")
         if args.record.exists():
             raise UserError(f"{args.record}: exists; a recording is never written over another (give a new name)")
+    if args.viewer_token is not None and args.viewer_token == args.token:
+        raise UserError("--viewer-token: must differ from --token (a viewer may not command the fleet)")
     session = open_bus(args.zenoh_listen, args.zenoh_connect, f"fleet {args.fleet}")
     try:
-        server, gate = serve_gated(args.host, args.port, args.token)
+        server, gate = serve_gated(args.host, args.port, args.token, args.viewer_token)
     except OSError as exc:
         session.close()  # type: ignore[attr-defined]
         raise UserError(bind_error(args.host, args.port, exc)) from None
@@ -154,7 +158,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
             session.close()  # type: ignore[attr-defined]
             raise UserError(f"{args.record}: cannot record: {exc.strerror or exc}") from None
     sys.setswitchinterval(SWITCH_INTERVAL_S)  # states reach the page's callbacks sooner (app.fleet.dashboard)
-    view = FleetView(server, session, args.fleet, recorder)
+    view = FleetView(server, session, args.fleet, recorder, allow_viewer=gate.filter.allow_viewer)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -162,6 +166,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
         print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
               " token) may see and command the fleet", file=sys.stderr)
     print(f"omniformation: fleet {args.fleet} at {gate.url}  (Ctrl-C to stop)", flush=True)
+    print(f"omniformation: view only (watch and STOP, nothing else) at {gate.viewer_url}", flush=True)
     if recorder is not None:
         print(f"omniformation: recording the fleet to {display_path(recorder.path)}", flush=True)
     try:

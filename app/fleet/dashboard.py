@@ -20,6 +20,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -107,7 +108,8 @@ class FleetView:
     """The fleet page on one viser server, fed from the bus."""
 
     def __init__(self, server: viser.ViserServer, session: Any, fleet: str,
-                 recorder: FleetRecorder | None = None) -> None:
+                 recorder: FleetRecorder | None = None, allow_viewer: Callable[..., None] | None = None) -> None:
+        """``allow_viewer``: marks the controls a view-only client may press (the STOPs; the gate's)."""
         import zenoh
 
         self.server = server
@@ -129,6 +131,8 @@ class FleetView:
         self.status = gui.add_markdown("fleet: connecting ...", order=1)
         self.event_text = gui.add_markdown("", order=1000)
         self.stop_all.on_click(lambda _: self.send_all_stop())
+        self._allow_viewer = allow_viewer or (lambda *_: None)
+        self._allow_viewer(self.stop_all)
         with gui.add_folder("Hand over a robot", order=900, expand_by_default=False):
             self.hand_robot = gui.add_dropdown("robot", options=("-",), initial_value="-")
             self.hand_to = gui.add_dropdown("to leader", options=("-",), initial_value="-")
@@ -255,6 +259,7 @@ class FleetView:
         for lid in ids:
             if lid not in self.panels:
                 self.panels[lid] = LeaderPanel(self, lid, order=10 + len(self.panels))
+                self._allow_viewer(self.panels[lid].stop)
         with self.server.atomic():
             for lid in ids:
                 at, st = states.get(lid, (now, None))

@@ -36,7 +36,8 @@ from mcap.records import Chunk, Metadata, Schema, Channel
 from mcap.data_stream import ReadDataStream
 
 from app.live.params import Params
-from app.recording.schema import CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, TICK_TOPIC, TRIAL_TOPIC
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, METADATA_NAME, PARAMS_TOPIC,
+                                  TICK_TOPIC, TRIAL_TOPIC)
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
@@ -181,12 +182,15 @@ class Recording:
     _chunks: _Chunks | None = field(repr=False, default=None)
 
     def gaps(self) -> list[Gap]:
-        """Where the tick counter jumps: ticks that are not in the file."""
+        """Where the tick counter jumps: ticks that are not in the file. A session's recording
+        starts at tick 0 (app.recording.writer), so a first readable tick above 0 means the ticks
+        before it were lost (a damaged first chunk): a gap from the session's start."""
         k = self.tick_numbers
-        if len(k) < 2:
+        if len(k) == 0:
             return []
+        lead = [Gap(-1, int(k[0]), 0.0, float(self.t[0]))] if k[0] > 0 else []
         jumps = np.nonzero(np.diff(k) > 1)[0]
-        return [Gap(int(k[i]), int(k[i + 1]), float(self.t[i]), float(self.t[i + 1])) for i in jumps]
+        return lead + [Gap(int(k[i]), int(k[i + 1]), float(self.t[i]), float(self.t[i + 1])) for i in jumps]
 
     def loss_note(self) -> str:
         """What could not be read, in ticks and seconds; '' for a whole, undamaged file."""
@@ -210,6 +214,10 @@ class Recording:
     def close(self) -> None:
         if self._chunks is not None:
             self._chunks.close()
+
+
+class _Unannounced(ValueError):
+    """A chunk's message names a channel not announced so far."""
 
 
 def _chunk_contents(body: bytes) -> bytes:
@@ -263,8 +271,36 @@ class _Scan:
         self.damage: list[Damage] = []
         self.complete = False
         self.good_bytes = 8
+        self.later: list[tuple[int, int]] = []  # (offset, length) of chunks to read once the channels are known
 
     def run(self) -> None:
+        self._walk()
+        if not self.later:
+            return
+        # chunks whose channels were announced only in a damaged chunk: the summary section (a
+        # finished file) or the metadata's channel table named them by now
+        for pos, length in self.later:
+            self.f.seek(pos + 9)
+            try:
+                self._take_chunk(self.f.read(length))
+            except Exception:  # noqa: BLE001 - still unknown, or damaged after all
+                self.good_bytes -= 9 + length
+                self.damage.append(Damage(pos, pos + 9 + length, "a chunk whose channels are not known"))
+        self._in_time_order()
+
+    def _in_time_order(self) -> None:
+        """Chunks read out of order (above): every index in log-time order again."""
+        for topic, (ns, chunks, offsets) in self.index.items():
+            order = np.argsort(np.frombuffer(ns, dtype=np.int64), kind="stable")
+            if len(order) and np.any(np.diff(order) != 1):
+                if topic == TICK_TOPIC:
+                    self.tick_numbers = array("q", np.frombuffer(self.tick_numbers, dtype=np.int64)[order].tolist())
+                self.index[topic] = tuple(array("q", np.frombuffer(a, dtype=np.int64)[order].tolist())
+                                          for a in (ns, chunks, offsets))  # type: ignore[assignment]
+        self.events.sort(key=lambda e: e[0])
+        self.params.sort(key=lambda e: e[0])
+
+    def _walk(self) -> None:
         pos = 8
         while pos < self.size:
             self.f.seek(pos)
@@ -286,6 +322,11 @@ class _Scan:
             body = self.f.read(length)
             try:
                 self._take(op, body)
+            except _Unannounced:  # read again once the whole file said what its channels are
+                self.later.append((pos, length))
+                self.good_bytes += 9 + length
+                pos = end
+                continue
             except Exception:  # noqa: BLE001 - damaged bytes raise assorted errors: skip to the next good chunk
                 nxt = self._resync(pos + 1)
                 if nxt is None:
@@ -309,14 +350,26 @@ class _Scan:
             self._take_chunk(body)
         elif op == OP_METADATA:
             md = Metadata.read(ReadDataStream(io.BytesIO(body)))
-            if md.name == "omniformation":
+            if md.name == METADATA_NAME and not self.metadata:  # the first intact copy
                 self.metadata = dict(md.metadata)
+                self._channel_table(self.metadata.pop(CHANNELS_KEY, ""))
         elif op == OP_SCHEMA:
             self._schema(body)
         elif op == OP_CHANNEL:
             self._channel(body)
         elif op == OP_DATA_END:
             pass  # the summary that follows repeats what the data section said
+
+    def _channel_table(self, text: str) -> None:
+        """The channel table our writer puts in its metadata (schema.CHANNELS_KEY): what a damaged
+        first chunk would otherwise take with it."""
+        if not text:
+            return
+        for cid, (topic, encoding, schema) in json.loads(text).items():
+            if int(cid) not in self.topic_of:
+                self.topic_of[int(cid)] = str(topic)
+                self.channels[str(topic)] = str(schema)
+                self.encoding[str(topic)] = str(encoding)
 
     def _schema(self, body: bytes) -> None:
         s = Schema.read(ReadDataStream(io.BytesIO(body)))
@@ -339,8 +392,8 @@ class _Scan:
             elif op == OP_MESSAGE:
                 channel, _, log_time, _ = _MESSAGE_HEAD.unpack_from(contents, off + 9)
                 topic = self.topic_of.get(channel)
-                if topic is None:
-                    raise ValueError("a message on a channel never announced")
+                if topic is None:  # announced in a chunk that was damaged: the summary may say it
+                    raise _Unannounced("a message on a channel not announced (yet)")
                 start = off + 9 + _MESSAGE_HEAD.size
                 head = contents[start:start + 40] if topic == TICK_TOPIC else contents[start:off + 9 + length]
                 found.append((topic, log_time, off, head))
@@ -388,6 +441,39 @@ class _Scan:
                 k = data.find(bytes([OP_CHUNK]), k + 1)
             pos += block
         return None
+
+
+def is_session(path: Path) -> bool:
+    """The file is a session this program recorded: an MCAP file whose header names omniformation
+    as its writer and whose first records include our metadata record (app.recording.writer
+    writes it before the first chunk). Retention deletes nothing else."""
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != MAGIC:
+                return False
+            for k in range(8):  # the header, then our metadata (twice) before any chunk
+                head = f.read(9)
+                if len(head) < 9:
+                    return False
+                op, length = head[0], int.from_bytes(head[1:9], "little")
+                if length > MAX_RECORD:
+                    return False
+                if op == OP_CHUNK:
+                    return False
+                body = f.read(length)
+                if k == 0:
+                    if op != OP_HEADER:
+                        return False
+                    profile_len = int.from_bytes(body[:4], "little")
+                    library = body[8 + profile_len:8 + profile_len + int.from_bytes(body[4 + profile_len:8 + profile_len],
+                                                                                  "little")]
+                    if library != b"omniformation":
+                        return False
+                elif op == OP_METADATA:
+                    return bool(Metadata.read(ReadDataStream(io.BytesIO(body))).name == METADATA_NAME)
+    except (OSError, ValueError, struct.error, UnicodeDecodeError):
+        return False
+    return False
 
 
 def read_recording(path: Path) -> Recording:

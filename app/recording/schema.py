@@ -22,7 +22,10 @@ topic                       schema                          what
                                                             gains, when it started, its scores per follower
 =========================== =============================== ==========================================
 
-Metadata record ``omniformation``: the config and scenario text used, the command line.
+Metadata record ``omniformation`` (written twice, before the first chunk): the config and
+scenario text used, the command line, and the channel table (``channels``: id -> topic,
+encoding, schema), so that a damaged first chunk (which holds MCAP's schema and channel
+records) costs that chunk and no more.
 
 Crash safety: messages are written in zstd chunks of at most ``CHUNK_BYTES``; SIGINT /
 SIGTERM finish the file (summary and index). A file cut off by SIGKILL or power loss is
@@ -47,6 +50,9 @@ from core.obstacles import Obstacle
 from core.vision.freespace import Scan
 
 CHUNK_BYTES = 1024 * 1024
+METADATA_NAME = "omniformation"  # the metadata record that marks a file as one of ours
+METADATA_COPIES = 2  # it is written twice, before the first chunk
+CHANNELS_KEY = "channels"  # in it: the channel table, {"id": [topic, encoding, schema]} (JSON)
 TICK_TOPIC = "/omniformation/tick"
 TF_TOPIC = "/tf"
 IMAGE_TOPIC = "/camera/image"

@@ -33,8 +33,9 @@ from app.live.params import Params
 from core.types import Image
 from app.live.tick import TickState
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
-from app.recording.schema import (CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS,
-                                  TF_TOPIC, TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, METADATA_COPIES,
+                                  METADATA_NAME, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS, TF_TOPIC, TICK_TOPIC,
+                                  TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
                                   params_payload, scan_payload, tick_payload, transforms_payload)
 
 # The chunk indexes (where each chunk is, its time range) are what readers seek by; the per-chunk
@@ -54,17 +55,28 @@ class RecordingRefused(OSError):
     """A recording that cannot start (no room, no folder): one line for people."""
 
 
+def channel_table(channels: dict[str, int]) -> str:
+    """The channel ids a recording uses, as JSON: {"id": [topic, message encoding, schema name]}."""
+    table = {str(cid): [topic, "protobuf" if topic in PROTOBUF_TOPICS else "json", TOPIC_SCHEMA[topic]]
+             for topic, cid in channels.items()}
+    return json.dumps(table, separators=(",", ":"))
+
+
 def free_bytes(folder: Path) -> int:
     return shutil.disk_usage(folder).free
 
 
 def apply_retention(folder: Path, max_total_bytes: int, keep: tuple[Path, ...] = ()) -> list[Path]:
     """Delete the oldest sessions directly in ``folder`` (never its sub-folders: samples/ is
-    kept) until the sessions there add up to at most ``max_total_bytes``; the paths deleted."""
+    kept) until the sessions there add up to at most ``max_total_bytes``; the paths deleted.
+    A session is a file this program recorded, known by its header and metadata
+    (app.recording.reader.is_session), never by its name: other files are never touched."""
+    from app.recording.reader import is_session
+
     if not folder.is_dir():
         return []
     keep_resolved = {p.resolve() for p in keep}
-    sessions = sorted((p for p in folder.glob("*.mcap") if p.is_file() and not p.is_symlink()),
+    sessions = sorted((p for p in folder.iterdir() if p.is_file() and not p.is_symlink() and is_session(p)),
                       key=lambda p: p.stat().st_mtime)
     total = sum(p.stat().st_size for p in sessions)
     deleted = []
@@ -169,7 +181,12 @@ class Recorder:
                 else:
                     sid = self._writer.register_schema(schema, "jsonschema", json.dumps(SCHEMAS[schema]).encode())
                     self._channels[topic] = self._writer.register_channel(topic, "json", sid)
-            self._writer.add_metadata("omniformation", {**metadata, "start_ns": str(self.start_ns)})
+            # the session's config and the channel table, twice and outside every chunk: a damaged
+            # first chunk (where MCAP puts the schema and channel records) or one damaged copy of
+            # this record still leaves every other chunk readable (app.recording.reader)
+            record = {**metadata, "start_ns": str(self.start_ns), CHANNELS_KEY: channel_table(self._channels)}
+            for _ in range(METADATA_COPIES):
+                self._writer.add_metadata(METADATA_NAME, record)
         except OSError as exc:
             self._file.close()
             raise RecordingRefused(f"{path}: cannot write: {exc.strerror or exc}") from None

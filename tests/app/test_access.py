@@ -329,3 +329,30 @@ def test_a_recording_does_not_keep_the_token():
 
     assert without_secrets(["run", "--token", "s3cret-s3cret-s3cret", "--token=abc", "--port", "1"]) == \
         ["run", "--token", "***", "--token=***", "--port", "1"]
+
+
+def test_five_hundred_wrong_tokens_are_refused_in_a_few_log_lines():
+    """A client guessing tokens fills no disk: the refusals are logged at most once a second."""
+    import logging
+
+    lines: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            lines.append(self.format(record))
+
+    svc = Service(host="0.0.0.0", port=0, n_followers=1, rate_hz=30.0)
+    handler = Keep()
+    logging.getLogger("app.dashboard.gate").addHandler(handler)
+    try:
+        refused = svc.gate.refused.token
+        for k in range(500):
+            status, _, _ = http_get(svc.gate.port, f"/?token=wrong-token-{k:04d}-xxxxxxxx")
+            assert status == 403
+        assert svc.gate.refused.token - refused == 500
+    finally:
+        logging.getLogger("app.dashboard.gate").removeHandler(handler)
+        svc.close()
+    size = sum(len(line) + 1 for line in lines)
+    print(f"\n500 wrong tokens: {len(lines)} log lines, {size} bytes")
+    assert size < 10_000 and all("\n" not in line for line in lines)

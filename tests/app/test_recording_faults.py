@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,7 +21,7 @@ from app.live.loop import ServiceLoop
 from app.live.params import ParamsStore
 from app.recording.reader import read_recording
 from app.recording.writer import Recorder, RecordingRefused, apply_retention
-from tests.helpers import ROOT, wait_for
+from tests.helpers import ROOT, main_cli, wait_for
 
 
 @contextlib.contextmanager
@@ -128,21 +129,40 @@ def test_run_on_a_full_disk_keeps_serving_says_so_and_exits_0_on_sigterm(tmp_pat
         assert len(read_recording(disk / "s.mcap").ticks) > 0
 
 
-def test_retention_deletes_the_oldest_sessions_and_never_the_samples(tmp_path):
+def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the_samples(tmp_path):
+    """Sessions are known by what the writer put in them (its header and metadata), not by name:
+    another program's MCAP files, a file named like a session and the samples are never deleted."""
+    from mcap.writer import Writer
+
+    from app.live.params import Params
+
     folder = tmp_path / "recordings"
     (folder / "samples").mkdir(parents=True)
     sample = folder / "samples" / "kept.mcap"
-    sample.write_bytes(b"x" * 5000)
+    shutil.copyfile(ROOT / "recordings" / "samples" / "experiment2-vision.mcap", sample)
     names = []
     for k in range(5):
         p = folder / f"2026010{k}T000000Z_sim.mcap"
-        p.write_bytes(b"x" * 1000)
+        Recorder(p, {"k": str(k)}, Params()).close()
         os.utime(p, (1_000_000 + k, 1_000_000 + k))
         names.append(p)
-    deleted = apply_retention(folder, 2500, keep=(names[0],))
+    size = names[0].stat().st_size
+    foreign = folder / "20250101T000000Z_other.mcap"  # another program's MCAP file, older than every session
+    with open(foreign, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="someone else")
+        w.add_metadata("notes", {"a": "b"})
+        w.finish()
+    lookalike = folder / "20250101T000001Z_sim.mcap"
+    lookalike.write_bytes(b"x" * (10 * size))
+    for p in (foreign, lookalike):
+        os.utime(p, (1_000, 1_000))
+    deleted = apply_retention(folder, int(2.5 * size), keep=(names[0],))  # counts the sessions only
     assert deleted == names[1:4]  # oldest first, the one being written is kept
-    assert sorted(folder.glob("*.mcap")) == [names[0], names[4]] and sample.exists()
-    assert apply_retention(folder, 10_000) == []
+    assert sorted(p for p in folder.glob("*.mcap")) == sorted([names[0], names[4], foreign, lookalike])
+    assert sample.exists()
+    assert apply_retention(folder, 0, keep=(names[0],)) == [names[4]]
+    assert foreign.exists() and lookalike.exists() and sample.exists()
 
 
 SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
@@ -182,7 +202,7 @@ def _flip(src: Path, dst: Path, at: float, width: int = 1) -> int:
     return k
 
 
-@pytest.mark.parametrize("at", [0.30, 0.55, 0.93])  # past the first chunk (a file with none of it is refused)
+@pytest.mark.parametrize("at", [0.02, 0.10, 0.30, 0.55, 0.93])  # the first chunk too: its channels are known elsewhere
 def test_a_flipped_byte_skips_one_chunk_and_says_exactly_what_was_lost(tmp_path, at):
     whole = read_recording(SAMPLE)
     bad = tmp_path / "flipped.mcap"
@@ -194,6 +214,7 @@ def test_a_flipped_byte_skips_one_chunk_and_says_exactly_what_was_lost(tmp_path,
     gaps = rec.gaps()
     assert sum(g.ticks for g in gaps) == lost  # every missing tick is accounted for
     assert set(rec.tick_numbers) < set(whole.tick_numbers)
+    assert len(rec.gaps()) == 1 and (rec.gaps()[0].after_tick == -1) == (at < 0.15)  # the first chunk: a lead gap
     note = rec.loss_note()
     assert f"{lost} ticks (" in note and "1 damaged stretch of the file" in note
     assert rec.ticks[-1] == whole.ticks[-1]  # read on past the damage to the end
@@ -239,3 +260,33 @@ def test_report_on_a_damaged_file_says_what_was_lost_and_writes_the_figures(tmp_
     assert "ticks (" in res.stderr and "damaged stretch" in res.stderr
     summary = (tmp_path / "rep" / "summary.md").read_text()
     assert "missing" in summary and "damaged" in summary
+
+
+def test_a_cut_off_session_with_its_first_chunk_damaged_is_read_from_the_metadata_channel_table(tmp_path):
+    """No summary (killed) and the chunk that announced the channels damaged: the channel table
+    the writer put in its metadata (twice, before the first chunk) names them; each copy of the
+    metadata alone is enough."""
+    from app.recording.schema import TICK_TOPIC
+
+    path = tmp_path / "s.mcap"
+    res = main_cli("simulate", "experiment1", "--duration", "70", "--record", str(path))
+    assert res.returncode == 0, res.stderr
+    whole = read_recording(path)
+    scan = _scan(path)
+    assert len(scan.places) >= 3
+    first, second = scan.places[0], scan.places[1]
+    data = bytearray(path.read_bytes())[:second[0] + second[1] + 9]  # cut off after the second chunk
+    data[first[0] + first[1] // 2] ^= 0xFF  # the first chunk (schemas, channels, the first ticks) damaged
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(bytes(data))
+    rec = read_recording(cut)
+    assert not rec.complete and len(rec.ticks) > 0
+    lead = rec.gaps()[0]
+    assert lead.after_tick == -1 and lead.before_tick == int(rec.tick_numbers[0]) > 0
+    assert rec.ticks[0] == whole.ticks[int(rec.tick_numbers[0])]
+    assert rec.channels[TICK_TOPIC] == "omniformation.Tick" and rec.metadata.get("scenario")
+    metadata_at = data.find(b"omniformation", 20)  # the first copy of the metadata record
+    data[metadata_at] ^= 0xFF
+    cut.write_bytes(bytes(data))
+    again = read_recording(cut)
+    assert len(again.ticks) == len(rec.ticks) and again.metadata == rec.metadata  # the second copy
