@@ -18,10 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mcap.writer import CompressionType, Writer
-
-from app.recording.schema import CHUNK_BYTES
-from app.recording.writer import INDEXES
+from app.recording.mcap_out import SessionWriter
+from app.recording.schema import CHUNK_BYTES, CHUNK_SECONDS
 
 QUEUE_MAX = 4096
 _JSON_SCHEMA = json.dumps({"type": "object", "description": "as in docs/fleet-protocol.md"}).encode()
@@ -31,9 +29,8 @@ class FleetRecorder:
     def __init__(self, path: Path) -> None:
         self.path = path
         self._file = open(path, "xb")  # never over an existing file
-        self._writer = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD,
-                              index_types=INDEXES)
-        self._writer.start(profile="", library="omniformation fleet")
+        self._writer = SessionWriter(self._file, CHUNK_BYTES, CHUNK_SECONDS)  # the sessions' own writer
+        self._writer.start(library="omniformation fleet")
         self._schema = self._writer.register_schema("omniformation.FleetMessage", "jsonschema", _JSON_SCHEMA)
         self._channels: dict[str, int] = {}
         self._queue: queue.Queue[tuple[str, int, bytes] | None] = queue.Queue(QUEUE_MAX)
@@ -80,7 +77,7 @@ class FleetRecorder:
         self._queue.put(None)
         self._thread.join(30.0)
         try:
-            self._writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer.finish has no annotations
+            self._writer.finish()
         except OSError as exc:
             self.failure = self.failure or f"recording not finished: {exc.strerror or exc}"
         finally:

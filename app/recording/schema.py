@@ -27,13 +27,13 @@ scenario text used, the command line, and the channel table (``channels``: id ->
 encoding, schema), so that a damaged first chunk (which holds MCAP's schema and channel
 records) costs that chunk and no more.
 
-Crash safety: messages are written in zstd chunks of at most ``CHUNK_BYTES``; SIGINT /
-SIGTERM finish the file (summary and index). A file cut off by SIGKILL or power loss is
-still read up to its last complete chunk: at most ``CHUNK_BYTES`` of messages — about three
-seconds of a session with camera frames at 10 Hz — are lost. 1 MiB rather than smaller: the
-writer keeps one chunk index per chunk in memory until the file is closed (about 400 bytes
-each without the per-chunk message indexes, which are not written: app.recording.writer),
-so an hour of a session (1.2 GB) holds 1,200 of them (0.5 MB), not 4,800.
+Crash safety: messages are written in zstd chunks that close at the first of ``CHUNK_BYTES`` and
+``CHUNK_SECONDS`` of session time; camera frames have chunks of their own; every chunk carries the
+schema and channel records of its messages (app.recording.mcap_out). One damaged chunk costs at
+most about a second of ticks (or of frames, never both); SIGINT / SIGTERM finish the file
+(summary and index), and a file cut off by SIGKILL or power loss is read up to its last complete
+chunk: all but about its last second. The writer keeps 48 bytes per chunk until the file closes
+(about 0.35 MB an hour at two chunks a second).
 """
 
 from __future__ import annotations
@@ -50,6 +50,7 @@ from core.obstacles import Obstacle
 from core.vision.freespace import Scan
 
 CHUNK_BYTES = 1024 * 1024
+CHUNK_SECONDS = 1.0  # a chunk closes after this much session time (or CHUNK_BYTES, whichever first)
 METADATA_NAME = "omniformation"  # the metadata record that marks a file as one of ours
 METADATA_COPIES = 2  # it is written twice, before the first chunk
 CHANNELS_KEY = "channels"  # in it: the channel table, {"id": [topic, encoding, schema]} (JSON)

@@ -1,9 +1,12 @@
 """Writing a session to MCAP (channels and payloads: app.recording.schema).
 
 Messages are queued and written by one writer thread, so the loop never waits on the disk.
-Crash safety: messages are written in zstd chunks of at most ``CHUNK_BYTES``; SIGINT /
-SIGTERM finish the file (summary and index). A file cut off by SIGKILL or power loss is
-still read up to its last complete chunk (app.recording.reader).
+Crash safety: messages are written in zstd chunks that close at the first of ``CHUNK_BYTES``
+and ``CHUNK_SECONDS`` of session, camera frames in chunks apart from the ticks, every chunk
+readable on its own and handed to the operating system as it closes
+(app.recording.mcap_out); SIGINT / SIGTERM finish the file (summary and index). A file cut
+off by SIGKILL or power loss is read up to its last complete chunk: all but about its last
+second (app.recording.reader).
 
 A disk is allowed to fail. A write error (a full disk, a pulled USB stick) or free space
 below the floor stops the recording cleanly: what was written stays readable, the reason is
@@ -27,21 +30,16 @@ from typing import Any
 
 import cv2
 import numpy as np
-from mcap.writer import CompressionType, IndexType, Writer
 
 from app.live.params import Params
 from core.types import Image
 from app.live.tick import TickState
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
-from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, METADATA_COPIES,
+from app.recording.mcap_out import SessionWriter
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC, METADATA_COPIES,
                                   METADATA_NAME, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS, TF_TOPIC, TICK_TOPIC,
                                   TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
                                   params_payload, scan_payload, tick_payload, transforms_payload)
-
-# The chunk indexes (where each chunk is, its time range) are what readers seek by; the per-chunk
-# message indexes are not needed by any reader (a chunk is decompressed whole) and cost the
-# writer a dict per chunk kept until the file closes: about 1 KB a chunk, 1.2 MB an hour.
-INDEXES = IndexType.CHUNK | IndexType.ATTACHMENT | IndexType.METADATA
 
 DEFAULT_FRAME_RATE_HZ = 10.0
 MAX_FRAMES_WAITING = 30  # raw frames queued for JPEG encoding on the writer thread (3 s at 10 Hz)
@@ -169,11 +167,11 @@ class Recorder:
             self._file = open(path, "xb")  # never over an existing file
         except FileExistsError:
             raise RecordingRefused(f"{path}: exists; a recording is never written over another") from None
-        self._writer = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD,
-                              index_types=INDEXES)
+        # camera frames in chunks of their own: a damaged frame costs no tick (app.recording.mcap_out)
+        self._writer = SessionWriter(self._file, CHUNK_BYTES, CHUNK_SECONDS, groups=[(IMAGE_TOPIC,)])
         self._channels: dict[str, int] = {}
         try:
-            self._writer.start(profile="", library="omniformation")
+            self._writer.start(library="omniformation")
             for topic, schema in TOPIC_SCHEMA.items():
                 if topic in PROTOBUF_TOPICS:  # Foxglove's own schema, from its package
                     sid = self._writer.register_schema(schema, "protobuf", schema_data(PROTOBUF_TOPICS[topic]))
@@ -320,7 +318,7 @@ class Recorder:
         """Summary and index if the disk takes them; the file is closed either way (a file
         without its summary is still read up to its last complete chunk)."""
         try:
-            self._writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer.finish has no annotations
+            self._writer.finish()
         except (OSError, ValueError):
             pass
         try:
