@@ -291,7 +291,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             session.close()  # type: ignore[attr-defined]
         if recorder is not None:
             recorder.close()
-            print(f"omniformation: recording finished: {display_path(recorder.path)} ({recorder.ticks} ticks)", flush=True)
+            print(f"omniformation: {recorder.closing_line()}", flush=True)
     print("omniformation: stopped; all followers commanded to zero", flush=True)
     if bridge is not None and bridge.twin is not None:  # it missed its twin at start and gave way to it
         raise UserError(bridge.twin)

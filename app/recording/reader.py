@@ -32,16 +32,16 @@ from typing import Any, BinaryIO, overload
 
 import numpy as np
 import zstandard
-from mcap.records import Chunk, Metadata, Schema, Channel
+from mcap.records import Channel, Chunk, Metadata, Schema, Statistics
 from mcap.data_stream import ReadDataStream
 
 from app.live.params import Params
-from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, EVENT_TOPIC, IMAGE_TOPIC, METADATA_NAME, PARAMS_TOPIC,
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC, METADATA_NAME, PARAMS_TOPIC,
                                   TICK_TOPIC, TRIAL_TOPIC)
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
-OP_METADATA, OP_DATA_END = 0x0C, 0x0F
+OP_STATISTICS, OP_METADATA, OP_DATA_END = 0x0B, 0x0C, 0x0F
 KNOWN_OPCODES = set(range(0x01, 0x10))
 MAX_RECORD = 64 * 1024 * 1024  # no record this program writes comes near (chunks are ~256 KiB)
 CHUNKS_KEPT = 4  # decoded chunks kept for the sequences (a few MB)
@@ -64,12 +64,15 @@ class Damage:
 
 @dataclass(frozen=True)
 class Gap:
-    """Ticks missing between two that were read (by the loop's tick counter)."""
+    """Ticks missing between two that were read (by the loop's tick counter): after tick
+    ``after_tick`` (-1: from the session's start) and before ``before_tick``; ``t_from`` and
+    ``t_to`` are the session times of the ticks either side (where the loss is)."""
 
     after_tick: int
     before_tick: int
     t_from: float
     t_to: float
+    dt: float = 0.0  # the session's tick interval (s)
 
     @property
     def ticks(self) -> int:
@@ -77,7 +80,8 @@ class Gap:
 
     @property
     def seconds(self) -> float:
-        return self.t_to - self.t_from
+        """The session time the missing ticks stood for."""
+        return self.ticks * self.dt if self.dt > 0 else self.t_to - self.t_from
 
 
 class _Chunks:
@@ -177,6 +181,8 @@ class Recording:
     events: list[dict[str, Any]]
     params: list[tuple[float, dict[str, Any]]]  # (t, the full parameter set) at start and on change
     trials: list[dict[str, Any]] = field(default_factory=list)  # the step tests (app.live.tuning.Trial.payload)
+    ticks_written: int | None = None  # what the file's summary says it holds (None: no intact summary)
+    frames_written: int | None = None  # likewise for camera frames
     ticks: Sequence[dict[str, Any]] = field(repr=False, default=())
     frames: Sequence[tuple[float, bytes]] = field(repr=False, default=())  # (t, JPEG)
     _chunks: _Chunks | None = field(repr=False, default=None)
@@ -188,15 +194,42 @@ class Recording:
         k = self.tick_numbers
         if len(k) == 0:
             return []
-        lead = [Gap(-1, int(k[0]), 0.0, float(self.t[0]))] if k[0] > 0 else []
+        dt = self.tick_dt()
+        lead = [Gap(-1, int(k[0]), 0.0, float(self.t[0]), dt)] if k[0] > 0 else []
         jumps = np.nonzero(np.diff(k) > 1)[0]
-        return lead + [Gap(int(k[i]), int(k[i + 1]), float(self.t[i]), float(self.t[i + 1])) for i in jumps]
+        inner = [Gap(int(k[i]), int(k[i + 1]), float(self.t[i]), float(self.t[i + 1]), dt) for i in jumps]
+        tail = []
+        if self.ticks_written is not None:  # a finished file says how many ticks it holds: the rest is lost
+            missing = self.ticks_written - len(k) - sum(g.ticks for g in lead + inner)
+            if missing > 0:
+                tail = [Gap(int(k[-1]), int(k[-1]) + missing + 1, float(self.t[-1]), float(self.t[-1]) + (missing + 1) * dt,
+                            dt)]
+        return lead + inner + tail
+
+    def tick_dt(self) -> float:
+        """The loop's tick interval, from the ticks read (s)."""
+        steps = np.diff(self.t) / np.maximum(np.diff(self.tick_numbers), 1) if len(self.t) > 1 else np.zeros(0)
+        return float(np.median(steps)) if len(steps) else 0.0
+
+    @property
+    def lost_ticks(self) -> int:
+        return sum(g.ticks for g in self.gaps())
+
+    @property
+    def lost_s(self) -> float:
+        return float(sum(g.seconds for g in self.gaps()))
 
     def loss_note(self) -> str:
         """What could not be read, in ticks and seconds; '' for a whole, undamaged file."""
         parts = []
         for g in self.gaps():
             parts.append(f"{g.ticks} ticks ({g.seconds:.2f} s, t = {g.t_from:.2f}–{g.t_to:.2f} s) missing")
+        if parts and self.ticks_written is not None:
+            parts.insert(0, f"{self.ticks_written} ticks written, {len(self.t)} read, {self.lost_ticks} lost"
+                            f" ({self.lost_s:.2f} s)")
+        if self.frames_written is not None and self.frames_written > len(self.frame_t):
+            parts.append(f"{self.frames_written - len(self.frame_t)} of {self.frames_written} camera frames missing"
+                         " (no tick)")
         damaged = [d for d in self.damage if not d.why.startswith("cut off")]
         if damaged:
             size = sum(d.end_byte - d.start_byte for d in damaged)
@@ -206,9 +239,12 @@ class Recording:
             last = float(self.t[-1]) if len(self.t) else 0.0
             tail = self.bytes_total - max((d.start_byte for d in self.damage if d.why.startswith("cut off")),
                                           default=self.bytes_total)
+            unread = (f" the last {tail} bytes (an unfinished chunk: at most {CHUNK_SECONDS:g} s or"
+                      f" {CHUNK_BYTES // 1024} KiB of messages) could not be read, and" if tail else
+                      f" it ends after a whole chunk (the writer's unfinished one, at most {CHUNK_SECONDS:g} s, never"
+                      " reached it), and")
             parts.append(f"the file was cut off (no summary): recovered {len(self.t)} ticks up to t = {last:.2f} s;"
-                         f" the last {tail} bytes (an unfinished chunk, at most {CHUNK_BYTES // 1024} KiB of"
-                         " messages, about a second) could not be read")
+                         f"{unread} what the session did after that is not in the file")
         return f"{self.path.name}: " + "; ".join(parts) if parts else ""
 
     def close(self) -> None:
@@ -272,6 +308,7 @@ class _Scan:
         self.complete = False
         self.good_bytes = 8
         self.later: list[tuple[int, int]] = []  # (offset, length) of chunks to read once the channels are known
+        self.written: dict[int, int] = {}  # channel id -> messages written (the summary's statistics)
 
     def run(self) -> None:
         self._walk()
@@ -357,6 +394,9 @@ class _Scan:
             self._schema(body)
         elif op == OP_CHANNEL:
             self._channel(body)
+        elif op == OP_STATISTICS:  # the summary's count of messages per channel: the ticks written
+            stats = Statistics.read(ReadDataStream(io.BytesIO(body)))
+            self.written = dict(stats.channel_message_counts)
         elif op == OP_DATA_END:
             pass  # the summary that follows repeats what the data section said
 
@@ -530,6 +570,9 @@ def read_recording(path: Path) -> Recording:
         tick_numbers=np.frombuffer(scan.tick_numbers, dtype=np.int64) if len(scan.tick_numbers) else np.zeros(0, np.int64),
         frame_t=frame_t,
         events=[e for _, e in scan.events], params=params, trials=scan.trials,
+        ticks_written=next((n for cid, n in scan.written.items() if scan.topic_of.get(cid) == TICK_TOPIC), None),
+        frames_written=next((n for cid, n in scan.written.items() if scan.topic_of.get(cid) == IMAGE_TOPIC),
+                            None if not scan.written else 0),
         ticks=_Messages(chunks, ticks_at, tick), frames=_Messages(chunks, frames_at, frame), _chunks=chunks,
     )
 

@@ -392,8 +392,12 @@ def summarise(rec: Recording, sc: Scan | None = None) -> dict[str, Any]:
         "followers": sc.tally.followers(sc.dt),
         "stop_events": [{"t": round(float(e["t"]), 2), "detail": e["detail"]} for e in stops],
         "events": len(rec.events),
-        "lost_ticks": sum(g.ticks for g in rec.gaps()),
-        "lost_s": round(sum(g.seconds for g in rec.gaps()), 3),
+        "ticks_read": len(rec.t),
+        "ticks_written": rec.ticks_written,  # null: the file has no intact summary (cut off)
+        "lost_ticks": rec.lost_ticks,
+        "lost_s": round(rec.lost_s, 3),
+        "lost_where": [{"after_tick": g.after_tick, "t_from": round(g.t_from, 3), "t_to": round(g.t_to, 3),
+                        "ticks": g.ticks} for g in rec.gaps()],
         "loss": rec.loss_note(),
         "step_tests": step_tests(rec),
     }

@@ -326,6 +326,33 @@ class Recorder:
         except OSError:
             pass
 
+    def ticks_in_file(self) -> int:
+        """Ticks the file holds, whole and readable. A recording that stopped early (a full disk)
+        or gave up closing is read back, since a failed write may have left part of a chunk; else
+        every tick in a chunk written whole."""
+        if self.failure and not self._thread.is_alive():
+            from app.recording.reader import RecordingError, read_recording
+
+            try:
+                rec = read_recording(self.path)
+            except RecordingError:
+                return 0
+            try:
+                return len(rec.t)
+            finally:
+                rec.close()
+        return self._writer.messages_written.get(self._channels[TICK_TOPIC], 0)
+
+    def closing_line(self) -> str:
+        """What the service prints when the session ends: ticks the loop published, ticks in the
+        file, ticks not written, and why; they add up."""
+        in_file = self.ticks_in_file()
+        if not self.failure and in_file == self.ticks:
+            return f"recording finished: {self.path.name} ({in_file} ticks)"
+        why = f" ({self.failure})" if self.failure else f" ({self.dropped} dropped: the disk was too slow)"
+        return (f"recording {'stopped early' if self.failure else 'finished'}: {self.path.name} holds {in_file} of"
+                f" the {self.ticks} ticks it was given; {self.ticks - in_file} were not written{why}")
+
     def close(self) -> None:
         """Write what is queued, then the summary and index: a complete file. Never waits on a
         slow or dead disk longer than ``CLOSE_TIMEOUT_S``."""

@@ -13,9 +13,11 @@ import pytest
 from app.live.loop import ServiceLoop
 from app.live.params import Params, ParamsStore
 from app.recording.reader import RecordingError, read_recording
-from app.recording.schema import CHUNK_BYTES, tick_from_payload, tick_payload
+from app.recording.schema import tick_from_payload, tick_payload
 from app.recording.writer import Recorder
 from tests.helpers import main_cli, run_cli, serve_then_signal
+
+from pathlib import Path
 
 from tests.helpers import ROOT
 from tests.helpers import SAMPLES
@@ -108,29 +110,78 @@ def test_foxglove_channels_carry_foxgloves_own_schemas_and_decode_from_the_file_
     assert len(back.frames) >= 3 and back.frames[0][1][:2] == b"\xff\xd8"  # replay reads them
 
 
-def test_a_recorder_killed_with_sigkill_still_replays_up_to_its_last_chunk(tmp_path):
-    path = tmp_path / "killed.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
-                             "--record", str(path)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+# The service as `run` starts it, its loop's tick() made to print each tick's session time as it
+# ends (stdout, flushed): the parent then knows what the session had done when it killed it.
+_TICKING_RUN = """
+import sys
+from app.live import loop
+tick = loop.ServiceLoop.tick
+def printing(self):
+    s = tick(self)
+    print(f"tick {s.tick} {s.t:.4f}", flush=True)
+    return s
+loop.ServiceLoop.tick = printing
+from app.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def _killed_at(tmp_path: Path, feedback: str, seconds: float) -> tuple[float, float]:
+    """(session time of the last tick the loop ran, of the last tick the file holds) after a
+    SIGKILL ``seconds`` of session time into `run --record`."""
+    path = tmp_path / f"killed-{feedback}-{seconds:g}.mcap"
+    proc = subprocess.Popen([sys.executable, "-c", _TICKING_RUN, "run", "--port", "0", "--feedback", feedback,
+                             "--record", str(path)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    last = -1.0
     try:
-        end = time.monotonic() + 60
-        while time.monotonic() < end and (not path.exists() or path.stat().st_size < 3 * CHUNK_BYTES // 8):
-            time.sleep(0.2)
-        assert path.exists() and path.stat().st_size > 0, proc.stderr.read1().decode() if proc.poll() else ""
+        assert proc.stdout is not None
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            if line.startswith("tick "):
+                last = float(line.split()[2])
+                if last >= seconds:
+                    break
     finally:
         proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
+        rest, err = proc.communicate(timeout=30)
+    for line in rest.splitlines():  # what it printed before it died: ticks that ran
+        if line.startswith("tick "):
+            last = float(line.split()[2])
+    assert last >= seconds, err[-2000:]
     rec = read_recording(path)
-    assert not rec.complete
-    assert len(rec.ticks) >= 30
-    assert "cut off" in rec.loss_note() and f"at most {CHUNK_BYTES // 1024} KiB" in rec.loss_note()
-    ts = rec.t
-    assert np.all(np.diff(ts) > 0)
+    assert not rec.complete and "cut off" in rec.loss_note()
+    assert np.all(np.diff(rec.t) > 0) and rec.lost_ticks == 0 and rec.tick_numbers[0] == 0
+    return last, float(rec.t[-1])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("feedback", ["truth", "vision"])
+def test_a_session_killed_at_any_moment_keeps_all_but_its_last_second_and_a_half(tmp_path, feedback):
+    """SIGKILL at 2, 5, 7 and 11 s of session: the file holds every tick up to at most 1.5 s
+    before the last one the loop ran (every chunk is flushed to the OS as it closes, at 1 s)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    times = (2.0, 5.0, 7.0, 11.0)
+    with ThreadPoolExecutor(len(times)) as pool:  # four services at once: each is judged by its own session time
+        results = list(pool.map(lambda sec: _killed_at(tmp_path, feedback, sec), times))
+    for ran, kept in results:
+        print(f"\n{feedback}: killed at t = {ran:.2f} s, the file holds up to t = {kept:.2f} s"
+              f" (lost {ran - kept:.2f} s)")
+        assert ran - kept <= 1.5
+
+
+def test_a_killed_recording_is_reported_as_cut_off(tmp_path):
+    _killed_at(tmp_path, "truth", 2.0)
+    path = next(tmp_path.glob("killed-*.mcap"))
     out = run_cli("report", str(path), "--out", str(tmp_path / "rep"))
     assert out.returncode == 0, out.stderr
     assert "cut off" in out.stderr
     summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
-    assert summary["complete"] is False
+    assert summary["complete"] is False and summary["ticks_written"] is None
 
 
 def test_sigterm_finishes_the_file(tmp_path):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -126,7 +127,13 @@ def test_run_on_a_full_disk_keeps_serving_says_so_and_exits_0_on_sigterm(tmp_pat
                 proc.wait(10)
         assert proc.returncode == 0, err
         assert "Traceback" not in err and "all followers commanded to zero" in out
-        assert len(read_recording(disk / "s.mcap").ticks) > 0
+        rec = read_recording(disk / "s.mcap")
+        assert len(rec.ticks) > 0
+        said = re.search(r"holds (\d+) of the (\d+) ticks it was given; (\d+) were not written \(writing failed", out)
+        assert said, out
+        held, given, missing = (int(x) for x in said.groups())
+        assert held == len(rec.ticks) and held + missing == given  # the closing line's counts are the file's
+        assert rec.tick_numbers[0] == 0 and rec.lost_ticks == 0  # what the file holds, it holds whole
 
 
 def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the_samples(tmp_path):
@@ -202,22 +209,60 @@ def _flip(src: Path, dst: Path, at: float, width: int = 1) -> int:
     return k
 
 
-@pytest.mark.parametrize("at", [0.02, 0.10, 0.30, 0.55, 0.93])  # the first chunk too: its channels are known elsewhere
-def test_a_flipped_byte_skips_one_chunk_and_says_exactly_what_was_lost(tmp_path, at):
-    whole = read_recording(SAMPLE)
-    bad = tmp_path / "flipped.mcap"
-    _flip(SAMPLE, bad, at)
-    rec = read_recording(bad)
-    assert rec.complete and len(rec.damage) == 1 and rec.bytes_read >= rec.bytes_total - _one_chunk_of_bytes(SAMPLE)
-    lost = len(whole.ticks) - len(rec.ticks)
-    assert 0 < lost <= _one_chunk_of_ticks(SAMPLE) < 0.5 * len(whole.ticks)  # one chunk's worth, not the rest
-    gaps = rec.gaps()
-    assert sum(g.ticks for g in gaps) == lost  # every missing tick is accounted for
-    assert set(rec.tick_numbers) < set(whole.tick_numbers)
-    assert len(rec.gaps()) == 1 and (rec.gaps()[0].after_tick == -1) == (at < 0.15)  # the first chunk: a lead gap
-    note = rec.loss_note()
-    assert f"{lost} ticks (" in note and "1 damaged stretch of the file" in note
-    assert rec.ticks[-1] == whole.ticks[-1]  # read on past the damage to the end
+SAMPLE_FILES = sorted((ROOT / "recordings" / "samples").glob("*.mcap"))
+
+
+def _true_loss(whole, rec) -> int:
+    return len(set(whole.tick_numbers.tolist()) - set(rec.tick_numbers.tolist()))
+
+
+@pytest.mark.parametrize("sample", SAMPLE_FILES, ids=lambda p: p.stem)
+def test_one_flipped_byte_anywhere_costs_at_most_a_second_and_a_half_and_the_loss_is_said_exactly(tmp_path, sample):
+    """The issue's table: one byte flipped at 2 %, 10 %, 50 %, 90 % of each sample. Every file
+    reads, the loss is at most 1.5 s of ticks, and what the reader and the report say was lost is
+    what was lost (the ticks the whole file has and the damaged one has not)."""
+    from app.recording.report import summarise
+
+    whole = read_recording(sample)
+    dt = whole.tick_dt()
+    for at in (0.02, 0.10, 0.50, 0.90):
+        bad = tmp_path / f"flip-{at}.mcap"
+        _flip(sample, bad, at)
+        rec = read_recording(bad)
+        lost = _true_loss(whole, rec)
+        print(f"\n{sample.name} flipped at {at:.0%}: {lost} ticks lost ({lost * dt:.2f} s), {len(rec.frames)} of"
+              f" {len(whole.frames)} frames read")
+        assert rec.complete and rec.ticks_written == len(whole.ticks)
+        assert lost * dt <= 1.5
+        assert rec.lost_ticks == lost and len(rec.ticks) + rec.lost_ticks == rec.ticks_written
+        assert rec.ticks[-1] == whole.ticks[-1]  # read on past the damage to the end
+        if lost:
+            assert f"{lost} ticks (" in rec.loss_note()
+        if at == 0.10:
+            summary = summarise(rec)
+            assert summary["lost_ticks"] == lost and summary["ticks_read"] + lost == summary["ticks_written"]
+
+
+@pytest.mark.parametrize("sample", SAMPLE_FILES, ids=lambda p: p.stem)
+def test_a_file_cut_at_60_percent_keeps_all_but_its_last_second_and_a_half(tmp_path, sample):
+    """Cut at 60 % of its bytes (a killed writer, a pulled disk): every tick in a chunk that ended
+    before the cut is read, and the ticks lost before the cut's moment are at most 1.5 s."""
+    whole = read_recording(sample)
+    data = sample.read_bytes()
+    at = int(len(data) * 0.6)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:at])
+    rec = read_recording(cut)
+    assert not rec.complete
+    scan = _scan(sample)
+    chunk_of = np.frombuffer(scan.index["/omniformation/tick"][1], dtype=np.int64)
+    started = np.array([pos < at for pos, _ in scan.places])
+    t_by_then = float(whole.t[started[chunk_of]].max())  # the newest tick the session had sent to the file by then
+    print(f"\n{sample.name} cut at 60 %: read up to t = {rec.t[-1]:.2f} s of {t_by_then:.2f} s")
+    assert t_by_then - float(rec.t[-1]) <= 1.5
+    assert rec.lost_ticks == 0 and np.array_equal(rec.tick_numbers, whole.tick_numbers[:len(rec.ticks)])
+    tail = rec.bytes_total - rec.damage[-1].start_byte
+    assert f"the last {tail} bytes (an unfinished chunk" in rec.loss_note()
 
 
 def test_damage_to_a_chunk_length_field_is_stepped_over(tmp_path):
@@ -228,33 +273,26 @@ def test_damage_to_a_chunk_length_field_is_stepped_over(tmp_path):
         f.read(8)
         scan = _Scan(f, size)
         scan.run()
-    pos, _ = scan.places[len(scan.places) // 2]
+    ticks_in = np.frombuffer(scan.index["/omniformation/tick"][1], dtype=np.int64)
+    pos, _ = scan.places[int(ticks_in[len(ticks_in) // 2])]  # a chunk of ticks in the middle
     data = bytearray(SAMPLE.read_bytes())
     data[pos + 5] ^= 0x40  # the chunk record's length: now it claims terabytes
     bad = tmp_path / "length.mcap"
     bad.write_bytes(bytes(data))
     rec = read_recording(bad)
     whole = read_recording(SAMPLE)
-    assert len(rec.damage) == 1 and 0 < len(whole.ticks) - len(rec.ticks) <= _one_chunk_of_ticks(SAMPLE)
-    assert sum(g.ticks for g in rec.gaps()) == len(whole.ticks) - len(rec.ticks)
-
-
-def test_a_cut_off_file_says_how_many_bytes_were_not_read(tmp_path):
-    data = SAMPLE.read_bytes()
-    cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: int(len(data) * 0.6)])
-    rec = read_recording(cut)
-    assert not rec.complete
-    tail = rec.bytes_total - rec.damage[-1].start_byte
-    assert 0 < tail <= _one_chunk_of_bytes(SAMPLE)
-    assert f"the last {tail} bytes (an unfinished chunk" in rec.loss_note()
+    assert len(rec.damage) == 1 and 0 < len(whole.ticks) - len(rec.ticks) <= _one_chunk_of_ticks(SAMPLE) <= 31
+    assert rec.lost_ticks == len(whole.ticks) - len(rec.ticks)
 
 
 def test_report_on_a_damaged_file_says_what_was_lost_and_writes_the_figures(tmp_path):
     from tests.helpers import main_cli
 
+    scan = _scan(SAMPLE)
+    ticks_in = np.frombuffer(scan.index["/omniformation/tick"][1], dtype=np.int64)
+    pos, length = scan.places[int(ticks_in[len(ticks_in) // 3])]  # a chunk of ticks
     bad = tmp_path / "flipped.mcap"
-    _flip(SAMPLE, bad, 0.30)
+    _flip(SAMPLE, bad, (pos + length // 2) / SAMPLE.stat().st_size)
     res = main_cli("report", str(bad), "--out", str(tmp_path / "rep"))
     assert res.returncode == 0, res.stderr
     assert "ticks (" in res.stderr and "damaged stretch" in res.stderr
@@ -263,9 +301,9 @@ def test_report_on_a_damaged_file_says_what_was_lost_and_writes_the_figures(tmp_
 
 
 def test_a_cut_off_session_with_its_first_chunk_damaged_is_read_from_the_metadata_channel_table(tmp_path):
-    """No summary (killed) and the chunk that announced the channels damaged: the channel table
-    the writer put in its metadata (twice, before the first chunk) names them; each copy of the
-    metadata alone is enough."""
+    """No summary (killed) and the first chunk damaged: the rest is read (every chunk names its
+    channels, and the metadata has the channel table too), the first ticks are a gap from the
+    session's start, and each copy of the metadata alone is enough."""
     from app.recording.schema import TICK_TOPIC
 
     path = tmp_path / "s.mcap"
