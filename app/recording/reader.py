@@ -36,7 +36,8 @@ from mcap.records import Channel, Chunk, Metadata, Schema, Statistics
 from mcap.data_stream import ReadDataStream
 
 from app.live.params import Params
-from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC, METADATA_NAME, PARAMS_TOPIC,
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC,
+                                  METADATA_CRC_KEY, METADATA_NAME, PARAMS_TOPIC,
                                   TICK_TOPIC, TRIAL_TOPIC)
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -252,6 +253,17 @@ class Recording:
             self._chunks.close()
 
 
+def metadata_crc(record: dict[str, str]) -> str:
+    """The CRC the writer puts in its metadata record (MCAP gives metadata none of its own)."""
+    text = json.dumps({k: v for k, v in record.items() if k != METADATA_CRC_KEY}, sort_keys=True)
+    return f"{zlib.crc32(text.encode('utf-8', 'surrogatepass')):08x}"
+
+
+def metadata_checks_out(record: dict[str, str]) -> bool:
+    """A copy whose CRC matches (older recordings carry none: taken as they are)."""
+    return METADATA_CRC_KEY not in record or record[METADATA_CRC_KEY] == metadata_crc(record)
+
+
 class _Unannounced(ValueError):
     """A chunk's message names a channel not announced so far."""
 
@@ -375,8 +387,23 @@ class _Scan:
             self.good_bytes += 9 + length
             if op == OP_FOOTER:
                 self.complete = self._ends_with_magic(end)
+                if not self._summary_checks_out(pos, body):
+                    self.written = {}  # a damaged summary's counts are no count
                 return
             pos = end
+
+    def _summary_checks_out(self, footer_at: int, body: bytes) -> bool:
+        """The summary section's CRC (in the footer) matches its bytes; a footer without one (0)
+        cannot say, and is taken as it is."""
+        summary_start, summary_offset_start, crc = struct.unpack_from("<QQI", body)
+        if crc == 0:
+            return True
+        if not 0 < summary_start <= footer_at:
+            return False
+        self.f.seek(summary_start)
+        summary = self.f.read(footer_at - summary_start)
+        return bool(zlib.crc32(struct.pack("<BQQQ", OP_FOOTER, 20, summary_start, summary_offset_start),
+                               zlib.crc32(summary)) == crc)
 
     def _ends_with_magic(self, end: int) -> bool:
         self.f.seek(end)
@@ -387,8 +414,9 @@ class _Scan:
             self._take_chunk(body)
         elif op == OP_METADATA:
             md = Metadata.read(ReadDataStream(io.BytesIO(body)))
-            if md.name == METADATA_NAME and not self.metadata:  # the first intact copy
+            if md.name == METADATA_NAME and not self.metadata and metadata_checks_out(md.metadata):  # the first intact copy
                 self.metadata = dict(md.metadata)
+                self.metadata.pop(METADATA_CRC_KEY, None)
                 self._channel_table(self.metadata.pop(CHANNELS_KEY, ""))
         elif op == OP_SCHEMA:
             self._schema(body)
@@ -416,7 +444,11 @@ class _Scan:
         self.schema_name[s.id] = s.name
 
     def _channel(self, body: bytes) -> None:
+        """A channel record; the first that named an id wins (a file never renames one, and the
+        summary's copies, read last, have no CRC of their own)."""
         c = Channel.read(ReadDataStream(io.BytesIO(body)))
+        if c.id in self.topic_of:
+            return
         self.topic_of[c.id] = c.topic
         self.channels[c.topic] = self.schema_name.get(c.schema_id, "")
         self.encoding[c.topic] = c.message_encoding
@@ -523,7 +555,8 @@ def read_recording(path: Path) -> Recording:
         raise RecordingError(f"{path}: no such recording")
     with open(path, "rb") as f:
         size = os.fstat(f.fileno()).st_size
-        if f.read(8) != MAGIC:
+        head = f.read(8)
+        if len(head) < 8 or sum(a != b for a, b in zip(head, MAGIC)) > 2:  # a damaged byte or two is still ours
             raise RecordingError(f"{path.name}: not an MCAP file")
         scan = _Scan(f, size)
         scan.run()

@@ -54,6 +54,7 @@ CHUNK_SECONDS = 1.0  # a chunk closes after this much session time (or CHUNK_BYT
 METADATA_NAME = "omniformation"  # the metadata record that marks a file as one of ours
 METADATA_COPIES = 2  # it is written twice, before the first chunk
 CHANNELS_KEY = "channels"  # in it: the channel table, {"id": [topic, encoding, schema]} (JSON)
+METADATA_CRC_KEY = "crc"  # and a CRC of the rest (app.recording.reader.metadata_crc): a damaged copy is known
 TICK_TOPIC = "/omniformation/tick"
 TF_TOPIC = "/tf"
 IMAGE_TOPIC = "/camera/image"

@@ -36,9 +36,10 @@ from core.types import Image
 from app.live.tick import TickState
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
 from app.recording.mcap_out import SessionWriter
-from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC, METADATA_COPIES,
-                                  METADATA_NAME, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS, TF_TOPIC, TICK_TOPIC,
-                                  TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
+from app.recording.reader import metadata_crc
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC,
+                                  METADATA_COPIES, METADATA_CRC_KEY, METADATA_NAME, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC,
+                                  SCHEMAS, TF_TOPIC, TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
                                   params_payload, scan_payload, tick_payload, transforms_payload)
 
 DEFAULT_FRAME_RATE_HZ = 10.0
@@ -183,6 +184,7 @@ class Recorder:
             # first chunk (where MCAP puts the schema and channel records) or one damaged copy of
             # this record still leaves every other chunk readable (app.recording.reader)
             record = {**metadata, "start_ns": str(self.start_ns), CHANNELS_KEY: channel_table(self._channels)}
+            record[METADATA_CRC_KEY] = metadata_crc(record)
             for _ in range(METADATA_COPIES):
                 self._writer.add_metadata(METADATA_NAME, record)
         except OSError as exc:
