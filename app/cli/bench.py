@@ -272,6 +272,7 @@ def bench_long_recording(minutes: float, print_fn: Callable[[str], None] = print
     ticks, took = write_long_recording(path, minutes)
     size = path.stat().st_size
     print_fn(f"  {ticks} ticks, {size / 1e6:.0f} MB in {took:.0f} s")
+    damage_table(path, minutes, print_fn)
     t0 = _time.monotonic()
     proc = subprocess.run([sys.executable, "-m", "app.cli", "report", str(path), "--out", str(folder / "report")],
                           capture_output=True, text=True)
@@ -296,6 +297,60 @@ def bench_long_recording(minutes: float, print_fn: Callable[[str], None] = print
     shutil.rmtree(folder, ignore_errors=True)
     return {"report_s": report_s, "report_peak_mb": peak_mb, "replay_first_s": probe["first_s"],
             "replay_seek_max_s": probe["seek_max_s"], "replay_peak_mb": probe["peak_mb"]}
+
+
+def damage_table(path: Any, minutes: float, print_fn: Callable[[str], None] = print,
+                 flip_counts: tuple[int, ...] = (10, 100), seed: int = 7) -> list[dict[str, float]]:
+    """Random bytes of a long recording flipped (10, then 100): per file, the chunks damaged, the
+    ticks and frames lost (said by the reader, and checked against the whole file), whether the
+    loss stays within one second per damaged chunk, and whether replay opens it. Also the
+    writer's chunk count per hour (each costs it 48 bytes of memory until the file closes)."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from app.recording.reader import _Scan, read_recording
+
+    whole = read_recording(Path(path))
+    size = Path(path).stat().st_size
+    with open(path, "rb") as f:
+        f.read(8)
+        scan = _Scan(f, size)
+        scan.run()
+    chunks = len(scan.places)
+    print_fn(f"writer: {chunks} chunks in {minutes:g} min ({chunks * 60 / minutes:.0f} an hour: its chunk index"
+             f" holds {chunks * 60 / minutes * 48 / 1e3:.0f} KB an hour until the file closes)")
+    all_ticks = set(whole.tick_numbers.tolist())
+    dt = whole.tick_dt()
+    rows = []
+    rng = np.random.default_rng(seed)
+    for count in flip_counts:
+        bad = Path(path).with_name(f"flipped-{count}.mcap")
+        shutil.copyfile(path, bad)
+        with open(bad, "r+b") as f:
+            for at in rng.integers(8, size, count):
+                f.seek(int(at))
+                byte = f.read(1)
+                f.seek(int(at))
+                f.write(bytes([byte[0] ^ int(rng.integers(1, 256))]))
+        rec = read_recording(bad)
+        lost = len(all_ticks - set(rec.tick_numbers.tolist()))
+        damaged = sum(1 for d in rec.damage if not d.why.startswith("cut off"))
+        frames_lost = len(whole.frame_t) - len(rec.frame_t)
+        probe = subprocess.run([sys.executable, "-c", "import sys; from app.cli.bench import replay_probe;"
+                                " replay_probe(sys.argv[1], 5)", str(bad)], capture_output=True, text=True)
+        row = {"flips": count, "damaged_chunks": damaged, "lost_ticks": lost, "lost_s": lost * dt,
+               "said_ticks": rec.lost_ticks, "frames_lost": frames_lost, "replay_opens": probe.returncode == 0}
+        rows.append(row)
+        print_fn(f"damage: {count} random flips: {damaged} damaged chunks; {lost} ticks lost ({lost * dt:.2f} s; the"
+                 f" reader says {rec.lost_ticks}, {rec.lost_s:.2f} s), {frames_lost} of {len(whole.frame_t)} frames"
+                 f" lost; within 1 s per damaged chunk: {'yes' if lost * dt <= damaged * 1.0 + 1e-6 else 'NO'};"
+                 f" replay opens it: {'yes' if probe.returncode == 0 else 'NO: ' + probe.stderr.strip()[-200:]}")
+        rec.close()
+        bad.unlink()
+    whole.close()
+    return rows
 
 
 def replay_probe(path: str, seeks: int = 100) -> None:

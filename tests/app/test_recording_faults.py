@@ -399,3 +399,18 @@ def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small
         rec.close()
 
     check()
+
+
+def test_the_benchs_damage_table_counts_what_it_flipped_and_replay_opens_the_files(small_recording, tmp_path):
+    """bench --long-recording's damage table on a short recording: the reader's count is the
+    true count, within a second per damaged chunk, and replay (a fresh process) opens the file."""
+    from app.cli.bench import damage_table
+
+    copy = tmp_path / "long.mcap"
+    shutil.copyfile(small_recording, copy)
+    lines: list[str] = []
+    rows = damage_table(copy, 0.3, lines.append, flip_counts=(10,))
+    assert lines[0].startswith("writer: ") and "damage: 10 random flips" in lines[1]
+    (row,) = rows
+    assert row["said_ticks"] == row["lost_ticks"] and row["replay_opens"]
+    assert row["lost_s"] <= row["damaged_chunks"] * 1.0 + 1e-6
