@@ -44,6 +44,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     cal.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     cal.add_argument("--save-table", type=Path, help="also write the matching table used (CSV)")
     cal.add_argument("--seed", type=seed, default=0, help="noise seed for --synthetic (default 0)")
+    cal.add_argument("--propose-centre", type=Path, metavar="IMAGE",
+                     help="find the mirror's rim in a picture (from its edges) and print {\"cx\", \"cy\", \"r\"} in"
+                          " pixels as one JSON line; what the page's Propose from image does")
     cal.add_argument("--page", action="store_true", help="serve the calibration page: a live camera (--camera) or"
                                                          " the synthetic rig (--synthetic), a guided table, Save")
     cal.add_argument("--camera", metavar="SOURCE", help="--page: a camera index, device, video file or folder")
@@ -112,6 +115,26 @@ def _report(fit: "GammaFit") -> None:
         print(f"{s.bearing_deg:6.1f}  {s.points:7d}  {s.rms_cm:8.2f} cm  {s.max_cm:5.2f} cm  {s.bearing_correction_deg:+7.2f} deg")
 
 
+def _propose_centre(args: argparse.Namespace) -> int:
+    """`calibrate --propose-centre IMAGE`: the mirror's rim as one JSON line (core.camera.guide)."""
+    import json
+
+    from core.camera.guide import find_mirror_rim
+
+    others = [flag for flag, value in (("TABLE", args.table), ("--synthetic", args.synthetic), ("--out", args.out),
+                                       ("--page", args.page or None), ("--camera", args.camera)) if value is not None]
+    if others:
+        raise UserError(f"--propose-centre takes one picture and nothing else (not {', '.join(others)})")
+    image = read_image(args.propose_centre)
+    rim = find_mirror_rim(image)
+    if rim is None:
+        h, w = image.shape[:2]
+        raise UserError(f"{display_path(args.propose_centre)}: no mirror rim found in this {w}x{h} picture (no circle"
+                        " with an edge along most of its visible arc); set the centre by hand on the calibration page")
+    print(json.dumps({"cx": round(rim.cx, 2), "cy": round(rim.cy, 2), "r": round(rim.radius, 2)}))
+    return 0
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -119,6 +142,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from core.camera.gamma import CalibrationError, fit_gamma
     from core.camera.synthetic import synthetic_table
 
+    if args.propose_centre is not None:
+        return _propose_centre(args)
     if args.page:
         return _calibration_page(args)
     if args.camera is not None or args.tilt is not None or args.off_centre is not None:

@@ -2,7 +2,7 @@
 
 The live camera (a device, a video, a folder, or the synthetic rig) is shown with the
 mirror's centre and the working area drawn on it. "Propose from image" finds the mirror's
-circle (core.camera.guide.fit_mirror_circle); the centre and the working area's radii stay
+circle (core.camera.guide.find_mirror_rim: from its edges); the centre and the working area's radii stay
 adjustable by dragging their sliders. How the camera is turned and mirrored is read from
 the markers (core.camera.quality.detect_mounting). The guide names the next marker's bearing and distance
 (4 bearings x 6 distances); the operator puts a marker there, confirms or corrects the
@@ -29,7 +29,7 @@ import viser
 
 from core.camera.config import DetectSettings, WorkingArea, gamma_toml
 from core.camera.gamma import CalibrationError, GammaFit, MatchingTable, estimate_center, fit_gamma
-from core.camera.guide import fit_mirror_circle, find_marker, guide_targets, next_target
+from core.camera.guide import find_marker, find_mirror_rim, guide_targets, next_target
 from core.camera.quality import HeldOut, coverage_warnings, detect_mounting, held_out_error
 
 from app.contracts import FrameSource
@@ -94,7 +94,7 @@ class CalibrationPanel:
         frame = self.source.latest()[0]
         if frame is None:
             return self._say("no picture from the camera yet")
-        c = fit_mirror_circle(frame)
+        c = find_mirror_rim(frame)
         if c is None:
             return self._say("no mirror circle found in the picture: set the centre and radii by hand")
         assign(self.cx, round(c.cx, 1))
