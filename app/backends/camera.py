@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,8 @@ os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 
 import cv2  # noqa: E402
 import numpy as np
+
+from core.camera.config import CaptureSettings
 
 from app.contracts import FrameSource
 
@@ -80,22 +83,104 @@ def _as_bgr(img: np.ndarray) -> np.ndarray:
     return img
 
 
+# OpenCV's V4L2 backend takes 1 for manual exposure; older ones took 0.25 (what each backend
+# accepts differs: the value is read back and the page shows what the camera took)
+MANUAL_EXPOSURE = (1.0, 0.25)
+
+
+def apply_capture_settings(cap: Any, settings: CaptureSettings) -> dict[str, tuple[Any, Any]]:
+    """Set a freshly opened ``cv2.VideoCapture`` as ``settings`` say (format and size first: a
+    driver may reset the rest when they change; then frame rate, queue, exposure, gain, white
+    balance) and read each back: {name: (asked, got)}. A camera that refuses one keeps going;
+    the report shows it."""
+    report: dict[str, tuple[Any, Any]] = {}
+
+    def put(name: str, prop: int, value: float, shown: Any = None) -> None:
+        cap.set(prop, float(value))
+        report[name] = (value if shown is None else shown, cap.get(prop))
+
+    if settings.pixel_format is not None:
+        cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter.fourcc(*settings.pixel_format)))
+        got = int(cap.get(cv2.CAP_PROP_FOURCC))
+        report["pixel_format"] = (settings.pixel_format,
+                                  "".join(chr((got >> (8 * k)) & 0xFF) for k in range(4)) if got > 0 else "?")
+    if settings.width is not None:
+        put("width", cv2.CAP_PROP_FRAME_WIDTH, settings.width)
+    if settings.height is not None:
+        put("height", cv2.CAP_PROP_FRAME_HEIGHT, settings.height)
+    if settings.fps is not None:
+        put("fps", cv2.CAP_PROP_FPS, settings.fps)
+    if settings.buffer_size is not None:
+        put("buffer_size", cv2.CAP_PROP_BUFFERSIZE, settings.buffer_size)
+    if settings.exposure is not None:
+        for manual in MANUAL_EXPOSURE:
+            cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, manual)
+            if cap.get(cv2.CAP_PROP_AUTO_EXPOSURE) == manual:
+                break
+        report["auto_exposure"] = ("off", "off" if cap.get(cv2.CAP_PROP_AUTO_EXPOSURE) in MANUAL_EXPOSURE else
+                                   f"{cap.get(cv2.CAP_PROP_AUTO_EXPOSURE):g}")
+        put("exposure", cv2.CAP_PROP_EXPOSURE, settings.exposure)
+    if settings.gain is not None:
+        put("gain", cv2.CAP_PROP_GAIN, settings.gain)
+    if settings.white_balance_k is not None:
+        cap.set(cv2.CAP_PROP_AUTO_WB, 0.0)
+        report["auto_white_balance"] = ("off", "off" if cap.get(cv2.CAP_PROP_AUTO_WB) == 0.0 else
+                                        f"{cap.get(cv2.CAP_PROP_AUTO_WB):g}")
+        put("white_balance_k", cv2.CAP_PROP_WB_TEMPERATURE, settings.white_balance_k)
+    return report
+
+
+def settings_text(report: dict[str, tuple[Any, Any]], settings: CaptureSettings | None) -> str:
+    """One line for the page: each setting asked -> got, a mismatch marked, what is not locked."""
+    if settings is None:
+        return "camera settings: none locked (no [capture] table: exposure and white balance may float)"
+
+    def shown(v: Any) -> str:
+        return f"{v:g}" if isinstance(v, float) else str(v)
+
+    parts = []
+    for name, (asked, got) in report.items():
+        same = (isinstance(asked, (int, float)) and isinstance(got, (int, float)) and abs(float(asked) - float(got))
+                <= 1e-6 * max(1.0, abs(float(asked)))) or asked == got
+        parts.append(f"{name} {shown(asked)}" + ("" if same else f" (got {shown(got)})"))
+    loose = [n for n, v in (("exposure", settings.exposure), ("white balance", settings.white_balance_k)) if v is None]
+    return "camera settings: " + ", ".join(parts) + (f"; not locked: {', '.join(loose)}" if loose else "")
+
+
 class CaptureSource(_Threaded):
     """``cv2.VideoCapture`` on a camera (index or device path) or a video file.
 
     A camera is read as fast as it delivers and reopened (0.5 s doubling to 4 s) when it
-    stops; a file is paced at its own frame rate (or ``fps``) and ends with "end of file"."""
+    stops; a file is paced at its own frame rate (or ``fps``) and ends with "end of file".
+    A camera is set as ``settings`` say every time it opens, before its first frame is taken
+    (so before the pipeline learns its background), and what it took is read back
+    (``settings_report``, ``settings_line``)."""
 
-    def __init__(self, target: int | str, is_file: bool, fps: float | None = None) -> None:
+    def __init__(self, target: int | str, is_file: bool, fps: float | None = None,
+                 settings: CaptureSettings | None = None, opener: Callable[[int | str], Any] | None = None) -> None:
         super().__init__(str(target))
         self.target, self.is_file, self.fps = target, is_file, fps
+        self.settings = None if is_file else settings
+        self._opener = opener or cv2.VideoCapture
+        self.settings_report: dict[str, tuple[Any, Any]] = {}
         self.start()
 
-    def _open(self) -> cv2.VideoCapture | None:
-        cap = cv2.VideoCapture(self.target)
+    @property
+    def settings_line(self) -> str:
+        if self.is_file:
+            return ""
+        with self._lock:
+            return settings_text(dict(self.settings_report), self.settings)
+
+    def _open(self) -> Any:
+        cap = self._opener(self.target)
         if not cap.isOpened():
             cap.release()
             return None
+        if self.settings is not None:
+            report = apply_capture_settings(cap, self.settings)
+            with self._lock:
+                self.settings_report = report
         return cap
 
     def _run(self) -> None:
@@ -164,17 +249,18 @@ class FolderSource(_Threaded):
                 return
 
 
-def open_frame_source(spec: str, fps: float | None = None) -> FrameSource:
-    """``0`` (a camera index), a device path, a video file or a folder of images.
+def open_frame_source(spec: str, fps: float | None = None, settings: CaptureSettings | None = None) -> FrameSource:
+    """``0`` (a camera index), a device path, a video file or a folder of images; a camera is set
+    as ``settings`` say (the camera file's ``[capture]``).
 
     ValueError with one line naming what was given and what is allowed."""
     if spec.isdigit():
-        return CaptureSource(int(spec), is_file=False)
+        return CaptureSource(int(spec), is_file=False, settings=settings)
     path = Path(spec)
     if path.is_dir():
         return FolderSource(path, fps or 30.0)
     if spec.startswith("/dev/"):
-        return CaptureSource(spec, is_file=False)
+        return CaptureSource(spec, is_file=False, settings=settings)
     if path.is_file():
         probe = cv2.VideoCapture(spec)
         try:

@@ -159,7 +159,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from app.backends.camera import open_frame_source
 
         try:
-            frames = open_frame_source(args.camera, args.camera_fps)
+            frames = open_frame_source(args.camera, args.camera_fps, settings=camera[0].capture if camera else None)
         except ValueError as exc:
             raise UserError(str(exc)) from None
     session = arena_team = token = None

@@ -127,6 +127,9 @@ class VisionFeedback:
         else:
             frame, t_frame, count = self.source.latest()
             camera_state = self.source.state
+            settings = getattr(self.source, "settings_line", "")  # asked and got (app.backends.camera)
+            if settings:
+                camera_state = f"{camera_state} · {settings}"
             age = self.clock() - t_frame
             if frame is None or age > STALE_FRAME_S:
                 why = "no frame yet" if frame is None else f"no fresh frame for {age:.1f} s"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import re
+import json
 import shlex
 import sys
 from pathlib import Path
@@ -37,6 +38,8 @@ def session_metadata(scenario_name: str, scenario_path: str | None, camera: Rig 
         from core.camera.config import gamma_toml
 
         meta["calibration_toml"] = gamma_toml(gamma, wa, rig.detect, header=f"the calibration recorded with {rig.source}")
+        if rig.capture is not None:  # what the camera was asked to be set to; each tick's camera_state says what it took
+            meta["capture_asked"] = json.dumps(rig.capture.asked())
     return meta
 
 

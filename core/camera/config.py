@@ -93,6 +93,27 @@ class CalibrationPlan:
 
 
 @dataclass(frozen=True)
+class CaptureSettings:
+    """What a real camera is set to when it opens (``[capture]``): nothing the tracker depends on
+    is left to float. Automatic exposure and white balance move the hues and brightness the
+    tracker and the background model learnt; a driver's frame queue hands the loop old frames.
+    A key left out is left as the camera has it (the page then says "not locked")."""
+
+    width: int | None = None
+    height: int | None = None
+    fps: float | None = None
+    pixel_format: str | None = None  # FOURCC, e.g. "MJPG" or "YUYV"
+    exposure: float | None = None  # manual exposure, in the driver's units (V4L2: 100 µs); auto exposure off
+    gain: float | None = None
+    white_balance_k: float | None = None  # manual white balance (kelvin); auto white balance off
+    buffer_size: int | None = 1  # frames the driver may queue: 1, the newest
+
+    def asked(self) -> dict[str, float | str]:
+        """The settings given, by name (what the page and the recording show as "asked")."""
+        return {k: v for k, v in self.__dict__.items() if v is not None}
+
+
+@dataclass(frozen=True)
 class CameraConfig:
     source: str
     working_area: WorkingArea
@@ -101,6 +122,7 @@ class CameraConfig:
     render: RenderSettings = RenderSettings()
     calibration: CalibrationPlan = CalibrationPlan()
     gamma: Gamma | None = None
+    capture: CaptureSettings | None = None  # a real camera's settings ([capture]); None: as the camera has them
 
     @property
     def center(self) -> tuple[float, float]:
@@ -255,8 +277,34 @@ def parse_camera(text: str, source: str) -> CameraConfig:
     ct.finish()
     gamma = _parse_gamma(top.table("gamma", optional=False)) if top.has("gamma") else None
     top.used.add("gamma")
+    capture = _parse_capture(top.table("capture", optional=False)) if top.has("capture") else None
+    top.used.add("capture")
     top.finish()
-    return CameraConfig(source, WorkingArea(inner, outer), detect, model, render, plan, gamma)
+    return CameraConfig(source, WorkingArea(inner, outer), detect, model, render, plan, gamma, capture)
+
+
+def _parse_capture(t: Table) -> CaptureSettings:
+    def opt_int(name: str, lo: int, hi: int) -> int | None:
+        return t.integer(name, lo, hi) if t.has(name) else None
+
+    def opt_num(name: str, lo: float, hi: float, unit: str) -> float | None:
+        return t.number(name, lo, hi, lo_open=True, unit=unit) if t.has(name) else None
+
+    fourcc = None
+    if t.has("pixel_format"):
+        fourcc = t.text("pixel_format")
+        if not (len(fourcc) == 4 and fourcc.isascii() and fourcc.isprintable()):
+            raise t.fail("pixel_format", fourcc, "a four-character code such as \"MJPG\" or \"YUYV\"")
+    settings = CaptureSettings(
+        width=opt_int("width", 16, 8192), height=opt_int("height", 16, 8192), fps=opt_num("fps", 0.0, 1000.0, "Hz"),
+        pixel_format=fourcc, exposure=opt_num("exposure", 0.0, 1e7, "(the driver's units)"),
+        gain=t.number("gain", 0.0, 1e4, unit="(the driver's units)") if t.has("gain") else None,
+        white_balance_k=t.number("white_balance_k", 1000.0, 15000.0, unit="K") if t.has("white_balance_k") else None,
+        buffer_size=t.integer("buffer_size", 1, 32, default=1),
+    )
+    t.used.update(CaptureSettings.__dataclass_fields__)  # a misspelt key is told the whole list
+    t.finish()
+    return settings
 
 
 def _fmt(x: float) -> str:
