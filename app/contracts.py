@@ -40,6 +40,11 @@ class FrameSource(Protocol):
         """(newest BGR frame or None, monotonic time it arrived, its running number)."""
         ...
 
+    def wait_newer(self, count: int, timeout: float) -> int:
+        """Wait at most ``timeout`` s for a frame numbered above ``count``; the newest frame's
+        number (``count`` if none came). The loop's ticks start on a camera's frames."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -120,6 +125,7 @@ class Observation:
     camera_state: str = ""  # a real camera's state for people ("" for the synthetic one)
     obstacles: FloatArray | None = None  # (k, 2) leader frame: obstacle points the leader knows (scan, memory, truth)
     scan: Scan | None = None  # this frame's free-space scan (vision)
+    observed_at: float = float("nan")  # monotonic time of what this is from: a camera frame's arrival, else the observing
 
     @property
     def ready(self) -> bool:

@@ -38,6 +38,7 @@ class _Threaded:
     def __init__(self, name: str) -> None:
         self.name = name
         self._lock = threading.Lock()
+        self._arrived = threading.Condition(self._lock)  # notified with every new frame (frame-triggered ticks)
         self._frame: np.ndarray | None = None
         self._t = -math.inf
         self._count = 0
@@ -61,6 +62,14 @@ class _Threaded:
         with self._lock:
             self._frame, self._t = frame, time.monotonic()
             self._count += 1
+            self._arrived.notify_all()
+
+    def wait_newer(self, count: int, timeout: float) -> int:
+        """Wait until a frame newer than number ``count`` has arrived, at most ``timeout`` s; the
+        newest frame's number (``count`` itself if none came)."""
+        with self._lock:
+            self._arrived.wait_for(lambda: self._count > count, timeout)
+            return self._count
 
     def latest(self) -> tuple[np.ndarray | None, float, int]:
         with self._lock:
@@ -315,6 +324,10 @@ class SyntheticMarkerRig:
             self._markers = list(markers)
             self._frame = frame
             self._k += 1
+
+    def wait_newer(self, count: int, timeout: float) -> int:
+        """Pictures are rendered when a marker is placed: there is nothing to wait for."""
+        return self.latest()[2]
 
     def latest(self) -> tuple[np.ndarray | None, float, int]:
         if self._frame is None:

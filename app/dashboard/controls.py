@@ -290,7 +290,8 @@ class Controls:
              f"**{'STOPPED — the leader and every follower at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
              + (f" · leader {s.leader_waits}" if s.leader_waits and not s.stopped else "")
              + (" · by a loop fault (below)" if s.fault and s.stopped else "")
-             + f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz"),
+             + f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz"
+             + (f" · frame to command {s.latency_ms:.1f} ms" if np.isfinite(s.latency_ms) else "")),
             f"stages (ms): {stages}",
             f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
             f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"

@@ -51,9 +51,10 @@ class TruthFeedback:
         self.boxes = as_array(obstacles)
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
+        at = time.monotonic()
         p, a, tracked = self.team.observe()
         known = seen_from(self.boxes, self.team.state.leader, self.team.truth()[0]) if len(self.boxes) else None
-        return Observation(p, a, a.copy(), tracked, "truth", obstacles=known)
+        return Observation(p, a, a.copy(), tracked, "truth", obstacles=known, observed_at=at)
 
 
 @dataclass
@@ -111,6 +112,7 @@ class VisionFeedback:
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
         t0 = time.perf_counter()
+        observed_at = time.monotonic()  # the synthetic camera's frame is taken now; a real one's when it arrived
         bodies = self.scene() if self.scene is not None and self.source is None else None  # first: it may move the team's state
         state = self.team.state
         self._t += dt
@@ -135,8 +137,9 @@ class VisionFeedback:
                 why = "no frame yet" if frame is None else f"no fresh frame for {age:.1f} s"
                 return self._stale(f"camera: {why} ({camera_state})", camera_state)
             if count == self._frame_count and self._last is not None:
-                return self._last  # no new frame this tick: the estimates of the newest one stand
+                return self._last  # no new frame this tick: the estimates of the newest one stand (and age)
             self._frame_count = count
+            observed_at = t_frame
             if self.pipeline is None:
                 self._make_pipeline((frame.shape[1], frame.shape[0]))
         t1 = time.perf_counter()
@@ -163,7 +166,7 @@ class VisionFeedback:
         self._last = Observation(out.positions, out.headings, raw, out.tracked, out.phase, out.manoeuvre, frame,
                                  out.windows, out.hues_deg, out.probing,
                                  {"camera": (t1 - t0) * 1e3, "vision": (t2 - t1) * 1e3, "scan": (t3 - t2) * 1e3},
-                                 camera_state, known, scan)
+                                 camera_state, known, scan, observed_at)
         return self._last
 
     def _stale(self, phase: str, camera_state: str) -> Observation:

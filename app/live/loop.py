@@ -53,6 +53,8 @@ DEFAULT_NOISE = MeasurementNoise(0.003, math.radians(1.0))  # truth feedback's n
 # clock, not by ticks, and the robots hold the newest command (they never see a burst as speed).
 CATCH_UP_S = 0.25
 CATCH_UP_TICKS = 3
+LATE_FRAME_PERIODS = 1.5  # frame-triggered ticks: no new frame within this many periods is a late camera
+DT_RANGE = (0.25, 3.0)  # a frame-triggered tick's dt, as a share of the configured period, at least and at most
 REASSIGN_MARGIN_M2 = 0.05  # eq. 33 is re-solved when slots change; keep the old one unless this much cheaper
 
 
@@ -164,6 +166,7 @@ class ServiceLoop:
         self.achieved_rate_hz = 0.0
         self._longest_gap_s = 0.0  # between two tick starts, since the last take_longest_gap()
         self.ticks_dropped = 0  # ticks skipped since run() began: the loop was more than CATCH_UP_S late
+        self.late_frames = 0  # frame-triggered ticks that ran without a new frame (a late camera)
         self._publish_ms: dict[str, float] = {}
         self.last: TickState | None = None
         self._safety: SafetySettings | None = None
@@ -365,6 +368,7 @@ class ServiceLoop:
         stage["control"] = (t2 - t1) * 1e3
 
         world.team.send(out.commands)
+        sent_at = time.monotonic()
         t3 = time.perf_counter()
         stage["link"] = (t3 - t2) * 1e3
 
@@ -387,7 +391,7 @@ class ServiceLoop:
             goal=params.goal if params.leader_mode == "goal" else None,
             heading=self._nav_out.heading if self._nav_out is not None else float("nan"),
             formation_scale=self._nav[1], goal_reached=self._nav_out is not None and self._nav_out.reached,
-            limits=flags, v_rate=v_rate, leader_waits=waiting,
+            limits=flags, v_rate=v_rate, leader_waits=waiting, latency_ms=(sent_at - obs.observed_at) * 1e3,
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)
@@ -404,6 +408,41 @@ class ServiceLoop:
             publish[f"publish:{getattr(fn, '__qualname__', 'fn')}"] = (time.perf_counter() - t_pub) * 1e3
         self._publish_ms = publish  # shown with the next tick: a published state is never changed
         return state
+
+    def _run_on_frames(self, frames: FrameSource) -> None:
+        """Frame-triggered ticks: each starts as soon as a new frame arrives, so no frame waits for
+        the loop's schedule. No frame within ``LATE_FRAME_PERIODS`` periods of the configured rate
+        is a late camera: the tick runs anyway, on the newest estimates, and the stale-frame rule
+        (app.live.feedback) stops the robots once the frame is too old. Each tick's dt is the time
+        since the one before (clamped to a sane range), as the real rig's odometry needs."""
+        nominal = self.dt
+        count = frames.wait_newer(-1, 0.0)  # the newest frame's number now
+        last = time.monotonic()
+        window: deque[float] = deque(maxlen=61)
+        try:
+            while not self._stop.is_set():
+                newest = frames.wait_newer(count, LATE_FRAME_PERIODS * nominal)
+                if newest <= count:
+                    self.late_frames += 1
+                count = newest
+                if self._stop.is_set():
+                    break
+                start = time.monotonic()
+                self.dt = min(max(start - last, DT_RANGE[0] * nominal), DT_RANGE[1] * nominal)
+                last = start
+                try:
+                    self.tick()
+                except Exception as exc:  # noqa: BLE001 - the robots must stop, the service must live
+                    self._on_fault(exc)
+                if window:
+                    self._longest_gap_s = max(self._longest_gap_s, start - window[-1])
+                window.append(start)
+                if len(window) >= 2 and window[-1] > window[0]:
+                    self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
+        finally:
+            self.dt = nominal
+            self.halt_followers()
+            self._world.team.close()
 
     def _on_fault(self, exc: Exception) -> None:
         """An exception inside a tick: every follower to zero at once, STOP engaged (the
@@ -437,7 +476,11 @@ class ServiceLoop:
         return gap
 
     def run(self) -> None:
-        """Tick at the configured rate until stop(); always leaves the followers at zero."""
+        """Tick until stop(): on a camera's frames when the loop has one (``frames``), else at the
+        configured rate. Always leaves the followers at zero."""
+        if self.frames is not None:
+            self._run_on_frames(self.frames)
+            return
         next_deadline = time.monotonic()
         window: deque[float] = deque(maxlen=61)  # tick start times of the last 60 ticks
         late_limit = max(CATCH_UP_S, CATCH_UP_TICKS * self.dt)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 from typing import Any
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Callable
 
@@ -88,11 +88,14 @@ class _Block:
             like = first.get(name) if first.get(name) is not None and name not in PER_FOLLOWER_OPTIONAL else first["a_est"]
             self.cols[name] = np.full((size, *json_floats(like).shape), np.nan)
         self.cols["acting"] = np.zeros(size, dtype=bool)
+        self.cols["latency"] = np.full(size, np.nan)
         self.size, self.rows = size, 0
 
     def add(self, tk: dict[str, Any]) -> None:
         k, cols = self.rows, self.cols
         cols["acting"][k] = str(tk.get("safety", "")).startswith(SAFETY_ACTING)
+        latency = tk.get("latency_ms")
+        cols["latency"][k] = latency if isinstance(latency, (int, float)) else np.nan
         for name in SERIES_FIELDS:
             value = tk.get(name)
             if name == "a_raw" and value is None:
@@ -285,6 +288,29 @@ class Tally:
         }}
 
 
+class LatencyTally:
+    """Frame-to-command latencies in 0.05 ms bins up to 2 s (a fixed 320 KB, whatever the length):
+    percentiles to the bin."""
+
+    BIN_MS = 0.05
+    BINS = 40_000
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(self.BINS + 1, dtype=np.int64)  # the last bin: 2 s or more
+
+    def add(self, latency_ms: np.ndarray) -> None:
+        values = latency_ms[np.isfinite(latency_ms)]
+        np.add.at(self.counts, np.clip((values / self.BIN_MS).astype(np.int64), 0, self.BINS), 1)
+
+    def summary(self) -> dict[str, float] | None:
+        total = int(self.counts.sum())
+        if total == 0:
+            return None
+        cum = np.cumsum(self.counts)
+        at = {f"p{q}": round(float(np.searchsorted(cum, q / 100 * total) + 1) * self.BIN_MS, 2) for q in (50, 95, 99)}
+        return {**at, "max": round(float(np.nonzero(self.counts)[0][-1] + 1) * self.BIN_MS, 2), "ticks": total}
+
+
 @dataclass(frozen=True)
 class Scan:
     """What one pass over a recording gives the report: the figures' series (every k-th tick)
@@ -295,6 +321,7 @@ class Scan:
     t_first: float
     t_last: float
     dt: float  # the median tick interval
+    latency: LatencyTally = field(default_factory=LatencyTally)
 
     @property
     def truth(self) -> bool:
@@ -321,10 +348,12 @@ def scan(rec: Recording, block: int = DISTANCE_BLOCK, max_plotted: int = MAX_PLO
     t_first = t_last = np.nan
     rows = _Block(first, min(block, total))
     k0 = 0  # the recording's index of the block's first tick
+    latency = LatencyTally()
 
     def flush() -> None:
         nonlocal truth, t_first, t_last, k0
         cols = rows.taken()
+        latency.add(cols["latency"])
         truth = truth or bool(np.isfinite(cols["p_true"]).any())
         for which, tally in tallies.items():
             tally.add(_series(cols, start, which, has_filter))
@@ -343,7 +372,7 @@ def scan(rec: Recording, block: int = DISTANCE_BLOCK, max_plotted: int = MAX_PLO
         flush()
     cols = {name: np.concatenate([c[name] for c in kept]) for name in kept[0]}
     dt = float(np.median(np.diff(rec.t))) if len(rec.t) > 1 else 0.0
-    return Scan(_series(cols, start, truth, has_filter), tallies[truth], t_first, t_last, dt)
+    return Scan(_series(cols, start, truth, has_filter), tallies[truth], t_first, t_last, dt, latency)
 
 
 COLLISION_M = 0.15  # two robot centres closer than this: their bodies (15 x 25 cm) touch
@@ -392,6 +421,7 @@ def summarise(rec: Recording, sc: Scan | None = None) -> dict[str, Any]:
         "followers": sc.tally.followers(sc.dt),
         "stop_events": [{"t": round(float(e["t"]), 2), "detail": e["detail"]} for e in stops],
         "events": len(rec.events),
+        "latency_ms": sc.latency.summary(),  # frame (or observation) to commands written: p50, p95, p99, max
         "ticks_read": len(rec.t),
         "ticks_written": rec.ticks_written,  # null: the file has no intact summary (cut off)
         "lost_ticks": rec.lost_ticks,

@@ -93,6 +93,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "limits": {"type": ["array", "null"], "description": "per follower, bits of the active saturations and"
                        " limits: 1 eq. 4, 2 eq. 12, 4 v limit, 8 omega limit, 16 safety filter"},
             "v_rate": {"type": ["array", "null"], "description": "dV/dt per follower, m^2/s (eq. 21)"},
+            "latency_ms": {"type": ["number", "null"], "description": "from what the tick observed (a camera"
+                           " frame's arrival) to its commands written to the link, ms"},
             "leader_waits": {"type": "string", "description": "why the leader stands still (STOP, a release waiting"
                              " for the team); empty when it may drive"},
         },
@@ -231,6 +233,7 @@ def tick_from_payload(d: dict[str, Any], frame: np.ndarray | None = None) -> Tic
         limits=np.array(d["limits"], dtype=np.int64) if d.get("limits") is not None else None,
         v_rate=json_floats(d["v_rate"]) if d.get("v_rate") is not None else None,
         leader_waits=str(d.get("leader_waits", "")),
+        latency_ms=float(d["latency_ms"]) if d.get("latency_ms") is not None else float("nan"),
     )
 
 
