@@ -297,9 +297,11 @@ class ServiceLoop:
 
         if advance or world.last_obs is None:
             obs = world.feedback.observe(self.dt, world.last_cmd, world.err_norm)
+            fresh = obs is not world.last_obs  # a camera with no new frame hands back the last observation
             world.last_obs = obs
         else:
             obs = world.last_obs  # paused: the world is frozen, so is what the camera sees
+            fresh = False
         stage.update(obs.stage_ms)
         p = np.where(np.isfinite(obs.p), obs.p, 0.0)
         a = np.where(np.isfinite(obs.a), obs.a, math.pi / 2)
@@ -392,6 +394,7 @@ class ServiceLoop:
             heading=self._nav_out.heading if self._nav_out is not None else float("nan"),
             formation_scale=self._nav[1], goal_reached=self._nav_out is not None and self._nav_out.reached,
             limits=flags, v_rate=v_rate, leader_waits=waiting, latency_ms=(sent_at - obs.observed_at) * 1e3,
+            fresh=fresh,
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)

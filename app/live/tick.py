@@ -60,6 +60,7 @@ class TickState:
     limits: IntArray | None = None  # (n,) bits of core.control.tuning.LIMIT_NAMES active this tick
     v_rate: FloatArray | None = None  # (n,) dV/dt per follower (m²/s) over the last half second
     latency_ms: float = float("nan")  # from what this tick observed (a camera frame's arrival) to its commands written
+    fresh: bool = True  # this tick observed anew (False: a camera without a new frame, or paused: the last one stood)
     leader_waits: str = ""  # why the leader stands still ("STOP", "waiting for F2 to be tracked"); "" when it may drive
 
     @property

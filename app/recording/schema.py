@@ -95,6 +95,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "v_rate": {"type": ["array", "null"], "description": "dV/dt per follower, m^2/s (eq. 21)"},
             "latency_ms": {"type": ["number", "null"], "description": "from what the tick observed (a camera"
                            " frame's arrival) to its commands written to the link, ms"},
+            "fresh": {"type": "boolean", "description": "the tick observed anew (false: the last frame stood)"},
             "leader_waits": {"type": "string", "description": "why the leader stands still (STOP, a release waiting"
                              " for the team); empty when it may drive"},
         },
@@ -234,6 +235,7 @@ def tick_from_payload(d: dict[str, Any], frame: np.ndarray | None = None) -> Tic
         v_rate=json_floats(d["v_rate"]) if d.get("v_rate") is not None else None,
         leader_waits=str(d.get("leader_waits", "")),
         latency_ms=float(d["latency_ms"]) if d.get("latency_ms") is not None else float("nan"),
+        fresh=bool(d.get("fresh", True)),
     )
 
 

@@ -101,3 +101,14 @@ def test_the_latency_is_recorded_and_reported(tmp_path):
     summary = summarise(back)["latency_ms"]
     assert summary["ticks"] == 40 and summary["p50"] <= summary["p95"] <= summary["p99"] <= summary["max"]
     assert summary["p99"] >= np.percentile(recorded, 99) - 0.05  # to the bin (0.05 ms)
+
+
+def test_the_latency_bench_measures_ticks_on_new_frames_over_the_serial_link():
+    """bench --latency's own path, short and without a browser: frames from a folder, the serial
+    link to emulated robots, recording on; it prints the line the issue names."""
+    from app.cli.bench import bench_latency
+
+    lines: list[str] = []
+    out = bench_latency(3.0, lines.append, browsers=0)
+    line = next(ln for ln in lines if ln.startswith("frame-to-command latency: p50 "))
+    assert " ms, p99 " in line and out["ticks"] > 30 and out["p50_ms"] <= out["p99_ms"]
