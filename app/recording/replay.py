@@ -104,20 +104,34 @@ class ReplayService:
             with self._lock:
                 self.seek(self._index_at(float(self.timeline.value)))
 
-        def jump(direction: int) -> None:
-            with self._lock:
-                now = float(self.t[self.index])
-                if direction > 0:
-                    k = bisect.bisect_right(self.event_t, now + 1e-6)
-                    target = self.event_t[k] if k < len(self.event_t) else None
-                else:
-                    k = bisect.bisect_left(self.event_t, now - 1e-6) - 1
-                    target = self.event_t[k] if k >= 0 else None
-                if target is not None:
-                    self.seek(self._index_at(target))
+        @self.next_event.on_click
+        def _(_: viser.GuiEvent[Any]) -> None:
+            self.jump_to_event(+1)
 
-        self.next_event.on_click(lambda _: jump(+1))
-        self.prev_event.on_click(lambda _: jump(-1))
+        @self.prev_event.on_click
+        def _(_: viser.GuiEvent[Any]) -> None:
+            self.jump_to_event(-1)
+
+    def jump_to_event(self, direction: int) -> float | None:
+        """To the next (+1) or previous (-1) event's time: the first tick at or after it, so the
+        next search starts past it (an event between two ticks once sent the seek just before it,
+        and Next found the same event again). The event's time, or None when there is none."""
+        with self._lock:
+            now = float(self.t[self.index])
+            if direction > 0:
+                k = bisect.bisect_right(self.event_t, now + 1e-6)
+                target = self.event_t[k] if k < len(self.event_t) else None
+            else:
+                k = bisect.bisect_left(self.event_t, now - 1e-6) - 1
+                while k >= 0 and self._index_at_or_after(self.event_t[k]) >= self.index:
+                    k -= 1  # an event this tick already shows (at or just before it) is not a step back
+                target = self.event_t[k] if k >= 0 else None
+            if target is not None:
+                self.seek(self._index_at_or_after(target))
+            return target
+
+    def _index_at_or_after(self, t: float) -> int:
+        return int(np.clip(np.searchsorted(self.t, t - 1e-6, side="left"), 0, len(self.t) - 1))
 
     def _index_at(self, t: float) -> int:
         return int(np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 1))

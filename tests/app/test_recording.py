@@ -544,3 +544,22 @@ def test_the_tally_counts_episodes_and_settling_across_block_edges():
     assert followers[1]["settling_time_s"] is None and followers[1]["time_not_tracked_s"] == round(10 / 30, 2)
     for block in (1, 7, 49, 50):
         assert tally(block) == (followers, safety), block
+
+
+def test_next_event_always_moves_forward_and_previous_back():
+    """From t = 0, Next event four times visits four later event times, each further on (it was
+    stuck on an event between two ticks); Previous then walks back."""
+    from app.recording.replay import ReplayService
+
+    rec = read_recording(SAMPLES / "experiment2-vision.mcap")
+    svc = ReplayService(rec, host="127.0.0.1", port=0)
+    try:
+        svc.seek(0)
+        seen = [svc.jump_to_event(+1) for _ in range(4)]
+        assert all(t is not None for t in seen) and seen == sorted(seen) and len(set(seen)) == 4, seen
+        assert all(float(svc.t[svc.index]) >= seen[-1] - 1e-6 for _ in [0])  # showing the event's moment
+        back = [svc.jump_to_event(-1) for _ in range(3)]
+        assert back == sorted(back, reverse=True) and len(set(back)) == 3 and back[0] < seen[-1], back
+    finally:
+        svc.close()
+        rec.close()
