@@ -13,6 +13,7 @@ import viser
 
 from core.types import GAIN_BOUNDS
 
+from app.dashboard.widgets import as_text
 from app.live.tick import TickState
 from app.live.params import (
     FORMATION_PRESETS,
@@ -295,7 +296,8 @@ class Controls:
             f"stages (ms): {stages}",
             f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
             f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
-            f" · link: {s.link_state} · " + (f"replaying {self.recording}" if self.replay else f"recording: {self.recording}"),
+            f" · link: {s.link_state} · " + (f"replaying {as_text(self.recording)}" if self.replay
+                                             else f"recording: {as_text(self.recording)}"),
             "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
             f"safety filter: {s.safety or '-'}"
             + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else "")

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING
 
 import viser
 
+from app.dashboard.widgets import as_text
+
 from app.files import default_recordings, display_path
 
 if TYPE_CHECKING:
@@ -82,7 +84,7 @@ class RecordingsPanel:
             rec = read_recording(path)
             check_ticks(rec)
         except RecordingError as exc:
-            self._show(f"**cannot replay**: {exc}")
+            self._show(f"**cannot replay**: {as_text(str(exc))}")
             return str(exc)
         with self._lock:
             while len(self.replays) >= MAX_OPEN:
@@ -90,8 +92,8 @@ class RecordingsPanel:
             replay = ReplayService(rec, host=self.host, port=0, token=self.token)
             replay.start()
             self.replays.append(replay)
-            lines = [f"- [{r.rec.path.name}]({r.url}) — {r.url}" for r in self.replays]
-        note = f"  \n{rec.loss_note()}" if rec.loss_note() else ""
+            lines = [f"- [{as_text(r.rec.path.name)}]({r.url}) — {as_text(r.url)}" for r in self.replays]
+        note = f"  \n{as_text(rec.loss_note())}" if rec.loss_note() else ""
         self._show("Replays being served (open in a new tab):  \n" + "\n".join(lines) + note)
         return replay.url
 

@@ -12,6 +12,16 @@ import viser
 PAGE_CALL_TIMEOUT_S = 5.0
 
 
+_MARKDOWN_SPECIAL = str.maketrans({c: "\\" + c for c in "\\`*_[]()#+-!|{}~"})
+
+
+def as_text(text: str) -> str:
+    """``text`` (a file name, a message with one in it) for viser's markdown: shown as it is, never
+    read as HTML or markdown (a name with ``<img>`` in it once made an image on the page)."""
+    return (str(text).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+            .translate(_MARKDOWN_SPECIAL))
+
+
 def assign(handle: Any, value: Any) -> None:
     """Set a widget's value from the server (viser types ``value`` read-only on some handles)."""
     handle.value = value

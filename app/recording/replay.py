@@ -19,6 +19,7 @@ import viser
 
 from app.dashboard import Dashboard
 from app.dashboard.gate import quietly, serve_gated
+from app.dashboard.widgets import as_text
 from app.dashboard.widgets import on_page_thread
 from app.live.tick import TickState
 from app.live.params import ParamsStore
@@ -62,7 +63,7 @@ class ReplayService:
             self.event_text = gui.add_markdown(self._events_summary())
         if rec.loss_note():
             with gui.add_folder("Recording"):
-                gui.add_markdown(f"**{rec.loss_note()}**")
+                gui.add_markdown(f"**{as_text(rec.loss_note())}**")
         self._wire()
         self._thread: threading.Thread | None = None
 

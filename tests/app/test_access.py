@@ -356,3 +356,32 @@ def test_five_hundred_wrong_tokens_are_refused_in_a_few_log_lines():
     size = sum(len(line) + 1 for line in lines)
     print(f"\n500 wrong tokens: {len(lines)} log lines, {size} bytes")
     assert size < 10_000 and all("\n" not in line for line in lines)
+
+
+def test_a_file_name_with_html_or_markdown_in_it_is_shown_as_text(tmp_path):
+    """A recording named with an <img> tag and a markdown link in it is listed, opened and named
+    on the page as text: its markdown holds no tag and no link of the name's making."""
+    import shutil
+
+    import viser
+
+    from app.dashboard.gate import quietly
+    from app.dashboard.recordings_panel import RecordingsPanel
+    from app.dashboard.widgets import as_text
+    from tests.helpers import SAMPLES
+
+    name = "x<img src=a onerror=alert(1)>[click](http:evil)_*.mcap"
+    shutil.copyfile(SAMPLES / "experiment2-vision.mcap", tmp_path / name)
+    server = quietly(lambda: viser.ViserServer(host="127.0.0.1", port=0, verbose=False))
+    panel = RecordingsPanel(server, "127.0.0.1", tmp_path)
+    try:
+        (listed,) = panel.menu.options
+        assert listed.endswith(name)
+        panel.menu.value = listed
+        url = panel.open_selected()
+        assert url.startswith("http://")
+        shown = panel.links.content
+        assert "<img" not in shown and "](http:evil)" not in shown and as_text(name) in shown
+    finally:
+        panel.close()
+        quietly(server.stop)
