@@ -37,6 +37,29 @@ class MeasurementNoise:
 
 
 @dataclass(frozen=True)
+class Latency:
+    """A real rig's delays for the stepped simulator ([latency]): what the camera saw reaches the
+    controller ``camera_s`` later (exposure, USB, processing), a command reaches its follower
+    ``radio_s`` after it is computed, each varying by up to ``jitter_s`` (whole ticks, at random).
+    ``compensate``: the controller predicts each follower to the moment its command will act
+    (core.control.prediction)."""
+
+    camera_s: float = 0.0
+    radio_s: float = 0.0
+    jitter_s: float = 0.0
+    compensate: bool = True
+
+    @property
+    def total_s(self) -> float:
+        return self.camera_s + self.radio_s
+
+    @classmethod
+    def split(cls, total_s: float, camera_share: float = 0.6, jitter_s: float = 0.0,
+              compensate: bool = True) -> "Latency":
+        return cls(total_s * camera_share, total_s * (1.0 - camera_share), jitter_s, compensate)
+
+
+@dataclass(frozen=True)
 class Scenario:
     """Everything a simulated run needs. Poses in the leader frame at t = 0, SI units."""
 
@@ -57,12 +80,14 @@ class Scenario:
     safety: SafetySettings | None = None  # the safety filter on every command ([safety]); None: off
     switches: tuple[tuple[float, FloatArray], ...] = ()  # (scenario time s, new slots (n, 2)), in order
     min_scale: float = 1.0  # the formation may shrink to this to pass a gap ([formation] min_scale)
+    latency: Latency = Latency()  # a real rig's camera and radio delays ([latency]); none by default
 
     @property
     def stepped(self) -> bool:
-        """Needs the stepped simulator (core.sim.stepped): obstacles, the filter, a goal or switches."""
+        """Needs the stepped simulator (core.sim.stepped): obstacles, the filter, a goal, switches
+        or latency."""
         return bool(self.obstacles) or self.safety is not None or isinstance(self.leader, GoalProfile) \
-            or bool(self.switches)
+            or bool(self.switches) or self.latency.total_s > 0 or self.latency.jitter_s > 0
 
     @property
     def n(self) -> int:
@@ -328,6 +353,12 @@ def parse_scenario(text: str, source: str) -> Scenario:
         disturbances.append(Disturbance(follower - 1, start, end, kind))
     obstacles = _parse_obstacles(top, np.array(p0, dtype=np.float64), leader)
     safety = _parse_safety(top)
+    lt = top.table("latency")
+    latency = Latency(camera_s=lt.number("camera_ms", 0.0, 2000.0, default=0.0, unit="ms") / 1e3,
+                      radio_s=lt.number("radio_ms", 0.0, 2000.0, default=0.0, unit="ms") / 1e3,
+                      jitter_s=lt.number("jitter_ms", 0.0, 1000.0, default=0.0, unit="ms") / 1e3,
+                      compensate=lt.flag("compensate", True))
+    lt.finish()
     top.finish()
 
     return Scenario(
@@ -348,6 +379,7 @@ def parse_scenario(text: str, source: str) -> Scenario:
         safety=safety,
         switches=switches,
         min_scale=min_scale,
+        latency=latency,
     )
 
 

@@ -44,6 +44,11 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     sim.add_argument("--jpeg-quality", type=int_in(1, 100), default=80, help="JPEG quality of recorded frames (default 80)")
     sim.add_argument("--no-safety", action="store_true",
                      help="run a scenario that has a [safety] table without the safety filter (to compare)")
+    sim.add_argument("--latency-ms", type=float_in(0.0, 2000.0, "ms", lo_inclusive=True), metavar="MS",
+                     help="a real rig's delay from camera to robot: split between camera and radio as the scenario's"
+                          " [latency] does (default 60 %% camera, 40 %% radio), with its jitter")
+    sim.add_argument("--no-compensation", action="store_true",
+                     help="with latency: the controller does not predict the followers over it (to compare)")
     sim.set_defaults(func=cmd_simulate)
 
     tune = sub.add_parser(
@@ -86,6 +91,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         changes["seed"] = args.seed
     if args.no_safety:
         changes["safety"] = None
+    if args.latency_ms is not None or args.no_compensation:
+        from core.config import Latency
+
+        own = scenario.latency
+        share = own.camera_s / own.total_s if own.total_s > 0 else 0.6
+        total = args.latency_ms / 1e3 if args.latency_ms is not None else own.total_s
+        changes["latency"] = Latency.split(total, share, own.jitter_s, compensate=not args.no_compensation)
     scenario = scenario.replace(**changes)
     if args.out is not None:
         check_new_file(args.out, "CSV log", ".csv")
@@ -125,6 +137,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     err = np.linalg.norm(log.error, axis=-1)
     final = ", ".join(f"f{i + 1} {err[-1, i] * 100:.2f} cm" for i in range(log.n))
     print(f"{scenario.name}: {scenario.duration_s:g} s at {scenario.rate_hz:g} Hz, {log.n} followers; final position error {final}")
+    lat = scenario.latency
+    if lat.total_s > 0 or lat.jitter_s > 0 or args.latency_ms is not None:
+        settled = log.t >= min(40.0, 0.5 * scenario.duration_s)
+        rms = float(np.sqrt(np.mean(err[settled] ** 2))) if settled.any() else float("nan")
+        print(f"latency: camera {lat.camera_s * 1e3:.0f} ms + radio {lat.radio_s * 1e3:.0f} ms (jitter up to"
+              f" {lat.jitter_s * 1e3:.0f} ms), {'compensated' if lat.compensate else 'not compensated'}; formation RMS"
+              f" from t = {min(40.0, 0.5 * scenario.duration_s):g} s: {rms * 100:.2f} cm")
     if run.safety is not None:
         print(safety_line(run.safety, log.t, scenario))
     if args.out is not None:

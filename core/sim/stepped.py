@@ -22,6 +22,7 @@ rows before that have negative time. Disturbances ("stuck", "hidden") use scenar
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -30,9 +31,10 @@ import numpy as np
 from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
 from core.camera.render import Renderer
-from core.config import Scenario
+from core.config import Latency, Scenario
 from core.control.assignment import assign_slots
 from core.control.formation import ControllerState, compute_commands
+from core.control.prediction import predict_poses
 from core.control.navigation import NavSettings, goal_in_leader_frame, navigate
 from core.control.safety import filter_commands, obstacle_rows, team_min_distance
 from core.control.targets import SlotMotion, step_slots
@@ -104,6 +106,67 @@ def world_renderer(rig: CameraConfig, obstacles: tuple[Obstacle, ...]) -> Render
     return Renderer(rig.model, settings, obstacles)
 
 
+class _Delays:
+    """A real rig's latency in the stepped simulator (core.config.Latency): observations reach the
+    controller ``camera_s`` late, commands act ``radio_s`` after they are sent (each with up to
+    ``jitter_s`` more, in whole ticks), the followers holding their last command in between; and
+    the controller's prediction over both (core.control.prediction)."""
+
+    def __init__(self, latency: Latency, dt: float, n: int, rng: np.random.Generator) -> None:
+        self.latency, self.dt, self.n, self.rng = latency, dt, n, rng
+        self.camera = int(round(latency.camera_s / dt))
+        self.radio = int(round(latency.radio_s / dt))
+        self.jitter = int(round(latency.jitter_s / dt))
+        self.on = self.camera > 0 or self.radio > 0 or self.jitter > 0
+        keep = self.camera + self.radio + self.jitter + 2
+        self.seen: deque[tuple[FloatArray, FloatArray, BoolArray, FloatArray]] = deque(maxlen=keep)
+        self.applied: deque[FloatArray] = deque(maxlen=keep)  # what the followers applied, tick by tick
+        self.twists: deque[tuple[float, float]] = deque(maxlen=keep)  # the leader's twist, tick by tick
+        self.queue: list[tuple[int, int, FloatArray]] = []  # (tick it acts, tick it was sent, command (n, 2))
+        self.k = 0  # this tick
+        self.age = 0  # how many ticks old this tick's observation is
+        self.holding = np.zeros((n, 2))
+
+    def _jitter(self) -> int:
+        return int(self.rng.integers(0, self.jitter + 1)) if self.jitter else 0
+
+    def observed(self, p: FloatArray, a: FloatArray, tracked: BoolArray,
+                 known: FloatArray) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray]:
+        """This tick's observation in, the one the controller has now out (the oldest at first)."""
+        self.seen.append((p, a, tracked, known))
+        self.age = min(self.camera + self._jitter(), len(self.seen) - 1)
+        return self.seen[-1 - self.age]
+
+    def predicted(self, p: FloatArray, a: FloatArray, twist: tuple[float, float]) -> tuple[FloatArray, FloatArray]:
+        """``p``, ``a`` (observed ``age`` ticks ago) run forward to when a command sent now acts:
+        over the commands the followers applied since, those already on their way, and the
+        leader's twists (the current one for the ticks to come)."""
+        past = min(self.age, len(self.applied))
+        commands = list(self.applied)[len(self.applied) - past:]
+        twists = list(self.twists)[len(self.twists) - past:]
+        holding = self.holding
+        for j in range(self.k, self.k + self.radio):  # the commands already sent, as they will arrive
+            arriving = [c for at, _, c in sorted(self.queue, key=lambda q: (q[0], q[1])) if at == j]
+            holding = arriving[-1] if arriving else holding
+            commands.append(holding)
+            twists.append(twist)
+        if not commands:
+            return p, a
+        return predict_poses(p, a, np.array(commands), np.array(twists), self.dt)
+
+    def sent(self, command: FloatArray, twist: tuple[float, float]) -> FloatArray:
+        """This tick's command sent; what the followers apply this tick (held until a newer arrives)."""
+        self.queue.append((self.k + self.radio + self._jitter(), self.k, np.array(command, dtype=np.float64)))
+        due = [q for q in self.queue if q[0] <= self.k]
+        if due:
+            self.holding = max(due, key=lambda q: (q[0], q[1]))[2]
+            self.queue = [q for q in self.queue if q[0] > self.k]
+        self.applied.append(self.holding)
+        self.twists.append(twist)
+        self.k += 1
+        return self.holding
+
+
 def simulate_stepped(
     scenario: Scenario,
     rig: CameraConfig | None = None,
@@ -156,6 +219,7 @@ def simulate_stepped(
     prev_leader = state.leader.copy()
     last_cmd = np.zeros((n, 2))
     err_norm = np.zeros(n)
+    delay = _Delays(scenario.latency, dt, n, np.random.default_rng(scenario.seed + 7))  # its own draws: no other changes
     t_ready: float | None = None if vision else 0.0
     k = 0
     steps_after = int(round(scenario.duration_s * scenario.rate_hz)) + 1
@@ -197,6 +261,8 @@ def simulate_stepped(
         else:
             known_pts = seen_from(boxes, state.leader, p_true)
 
+        if delay.on:  # what reaches the controller is what the camera saw a while ago
+            pos_m, head_m, tracked, known_pts = delay.observed(pos_m, head_m, tracked, known_pts)
         twist = (0.0, 0.0)
         status = "off"
         changed = np.zeros(n)
@@ -236,6 +302,8 @@ def simulate_stepped(
             p_d = motion.p_d
             pos = np.where(np.isfinite(pos_m), pos_m, 0.0)
             head = np.where(np.isfinite(head_m), head_m, math.pi / 2)
+            if delay.on and delay.latency.compensate:  # each follower where it will be when this command acts
+                pos, head = delay.predicted(pos, head, twist)
             c = compute_commands(pos, head, p_d, motion.v_d, twist[0], twist[1], scenario.gains, ctrl_state, dt,
                                  active=tracked)
             ctrl_state = c.state
@@ -277,7 +345,8 @@ def simulate_stepped(
             rows["win"].append(out.windows)
             rows["hue"].append(out.hues_deg)
 
-        state = step_team(state, Commands(np.asarray(v_cmd), np.asarray(w_cmd)), twist, dt,
+        applied = delay.sent(last_cmd, twist) if delay.on else last_cmd  # the radio's delay: what acts now
+        state = step_team(state, Commands(np.asarray(applied[:, 0]), np.asarray(applied[:, 1])), twist, dt,
                           t_scn if t_ready is not None else -1.0, rng, scenario.dynamics,
                           scenario.disturbances if t_ready is not None else ())
         k += 1
