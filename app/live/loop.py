@@ -412,6 +412,18 @@ class ServiceLoop:
         self._publish_ms = publish  # shown with the next tick: a published state is never changed
         return state
 
+    def _timed_tick(self, start: float, window: deque[float]) -> None:
+        """One tick (a fault stops the robots, never the loop), and the rate over the last ticks."""
+        try:
+            self.tick()
+        except Exception as exc:  # noqa: BLE001 - the robots must stop, the service must live
+            self._on_fault(exc)
+        if window:
+            self._longest_gap_s = max(self._longest_gap_s, start - window[-1])
+        window.append(start)
+        if len(window) >= 2 and window[-1] > window[0]:
+            self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
+
     def _run_on_frames(self, frames: FrameSource) -> None:
         """Frame-triggered ticks: each starts as soon as a new frame arrives, so no frame waits for
         the loop's schedule. No frame within ``LATE_FRAME_PERIODS`` periods of the configured rate
@@ -433,15 +445,7 @@ class ServiceLoop:
                 start = time.monotonic()
                 self.dt = min(max(start - last, DT_RANGE[0] * nominal), DT_RANGE[1] * nominal)
                 last = start
-                try:
-                    self.tick()
-                except Exception as exc:  # noqa: BLE001 - the robots must stop, the service must live
-                    self._on_fault(exc)
-                if window:
-                    self._longest_gap_s = max(self._longest_gap_s, start - window[-1])
-                window.append(start)
-                if len(window) >= 2 and window[-1] > window[0]:
-                    self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
+                self._timed_tick(start, window)
         finally:
             self.dt = nominal
             self.halt_followers()
@@ -489,16 +493,7 @@ class ServiceLoop:
         late_limit = max(CATCH_UP_S, CATCH_UP_TICKS * self.dt)
         try:
             while not self._stop.is_set():
-                start = time.monotonic()
-                try:
-                    self.tick()
-                except Exception as exc:  # noqa: BLE001 - the robots must stop, the service must live
-                    self._on_fault(exc)
-                if window:
-                    self._longest_gap_s = max(self._longest_gap_s, start - window[-1])
-                window.append(start)
-                if len(window) >= 2 and window[-1] > window[0]:
-                    self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
+                self._timed_tick(time.monotonic(), window)
                 now = time.monotonic()
                 next_deadline, wait_s, skipped = next_tick(next_deadline, now, self.dt, late_limit)
                 if skipped:
