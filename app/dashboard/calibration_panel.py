@@ -161,9 +161,14 @@ class CalibrationPanel:
                   + (f"; held-out error median {held.median_cm:.2f} cm, p95 {held.p95_cm:.2f} cm" if held else "")
                   + "".join(f"\nwarning: {w}" for w in self.warnings))
         from app.files import write_table
+        from core.camera.lighting import measure_lighting
 
+        frame = self.source.latest()[0]  # the light the rig was calibrated in, for the live monitor
+        light = measure_lighting(frame, (self.fit.gamma.cx, self.fit.gamma.cy), area) if frame is not None else None
         try:
-            path.write_text(gamma_toml(self.fit.gamma, area, self.detect, header), encoding="utf-8")
+            path.write_text(gamma_toml(self.fit.gamma, area, self.detect, header,
+                                       None if light is None else (light.value, light.cast_bg, light.cast_rg)),
+                            encoding="utf-8")
             write_table(self.table(), table_path)
         except OSError as exc:
             return self._say(f"save as {path}: {exc.strerror or exc}")

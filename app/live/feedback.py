@@ -21,6 +21,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from core.camera.lighting import Lighting, lighting_change, measure_lighting
+
 from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
 from core.camera.render import Renderer
@@ -38,6 +40,7 @@ if TYPE_CHECKING:
     from app.fleet.arena_team import ArenaTeam
 
 STALE_FRAME_S = 0.3  # a camera frame older than this is no ground for moving a robot
+LIGHTING_EVERY = 30  # frames between two looks at the floor's light (a second at 30 Hz)
 SCAN_EVERY = 3  # frames between free-space scans (10 a second at 30 Hz, as a laser scanner gives them); the
 # memory, moved by the odometry, holds the obstacles in between
 
@@ -99,6 +102,8 @@ class VisionFeedback:
         self._t = 0.0
         self._since_frame = 0.0
         self._frame_count = 0
+        self._lit_at = -LIGHTING_EVERY
+        self.lighting_note = ""  # the floor's light against the calibration's (core.camera.lighting)
         self._last: Observation | None = None
         self._scan_due = 0
         self.memory = ObstacleMemory(self.scanner.settings if self.scanner is not None else ScanSettings())
@@ -132,6 +137,8 @@ class VisionFeedback:
             settings = getattr(self.source, "settings_line", "")  # asked and got (app.backends.camera)
             if settings:
                 camera_state = f"{camera_state} · {settings}"
+            if self.lighting_note:
+                camera_state = f"{camera_state} · {self.lighting_note}"
             age = self.clock() - t_frame
             if frame is None or age > STALE_FRAME_S:
                 why = "no frame yet" if frame is None else f"no fresh frame for {age:.1f} s"
@@ -140,6 +147,10 @@ class VisionFeedback:
                 return self._last  # no new frame this tick: the estimates of the newest one stand (and age)
             self._frame_count = count
             observed_at = t_frame
+            if self.rig.lighting is not None and count - self._lit_at >= LIGHTING_EVERY:  # the light, now and then
+                self._lit_at = count
+                now = measure_lighting(frame, (self.gamma.cx, self.gamma.cy), self.rig.working_area)
+                self.lighting_note = "" if now is None else lighting_change(Lighting(*self.rig.lighting), now)
             if self.pipeline is None:
                 self._make_pipeline((frame.shape[1], frame.shape[0]))
         t1 = time.perf_counter()

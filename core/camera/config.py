@@ -123,6 +123,7 @@ class CameraConfig:
     calibration: CalibrationPlan = CalibrationPlan()
     gamma: Gamma | None = None
     capture: CaptureSettings | None = None  # a real camera's settings ([capture]); None: as the camera has them
+    lighting: tuple[float, float, float] | None = None  # the floor's light at calibration ([lighting]): value, b/g, r/g
 
     @property
     def center(self) -> tuple[float, float]:
@@ -279,8 +280,15 @@ def parse_camera(text: str, source: str) -> CameraConfig:
     top.used.add("gamma")
     capture = _parse_capture(top.table("capture", optional=False)) if top.has("capture") else None
     top.used.add("capture")
+    lighting = None
+    if top.has("lighting"):
+        lt = top.table("lighting", optional=False)
+        lighting = (lt.number("floor_value", 0.0, 255.0), lt.number("cast_bg", 0.0, 100.0, lo_open=True),
+                    lt.number("cast_rg", 0.0, 100.0, lo_open=True))
+        lt.finish()
+    top.used.add("lighting")
     top.finish()
-    return CameraConfig(source, WorkingArea(inner, outer), detect, model, render, plan, gamma, capture)
+    return CameraConfig(source, WorkingArea(inner, outer), detect, model, render, plan, gamma, capture, lighting)
 
 
 def _parse_capture(t: Table) -> CaptureSettings:
@@ -311,9 +319,14 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
-def gamma_toml(gamma: Gamma, working_area: WorkingArea, detect: DetectSettings, header: str = "") -> str:
-    """A camera.toml for a calibrated rig: Γ, its working area and detection settings."""
+def gamma_toml(gamma: Gamma, working_area: WorkingArea, detect: DetectSettings, header: str = "",
+               lighting: tuple[float, float, float] | None = None) -> str:
+    """A camera.toml for a calibrated rig: Γ, its working area and detection settings, and the
+    floor's light it was calibrated in (``lighting``: value, b/g, r/g) when known."""
     lines = [f"# {line}" if line else "#" for line in header.splitlines()]
+    if lighting is not None:
+        lines += ["", "[lighting]  # the floor's light at calibration: a live camera is compared with it",
+                  f"floor_value = {_fmt(lighting[0])}", f"cast_bg = {_fmt(lighting[1])}", f"cast_rg = {_fmt(lighting[2])}"]
     lines += [
         "",
         "[working_area]",

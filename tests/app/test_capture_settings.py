@@ -99,3 +99,66 @@ def test_the_capture_table_is_read_and_bad_values_are_one_line():
         with pytest.raises(ConfigError) as info:
             parse_camera(CAMERA + f"\n[capture]\n{extra}\n", "cam.toml")
         assert words in str(info.value) and "\n" not in str(info.value)
+
+
+def _view() -> np.ndarray:
+    from core.camera.render import Renderer
+
+    rig = parse_camera((ROOT / "static_config" / "camera" / "synthetic.toml").read_text(), "synthetic.toml")
+    poses = np.array([[0.5, 0.3, 1.5], [-0.5, 0.6, 1.0]])
+    return np.asarray(Renderer(rig.model, rig.render).frame(np.array([0.0, 0.0, np.pi / 2]), poses, 0.0,
+                                                            np.random.default_rng(0)))
+
+
+def test_the_lighting_monitor_says_when_the_floor_is_darker_or_its_colour_moved():
+    from core.camera.config import WorkingArea
+    from core.camera.lighting import lighting_change, measure_lighting
+
+    view, area, centre = _view(), WorkingArea(55.0, 195.0), (324.0, 237.0)
+    ref = measure_lighting(view, centre, area)
+    assert ref is not None and 40 < ref.value < 250
+    same = measure_lighting((view * 1.1).clip(0, 255).astype(np.uint8), centre, area)
+    assert lighting_change(ref, same) == ""  # 10 % brighter: fine
+    dark = measure_lighting((view * 0.6).astype(np.uint8), centre, area)
+    assert "the floor is 40 % darker than at calibration" in lighting_change(ref, dark)
+    bluer = view.astype(np.float64)
+    bluer[..., 0] *= 1.3
+    said = lighting_change(ref, measure_lighting(bluer.clip(0, 255).astype(np.uint8), centre, area))
+    assert "more blue" in said and "darker" not in said
+
+
+def test_a_live_camera_in_other_light_than_its_calibration_is_said_on_the_status(tmp_path):
+    """The calibration keeps the floor's light ([lighting]); the loop on a camera whose pictures
+    are 40 % darker says so in its camera state (the page's status, and every recorded tick)."""
+    import threading
+
+    from app.backends.camera import FolderSource
+    from app.backends.hardware import HardwareTeam
+    from app.contracts import Rig
+    from app.live.loop import ServiceLoop
+    from app.live.params import ParamsStore
+    from core.camera.config import gamma_toml
+    from core.camera.lighting import measure_lighting
+
+    view = _view()
+    calibrated = parse_camera(CAMERA, "cam.toml")
+    light = measure_lighting(view, (calibrated.gamma.cx, calibrated.gamma.cy), calibrated.working_area)
+    text = gamma_toml(calibrated.gamma, calibrated.working_area, calibrated.detect, "test",
+                      (light.value, light.cast_bg, light.cast_rg))
+    rig = parse_camera(text, "cam.toml")
+    assert rig.lighting == pytest.approx((light.value, light.cast_bg, light.cast_rg), rel=1e-4)
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"f{k}.png"), (view * 0.6).astype(np.uint8))
+    source = FolderSource(tmp_path, fps=30.0, loop=True)
+    loop = ServiceLoop(ParamsStore(), rate_hz=30.0, frames=source, hardware=HardwareTeam(2),
+                       camera=Rig(rig, rig.require_gamma()))
+    states: list = []
+    loop.subscribe(states.append)
+    thread = threading.Thread(target=loop.run, daemon=True)
+    thread.start()
+    try:
+        wait_for(lambda: any("darker than at calibration" in s.camera_state for s in states), 20, "the lighting note")
+    finally:
+        loop.stop()
+        thread.join(10)
+        source.close()
