@@ -47,6 +47,12 @@ class HardwareTeam:
         n = self.state.n
         return np.ones(n, dtype=bool) if self.link is None else np.asarray(self.link.answering(), dtype=bool)[:n]
 
+    def radio_delay_s(self) -> float:
+        """How long a command takes to reach a follower: half the link's mean round trip (0 with
+        no link, or before any answer)."""
+        rtts = [s.rtt_mean_ms for s in getattr(self.link, "stats", []) if math.isfinite(s.rtt_mean_ms)]
+        return float(np.mean(rtts)) / 2e3 if rtts else 0.0
+
     def link_detail(self) -> str:
         parts = [x.detail() for x in (self.link, self.leader_link) if x is not None]
         return "; ".join(p for p in parts if p)

@@ -23,6 +23,7 @@ import numpy as np
 from core.control.assignment import assign_slots
 from core.control.formation import ControlOutput, ControllerState, compute_commands
 from core.control.navigation import NavOutput, NavSettings, goal_in_leader_frame, navigate
+from core.control.prediction import predict_poses
 from core.control.safety import SafetyResult, SafetySettings, filter_commands, obstacle_rows, team_min_distance
 from core.control.targets import SlotMotion, step_slots
 from core.control.tuning import FILTER, RATE_WINDOW_S, limit_flags, lyapunov_rate
@@ -168,6 +169,7 @@ class ServiceLoop:
         self.ticks_dropped = 0  # ticks skipped since run() began: the loop was more than CATCH_UP_S late
         self.late_frames = 0  # frame-triggered ticks that ran without a new frame (a late camera)
         self._publish_ms: dict[str, float] = {}
+        self._sent: deque[tuple[FloatArray, tuple[float, float]]] = deque(maxlen=30)  # (commands, twist) per tick
         self.last: TickState | None = None
         self._safety: SafetySettings | None = None
         self._world = self._make_world(store.get())
@@ -260,6 +262,25 @@ class ServiceLoop:
         profile = Eq39Profile(speed_mps=v, k1_rps=w)
         return profile.twist(self.t - self._mode[1])
 
+    def _over_latency(self, p: FloatArray, a: FloatArray, observed_at: float, twist: tuple[float, float],
+                      now: float | None = None) -> tuple[FloatArray, FloatArray]:
+        """A real rig's measured latency bridged (core.control.prediction): the observation is as
+        old as its frame (arrival to now; older when the camera was late), and this tick's command
+        acts half a round trip after it is written (the link's measured RTT). Over the ticks since
+        the frame the followers applied the commands sent in them; after, they hold the last one."""
+        assert self.hardware is not None
+        now = time.monotonic() if now is None else now
+        since = max(0.0, now - observed_at) if np.isfinite(observed_at) else 0.0
+        past = min(int(round(since / self.dt)), len(self._sent))
+        ahead = int(round(self.hardware.radio_delay_s() / self.dt))
+        history = list(self._sent)[len(self._sent) - past:]
+        last = self._sent[-1][0] if self._sent else np.zeros((len(a), 2))
+        commands = [c for c, _ in history] + [last] * ahead
+        twists = [t for _, t in history] + [twist] * ahead
+        if not commands or any(c.shape != (len(a), 2) for c in commands):
+            return p, a
+        return predict_poses(p, a, np.array(commands), np.array(twists), self.dt)
+
     def _leader_waits(self, params: Params, tracked: np.ndarray) -> str:
         """Why the leader stands still this tick ('' when it may drive): STOP, or a release that waits
         until every follower is tracked again (``Params.leader_hold``; the loop clears it then)."""
@@ -339,6 +360,8 @@ class ServiceLoop:
             flags = np.zeros(params.n_followers, dtype=np.int64)
         else:
             active = tracked & (not params.stop) & advance
+            if self.hardware is not None and advance:  # a real rig: each follower where it will be when this acts
+                p, a = self._over_latency(p, a, obs.observed_at, twist)
             out = compute_commands(p, a, world.slots.p_d, world.slots.v_d, twist[0], twist[1],
                                    params.gains, world.controller, self.dt, active)
             world.controller = out.state
@@ -359,6 +382,7 @@ class ServiceLoop:
             out = dataclasses.replace(out, commands=Commands(np.where(answering, out.commands.v, 0.0),
                                                              np.where(answering, out.commands.w, 0.0)))
         world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
+        self._sent.append((world.last_cmd, twist))
         world.err_norm = np.linalg.norm(world.slots.p_d - p, axis=1)
         if advance:  # eq. 21's V per follower, and its slope over the last RATE_WINDOW_S
             world.v_hist.append((self.t, out.v_lyap))

@@ -112,3 +112,38 @@ def test_the_latency_bench_measures_ticks_on_new_frames_over_the_serial_link():
     out = bench_latency(3.0, lines.append, browsers=0)
     line = next(ln for ln in lines if ln.startswith("frame-to-command latency: p50 "))
     assert " ms, p99 " in line and out["ticks"] > 30 and out["p50_ms"] <= out["p99_ms"]
+
+
+def test_a_real_rig_predicts_its_followers_over_the_measured_latency(rig_and_frame, tmp_path):
+    """The observation is as old as its frame, and a command acts half the link's round trip
+    after it is written: the loop runs each follower forward over the commands it sent since the
+    frame, then over the last one held, to when this tick's command acts."""
+    import cv2
+
+    from app.backends.camera import FolderSource
+    from core.control.prediction import predict_poses
+
+    class Stats:
+        rtt_mean_ms = 100.0  # half of it, 50 ms, is the radio's share: 2 ticks at 30 Hz
+
+    class Link:
+        stats = [Stats(), Stats()]
+
+    camera, picture = rig_and_frame
+    cv2.imwrite(str(tmp_path / "f.png"), picture)
+    source = FolderSource(tmp_path, fps=30.0)
+    team = HardwareTeam(2)
+    team.link = Link()  # only its measured round trip is read here
+    loop = ServiceLoop(ParamsStore(), rate_hz=30.0, frames=source, hardware=team, camera=camera)
+    try:
+        sent = [np.array([[0.1 * k, 0.2], [0.05, -0.1 * k]]) for k in range(5)]
+        for c in sent:
+            loop._sent.append((c, (0.06, 0.02)))
+        p, a = np.array([[0.5, -0.3], [-0.5, -0.3]]), np.array([1.5, 1.6])
+        got_p, got_a = loop._over_latency(p, a, 100.0 - 3 / 30, (0.06, 0.0), now=100.0)  # the frame: 3 ticks old
+        want_p, want_a = predict_poses(p, a, np.array(sent[-3:] + [sent[-1]] * 2),
+                                       np.array([(0.06, 0.02)] * 3 + [(0.06, 0.0)] * 2), 1 / 30)
+        assert np.allclose(got_p, want_p) and np.allclose(got_a, want_a)
+        assert not np.allclose(got_p, p)  # it moved them: the latency is bridged, not ignored
+    finally:
+        source.close()
