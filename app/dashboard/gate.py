@@ -77,7 +77,8 @@ GATE_HEADER = "X-Omniformation-Gate"
 # hook, so the gate adds it to the page it serves; the press goes the button's own way). And STOP
 # stays in view: a bar fixed to the window (outside viser's panel, which scrolls) carries a STOP
 # that presses the panel's own and the state line (running / stopped / why) copied from the
-# status, four times a second. Where the page has no STOP (a replay) the bar is not shown.
+# status, four times a second. Where the page has no STOP (the calibration page) the bar is not shown;
+# in a replay it shows the disabled STOP and the replay's state line.
 KEYBOARD_STOP = b"""<style>
 #omni-stopbar { position: fixed; top: 8px; left: 50%; transform: translateX(-50%); z-index: 2147483000;
   display: none; align-items: center; gap: 10px; max-width: min(720px, 70vw); padding: 6px 10px;
