@@ -145,9 +145,9 @@ class _Delays:
         commands = list(self.applied)[len(self.applied) - past:]
         twists = list(self.twists)[len(self.twists) - past:]
         holding = self.holding
+        arriving = {at: c for at, _, c in sorted(self.queue, key=lambda q: (q[0], q[1]))}  # the newest sent wins a tick
         for j in range(self.k, self.k + self.radio):  # the commands already sent, as they will arrive
-            arriving = [c for at, _, c in sorted(self.queue, key=lambda q: (q[0], q[1])) if at == j]
-            holding = arriving[-1] if arriving else holding
+            holding = arriving.get(j, holding)
             commands.append(holding)
             twists.append(twist)
         if not commands:
