@@ -117,7 +117,8 @@ def cmd_arena(args: argparse.Namespace) -> int:
             args.summary.write_text(json.dumps(summary, indent=1) + "\n")
     c = arena.counts
     print(f"omniformation: arena stopped after {arena.t:.1f} s: conflicts {c.conflicts}, watchdog stops"
-          f" {c.watchdog_stops}, claims {c.claims_granted} granted / {c.claims_refused} refused, closest two bodies"
+          f" {c.watchdog_stops}, claims {c.claims_granted} granted / {c.claims_refused} refused"
+          f" / {c.claims_repeated} repeated, closest two bodies"
           f" {c.closest_m * 100:.0f} cm apart (closer than 0.25 m: {c.contacts} steps)", flush=True)
     return 0
 

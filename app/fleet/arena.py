@@ -63,6 +63,7 @@ class ArenaCounts:
     late: int = 0  # a command from a robot's former owner that had not yet seen the truth of the change (refused)
     malformed: int = 0  # messages on the arena's keys that are not what docs/fleet-protocol.md says
     claims_granted: int = 0
+    claims_repeated: int = 0  # a leader claiming a robot it owns already: answered yes, nothing changes
     claims_refused: int = 0
     watchdog_stops: int = 0  # robots stopped by their own watchdog (their leader went quiet)
     contacts: int = 0  # steps on which two bodies came closer than CONTACT_M, centre to centre
@@ -184,10 +185,11 @@ class Arena:
             return
         with self._lock:
             owner = self.owners[r]
+            repeated = False
             if leader not in self.alive:
                 why = f"{leader} is not alive on the bus"
             elif owner == leader:
-                why = ""
+                why, repeated = "", True
             elif owner is not None and owner in self.alive:
                 why = f"{robot_name(r)} is {owner}'s, and {owner} is alive"
             elif owner is not None and owner not in self.ever_alive:
@@ -196,7 +198,9 @@ class Arena:
                 why = ""
                 self._give(r, leader)
             granted = why == ""
-            if granted:
+            if repeated:
+                self.counts.claims_repeated += 1
+            elif granted:
                 self.counts.claims_granted += 1
             else:
                 self.counts.claims_refused += 1

@@ -344,7 +344,9 @@ class Adopter:
             alive = set(self.alive) | {self.leader_id}
         owners: list[str | None] = list(truth["owners"])
         lost = set(truth.get("lost", ())) - alive  # joined, and gone (as the arena and this leader both see it)
-        orphans = [r for r, o in enumerate(owners) if o is None or o in lost]
+        # a robot this leader already took is no orphan, whatever an older truth still says of it:
+        # claiming it again would be granted (it is ours) and seat it twice
+        orphans = [r for r, o in enumerate(owners) if (o is None or o in lost) and r not in self.team.owned]
         if not orphans or set(truth.get("alive", ())) - alive:
             return  # nobody to adopt, or the arena knows of leaders this one has not heard of yet
         leaders = {lid: (float(pose[0]), float(pose[1]), sum(1 for o in owners if o == lid))
@@ -377,6 +379,8 @@ class Adopter:
         return np.asarray(world_to_leader(robot[None, :2], leader[:2], float(leader[2]))[0])
 
     def _take(self, r: int, truth: dict[str, Any], how: str) -> None:
+        if r in self.team.owned:
+            return  # in the team already: one slot per robot
         # a slot on the side it comes from (core.fleet.slot_for_newcomer), in this leader's frame
         here = self._in_my_frame(truth, r)
         current = self.store.get()

@@ -189,7 +189,8 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         if watcher is not None:
             watcher.close()
     counts = json.loads(summary.read_text())
-    assert counts["conflicts"] == 0 and counts["claims_granted"] == 3 and counts["malformed"] == 0, counts
+    assert counts["conflicts"] == 0 and counts["claims_granted"] == 3 and counts["claims_repeated"] == 0, counts
+    assert counts["malformed"] == 0, counts
     assert counts["ever_alive"] == ["L1", "L2", "L3"]
     # no two bodies (robots, leaders) ever closer than the safety filter's 0.25 m, centre to centre
     assert counts["contacts"] == 0 and counts["closest_m"] >= 0.25, counts
@@ -274,3 +275,46 @@ def test_an_adopted_robot_joins_on_the_side_it_comes_from():
         assert 0.5 <= math.hypot(*new) <= 1.5 + 1e-9
         assert np.sign(new[np.argmax(np.abs(newcomer))]) == np.sign(newcomer[np.argmax(np.abs(newcomer))]), new
     assert np.array_equal(slot_for_newcomer(slots, np.array([3.0, 0.0])), slot_for_newcomer(slots, np.array([3.0, 0.0])))
+
+
+def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned():
+    """The adopter acts on the newest truth it holds, which may be older than its own grant: a
+    robot it took already is no orphan (claimed again it would be granted -- it is the
+    claimant's -- and seated in a second slot). A real arena, a real Zenoh session in-process."""
+    from app.fleet.arena import Arena
+    from app.fleet.arena_team import Adopter, ArenaTeam
+    from app.fleet.bridge import open_session
+    from app.live.params import ParamsStore
+
+    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
+    session = open_session([], [])
+    arena = Arena(scenario, session)
+    tokens = {lid: session.liveliness().declare_token(f"omniformation/{FLEET}/alive/{lid}") for lid in ("L1", "L2", "L3")}
+    stop = threading.Event()
+    stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
+    stepper.start()
+    team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
+    store = ParamsStore(fixed_followers=len(team.owned))
+    adopter = Adopter(session, FLEET, "L1", team, store)
+    try:
+        wait_for(lambda: arena.alive == {"L1", "L2", "L3"} and adopter.alive >= {"L1", "L2", "L3"}, 10, "three alive")
+        tokens.pop("L2").undeclare()
+        wait_for(lambda: "L2" not in arena.alive and "L2" not in adopter.alive, 10, "L2 gone")
+        stale = arena.truth()  # L2's robots orphans in it; the newest truth the adopter sees, twice
+        adopter._adopt_orphans(stale)
+        taken = arena.counts.claims_granted
+        assert taken >= 1 and sorted(team.owned) == sorted(set(team.owned))
+        adopter._adopt_orphans(stale)
+        assert arena.counts.claims_granted == taken and arena.counts.claims_repeated == 0, arena.counts
+        assert sorted(team.owned) == sorted(set(team.owned)) and len(team.owned) == 3 + taken
+        params = store.get()
+        assert params.n_followers == len(team.owned) and len(params.slots) == params.n_followers
+    finally:
+        adopter.close()
+        team.close()
+        stop.set()
+        stepper.join(5)
+        for tok in tokens.values():
+            tok.undeclare()
+        arena.close()
+        session.close()
