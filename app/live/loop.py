@@ -20,19 +20,19 @@ from collections.abc import Callable
 
 import numpy as np
 
-from core.control.assignment import assign_slots
-from core.control.formation import ControlOutput, ControllerState, compute_commands
+from core.control.formation import ControlOutput, ControllerState
 from core.control.navigation import NavOutput, NavSettings, goal_in_leader_frame, navigate
 from core.control.prediction import predict_poses
-from core.control.safety import SafetyResult, SafetySettings, filter_commands, obstacle_rows, team_min_distance
-from core.control.targets import SlotMotion, step_slots
-from core.control.tuning import FILTER, RATE_WINDOW_S, limit_flags, lyapunov_rate
+from core.control.safety import SafetyResult, SafetySettings, team_min_distance
+from core.control.step import TeamMemory, due, keep_out_m, team_step
+from core.control.targets import SlotMotion
+from core.control.tuning import RATE_WINDOW_S, lyapunov_rate
 from core.config import MeasurementNoise
 from core.obstacles import Obstacle
 from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
 from core.vision.pipeline import PipelineSettings
-from core.types import Commands, FloatArray, IntArray
+from core.types import Commands, FloatArray
 
 from app.backends.hardware import HardwareTeam
 from app.backends.sim import SimTeam, spread_start
@@ -56,7 +56,6 @@ CATCH_UP_S = 0.25
 CATCH_UP_TICKS = 3
 LATE_FRAME_PERIODS = 1.5  # frame-triggered ticks: no new frame within this many periods is a late camera
 DT_RANGE = (0.25, 3.0)  # a frame-triggered tick's dt, as a share of the configured period, at least and at most
-REASSIGN_MARGIN_M2 = 0.05  # eq. 33 is re-solved when slots change; keep the old one unless this much cheaper
 
 
 def next_tick(deadline: float, now: float, dt: float, late_limit: float) -> tuple[float, float, int]:
@@ -75,15 +74,19 @@ def next_tick(deadline: float, now: float, dt: float, late_limit: float) -> tupl
 class _World:
     team: Team
     feedback: Feedback
-    controller: ControllerState
-    slots: SlotMotion
-    assignment: IntArray
-    slot_version: object
+    memory: TeamMemory  # the control step's (core.control.step): controller, slots, assignment
     ready: bool = False  # the pipeline finished its start-up (always True for truth feedback)
     last_obs: Observation | None = None
     last_cmd: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) the last tick's commands
     err_norm: FloatArray = field(default_factory=lambda: np.zeros(0))  # (n,) the last tick's position errors
     v_hist: deque[tuple[float, FloatArray]] = field(default_factory=deque)  # (t, V (n,)) over RATE_WINDOW_S
+
+
+def _placeholder(n: int, slots: FloatArray) -> TeamMemory:
+    """Before the poses are known (vision's start-up): slots by index, replaced by eq. 33 then."""
+    assignment = np.arange(n) % slots.shape[0]
+    return TeamMemory(ControllerState.initial(n), SlotMotion.at_rest(slots[assignment]), assignment,
+                      np.array(slots, dtype=np.float64))
 
 
 def safety_text(result: SafetyResult | None, on: bool) -> str:
@@ -197,7 +200,7 @@ class ServiceLoop:
             n = team.state.n
             feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
                                       source=self.frames, settings=self.pipeline_settings)
-            assignment = np.arange(n) % params.slots.shape[0]  # eq. 33 runs once the poses are known
+            memory = _placeholder(n, params.slots)  # eq. 33 runs once the poses are known
         elif self.arena is not None:  # a fleet's arena: the same robots after a reset, plus any adopted
             self.arena.resize(n)
             team = self.arena
@@ -207,10 +210,10 @@ class ServiceLoop:
                                         settings=self.pipeline_settings, scene=self.arena.scene,
                                         scene_hues=self.arena.scene_hues(), hues_deg=own, foreign_hues_deg=foreign)
                 feedback = ArenaFeedback(self.arena, vision)  # and the other teams as obstacles
-                assignment = np.arange(n) % params.slots.shape[0]  # eq. 33 runs once the poses are known
+                memory = _placeholder(n, params.slots)  # eq. 33 runs once the poses are known
             else:
                 feedback = ArenaFeedback(self.arena)  # the truth, and the other teams as obstacles
-                assignment = assign_slots(self.arena.observe()[0], params.slots)
+                memory = TeamMemory.start(self.arena.observe()[0], params.slots)
         else:
             if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
                 p0, a0 = self._initial_poses
@@ -223,13 +226,11 @@ class ServiceLoop:
                                           settings=self.pipeline_settings, obstacles=self.obstacles)
             else:
                 feedback = TruthFeedback(team, self.obstacles)
-            assignment = assign_slots(p0, params.slots)
+            memory = TeamMemory.start(p0, params.slots)
         self.t = 0.0
         self._nav = (math.nan, 1.0)
         self._switch_k = 0
-        return _World(team, feedback, ControllerState.initial(n), SlotMotion.at_rest(params.slots[assignment]),
-                      assignment, params.slots.tobytes(), ready=self.camera is None,
-                      last_cmd=np.zeros((n, 2)), err_norm=np.zeros(n))
+        return _World(team, feedback, memory, ready=self.camera is None, last_cmd=np.zeros((n, 2)), err_norm=np.zeros(n))
 
     def _safety_settings(self, params: Params) -> SafetySettings:
         if self._safety is None or self._safety.min_distance_m != params.safety_distance_m:
@@ -306,7 +307,7 @@ class ServiceLoop:
             self._world = self._make_world(params)
             self._mode = ("", 0.0)
         world = self._world
-        while self._switch_k < len(self.switches) and world.ready and self.t >= self.switches[self._switch_k][0]:
+        while self._switch_k < len(self.switches) and world.ready and due(self.t, self.switches[self._switch_k][0], self.dt):
             slots = self.switches[self._switch_k][1]
             self._switch_k += 1
             if slots.shape[0] == params.n_followers:
@@ -332,14 +333,8 @@ class ServiceLoop:
 
         if obs.ready and not world.ready:  # the pipeline knows every pose: eq. 33 on its estimates
             world.ready = True
-            world.assignment = assign_slots(p, params.slots)
-            world.slots = SlotMotion.at_rest(params.slots[world.assignment])
-            world.slot_version = params.slots.tobytes()
+            world.memory = TeamMemory.start(p, params.slots)
             self._mode = ("", self.t)
-        slots_key = params.slots.tobytes()
-        if world.ready and slots_key != world.slot_version:
-            world.assignment = assign_slots(p, params.slots, current=world.assignment, margin_m2=REASSIGN_MARGIN_M2)
-            world.slot_version = slots_key
         known = obs.obstacles if obs.obstacles is not None else np.zeros((0, 2))
         answering = np.asarray(world.team.answering(), dtype=bool)
         tracked = tracked & answering  # a robot whose link does not answer is not one we may command
@@ -349,41 +344,38 @@ class ServiceLoop:
             self._mode = (self._mode[0], self._mode[1] + (self.dt if advance else 0.0))  # a profile's clock waits too
         else:
             twist = self._leader_twist(params, known, world.err_norm, tracked, params.slots)
-        targets = params.slots[world.assignment] * np.array([self._nav[1], 1.0])  # narrowed for a gap (goal mode)
-        if advance and world.ready:
-            keep_out = params.safety_distance_m + 0.2 if params.safety else 0.0  # round the leader, not through it
-            world.slots = step_slots(world.slots, targets, self.dt, keep_out_m=keep_out)
+        settings = self._safety_settings(params) if params.safety else None
+        safety = None
         if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
+            if world.ready:
+                world.memory = world.memory.with_formation(p, params.slots)
+                if advance:
+                    world.memory = world.memory.moved(self._nav[1], self.dt, keep_out_m(settings))
             move = advance and not params.stop
             manoeuvre = obs.manoeuvre * answering[:, None] if move else np.zeros((params.n_followers, 2))
             out = ControlOutput.idle(manoeuvre)
             flags = np.zeros(params.n_followers, dtype=np.int64)
+            world.err_norm = np.linalg.norm(world.memory.slots.p_d - p, axis=1)
         else:
-            active = tracked & (not params.stop) & advance
+            acting = None
             if self.hardware is not None and advance:  # a real rig: each follower where it will be when this acts
-                p, a = self._over_latency(p, a, obs.observed_at, twist)
-            out = compute_commands(p, a, world.slots.p_d, world.slots.v_d, twist[0], twist[1],
-                                   params.gains, world.controller, self.dt, active)
-            world.controller = out.state
-            flags = limit_flags(p, world.slots.p_d, out.a_err, out.zeta_r, out.a_r_dot, twist[1],
-                                np.column_stack([out.commands.v, out.commands.w]), params.gains, active)
-        safety = None
-        if obs.manoeuvre is None and params.safety and not params.stop:
-            settings = self._safety_settings(params)
-            safety = filter_commands(p, a, out.commands, twist, obstacle_rows(known, p[tracked], settings), settings,
-                                     known=tracked, limits=(params.gains.v_max, params.gains.w_max))
-            if safety.status != "inactive":
-                out = dataclasses.replace(out, commands=safety.commands)
-            flags = flags | np.where(safety.active, FILTER, 0)
+                acting = self._over_latency(p, a, obs.observed_at, twist)
+            step = team_step(world.memory, p, a, tracked, params.slots, twist, params.gains, self.dt,
+                             active=tracked & (not params.stop) & advance, obstacles=known, safety=settings,
+                             filter_now=not params.stop, scale=self._nav[1], advance=advance and world.ready,
+                             acting=acting)
+            world.memory, out, flags, safety, world.err_norm = step.memory, step.control, step.flags, step.safety, \
+                step.err_norm
+            if acting is not None:
+                p, a = acting
         if world.team.link_lost:  # nobody answers: no command but zero until the robots do
             out = ControlOutput.idle(np.zeros((len(a), 2)))
-            world.controller = ControllerState.initial(len(a))
+            world.memory = dataclasses.replace(world.memory, controller=ControllerState.initial(len(a)))
         elif not answering.all():  # and a robot that does not answer gets zero until it does
             out = dataclasses.replace(out, commands=Commands(np.where(answering, out.commands.v, 0.0),
                                                              np.where(answering, out.commands.w, 0.0)))
         world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
         self._sent.append((world.last_cmd, twist))
-        world.err_norm = np.linalg.norm(world.slots.p_d - p, axis=1)
         if advance:  # eq. 21's V per follower, and its slope over the last RATE_WINDOW_S
             world.v_hist.append((self.t, out.v_lyap))
             while world.v_hist and world.v_hist[0][0] < self.t - RATE_WINDOW_S:
@@ -402,8 +394,8 @@ class ServiceLoop:
         state = TickState(
             tick=self.tick_count, t=self.t, leader=world.team.state.leader.copy(), leader_twist=twist,
             followers_world=world.team.state.followers.copy(), p_est=obs.p, a_est=obs.a, tracked=tracked,
-            p_true=p_true, a_true=a_true, p_d=world.slots.p_d.copy(), slot_targets=params.slots.copy(),
-            assignment=world.assignment.copy(),
+            p_true=p_true, a_true=a_true, p_d=world.memory.slots.p_d.copy(), slot_targets=params.slots.copy(),
+            assignment=world.memory.assignment.copy(),
             commands=np.column_stack([out.commands.v, out.commands.w]), a_err=out.a_err,
             v_lyap=out.v_lyap, gains=params.gains, params_version=params.version,
             stopped=params.stop, paused=params.paused and not advance, link_state=world.team.link_state,
@@ -490,7 +482,7 @@ class ServiceLoop:
         """Command every follower to zero now (used on stop and on errors)."""
         n = self._world.team.state.n
         self._world.team.send(Commands.zeros(n))
-        self._world.controller = ControllerState.initial(n)
+        self._world.memory = dataclasses.replace(self._world.memory, controller=ControllerState.initial(n))
         self._world.last_cmd = np.zeros((n, 2))
 
     def close_team(self) -> None:

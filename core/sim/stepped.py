@@ -32,12 +32,10 @@ from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
 from core.camera.render import Renderer
 from core.config import Latency, Scenario
-from core.control.assignment import assign_slots
-from core.control.formation import ControllerState, compute_commands
 from core.control.prediction import predict_poses
 from core.control.navigation import NavSettings, goal_in_leader_frame, navigate
-from core.control.safety import filter_commands, obstacle_rows, team_min_distance
-from core.control.targets import SlotMotion, step_slots
+from core.control.safety import team_min_distance
+from core.control.step import TeamMemory, due, team_step
 from core.geometry import heading_world_to_leader, leader_displacement, world_to_leader
 from core.obstacles import Obstacle, as_array, seen_from, surface_distance
 from core.sim.profiles import GoalProfile
@@ -201,13 +199,10 @@ def simulate_stepped(
             scanner = FreeSpaceScanner(gamma, rig.working_area, scan_settings_for(rig))
             memory = ObstacleMemory(scanner.settings)
     state = make_team_state(scenario.initial_p, scenario.initial_a)
-    ctrl_state = ControllerState.initial(n)
+    memory_c: TeamMemory | None = None  # the control step's, from the first estimates on
     smooth = bool(scenario.switches) or goal is not None  # slots that move: followed smoothly (as the live loop does)
     slots_now = scenario.slots
     p_d = np.zeros((n, 2))
-    motion = SlotMotion.at_rest(p_d)
-    assignment = np.arange(n)
-    assigned = False
     switch_k = 0
     scale = 1.0
     heading = math.nan
@@ -273,16 +268,11 @@ def simulate_stepped(
             if vision and t_ready is None:
                 t_ready = t_wall
                 t_scn = 0.0
-            if not assigned:
-                assigned = True
-                known = np.where(np.isfinite(pos_m), pos_m, 0.0)
-                assignment = assign_slots(known, scenario.slots)  # eq. 33 on the first estimates
-                p_d = np.ascontiguousarray(scenario.slots[assignment])
-                motion = SlotMotion.at_rest(p_d)
-            while switch_k < len(scenario.switches) and t_scn >= scenario.switches[switch_k][0]:
+            known = np.where(np.isfinite(pos_m), pos_m, 0.0)
+            if memory_c is None:
+                memory_c = TeamMemory.start(known, scenario.slots)  # eq. 33 on the first estimates
+            while switch_k < len(scenario.switches) and due(t_scn, scenario.switches[switch_k][0], dt):
                 slots_now = scenario.switches[switch_k][1]
-                known = np.where(np.isfinite(pos_m), pos_m, 0.0)
-                assignment = assign_slots(known, slots_now, current=assignment, margin_m2=0.05)
                 switch_k += 1
             if goal is not None:
                 g = goal_in_leader_frame(goal.goal, state.leader)  # odometry is exact in the simulator
@@ -293,29 +283,21 @@ def simulate_stepped(
                     reached_at = t_scn
             else:
                 twist = tuple(float(x) for x in scenario.leader.twist(t_scn))  # type: ignore[assignment]  # a pair
-            targets = slots_now[assignment] * np.array([scale, 1.0])  # the formation narrows, it does not shorten
-            if smooth:
-                keep_out = scenario.safety.min_distance_m + 0.2 if scenario.safety is not None else 0.0
-                motion = step_slots(motion, targets, dt, keep_out_m=keep_out)
-            else:
-                motion = SlotMotion.at_rest(targets)
-            p_d = motion.p_d
-            pos = np.where(np.isfinite(pos_m), pos_m, 0.0)
+            pos = known
             head = np.where(np.isfinite(head_m), head_m, math.pi / 2)
+            acting = None
             if delay.on and delay.latency.compensate:  # each follower where it will be when this command acts
-                pos, head = delay.predicted(pos, head, twist)
-            c = compute_commands(pos, head, p_d, motion.v_d, twist[0], twist[1], scenario.gains, ctrl_state, dt,
-                                 active=tracked)
-            ctrl_state = c.state
-            commands = c.commands
-            if scenario.safety is not None:
-                res = filter_commands(pos, head, commands, twist, obstacle_rows(known_pts, pos[tracked], scenario.safety),
-                                      scenario.safety, known=tracked,
-                                      limits=(scenario.gains.v_max, scenario.gains.w_max))
-                commands, status, changed = res.commands, res.status, res.changed
+                acting = delay.predicted(pos, head, twist)
+            step = team_step(memory_c, pos, head, tracked, slots_now, twist, scenario.gains, dt, obstacles=known_pts,
+                             safety=scenario.safety, scale=scale, smooth=smooth, acting=acting)
+            memory_c = step.memory
+            p_d = memory_c.slots.p_d
+            commands = step.control.commands
+            if step.safety is not None:
+                status, changed = step.safety.status, step.safety.changed
             v_cmd, w_cmd = np.asarray(commands.v), np.asarray(commands.w)
-            a_err = c.a_err
-            err_norm = np.hypot(p_d[:, 0] - pos[:, 0], p_d[:, 1] - pos[:, 1])
+            a_err = step.control.a_err
+            err_norm = step.err_norm
 
         rows["t"].append(t_wall)
         rows["leader"].append(state.leader.copy())
@@ -366,7 +348,7 @@ def simulate_stepped(
         p_d=np.array(rows["pd"]),
         commands=np.array(rows["cmd"]),
         a_err=np.array(rows["aerr"]),
-        assignment=np.asarray(assignment),
+        assignment=np.asarray(memory_c.assignment if memory_c is not None else np.arange(n)),
     )
     scans: list[FloatArray] = [np.asarray(r) for r in rows["scan"] if r is not None]
     safety = SafetyLog(
