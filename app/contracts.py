@@ -2,7 +2,7 @@
 and a follower link must offer, and the value a rig is (its camera config and Γ).
 
 The loop (app.live.loop) knows only these shapes; the simulated team and real robots
-(app.backends.sim, app.backends.hardware), the truth and vision feedbacks (app.live.feedback),
+(app.backends.sim, app.backends.hardware), the truth and vision feedbacks (app.backends.feedback),
 the cameras (app.backends.camera) and the serial links (app.backends.serial_link) plug in
 behind them.
 """

@@ -3,7 +3,7 @@
 Each source runs its own capture thread and keeps only the newest frame with the
 monotonic time it arrived, so the loop never waits for a camera: it asks ``latest()``
 once per tick and decides from the frame's age (no fresh frame for 0.3 s: every follower
-to zero, see app.live.feedback). A camera that disappears is reopened with back-off; a video
+to zero, see app.backends.feedback). A camera that disappears is reopened with back-off; a video
 file or folder that ends says so. Nothing here raises into the loop.
 """
 

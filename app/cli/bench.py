@@ -118,9 +118,9 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
 
     from app.live.config import DEFAULT_CONFIG, load_service_config
     from app.live.loop import CATCH_UP_S
-    from app.live.params import MAX_FOLLOWERS
-    from app.live.service import Service
-    from app.recording.session import start_recording
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
+    from app.services.recording import start_recording
 
     from app.files import load_scenario
 
@@ -255,9 +255,9 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     from app.contracts import Rig
     from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
     from app.live.config import DEFAULT_CONFIG, load_service_config
-    from app.live.params import MAX_FOLLOWERS
-    from app.live.service import Service
-    from app.recording.session import start_recording
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
+    from app.services.recording import start_recording
     from core.camera.render import Renderer
     from core.geometry import heading_world_to_leader, world_to_leader
     from core.sim.stepped import simulate_stepped
@@ -351,11 +351,11 @@ def write_long_recording(path: Any, minutes: float) -> tuple[int, float]:
 
     from app.live.config import DEFAULT_CONFIG, load_service_config
     from app.live.loop import ServiceLoop
-    from app.live.params import MAX_FOLLOWERS, ParamsStore, default_slots
+    from app.params import MAX_FOLLOWERS, ParamsStore, default_slots
     from app.recording.writer import Recorder
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
-    from app.live.params import Params
+    from app.params import Params
 
     store = ParamsStore(Params(n_followers=3, slots=default_slots(3), leader_mode="eq39"))
     loop = ServiceLoop(store, rate_hz=30.0, seed=3, dynamics=config.dynamics, camera=config.camera())
@@ -478,7 +478,7 @@ def replay_probe(path: str, seeks: int = 100) -> None:
     from pathlib import Path
 
     from app.recording.reader import read_recording
-    from app.recording.replay import ReplayService
+    from app.services.replay import ReplayService
 
     t0 = time.monotonic()
     rec = read_recording(Path(path))
@@ -804,7 +804,7 @@ def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision") -> tupl
 
     from app.dashboard.gate import quietly, serve_gated
     from app.fleet.bridge import loopback_endpoint, open_session
-    from app.fleet.dashboard import SWITCH_INTERVAL_S, FleetView
+    from app.services.fleet_page import SWITCH_INTERVAL_S, FleetView
 
     endpoint = loopback_endpoint()
     page_session = open_session([endpoint], [])
@@ -954,8 +954,8 @@ def bench_sweeps() -> tuple[float, float, float, float, int]:
 
     from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_scenario, load_synthetic_rig
     from app.live.config import DEFAULT_CONFIG, load_service_config
-    from app.live.params import MAX_FOLLOWERS
-    from app.live.service import Service
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
     from app.live.sweep import run_sweep
     from core.control.tuning import StepTest, parse_gain_range
     from core.sim.sweep import settled_start
@@ -1009,14 +1009,14 @@ def bench_loop_with_browsers(seconds: float = 6.0, browsers: int = 3) -> tuple[f
         return None
     if chromium is None:
         return None
-    from app.live.service import Service
+    from app.services.live import Service
 
     def measure(svc: Service) -> float:
         start_tick, start = svc.loop.tick_count, _time.monotonic()
         _time.sleep(seconds)
         return (svc.loop.tick_count - start_tick) / (_time.monotonic() - start)
 
-    from app.live.params import MAX_FOLLOWERS
+    from app.params import MAX_FOLLOWERS
     from app.live.config import DEFAULT_CONFIG, load_service_config
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)  # what `make run` serves: vision in the loop

@@ -73,7 +73,8 @@ def cmd_arena(args: argparse.Namespace) -> int:
 
     from app.files import load_fleet
     from app.fleet.arena import Arena
-    from app.fleet.bridge import check_name, root
+    from app.fleet.bridge import check_name
+    from app.keys import root
 
     scenario = load_fleet(args.fleet_scenario)
     fleet = args.fleet or scenario.name
@@ -130,7 +131,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     from app.dashboard.gate import is_loopback, quietly, serve_gated
     from app.files import check_new_file, display_path
     from app.fleet.bridge import check_name
-    from app.fleet.dashboard import SWITCH_INTERVAL_S, FleetView
+    from app.services.fleet_page import SWITCH_INTERVAL_S, FleetView
     from app.fleet.recorder import FleetRecorder
 
     try:
@@ -158,7 +159,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
             quietly(server.stop)
             session.close()  # type: ignore[attr-defined]
             raise UserError(f"{args.record}: cannot record: {exc.strerror or exc}") from None
-    sys.setswitchinterval(SWITCH_INTERVAL_S)  # states reach the page's callbacks sooner (app.fleet.dashboard)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)  # states reach the page's callbacks sooner (app.services.fleet_page)
     view = FleetView(server, session, args.fleet, recorder, allow_viewer=gate.filter.allow_viewer)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from app.cli.args import Parser, bind_error, float_in, int_in, port, seed, token_arg
 from app.files import DEFAULT_CONFIG, UserError, check_new_file, display_path
-from app.live.params import MAX_FOLLOWERS
+from app.params import MAX_FOLLOWERS
 
 if TYPE_CHECKING:
     from app.contracts import Rig
@@ -78,7 +78,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from app.files import load_scenario
     from app.dashboard.gate import is_loopback
-    from app.live.service import Service
+    from app.services.live import Service
     from app.live.config import load_service_config
 
     if args.viewer_token is not None and args.viewer_token == args.token:
@@ -171,8 +171,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         session = open_bus(args.zenoh_listen, args.zenoh_connect, f"--fleet {args.fleet}")
         try:
             if fleet_scenario is not None:
-                from app.fleet.arena_team import ArenaTeam, NoArena
-                from app.live.params import Params, default_slots
+                from app.backends.arena import ArenaTeam, NoArena
+                from app.params import Params, default_slots
 
                 try:
                     arena_team = ArenaTeam(session, args.fleet, args.leader_id, config.measurement.position_noise_m,
@@ -186,7 +186,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                 " already; every leader needs its own id")
             if arena_team is not None and fleet_scenario is not None:
                 if not arena_team.owned:  # it comes back after its robots were adopted: alive, empty-handed
-                    from app.fleet.bridge import root
+                    from app.keys import root
 
                     token = session.liveliness().declare_token(f"{root(args.fleet)}/alive/{args.leader_id}")  # type: ignore[attr-defined]
                     print(f"omniformation: {args.leader_id} owns no robot in the arena now (other leaders adopted"
@@ -230,7 +230,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise UserError(bind_error(args.host, args.port, exc)) from None
     recorder = None
     if not args.no_record:
-        from app.recording.session import start_recording
+        from app.services.recording import start_recording
 
         from app.recording.writer import RecordingRefused
 
@@ -262,7 +262,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 print(f"omniformation: fleet bus: no peer answers at {', '.join(args.zenoh_connect)}; retrying in the"
                       " background (the loop runs; the page says 'fleet: disconnected')", file=sys.stderr, flush=True)
         if arena_team is not None:
-            from app.fleet.arena_team import Adopter
+            from app.fleet.adopter import Adopter
 
             adopter = Adopter(session, args.fleet, args.leader_id, arena_team, service.store, event=bridge.event)
         print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"

@@ -31,7 +31,7 @@ def load_recording(path: Path) -> "Recording":
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from app.cli.args import serve_page
-    from app.recording.replay import ReplayService
+    from app.services.replay import ReplayService
 
     rec = load_recording(args.file)
     t = rec.t

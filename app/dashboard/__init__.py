@@ -21,8 +21,8 @@ from app.dashboard.plots import Plots
 from app.dashboard.scene import Scene
 from app.dashboard.tuning_panel import LyapunovMonitor, TuningPanel
 from app.dashboard.widgets import on_page_thread
-from app.live.tick import TickState
-from app.live.params import ParamsStore
+from app.tick import TickState
+from app.params import ParamsStore
 
 
 class Dashboard:

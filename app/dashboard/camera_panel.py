@@ -11,7 +11,7 @@ import numpy as np
 import viser
 
 from core.camera.render.looks import follower_bgr
-from app.live.tick import TickState
+from app.tick import TickState
 
 REDRAW_S = 0.1
 SCALE = 0.5  # 640x480 -> 320x240

@@ -14,8 +14,8 @@ import viser
 from core.types import GAIN_BOUNDS
 
 from app.dashboard.widgets import as_text
-from app.live.tick import TickState
-from app.live.params import (
+from app.tick import TickState
+from app.params import (
     FORMATION_PRESETS,
     GOAL_LIMIT_M,
     LEADER_MODES,

@@ -20,7 +20,7 @@ import viser
 import viser.uplot as uplot
 
 from core.camera.render.looks import follower_rgb
-from app.live.tick import TickState
+from app.tick import TickState
 
 WINDOWS_S = {"10 s": 10.0, "60 s": 60.0, "5 min": 300.0}
 WINDOW_S = WINDOWS_S["60 s"]  # what the charts show at first

@@ -10,8 +10,9 @@ At most ``MAX_OPEN`` replays are served at once; opening another closes the olde
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import viser
 
@@ -20,7 +21,20 @@ from app.dashboard.widgets import as_text
 from app.files import default_recordings, display_path
 
 if TYPE_CHECKING:
-    from app.recording.replay import ReplayService
+    from app.recording.reader import Recording
+
+
+class ServedReplay(Protocol):
+    """A recording served on a page of its own (app.services.replay.ReplayService)."""
+
+    rec: Recording
+
+    @property
+    def url(self) -> str: ...
+
+    def start(self) -> None: ...
+
+    def close(self) -> None: ...
 
 MAX_OPEN = 3
 NONE = "(no recordings yet)"
@@ -34,13 +48,14 @@ def list_recordings(folder: Path) -> dict[str, Path]:
 
 
 class RecordingsPanel:
-    def __init__(self, server: viser.ViserServer, host: str, folder: Path | None = None,
-                 current: str = "", token: str | None = None) -> None:
-        """``host`` and ``token``: where replays are served, and what their clients present (the live page's)."""
-        self.server, self.host, self.folder, self.token = server, host, folder or default_recordings(), token
+    def __init__(self, server: viser.ViserServer, serve: Callable[[Recording], ServedReplay],
+                 folder: Path | None = None, current: str = "") -> None:
+        """``serve``: a recording to a replay page of its own, not yet started (the composition root
+        says where and for whom: the live page's host and token)."""
+        self.server, self.serve, self.folder = server, serve, folder or default_recordings()
         self.current = current  # the file this live run records to: not offered while it is written
         self._listed: dict[str, Path] = {}  # what the menu offers: the only files that can be opened
-        self.replays: list[ReplayService] = []
+        self.replays: list[ServedReplay] = []
         self._lock = threading.Lock()
         gui = server.gui
         with gui.add_folder("Recordings", expand_by_default=False):
@@ -71,7 +86,6 @@ class RecordingsPanel:
     def open_selected(self) -> str:
         """Serve the selected recording; returns its URL (or the reason it could not)."""
         from app.recording.reader import RecordingError, check_ticks, read_recording
-        from app.recording.replay import ReplayService
 
         name = self.menu.value
         if name == NONE:
@@ -89,7 +103,7 @@ class RecordingsPanel:
         with self._lock:
             while len(self.replays) >= MAX_OPEN:
                 self.replays.pop(0).close()
-            replay = ReplayService(rec, host=self.host, port=0, token=self.token)
+            replay = self.serve(rec)
             replay.start()
             self.replays.append(replay)
             lines = [f"- [{as_text(r.rec.path.name)}]({r.url}) — {as_text(r.url)}" for r in self.replays]

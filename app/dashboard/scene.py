@@ -15,8 +15,8 @@ from core.obstacles import Obstacle
 
 from core.camera.render.looks import follower_rgb
 from app.dashboard.controls import Controls
-from app.live.tick import TickState
-from app.live.params import ParamsStore
+from app.tick import TickState
+from app.params import ParamsStore
 
 WORKING_RING_M = (0.3, 1.5)
 TRAIL_SECONDS = 20.0

@@ -34,9 +34,10 @@ from core.control.tuning import (LIMIT_NAMES, OFFSET_M, TURN_RPS, WINDOW_S, Step
 from core.types import GAIN_BOUNDS
 
 from app.dashboard.widgets import assign
-from app.live.params import ParamsStore
-from app.live.sweep import SweepResult, SweepRunner
-from app.live.tick import TickState
+from app.params import ParamsStore
+from app.live.sweep import SweepRunner
+from core.sim.sweep import SweepResult
+from app.tick import TickState
 from app.live.tuning import StepTests, Trial, trial_cells, trials_csv
 
 STRIP_S = 10.0

@@ -36,23 +36,11 @@ from core.control.safety import SafetySettings
 from core.fleet import MAX_TEAM, ArenaState, FleetScenario, closest_distance, initial_arena, step_arena
 from core.link.protocol import WATCHDOG_S
 
-from app.fleet.bridge import root
+from app.keys import robot_index, robot_name, root
 
 log = logging.getLogger(__name__)
 
 CONTACT_M = SafetySettings().min_distance_m  # two bodies' centres closer than this: the safety filter's limit broken
-
-
-def robot_name(r: int) -> str:
-    return f"R{r + 1}"
-
-
-def robot_index(name: Any, count: int) -> int | None:
-    """R1 … RR to 0 … R−1; None for anything else."""
-    if not isinstance(name, str) or not name.startswith("R") or not name[1:].isdigit():
-        return None
-    r = int(name[1:]) - 1
-    return r if 0 <= r < count else None
 
 
 @dataclass

@@ -9,7 +9,7 @@ endpoints it is given (on loopback in the tests), and nothing else finds it.
 Who may command the robots over the bus: a fleet-wide STOP is always obeyed (stopping is
 always safe); anything else (gains, formation, leader motion, releasing STOP) only when the
 operator started the leader with ``--fleet-control``; otherwise it is refused and the refusal
-published as an event. A command is checked as the page's values are (app.live.params): bad
+published as an event. A command is checked as the page's values are (app.params): bad
 values are refused or clamped with the notice published.
 
 The state is published from a thread of its own with the newest tick only (the robots' loop
@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 
 from app.dashboard import LatestStatePublisher
-from app.live.params import Params, ParamsStore
-from app.live.tick import TickState
+from app.keys import root
+from app.params import Params, ParamsStore
+from app.tick import TickState
 from app.recording.writer import params_events
 
 log = logging.getLogger(__name__)
@@ -40,10 +41,6 @@ NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
 ENDPOINT = re.compile(r"(tcp|udp)/[A-Za-z0-9_.-]+:\d{1,5}|(tcp|udp)/\[[0-9a-fA-F:]+\]:\d{1,5}")
 SETTABLE = ("k_f1", "k_f2", "a", "k_w1", "k_w2", "slots", "leader_mode", "leader_speed_mps", "leader_turn_deg_s",
             "stop", "safety", "safety_distance_m", "goal", "min_scale")
-
-
-def root(fleet: str) -> str:
-    return f"omniformation/{fleet}"
 
 
 def check_name(value: str, what: str) -> str:

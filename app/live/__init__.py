@@ -2,4 +2,4 @@
 parameters (params), where poses come from (feedback), the service around the loop with its
 viser server (service) and its configuration file (config).
 
-Nothing is re-exported here: importing ``app.live.tick`` must not import the loop."""
+Nothing is re-exported here: importing ``app.tick`` must not import the loop."""

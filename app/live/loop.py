@@ -36,11 +36,11 @@ from core.types import Commands, FloatArray
 
 from app.backends.hardware import HardwareTeam
 from app.backends.sim import SimTeam, spread_start
-from app.fleet.arena_team import ArenaFeedback, ArenaTeam
+from app.backends.arena import ArenaFeedback, ArenaTeam
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
-from app.live.feedback import TruthFeedback, VisionFeedback
-from app.live.params import Params, ParamsStore
-from app.live.tick import TickState
+from app.backends.feedback import TruthFeedback, VisionFeedback
+from app.params import Params, ParamsStore
+from app.tick import TickState
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +133,7 @@ class ServiceLoop:
         them, truth feedback knows them; the filter and the goal mode keep clear of them.
         ``switches``: (time s, slots) a scenario's formation switches, applied as the operator's
         would be (they count from the loop's start and from every reset).
-        ``arena``: this leader's robots in a fleet's shared arena (app.fleet.arena_team); the
+        ``arena``: this leader's robots in a fleet's shared arena (app.backends.arena); the
         arena steps the world and the loop drives the robots it owns; with ``camera`` it sees them
         through its camera rendered from the arena (the team found by its known hues), without it
         through the arena's truth plus noise."""
@@ -444,7 +444,7 @@ class ServiceLoop:
         """Frame-triggered ticks: each starts as soon as a new frame arrives, so no frame waits for
         the loop's schedule. No frame within ``LATE_FRAME_PERIODS`` periods of the configured rate
         is a late camera: the tick runs anyway, on the newest estimates, and the stale-frame rule
-        (app.live.feedback) stops the robots once the frame is too old. Each tick's dt is the time
+        (app.backends.feedback) stops the robots once the frame is too old. Each tick's dt is the time
         since the one before (clamped to a sane range), as the real rig's odometry needs."""
         nominal = self.dt
         count = frames.wait_newer(-1, 0.0)  # the newest frame's number now

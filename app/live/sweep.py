@@ -12,105 +12,21 @@ runs the points in its own process.
 from __future__ import annotations
 
 import concurrent.futures as cf
-import math
 import multiprocessing
 import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
-import numpy as np
 
 from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
 from core.config import Scenario
 from core.control.tuning import GainRange, StepScore, StepTest, sweep_grid
-from core.sim.sweep import run_step_test
+from core.sim.sweep import SweepResult, run_step_test
 from core.types import Gains
 
 WORKER_NICE = 19  # the lowest priority: the robots' loop comes first
-
-
-@dataclass(frozen=True)
-class SweepResult:
-    """Every point of a sweep in grid order (the first gain varies slowest); a point not run
-    (cancelled) or failed has no score."""
-
-    ranges: tuple[GainRange, ...]
-    test: StepTest
-    feedback: str  # "truth" or "vision"
-    gains: tuple[Gains, ...]
-    scores: tuple[StepScore | None, ...]
-    seconds: float
-    cancelled: bool = False
-    errors: tuple[str, ...] = ()
-
-    def values(self, k: int) -> tuple[float, ...]:
-        """The swept gains' values at point k."""
-        return tuple(float(getattr(self.gains[k], r.name)) for r in self.ranges)
-
-    def point_label(self, k: int) -> str:
-        s = self.scores[k]
-        where = ", ".join(f"{r.name}={v:g}" for r, v in zip(self.ranges, self.values(k)))
-        if s is None:
-            return f"{where}: not run"
-        w = s.worst
-        settle = f"{w['settling_s']:.2f} s" if math.isfinite(w["settling_s"]) else "not settled"
-        return f"{where}: settles {settle}, overshoot {w['overshoot_m'] * 100:.1f} cm, effort {w['effort']:.3f}"
-
-    def order(self) -> list[int]:
-        """Points from best to worst: settled before not, then shorter settling, then less overshoot."""
-        def key(k: int) -> tuple[float, float, float]:
-            s = self.scores[k]
-            if s is None:
-                return (2.0, math.inf, math.inf)
-            w = s.worst
-            settled = math.isfinite(w["settling_s"])
-            return (0.0 if settled else 1.0, w["settling_s"] if settled else w["steady_rms_m"], w["overshoot_m"])
-        return sorted(range(len(self.gains)), key=key)
-
-    def best(self) -> int | None:
-        ranked = [k for k in self.order() if self.scores[k] is not None]
-        return ranked[0] if ranked else None
-
-    def pareto(self) -> list[int]:
-        """The points no other point beats on both settling time and overshoot (settled ones)."""
-        pts = [(k, s.worst) for k, s in enumerate(self.scores) if s is not None and math.isfinite(s.worst["settling_s"])]
-        front = []
-        for k, w in pts:
-            if not any(o["settling_s"] <= w["settling_s"] and o["overshoot_m"] <= w["overshoot_m"]
-                       and (o["settling_s"] < w["settling_s"] or o["overshoot_m"] < w["overshoot_m"]) for _, o in pts):
-                front.append(k)
-        return sorted(front, key=lambda k: self.scores[k].worst["settling_s"])  # type: ignore[union-attr]  # settled ones
-
-    def table(self) -> list[dict[str, object]]:
-        """One row per point: the swept values and the team's figures."""
-        rows: list[dict[str, object]] = []
-        for k in range(len(self.gains)):
-            row: dict[str, object] = {r.name: v for r, v in zip(self.ranges, self.values(k))}
-            s = self.scores[k]
-            w = s.worst if s is not None else {}
-            row.update({"settling_s": w.get("settling_s"), "overshoot_cm": w.get("overshoot_m", math.nan) * 100,
-                        "steady_rms_cm": w.get("steady_rms_m", math.nan) * 100, "effort": w.get("effort")})
-            rows.append(row)
-        return rows
-
-    def csv(self) -> str:
-        rows = self.table()
-        cols = [r.name for r in self.ranges] + ["settling_s", "overshoot_cm", "steady_rms_cm", "effort_m2_per_s"]
-        lines = [",".join(cols)]
-        for row in rows:
-            vals = list(row.values())
-            lines.append(",".join("" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v:.6g}"
-                                  for v in vals))
-        return "\n".join(lines) + "\n"
-
-    def grid(self, key: str = "settling_s") -> np.ndarray:
-        """The team's ``key`` over the grid, shape (len(values of gain 1), len(values of gain 2) or 1)."""
-        shape = tuple(len(r.values) for r in self.ranges) + ((1,) if len(self.ranges) == 1 else ())
-        vals = [s.worst[key] if s is not None else math.nan for s in self.scores]
-        return np.array(vals, dtype=np.float64).reshape(shape)
 
 
 def _lower_priority() -> None:

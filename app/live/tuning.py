@@ -33,8 +33,8 @@ from core.sim.profiles import ConstantProfile
 from core.sim.team import FollowerDynamics
 from core.types import FloatArray, Gains
 
-from app.live.params import Params, ParamsStore
-from app.live.tick import TickState
+from app.params import Params, ParamsStore
+from app.tick import TickState
 
 READY_PHASES = ("truth", "tracking")
 TURN_MODES = ("stop", "straight", "circle")

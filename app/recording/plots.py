@@ -25,7 +25,7 @@ from core.camera.render.looks import follower_hex  # noqa: E402
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from app.live.sweep import SweepResult
+    from core.sim.sweep import SweepResult
 
 colour = follower_hex  # each follower in its marker's colour, as on the page
 

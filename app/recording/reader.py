@@ -35,7 +35,7 @@ import zstandard
 from mcap.records import Channel, Chunk, Metadata, Schema, Statistics
 from mcap.data_stream import ReadDataStream
 
-from app.live.params import Params
+from app.params import Params
 from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC,
                                   METADATA_CRC_KEY, METADATA_NAME, PARAMS_TOPIC,
                                   TICK_TOPIC, TRIAL_TOPIC)

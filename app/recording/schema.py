@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from app.live.params import Params
-from app.live.tick import TickState
+from app.params import Params
+from app.tick import TickState
 from core.obstacles import Obstacle
 from core.vision.freespace import Scan
 

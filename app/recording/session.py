@@ -1,5 +1,5 @@
-"""A live session's recording: what it keeps about how it was made, where it goes, and
-wiring the writer to the loop and the parameter store."""
+"""A session's recording: what it keeps about how it was made and where it goes (the
+writer is wired to a live service by app.services.recording)."""
 
 from __future__ import annotations
 
@@ -9,17 +9,8 @@ import json
 import shlex
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 from app.contracts import Rig
-from app.files import default_recordings, display_path, resolve_scenario_path
-
-if TYPE_CHECKING:
-    from app.live.config import ServiceConfig
-    from app.live.service import Service
-    from app.recording.writer import Recorder
-    from core.config import Scenario
-
+from app.files import default_recordings, resolve_scenario_path
 
 def session_metadata(scenario_name: str, scenario_path: str | None, camera: Rig | None,
                      config_path: Path | None = None) -> dict[str, str]:
@@ -74,39 +65,3 @@ def recording_path(name: str, now: _dt.datetime | None = None, folder: Path | No
         k += 1
         path = folder / f"{stamp}_{safe}-{k}.mcap"
     return path
-
-
-def start_recording(service: "Service", config: "ServiceConfig", scenario: "Scenario | None",
-                    scenario_arg: str | None, camera: Rig | None,
-                    frames_hz: float, path: Path | None = None, folder: Path | None = None) -> "Recorder":
-    """Start recording the service's session: the retention budget is applied to the folder first
-    (oldest sessions deleted, samples never); a full disk or a write error later stops the
-    recording cleanly, and the page, the log and stderr say so (the robots carry on).
-    RecordingRefused (one line) when it cannot start."""
-    from app.recording.writer import Recorder, apply_retention
-
-    name = scenario.name if scenario is not None else "sim"
-    meta = session_metadata(name, scenario_arg, camera, config.path)
-    path = path or recording_path(name, folder=folder)
-    for gone in apply_retention(path.parent, config.max_total_bytes):
-        print(f"omniformation: recordings over {config.max_total_bytes / 1e9:g} GB: deleted the oldest,"
-              f" {display_path(gone)}", file=sys.stderr, flush=True)
-    shown = display_path(path)
-
-    def stopped(why: str) -> None:
-        service.dashboard.controls.recording = f"STOPPED ({why}); {shown} keeps what was written"
-        service.recordings.current = ""  # what was written can be replayed now
-        print(f"omniformation: recording stopped: {why}; {shown} keeps what was written; the robots carry on",
-              file=sys.stderr, flush=True)
-
-    recorder = Recorder(path, meta, service.store.get(), frame_rate_hz=frames_hz,
-                        free_floor_bytes=config.free_floor_bytes, on_stopped=stopped)
-    service.loop.subscribe(recorder.on_tick)
-    service.tests.listeners.append(recorder.on_trial)
-    service.store.subscribe(recorder.on_params)
-    service.dashboard.controls.recording = shown
-    service.recordings.current = shown  # not offered for replay while it is being written
-    service.recordings.rescan()
-    return recorder
-
-

@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 
 from app.contracts import Rig
-from app.live.tick import TickState
-from app.live.params import Params
+from app.tick import TickState
+from app.params import Params
 from app.recording.writer import Recorder
 from core.config import Scenario
 from core.sim.run import SimulationLog, simulate

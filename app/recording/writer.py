@@ -31,9 +31,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.live.params import Params
+from app.params import Params
 from core.types import Image
-from app.live.tick import TickState
+from app.tick import TickState
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
 from app.recording.mcap_out import SessionWriter
 from app.recording.reader import metadata_crc

@@ -19,7 +19,7 @@ import websockets.exceptions
 import websockets.sync.client as wsc
 
 from app.dashboard.gate import COOKIE
-from app.live.service import Service
+from app.services.live import Service
 from tests.helpers import ROOT, main_cli, wait_for
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
@@ -235,7 +235,7 @@ def test_a_hostile_client_sending_every_message_type_changes_nothing_and_stop_st
 
     import numpy as np
 
-    from app.live.params import LEADER_MODES, LEADER_SPEED, LEADER_TURN, MAX_FOLLOWERS, SLOT_LIMIT_M
+    from app.params import LEADER_MODES, LEADER_SPEED, LEADER_TURN, MAX_FOLLOWERS, SLOT_LIMIT_M
     from core.types import GAIN_BOUNDS
 
     logged = []
@@ -368,12 +368,13 @@ def test_a_file_name_with_html_or_markdown_in_it_is_shown_as_text(tmp_path):
     from app.dashboard.gate import quietly
     from app.dashboard.recordings_panel import RecordingsPanel
     from app.dashboard.widgets import as_text
+    from app.services.replay import ReplayService
     from tests.helpers import SAMPLES
 
     name = "x<img src=a onerror=alert(1)>[click](http:evil)_*.mcap"
     shutil.copyfile(SAMPLES / "experiment2-vision.mcap", tmp_path / name)
     server = quietly(lambda: viser.ViserServer(host="127.0.0.1", port=0, verbose=False))
-    panel = RecordingsPanel(server, "127.0.0.1", tmp_path)
+    panel = RecordingsPanel(server, lambda rec: ReplayService(rec, host="127.0.0.1", port=0), tmp_path)
     try:
         (listed,) = panel.menu.options
         assert listed.endswith(name)

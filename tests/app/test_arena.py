@@ -282,9 +282,10 @@ def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned()
     robot it took already is no orphan (claimed again it would be granted -- it is the
     claimant's -- and seated in a second slot). A real arena, a real Zenoh session in-process."""
     from app.fleet.arena import Arena
-    from app.fleet.arena_team import Adopter, ArenaTeam
+    from app.backends.arena import ArenaTeam
+    from app.fleet.adopter import Adopter
     from app.fleet.bridge import open_session
-    from app.live.params import ParamsStore
+    from app.params import ParamsStore
 
     scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
     session = open_session([], [])

@@ -97,7 +97,7 @@ def test_bad_input_is_one_line_and_exit_2(files, args, expected):
 def test_an_empty_config_runs_the_shipped_synthetic_rig(files):
     """An empty --config means every default, including the shipped rig (not a path next to it)."""
     from app.live.config import load_service_config
-    from app.live.params import MAX_FOLLOWERS
+    from app.params import MAX_FOLLOWERS
 
     cfg = load_service_config(files["empty.toml"], MAX_FOLLOWERS)
     assert cfg.rig_path.is_file() and cfg.calibration_path.is_file() and cfg.followers == 3

@@ -136,7 +136,7 @@ def test_a_live_camera_in_other_light_than_its_calibration_is_said_on_the_status
     from app.backends.hardware import HardwareTeam
     from app.contracts import Rig
     from app.live.loop import ServiceLoop
-    from app.live.params import ParamsStore
+    from app.params import ParamsStore
     from core.camera.config import gamma_toml
     from core.camera.lighting import measure_lighting
 

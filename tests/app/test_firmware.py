@@ -20,7 +20,7 @@ import serial
 
 from app.backends.serial_link import SerialLink
 from app.live.loop import ServiceLoop
-from app.live.params import Params, ParamsStore, default_slots
+from app.params import Params, ParamsStore, default_slots
 from core.link import protocol as p
 
 from tests.helpers import ROOT, serve_then_signal, wait_for

@@ -13,7 +13,7 @@ import pytest
 
 from app.fleet.bridge import FleetBridge, loopback_endpoint
 from app.live.loop import ServiceLoop
-from app.live.params import Params, ParamsStore, default_slots
+from app.params import Params, ParamsStore, default_slots
 
 from tests.helpers import ROOT, interrupt, main_cli, wait_for
 

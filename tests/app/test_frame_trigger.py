@@ -13,7 +13,7 @@ import pytest
 from app.backends.camera import _Threaded
 from app.backends.hardware import HardwareTeam
 from app.live.loop import ServiceLoop
-from app.live.params import ParamsStore
+from app.params import ParamsStore
 from tests.helpers import wait_for
 
 
@@ -44,7 +44,7 @@ class PacedCamera(_Threaded):
 @pytest.fixture(scope="module")
 def rig_and_frame():
     from app.live.config import DEFAULT_CONFIG, load_service_config
-    from app.live.params import MAX_FOLLOWERS
+    from app.params import MAX_FOLLOWERS
     from core.camera.render import Renderer
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
@@ -83,7 +83,7 @@ def test_ticks_follow_the_cameras_frames(rig_and_frame, hz):
 def test_the_latency_is_recorded_and_reported(tmp_path):
     """Every tick of a live recording carries latency_ms; report's summary gives its p50, p95, p99
     over every tick."""
-    from app.live.params import Params
+    from app.params import Params
     from app.recording.reader import read_recording
     from app.recording.report import summarise
     from app.recording.writer import Recorder

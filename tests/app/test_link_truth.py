@@ -188,7 +188,7 @@ def test_a_reopened_port_gets_stop_for_everyone_before_anything_else():
 def test_while_the_link_is_lost_the_loop_commands_zero():
     """A line nobody answers: the loop's controller would drive, but every tick's commands are zero."""
     from app.live.loop import ServiceLoop
-    from app.live.params import ParamsStore
+    from app.params import ParamsStore
 
     line = Line(lambda data: None)
     link = SerialLink(line.path, 2)
@@ -266,7 +266,7 @@ def test_a_robot_that_does_not_answer_in_time_is_sent_only_zero(device, answerin
     """The loop drives (leader straight, followers far from their slots); on the wire, every
     SET_VELOCITY to a robot that has not answered in time is zero. Counted frame by frame."""
     from app.live.loop import ServiceLoop
-    from app.live.params import ParamsStore
+    from app.params import ParamsStore
 
     behave = {"stale by 10 ticks": stale_acker(10), "stuck on one sequence number": fixed_acker(200),
               "only F1 answers": acker(answer=lambda f: f.address == 1),

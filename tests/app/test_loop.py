@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from app.live.loop import CATCH_UP_S, ServiceLoop, next_tick
-from app.live.params import Params, ParamsStore
+from app.params import Params, ParamsStore
 from tests.helpers import main_cli, serve_then_signal
 
 
@@ -22,7 +22,7 @@ def test_team_reaches_formation_in_the_live_loop():
 
 
 def _default_camera():
-    from app.live.params import MAX_FOLLOWERS
+    from app.params import MAX_FOLLOWERS
     from app.live.config import DEFAULT_CONFIG, load_service_config
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
@@ -228,7 +228,7 @@ def test_an_exception_inside_a_tick_stops_every_follower_and_the_loop_lives_on()
 def _preset_swaps(safety: bool, switches: int = 16, seed: int = 5) -> tuple[float, int, float]:
     """6 followers on the live loop (truth feedback, no noise), a random preset every 12 s:
     (smallest centre distance between any two robots, ticks under 0.25 m, mean formation error)."""
-    from app.live.params import FORMATION_PRESETS, formation_preset
+    from app.params import FORMATION_PRESETS, formation_preset
     from core.control.safety import team_min_distance
 
     rng = np.random.default_rng(seed)
@@ -264,7 +264,7 @@ def test_the_live_loop_drives_narrow_gap_to_its_goal_clear_of_the_boxes():
     simulator knows them): the leader reaches its goal, no follower body comes within 10 cm
     of a box, the formation narrows for the gap and grows back."""
     from app.files import load_scenario
-    from app.live.service import params_for
+    from app.services.live import params_for
     from core.obstacles import as_array, surface_distance
 
     s = load_scenario("narrow_gap")
@@ -289,7 +289,7 @@ def test_the_live_loop_drives_narrow_gap_to_its_goal_clear_of_the_boxes():
 
 def test_a_goal_in_a_box_or_off_the_floor_is_refused_with_a_notice():
     from app.files import load_scenario
-    from app.live.service import goal_check_for, params_for
+    from app.services.live import goal_check_for, params_for
 
     s = load_scenario("narrow_gap")
     store = ParamsStore(params_for(s, s.n))

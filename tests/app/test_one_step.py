@@ -15,8 +15,8 @@ import pytest
 
 from app.files import load_scenario
 from app.live.loop import ServiceLoop
-from app.live.params import ParamsStore
-from app.live.service import params_for
+from app.params import ParamsStore
+from app.services.live import params_for
 from core.config import MeasurementNoise, Scenario
 from core.sim.stepped import simulate_stepped
 

@@ -8,7 +8,7 @@ import pytest
 import viser
 
 from app.dashboard.widgets import on_page_thread
-from app.live.service import Service
+from app.services.live import Service
 
 
 def loop_thread_ident(server: viser.ViserServer) -> int:

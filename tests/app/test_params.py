@@ -3,7 +3,7 @@ import threading
 import numpy as np
 import pytest
 
-from app.live.params import FORMATION_PRESETS, Params, ParamsStore, formation_preset
+from app.params import FORMATION_PRESETS, Params, ParamsStore, formation_preset
 from core.control.presets import MIN_SPACING_M, spacing
 from core.control.safety import SafetySettings
 

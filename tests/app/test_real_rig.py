@@ -15,10 +15,10 @@ from app.backends.camera import CaptureSource, FolderSource, open_frame_source
 from app.backends.hardware import HardwareTeam
 from app.backends.serial_link import SerialLink
 from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
-from app.live.feedback import STALE_FRAME_S
+from app.backends.feedback import STALE_FRAME_S
 from app.live.loop import ServiceLoop
-from app.live.tick import TickState
-from app.live.params import Params, ParamsStore
+from app.tick import TickState
+from app.params import Params, ParamsStore
 from core.camera.render import Renderer
 from core.link import protocol as p
 from core.vision.pipeline import PipelineSettings
@@ -166,7 +166,7 @@ def test_the_config_chooses_frames_and_link_and_bad_values_are_refused(tmp_path)
 def test_the_live_page_of_a_real_camera_has_the_calibration_panel(tmp_path):
     """With a real camera the live page can recalibrate it: the panel sees the camera's frames
     and its mirror, starting from the calibration in use."""
-    from app.live.service import Service
+    from app.services.live import Service
 
     render_frames(tmp_path, 10)
     emulated = EmulatorThread()

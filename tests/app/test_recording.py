@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.live.loop import ServiceLoop
-from app.live.params import Params, ParamsStore
+from app.params import Params, ParamsStore
 from app.recording.reader import RecordingError, read_recording
 from app.recording.schema import tick_from_payload, tick_payload
 from app.recording.writer import Recorder
@@ -73,7 +73,7 @@ def test_foxglove_channels_carry_foxgloves_own_schemas_and_decode_from_the_file_
     from mcap.reader import make_reader
 
     from app.live.config import DEFAULT_CONFIG, load_service_config
-    from app.live.params import MAX_FOLLOWERS
+    from app.params import MAX_FOLLOWERS
     from app.recording.foxglove import PROTOBUF_TOPICS, schema_data
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
@@ -359,7 +359,7 @@ def test_rerun_refuses_bad_input_in_one_line(vision_recording, tmp_path):
 
 
 def test_live_camera_frames_are_recorded_at_the_frame_rate(tmp_path):
-    from app.live.params import MAX_FOLLOWERS
+    from app.params import MAX_FOLLOWERS
     from app.live.config import DEFAULT_CONFIG, load_service_config
 
     import cv2
@@ -549,7 +549,7 @@ def test_the_tally_counts_episodes_and_settling_across_block_edges():
 def test_next_event_always_moves_forward_and_previous_back():
     """From t = 0, Next event four times visits four later event times, each further on (it was
     stuck on an event between two ticks); Previous then walks back."""
-    from app.recording.replay import ReplayService
+    from app.services.replay import ReplayService
 
     rec = read_recording(SAMPLES / "experiment2-vision.mcap")
     svc = ReplayService(rec, host="127.0.0.1", port=0)

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from app.live.loop import ServiceLoop
-from app.live.params import ParamsStore
+from app.params import ParamsStore
 from app.recording.reader import read_recording
 from app.recording.writer import Recorder, RecordingRefused, apply_retention
 from tests.helpers import ROOT, main_cli, wait_for
@@ -141,7 +141,7 @@ def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the
     another program's MCAP files, a file named like a session and the samples are never deleted."""
     from mcap.writer import Writer
 
-    from app.live.params import Params
+    from app.params import Params
 
     folder = tmp_path / "recordings"
     (folder / "samples").mkdir(parents=True)

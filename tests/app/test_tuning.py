@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from app.live.loop import ServiceLoop
-from app.live.params import Params, ParamsStore, default_slots
+from app.params import Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base, trials_csv
 from app.recording.reader import read_recording

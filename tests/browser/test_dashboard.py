@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from app.live.tick import TickState
-from app.live.service import Service
+from app.tick import TickState
+from app.services.live import Service
 
 from tests.helpers import ARTIFACTS
 from tests.helpers import chromium_browser, control_id, keep_ticks, settle, wait_for
@@ -20,7 +20,7 @@ playwright_api = pytest.importorskip("playwright.sync_api")
 @pytest.fixture(scope="module")
 def service():
     """What `make run` serves: default.toml, the synthetic camera and the vision pipeline."""
-    from app.live.params import MAX_FOLLOWERS
+    from app.params import MAX_FOLLOWERS
     from app.live.config import DEFAULT_CONFIG, load_service_config
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)

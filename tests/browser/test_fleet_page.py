@@ -13,12 +13,13 @@ import pytest
 from app.dashboard.gate import quietly, serve_gated
 from app.files import load_fleet
 from app.fleet.arena import Arena
-from app.fleet.arena_team import Adopter, ArenaTeam
+from app.backends.arena import ArenaTeam
+from app.fleet.adopter import Adopter
 from app.fleet.bridge import FleetBridge, loopback_endpoint, open_session
-from app.fleet.dashboard import FleetView
+from app.services.fleet_page import FleetView
 from app.fleet.recorder import FleetRecorder
 from app.live.loop import ServiceLoop
-from app.live.params import Params, ParamsStore, default_slots
+from app.params import Params, ParamsStore, default_slots
 
 from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_for
 

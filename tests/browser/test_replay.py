@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from app.recording.reader import read_recording
-from app.recording.replay import ReplayService
+from app.services.replay import ReplayService
 from core.geometry import leader_to_world
 from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_for
 
@@ -87,7 +87,7 @@ def test_timeline_slider_shows_the_recorded_state_of_that_time(browser):
 
 
 def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
-    from app.live.service import Service
+    from app.services.live import Service
 
     svc = Service(port=0, n_followers=2)  # truth feedback: light, this test is about the panel
     svc.start()

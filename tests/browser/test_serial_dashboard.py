@@ -10,8 +10,8 @@ import time
 import numpy as np
 
 from app.backends.serial_link import SerialLink
-from app.live.params import MAX_FOLLOWERS
-from app.live.service import Service
+from app.params import MAX_FOLLOWERS
+from app.services.live import Service
 from app.live.config import DEFAULT_CONFIG, load_service_config
 from tests.helpers import start_emulator_process, wait_for
 from tests.helpers import chromium_browser

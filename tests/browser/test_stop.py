@@ -8,7 +8,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from app.live.service import Service
+from app.services.live import Service
 from app.recording.reader import read_recording
 from tests.app.test_access import as_a_browser, ws_connect
 from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, settle, wait_for
@@ -21,8 +21,8 @@ PAGE_MS = 30_000
 def service(tmp_path):
     """The built-in team on truth feedback, leader driving straight, recording to a file."""
     from app.live.config import DEFAULT_CONFIG, load_service_config
-    from app.live.params import MAX_FOLLOWERS
-    from app.recording.session import start_recording
+    from app.params import MAX_FOLLOWERS
+    from app.services.recording import start_recording
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=4, dynamics=config.dynamics,

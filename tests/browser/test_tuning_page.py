@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.live.service import Service
+from app.services.live import Service
 
 from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, settle, wait_for
 

@@ -30,7 +30,7 @@ from core.geometry import leader_to_world
 
 from app.dashboard.scene import yaw_wxyz
 from app.dashboard.widgets import assign, on_page_thread
-from app.fleet.bridge import root
+from app.keys import root
 from app.fleet.recorder import FleetRecorder
 
 REFRESH_S = 0.1

@@ -23,7 +23,7 @@ from core.obstacles import Obstacle, as_array, surface_distance
 from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile
 
 from app.backends.hardware import HardwareTeam
-from app.fleet.arena_team import ArenaTeam
+from app.backends.arena import ArenaTeam
 from app.contracts import FollowerLink, FrameSource, Rig
 from app.dashboard import Dashboard, LatestStatePublisher
 from app.dashboard.calibration_panel import CalibrationPanel
@@ -31,8 +31,9 @@ from app.dashboard.camera_panel import Overlay
 from app.dashboard.tuning_panel import TuningPanel
 from app.dashboard.gate import quietly, serve_gated
 from app.dashboard.recordings_panel import RecordingsPanel
+from app.services.replay import ReplayService
 from app.live.loop import DEFAULT_NOISE, ServiceLoop
-from app.live.params import LeaderMode, Params, ParamsStore, default_slots
+from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
 from app.memory import bound_native_heap, bound_python_heap
@@ -136,7 +137,9 @@ class Service:
             self.calibration = CalibrationPanel(self.server, frames, rig.detect, Path("camera.toml"),
                                                 centre=(gamma.cx, gamma.cy), area=rig.working_area)
             self.dashboard.extra.append(self.calibration.refresh)
-        self.recordings = RecordingsPanel(self.server, host, recordings, token=self.gate.token)
+        token = self.gate.token
+        self.recordings = RecordingsPanel(self.server, lambda rec: ReplayService(rec, host=host, port=0, token=token),
+                                          recordings)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
         self._thread: threading.Thread | None = None

@@ -37,7 +37,7 @@ from app.contracts import FrameSource, Observation, Team
 from app.backends.sim import SimTeam
 
 if TYPE_CHECKING:
-    from app.fleet.arena_team import ArenaTeam
+    from app.backends.arena import ArenaTeam
 
 STALE_FRAME_S = 0.3  # a camera frame older than this is no ground for moving a robot
 LIGHTING_EVERY = 30  # frames between two looks at the floor's light (a second at 30 Hz)

@@ -21,8 +21,8 @@ from app.dashboard import Dashboard
 from app.dashboard.gate import quietly, serve_gated
 from app.dashboard.widgets import as_text
 from app.dashboard.widgets import on_page_thread
-from app.live.tick import TickState
-from app.live.params import ParamsStore
+from app.tick import TickState
+from app.params import ParamsStore
 from app.recording.reader import Recording, params_from_recording
 from app.recording.schema import scenario_obstacles, tick_from_payload
 

@@ -1,0 +1,59 @@
+"""The house has no upward arrows: what each folder of app/ may import (every import
+statement, at any depth, type-only ones included), and no function of app/ or core/ longer
+than a screenful or two (120 lines)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from tests.helpers import ROOT
+
+# folder -> the app folders it must not import
+FORBIDDEN = {
+    "live": {"dashboard", "fleet", "services", "cli", "recording"},
+    "recording": {"dashboard", "live", "fleet", "services", "cli"},
+    "backends": {"live", "dashboard", "fleet", "services", "recording", "cli"},
+    "dashboard": {"services", "fleet", "cli"},
+    "fleet": {"services", "cli"},
+    "services": {"cli"},
+}
+MAX_FUNCTION_LINES = 120
+
+
+def _app_imports(path: Path) -> set[str]:
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        names = [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else \
+            [a.name for a in node.names] if isinstance(node, ast.Import) else []
+        out |= {n.split(".")[1] for n in names if n.startswith("app.") and n.count(".") >= 1}
+    return out
+
+
+def test_no_folder_of_app_imports_one_above_it():
+    broken = []
+    for folder, banned in FORBIDDEN.items():
+        files = sorted((ROOT / "app" / folder).rglob("*.py"))
+        assert files, folder
+        for f in files:
+            if bad := _app_imports(f) & banned:
+                broken.append(f"{f.relative_to(ROOT)} imports app.{', app.'.join(sorted(bad))}")
+    assert not broken, broken
+
+
+def test_the_modules_beside_the_contracts_import_no_folder():
+    for name in ("contracts", "params", "tick", "keys", "files", "memory"):
+        imported = _app_imports(ROOT / "app" / f"{name}.py")
+        assert imported <= {"contracts", "params", "tick", "keys", "files", "memory"}, (name, imported)
+
+
+def test_no_function_is_longer_than_120_lines():
+    long = []
+    for folder in ("app", "core"):
+        for f in sorted((ROOT / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    n = (node.end_lineno or node.lineno) - node.lineno + 1
+                    if n > MAX_FUNCTION_LINES:
+                        long.append(f"{f.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long, long
