@@ -22,7 +22,7 @@ import os
 # quiet unless the user asked for them. Read when OpenCV's FFmpeg backend starts.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 
-import cv2  # noqa: E402
+import cv2
 import numpy as np
 
 from core.camera.config import CaptureSettings

@@ -759,7 +759,7 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     rates: tuple[float, float, float] | None | str
     try:
         rates = bench_loop_with_browsers()
-    except Exception as exc:  # a browser that does not come up is a skipped figure, not a crash
+    except Exception as exc:  # noqa: BLE001 - a browser that does not come up is a skipped figure, not a crash
         rates = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
     if isinstance(rates, str):
         print_fn(f"live loop with browsers: failed to open the pages ({rates})")

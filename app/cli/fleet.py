@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import argparse
 import json
 import sys
@@ -9,6 +11,9 @@ from pathlib import Path
 
 from app.cli.args import Parser, bind_error, float_in, port, token_arg
 from app.files import UserError
+
+if TYPE_CHECKING:
+    import zenoh
 
 
 def add_bus_args(p: argparse.ArgumentParser) -> None:
@@ -55,7 +60,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     page.set_defaults(func=cmd_fleet)
 
 
-def open_bus(listen: list[str], connect: list[str], who: str) -> object:
+def open_bus(listen: list[str], connect: list[str], who: str) -> zenoh.Session:
     from app.fleet.bridge import open_session
 
     try:
@@ -83,9 +88,9 @@ def cmd_arena(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UserError(str(exc)) from None
     session = open_bus(args.zenoh_listen, args.zenoh_connect, f"arena {fleet}")
-    replies = session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)  # type: ignore[attr-defined]
+    replies = session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)
     if any(getattr(r, "ok", None) is not None for r in replies):
-        session.close()  # type: ignore[attr-defined]
+        session.close()
         raise UserError(f"fleet {fleet}: an arena runs on this bus already; one world per fleet")
     arena = Arena(scenario, session, fleet)
     stop = threading.Event()
@@ -113,7 +118,7 @@ def cmd_arena(args: argparse.Namespace) -> int:
         summary = {"fleet": fleet, "t": round(arena.t, 3), **vars(arena.counts), "owners": list(arena.owners),
                    "alive": sorted(arena.alive), "ever_alive": sorted(arena.ever_alive)}
         arena.close()
-        session.close()  # type: ignore[attr-defined]
+        session.close()
         if args.summary is not None:
             args.summary.write_text(json.dumps(summary, indent=1) + "\n")
     c = arena.counts
@@ -148,7 +153,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     try:
         server, gate = serve_gated(args.host, args.port, args.token, args.viewer_token)
     except OSError as exc:
-        session.close()  # type: ignore[attr-defined]
+        session.close()
         raise UserError(bind_error(args.host, args.port, exc)) from None
     recorder = None
     if args.record is not None:
@@ -157,7 +162,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
         except OSError as exc:
             gate.close()
             quietly(server.stop)
-            session.close()  # type: ignore[attr-defined]
+            session.close()
             raise UserError(f"{args.record}: cannot record: {exc.strerror or exc}") from None
     sys.setswitchinterval(SWITCH_INTERVAL_S)  # states reach the page's callbacks sooner (app.services.fleet_page)
     view = FleetView(server, session, args.fleet, recorder, allow_viewer=gate.filter.allow_viewer)
@@ -181,5 +186,5 @@ def cmd_fleet(args: argparse.Namespace) -> int:
                   " messages)", flush=True)
         gate.close()
         quietly(server.stop)
-        session.close()  # type: ignore[attr-defined]
+        session.close()
     return 0

@@ -3,17 +3,29 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+from dataclasses import dataclass
 from pathlib import Path
-
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from app.cli.args import Parser, bind_error, float_in, int_in, port, seed, token_arg
 from app.files import DEFAULT_CONFIG, UserError, check_new_file, display_path
 from app.params import MAX_FOLLOWERS
 
 if TYPE_CHECKING:
-    from app.contracts import Rig
+    import zenoh
+
+    from app.backends.arena import ArenaTeam
+    from app.backends.hardware import HardwareTeam
+    from app.contracts import FollowerLink, FrameSource, Rig
+    from app.fleet.bridge import FleetBridge
+    from app.live.config import ServiceConfig
+    from app.params import Params
+    from app.recording.writer import Recorder
+    from app.services.live import Service
+    from core.config import Scenario
+    from core.fleet import FleetScenario
 
 
 def register(sub: "argparse._SubParsersAction[Parser]") -> None:
@@ -73,17 +85,119 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
 
 
 
+@dataclass
+class _RunPlan:
+    """What the command line and the config ask for, checked before anything opens."""
+
+    config: ServiceConfig
+    scenario: Scenario | None
+    fleet_scenario: FleetScenario | None
+    real: bool  # a real rig: real camera, real robots, no simulator
+    link_port: str  # the followers' serial port ("": none)
+    leader_port: str  # the leader base's ("": none)
+    camera: Rig | None
+    n_followers: int
+
+
+@dataclass
+class _Fleet:
+    """This leader on a fleet's bus: the session, its arena team and liveliness token, and the
+    starting values an arena gives."""
+
+    session: zenoh.Session
+    arena_team: ArenaTeam | None = None
+    token: Any = None
+    params: Params | None = None
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    """The live service, in steps: check everything, build the rig, join the fleet, serve and
+    record; every resource is closed on the way out whatever happens (ExitStack), the service
+    first (it zeroes the robots)."""
     import signal
 
+    plan = _plan_run(args)
+    with contextlib.ExitStack() as stack:
+        handed = stack.enter_context(contextlib.ExitStack())  # closed here until the service owns them
+        frames = _open_camera(args, plan, handed)
+        fleet = _join_fleet(args, plan, stack, handed)
+        link, hardware = _build_rig(args, plan, handed)
+        service = _serve(args, plan, frames, link, hardware, fleet)
+        handed.pop_all()  # the service closes the team, its link and the camera now
+        stack.callback(service.close)
+        recorder = _start_recorder(args, plan, service)
+        if recorder is not None:
+            stack.callback(lambda: print(f"omniformation: {recorder.closing_line()}", flush=True))
+            stack.callback(recorder.close)
+        bridge = _on_the_bus(args, fleet, service, stack) if fleet is not None else None
+        # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
+        # (even before the first tick ends), and the loop's own exit is what zeroes the robots.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: service.loop.stop())
+        stack.callback(service.close)  # first on the way out: the loop ends, every follower at zero
+        service.start()
+        _say_where(args, plan, service, link)
+        try:
+            service.wait()
+        except KeyboardInterrupt:
+            pass
+    print("omniformation: stopped; all followers commanded to zero", flush=True)
+    if bridge is not None and bridge.twin is not None:  # it missed its twin at start and gave way to it
+        raise UserError(bridge.twin)
+    return 0
+
+
+def _plan_run(args: argparse.Namespace) -> _RunPlan:
+    """Every check of the command line against the config, before anything is opened."""
     from app.files import load_scenario
-    from app.dashboard.gate import is_loopback
-    from app.services.live import Service
     from app.live.config import load_service_config
 
     if args.viewer_token is not None and args.viewer_token == args.token:
         raise UserError("--viewer-token: must differ from --token (a viewer may not command the robots)")
     config = load_service_config(args.config, MAX_FOLLOWERS)
+    fleet_scenario = _check_fleet_args(args)
+    scenario = load_scenario(args.scenario) if args.scenario else None
+    if scenario is not None and scenario.n > MAX_FOLLOWERS:
+        raise UserError(f"--scenario {args.scenario}: {scenario.n} followers; the live service drives 1..{MAX_FOLLOWERS}"
+                        " (simulate runs any number)")
+    if args.record is not None:
+        check_new_file(args.record, "recording", ".mcap")
+        if args.record.exists():
+            raise UserError(f"{args.record}: exists; a recording is never written over another (give a new name)")
+    if args.camera is None and config.frames != "synthetic":
+        args.camera = config.frames  # the config names a real camera; the command line wins
+    real = args.camera is not None
+    configured_link = config.link if config.link != "sim" or not real else None
+    link_spec = args.link or configured_link or ("none" if real else "sim")
+    if real and (scenario is not None or args.feedback == "truth" or link_spec == "sim"):
+        raise UserError("--camera runs a real rig: it cannot be combined with --scenario, --feedback truth"
+                        " or --link sim (give --link serial:PATH, or none to only observe)")
+    if not real and (link_spec == "none" or args.leader is not None):
+        raise UserError("--link none and --leader need --camera: the simulated team has its own leader and link")
+    if args.calibration is not None and not real:
+        raise UserError("--calibration goes with --camera (the synthetic camera's is set in the config)")
+    from app.backends.serial_link import parse_link_spec
+
+    try:
+        link_port = "" if link_spec == "none" else parse_link_spec(link_spec)
+        leader_port = parse_link_spec(args.leader) if args.leader is not None else ""
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if leader_port == "" and args.leader is not None:
+        raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
+    camera: Rig | None
+    if real:
+        from app.files import load_calibration
+
+        camera = load_calibration(args.calibration or config.calibration_path)
+    else:
+        camera = config.camera() if (args.feedback or config.feedback) == "vision" else None
+    n_followers = scenario.n if scenario is not None else args.followers or config.followers
+    return _RunPlan(config, scenario, fleet_scenario, real, link_port, leader_port, camera, n_followers)
+
+
+def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
+    """The fleet's arguments (names, endpoints, an arena's leader id); the arena's scenario."""
     fleet_scenario = None
     if args.arena is not None:
         from app.files import load_fleet
@@ -110,191 +224,165 @@ def cmd_run(args: argparse.Namespace) -> int:
                 check_endpoint(endpoint)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-    scenario = load_scenario(args.scenario) if args.scenario else None
-    if scenario is not None and scenario.n > MAX_FOLLOWERS:
-        raise UserError(f"--scenario {args.scenario}: {scenario.n} followers; the live service drives 1..{MAX_FOLLOWERS}"
-                        " (simulate runs any number)")
-    if args.record is not None:
-        check_new_file(args.record, "recording", ".mcap")
-        if args.record.exists():
-            raise UserError(f"{args.record}: exists; a recording is never written over another (give a new name)")
-    if args.camera is None and config.frames != "synthetic":
-        args.camera = config.frames  # the config names a real camera; the command line wins
-    real = args.camera is not None  # a real rig: real camera, real robots, no simulator
-    configured_link = config.link if config.link != "sim" or not real else None
-    link_spec = args.link or configured_link or ("none" if real else "sim")
-    if real and (scenario is not None or args.feedback == "truth" or link_spec == "sim"):
-        raise UserError("--camera runs a real rig: it cannot be combined with --scenario, --feedback truth"
-                        " or --link sim (give --link serial:PATH, or none to only observe)")
-    if not real and (link_spec == "none" or args.leader is not None):
-        raise UserError("--link none and --leader need --camera: the simulated team has its own leader and link")
-    if args.calibration is not None and not real:
-        raise UserError("--calibration goes with --camera (the synthetic camera's is set in the config)")
-    from app.backends.serial_link import SerialLink, make_link, parse_link_spec
+    return fleet_scenario
+
+
+def _open_camera(args: argparse.Namespace, plan: _RunPlan, handed: contextlib.ExitStack) -> FrameSource | None:
+    if not plan.real:
+        return None
+    from app.backends.camera import open_frame_source
 
     try:
-        link_port = "" if link_spec == "none" else parse_link_spec(link_spec)
-        leader_port = parse_link_spec(args.leader) if args.leader is not None else ""
+        frames = open_frame_source(args.camera, args.camera_fps,
+                                   settings=plan.camera[0].capture if plan.camera else None)
     except ValueError as exc:
         raise UserError(str(exc)) from None
-    if leader_port == "" and args.leader is not None:
-        raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
-    feedback = "vision" if real else args.feedback or config.feedback
-    camera: Rig | None
-    if real:
-        from app.files import load_calibration
+    handed.callback(frames.close)
+    return frames
 
-        camera = load_calibration(args.calibration or config.calibration_path)
-    else:
-        camera = config.camera() if feedback == "vision" else None
+
+def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.ExitStack,
+                handed: contextlib.ExitStack) -> _Fleet | None:
+    """On the bus before anything drives: an id taken, or no arena, ends here."""
+    if args.fleet is None:
+        return None
+    from app.cli.fleet import open_bus
+    from app.fleet.bridge import name_taken
+
+    fleet = _Fleet(open_bus(args.zenoh_listen, args.zenoh_connect, f"--fleet {args.fleet}"))
+    stack.callback(fleet.session.close)
+    config, fleet_scenario = plan.config, plan.fleet_scenario
+    if fleet_scenario is not None:
+        from app.backends.arena import ArenaTeam, NoArena
+
+        try:
+            fleet.arena_team = ArenaTeam(fleet.session, args.fleet, args.leader_id,
+                                         config.measurement.position_noise_m, config.measurement.heading_noise_rad,
+                                         config.seed if args.seed is None else args.seed,
+                                         hues_deg=fleet_scenario.hues_deg)
+        except NoArena as exc:
+            raise UserError(f"--arena {args.arena}: {exc}") from None
+        handed.callback(fleet.arena_team.close)
+    if name_taken(fleet.session, args.fleet, args.leader_id):
+        raise UserError(f"--leader-id {args.leader_id}: a leader with this id is alive on fleet {args.fleet}"
+                        " already; every leader needs its own id")
+    team = fleet.arena_team
+    if team is not None and fleet_scenario is not None:
+        from app.keys import root
+        from app.params import Params, default_slots
+
+        if not team.owned:  # it comes back after its robots were adopted: alive, empty-handed
+            fleet.token = fleet.session.liveliness().declare_token(f"{root(args.fleet)}/alive/{args.leader_id}")
+            handed.callback(fleet.token.undeclare)
+            print(f"omniformation: {args.leader_id} owns no robot in the arena now (other leaders adopted"
+                  " them); waiting for the operator to hand one over (the fleet page's Hand over)", flush=True)
+            team.wait_for_robots()
+        me = fleet_scenario.leaders[fleet_scenario.leader_index(args.leader_id)]
+        n_owned = len(team.owned)
+        slots = default_slots(n_owned) if fleet.token is None else team.slots_for_owned()
+        fleet.params = Params(n_followers=n_owned, slots=slots, leader_mode=me.mode,  # type: ignore[arg-type]
+                              leader_speed_mps=me.speed_mps, leader_turn_deg_s=me.turn_deg_s)
+    return fleet
+
+
+def _build_rig(args: argparse.Namespace, plan: _RunPlan,
+               handed: contextlib.ExitStack) -> tuple[FollowerLink | None, HardwareTeam | None]:
+    """The followers' link (serial, or the emulator) and, on a real rig, the real team."""
+    from app.backends.serial_link import SerialLink, make_link
+    from core.types import Gains
+
+    limits = plan.scenario.gains if plan.scenario is not None else Gains()
+    link = None
+    if plan.link_port:
+        try:
+            link = make_link(plan.link_port, plan.n_followers, baud=args.baud, v_max=limits.v_max,
+                             w_max=limits.w_max)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        handed.callback(link.close)
+    hardware = None
+    if plan.real:
+        from app.backends.hardware import HardwareTeam
+
+        leader = SerialLink(plan.leader_port, 1, baud=args.baud, addresses=[0]) if plan.leader_port else None
+        hardware = HardwareTeam(plan.n_followers, link, leader)
+        handed.callback(hardware.close)
+    return link, hardware
+
+
+def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None, link: FollowerLink | None,
+           hardware: HardwareTeam | None, fleet: _Fleet | None) -> Service:
+    from app.dashboard.gate import is_loopback
+    from app.services.live import Service
+
     if not is_loopback(args.host):
         print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
               " token) may see and command the robots", file=sys.stderr)
-    n_followers = scenario.n if scenario is not None else args.followers or config.followers
-    from core.types import Gains
-
-    limits = scenario.gains if scenario is not None else Gains()
-    frames = hardware = None
-    if real:
-        from app.backends.camera import open_frame_source
-
-        try:
-            frames = open_frame_source(args.camera, args.camera_fps, settings=camera[0].capture if camera else None)
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-    session = arena_team = token = None
-    params = None
-    if args.fleet is not None:  # on the bus before anything drives: an id taken, or no arena, ends here
-        from app.cli.fleet import open_bus
-        from app.fleet.bridge import name_taken
-
-        session = open_bus(args.zenoh_listen, args.zenoh_connect, f"--fleet {args.fleet}")
-        try:
-            if fleet_scenario is not None:
-                from app.backends.arena import ArenaTeam, NoArena
-                from app.params import Params, default_slots
-
-                try:
-                    arena_team = ArenaTeam(session, args.fleet, args.leader_id, config.measurement.position_noise_m,
-                                           config.measurement.heading_noise_rad,
-                                           config.seed if args.seed is None else args.seed,
-                                           hues_deg=fleet_scenario.hues_deg)
-                except NoArena as exc:
-                    raise UserError(f"--arena {args.arena}: {exc}") from None
-            if name_taken(session, args.fleet, args.leader_id):
-                raise UserError(f"--leader-id {args.leader_id}: a leader with this id is alive on fleet {args.fleet}"
-                                " already; every leader needs its own id")
-            if arena_team is not None and fleet_scenario is not None:
-                if not arena_team.owned:  # it comes back after its robots were adopted: alive, empty-handed
-                    from app.keys import root
-
-                    token = session.liveliness().declare_token(f"{root(args.fleet)}/alive/{args.leader_id}")  # type: ignore[attr-defined]
-                    print(f"omniformation: {args.leader_id} owns no robot in the arena now (other leaders adopted"
-                          " them); waiting for the operator to hand one over (the fleet page's Hand over)",
-                          flush=True)
-                    arena_team.wait_for_robots()
-                me = fleet_scenario.leaders[fleet_scenario.leader_index(args.leader_id)]
-                n_owned = len(arena_team.owned)
-                slots = default_slots(n_owned) if token is None else arena_team.slots_for_owned()
-                params = Params(n_followers=n_owned, slots=slots, leader_mode=me.mode,  # type: ignore[arg-type]
-                                leader_speed_mps=me.speed_mps, leader_turn_deg_s=me.turn_deg_s)
-        except (UserError, KeyboardInterrupt):
-            if token is not None:
-                token.undeclare()
-            if arena_team is not None:
-                arena_team.close()
-            session.close()  # type: ignore[attr-defined]
-            raise
-    link = None
-    if link_port:
-        try:
-            link = make_link(link_port, n_followers, baud=args.baud, v_max=limits.v_max, w_max=limits.w_max)
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-    if real:
-        from app.backends.hardware import HardwareTeam
-
-        leader = SerialLink(leader_port, 1, baud=args.baud, addresses=[0]) if leader_port else None
-        hardware = HardwareTeam(n_followers, link, leader)
+    config = plan.config
     try:
-        service = Service(host=args.host, port=args.port, scenario=scenario,
-                          n_followers=n_followers, rate_hz=args.rate or config.rate_hz,
-                          seed=config.seed if args.seed is None else args.seed, camera=camera,
-                          dynamics=config.dynamics, noise=config.measurement,
-                          link=None if real else link, frames=frames, hardware=hardware, recordings=args.recordings,
-                          token=args.token, viewer_token=args.viewer_token, arena=arena_team, params=params)
+        return Service(host=args.host, port=args.port, scenario=plan.scenario,
+                       n_followers=plan.n_followers, rate_hz=args.rate or config.rate_hz,
+                       seed=config.seed if args.seed is None else args.seed, camera=plan.camera,
+                       dynamics=config.dynamics, noise=config.measurement,
+                       link=None if plan.real else link, frames=frames, hardware=hardware,
+                       recordings=args.recordings, token=args.token, viewer_token=args.viewer_token,
+                       arena=fleet.arena_team if fleet else None, params=fleet.params if fleet else None)
     except OSError as exc:
-        for closable in (hardware or link, frames, arena_team):
-            if closable is not None:
-                closable.close()
         raise UserError(bind_error(args.host, args.port, exc)) from None
-    recorder = None
-    if not args.no_record:
-        from app.services.recording import start_recording
 
-        from app.recording.writer import RecordingRefused
 
-        try:
-            recorder = start_recording(service, config, scenario, args.scenario, camera, args.frames_hz, args.record,
-                                       args.recordings)
-        except (RecordingRefused, OSError) as exc:
-            service.close()
-            raise UserError(str(exc) if isinstance(exc, RecordingRefused) else
-                            f"cannot record: {exc.strerror or exc}") from None
-        print(f"omniformation: recording to {display_path(recorder.path)}", flush=True)
-    # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
-    # (even before the first tick ends), and the loop's own exit is what zeroes the robots.
-    bridge = adopter = None
-    if args.fleet is not None:
-        from app.fleet.bridge import FleetBridge
+def _start_recorder(args: argparse.Namespace, plan: _RunPlan, service: Service) -> Recorder | None:
+    if args.no_record:
+        return None
+    from app.recording.writer import RecordingRefused
+    from app.services.recording import start_recording
 
-        bridge = FleetBridge(service.store, args.fleet, args.leader_id, allow_control=args.fleet_control,
-                             session=session, token=token, on_twin=service.loop.stop)
-        service.loop.subscribe(bridge.on_tick)
-        service.dashboard.extra.append(bridge.show_on(service.server))
-        if args.zenoh_connect and not arena_team:  # an arena leader knows it is connected (it had the truth)
-            import time
+    try:
+        recorder = start_recording(service, plan.config, plan.scenario, args.scenario, plan.camera, args.frames_hz,
+                                   args.record, args.recordings)
+    except (RecordingRefused, OSError) as exc:
+        raise UserError(str(exc) if isinstance(exc, RecordingRefused) else
+                        f"cannot record: {exc.strerror or exc}") from None
+    print(f"omniformation: recording to {display_path(recorder.path)}", flush=True)
+    return recorder
 
-            deadline = time.monotonic() + 3.0
-            while not bridge.peers() and time.monotonic() < deadline:
-                time.sleep(0.1)
-            if not bridge.peers():
-                print(f"omniformation: fleet bus: no peer answers at {', '.join(args.zenoh_connect)}; retrying in the"
-                      " background (the loop runs; the page says 'fleet: disconnected')", file=sys.stderr, flush=True)
-        if arena_team is not None:
-            from app.fleet.adopter import Adopter
 
-            adopter = Adopter(session, args.fleet, args.leader_id, arena_team, service.store, event=bridge.event)
-        print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"
-              f" ({'taking commands' if args.fleet_control else 'STOP only'} from it)", flush=True)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: service.loop.stop())
-    service.start()
-    if real:
+def _on_the_bus(args: argparse.Namespace, fleet: _Fleet, service: Service,
+                stack: contextlib.ExitStack) -> FleetBridge:
+    """The bridge (state out, STOP and, if allowed, commands in) and an arena leader's adopter."""
+    import time
+
+    from app.fleet.bridge import FleetBridge
+
+    bridge = FleetBridge(service.store, args.fleet, args.leader_id, allow_control=args.fleet_control,
+                         session=fleet.session, token=fleet.token, on_twin=service.loop.stop)
+    stack.callback(bridge.close)
+    service.loop.subscribe(bridge.on_tick)
+    service.dashboard.extra.append(bridge.show_on(service.server))
+    if args.zenoh_connect and not fleet.arena_team:  # an arena leader knows it is connected (it had the truth)
+        deadline = time.monotonic() + 3.0
+        while not bridge.peers() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if not bridge.peers():
+            print(f"omniformation: fleet bus: no peer answers at {', '.join(args.zenoh_connect)}; retrying in the"
+                  " background (the loop runs; the page says 'fleet: disconnected')", file=sys.stderr, flush=True)
+    if fleet.arena_team is not None:
+        from app.fleet.adopter import Adopter
+
+        adopter = Adopter(fleet.session, args.fleet, args.leader_id, fleet.arena_team, service.store,
+                          event=bridge.event)
+        stack.callback(adopter.close)
+    print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"
+          f" ({'taking commands' if args.fleet_control else 'STOP only'} from it)", flush=True)
+    return bridge
+
+
+def _say_where(args: argparse.Namespace, plan: _RunPlan, service: Service, link: FollowerLink | None) -> None:
+    if plan.real:
         source = f"the vision pipeline on camera {args.camera}"
     else:
-        source = "the vision pipeline on the synthetic camera" if camera else "the simulator's poses plus noise"
-    via = f"; followers on serial {link.port_name}" if link is not None else "; observe only (no link)" if real else ""
+        source = "the vision pipeline on the synthetic camera" if plan.camera else "the simulator's poses plus noise"
+    port_name = getattr(link, "port_name", None)
+    via = f"; followers on serial {port_name}" if port_name else "; observe only (no link)" if plan.real else ""
     print(f"omniformation: dashboard at {service.url}  (poses from {source}{via}; Ctrl-C to stop)", flush=True)
     print(f"omniformation: view only (watch and STOP, nothing else) at {service.gate.viewer_url}", flush=True)
-    try:
-        service.wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        service.close()
-        if adopter is not None:
-            adopter.close()
-        if bridge is not None:
-            bridge.close()
-        if session is not None:
-            session.close()  # type: ignore[attr-defined]
-        if recorder is not None:
-            recorder.close()
-            print(f"omniformation: {recorder.closing_line()}", flush=True)
-    print("omniformation: stopped; all followers commanded to zero", flush=True)
-    if bridge is not None and bridge.twin is not None:  # it missed its twin at start and gave way to it
-        raise UserError(bridge.twin)
-    return 0
-
-

@@ -70,7 +70,7 @@ class Adopter:
                 return
             try:
                 self._sync()
-            except Exception:  # noqa: BLE001 - adoption must never take the leader down
+            except Exception:
                 log.exception("adoption failed")
 
     def _sync(self) -> None:

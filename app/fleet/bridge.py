@@ -25,7 +25,7 @@ import re
 import secrets
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from app.tick import TickState
 from app.recording.writer import params_events
 
 log = logging.getLogger(__name__)
+
+if TYPE_CHECKING:
+    import zenoh
 
 NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
 ENDPOINT = re.compile(r"(tcp|udp)/[A-Za-z0-9_.-]+:\d{1,5}|(tcp|udp)/\[[0-9a-fA-F:]+\]:\d{1,5}")
@@ -79,7 +82,7 @@ def zenoh_config(listen: list[str], connect: list[str]) -> Any:
     return c
 
 
-def open_session(listen: list[str], connect: list[str]) -> Any:
+def open_session(listen: list[str], connect: list[str]) -> zenoh.Session:
     """A Zenoh peer session on these endpoints (checked first: ValueError names a bad one)."""
     import zenoh
 

@@ -28,7 +28,7 @@ _JSON_SCHEMA = json.dumps({"type": "object", "description": "as in docs/fleet-pr
 class FleetRecorder:
     def __init__(self, path: Path) -> None:
         self.path = path
-        self._file = open(path, "xb")  # never over an existing file
+        self._file = open(path, "xb")  # noqa: SIM115 - open for the session's life; never over an existing file
         self._writer = SessionWriter(self._file, CHUNK_BYTES, CHUNK_SECONDS)  # the sessions' own writer
         self._writer.start(library="omniformation fleet")
         self._schema = self._writer.register_schema("omniformation.FleetMessage", "jsonschema", _JSON_SCHEMA)

@@ -32,7 +32,7 @@ from core.obstacles import Obstacle
 from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
 from core.vision.pipeline import PipelineSettings
-from core.types import Commands, FloatArray
+from core.types import BoolArray, Commands, FloatArray, IntArray
 
 from app.backends.hardware import HardwareTeam
 from app.backends.sim import SimTeam, spread_start
@@ -344,36 +344,7 @@ class ServiceLoop:
             self._mode = (self._mode[0], self._mode[1] + (self.dt if advance else 0.0))  # a profile's clock waits too
         else:
             twist = self._leader_twist(params, known, world.err_norm, tracked, params.slots)
-        settings = self._safety_settings(params) if params.safety else None
-        safety = None
-        if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
-            if world.ready:
-                world.memory = world.memory.with_formation(p, params.slots)
-                if advance:
-                    world.memory = world.memory.moved(self._nav[1], self.dt, keep_out_m(settings))
-            move = advance and not params.stop
-            manoeuvre = obs.manoeuvre * answering[:, None] if move else np.zeros((params.n_followers, 2))
-            out = ControlOutput.idle(manoeuvre)
-            flags = np.zeros(params.n_followers, dtype=np.int64)
-            world.err_norm = np.linalg.norm(world.memory.slots.p_d - p, axis=1)
-        else:
-            acting = None
-            if self.hardware is not None and advance:  # a real rig: each follower where it will be when this acts
-                acting = self._over_latency(p, a, obs.observed_at, twist)
-            step = team_step(world.memory, p, a, tracked, params.slots, twist, params.gains, self.dt,
-                             active=tracked & (not params.stop) & advance, obstacles=known, safety=settings,
-                             filter_now=not params.stop, scale=self._nav[1], advance=advance and world.ready,
-                             acting=acting)
-            world.memory, out, flags, safety, world.err_norm = step.memory, step.control, step.flags, step.safety, \
-                step.err_norm
-            if acting is not None:
-                p, a = acting
-        if world.team.link_lost:  # nobody answers: no command but zero until the robots do
-            out = ControlOutput.idle(np.zeros((len(a), 2)))
-            world.memory = dataclasses.replace(world.memory, controller=ControllerState.initial(len(a)))
-        elif not answering.all():  # and a robot that does not answer gets zero until it does
-            out = dataclasses.replace(out, commands=Commands(np.where(answering, out.commands.v, 0.0),
-                                                             np.where(answering, out.commands.w, 0.0)))
+        out, flags, safety, p, a = self._commands(params, obs, p, a, tracked, answering, known, twist, advance)
         world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
         self._sent.append((world.last_cmd, twist))
         if advance:  # eq. 21's V per follower, and its slope over the last RATE_WINDOW_S
@@ -417,6 +388,50 @@ class ServiceLoop:
             self.t += self.dt
         self.tick_count += 1
         self.last = state
+        self._publish(state)
+        return state
+
+    def _commands(self, params: Params, obs: Observation, p: FloatArray, a: FloatArray, tracked: BoolArray,
+                  answering: BoolArray, known: FloatArray, twist: tuple[float, float], advance: bool,
+                  ) -> tuple[ControlOutput, IntArray, SafetyResult | None, FloatArray, FloatArray]:
+        """This tick's commands: the start-up's manoeuvres, or the team's control step
+        (core.control.step); zero for a robot that does not answer. Also where each follower
+        is taken to be (predicted over a real rig's latency)."""
+        world = self._world
+        settings = self._safety_settings(params) if params.safety else None
+        safety = None
+        if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
+            if world.ready:
+                world.memory = world.memory.with_formation(p, params.slots)
+                if advance:
+                    world.memory = world.memory.moved(self._nav[1], self.dt, keep_out_m(settings))
+            move = advance and not params.stop
+            manoeuvre = obs.manoeuvre * answering[:, None] if move else np.zeros((params.n_followers, 2))
+            out = ControlOutput.idle(manoeuvre)
+            flags = np.zeros(params.n_followers, dtype=np.int64)
+            world.err_norm = np.linalg.norm(world.memory.slots.p_d - p, axis=1)
+        else:
+            acting = None
+            if self.hardware is not None and advance:  # a real rig: each follower where it will be when this acts
+                acting = self._over_latency(p, a, obs.observed_at, twist)
+            step = team_step(world.memory, p, a, tracked, params.slots, twist, params.gains, self.dt,
+                             active=tracked & (not params.stop) & advance, obstacles=known, safety=settings,
+                             filter_now=not params.stop, scale=self._nav[1], advance=advance and world.ready,
+                             acting=acting)
+            world.memory, out, flags, safety, world.err_norm = step.memory, step.control, step.flags, step.safety, \
+                step.err_norm
+            if acting is not None:
+                p, a = acting
+        if world.team.link_lost:  # nobody answers: no command but zero until the robots do
+            out = ControlOutput.idle(np.zeros((len(a), 2)))
+            world.memory = dataclasses.replace(world.memory, controller=ControllerState.initial(len(a)))
+        elif not answering.all():  # and a robot that does not answer gets zero until it does
+            out = dataclasses.replace(out, commands=Commands(np.where(answering, out.commands.v, 0.0),
+                                                             np.where(answering, out.commands.w, 0.0)))
+        return out, flags, safety, p, a
+
+    def _publish(self, state: TickState) -> None:
+        """Every subscriber sees the tick; one that fails is logged and the loop goes on."""
         publish: dict[str, float] = {}
         for fn in self._subscribers:
             t_pub = time.perf_counter()
@@ -426,7 +441,6 @@ class ServiceLoop:
                 log.exception("subscriber failed")
             publish[f"publish:{getattr(fn, '__qualname__', 'fn')}"] = (time.perf_counter() - t_pub) * 1e3
         self._publish_ms = publish  # shown with the next tick: a published state is never changed
-        return state
 
     def _timed_tick(self, start: float, window: deque[float]) -> None:
         """One tick (a fault stops the robots, never the loop), and the rate over the last ticks."""

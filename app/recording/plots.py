@@ -13,14 +13,14 @@ from typing import TYPE_CHECKING
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.axes import Axes  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+from matplotlib.axes import Axes
+import numpy as np
 
-from core.geometry import leader_to_world  # noqa: E402
-from core.sim.run import SimulationLog  # noqa: E402
+from core.geometry import leader_to_world
+from core.sim.run import SimulationLog
 
-from core.camera.render.looks import follower_hex  # noqa: E402
+from core.camera.render.looks import follower_hex
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

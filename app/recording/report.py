@@ -24,13 +24,13 @@ from collections.abc import Callable
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.axes import Axes  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+from matplotlib.axes import Axes
+import numpy as np
 
-from app.recording.plots import colour, trajectory_panel  # noqa: E402
+from app.recording.plots import colour, trajectory_panel
 from app.recording.reader import Recording
-from app.recording.schema import json_floats, scenario_obstacles  # noqa: E402
+from app.recording.schema import json_floats, scenario_obstacles
 
 SETTLED_M = 0.03  # settled: the error stays under 3 cm to the end
 DISTANCE_BLOCK = 4096  # ticks at a time for the pairwise distances (bounded memory on an hour's recording)

@@ -165,7 +165,7 @@ class Recorder:
             raise RecordingRefused(f"{path}: only {free / 1e6:.0f} MB free on its disk, below the floor of"
                                    f" {free_floor_bytes / 1e6:.0f} MB; free some space or record elsewhere")
         try:
-            self._file = open(path, "xb")  # never over an existing file
+            self._file = open(path, "xb")  # noqa: SIM115 - open for the session's life; never over an existing file
         except FileExistsError:
             raise RecordingRefused(f"{path}: exists; a recording is never written over another") from None
         # camera frames in chunks of their own: a damaged frame costs no tick (app.recording.mcap_out)
@@ -313,7 +313,7 @@ class Recorder:
         if self.on_stopped is not None:
             try:
                 self.on_stopped(why)
-            except Exception:  # noqa: BLE001 - a broken listener must not hide the failure
+            except Exception:
                 log.exception("recording stop listener failed")
 
     def _finish_file(self) -> None:

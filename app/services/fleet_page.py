@@ -243,7 +243,7 @@ class FleetView:
         while not self._stop.wait(REFRESH_S):
             try:
                 on_page_thread(self.server, self.refresh)  # viser's thread: widgets.on_page_thread says why
-            except Exception:  # noqa: BLE001 - a drawing error must not end the page
+            except Exception:
                 import logging
 
                 logging.getLogger(__name__).exception("fleet page refresh failed")

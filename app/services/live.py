@@ -143,6 +143,7 @@ class Service:
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
         self._thread: threading.Thread | None = None
+        self._closed = False
 
     @property
     def url(self) -> str:
@@ -158,7 +159,11 @@ class Service:
 
     def close(self) -> None:
         """Stop the loop (it zeroes every follower as it ends), then the server and the camera.
-        Waits for the tick in progress: the first one can take seconds while compiled code loads."""
+        Waits for the tick in progress: the first one can take seconds while compiled code loads.
+        A second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
         self.loop.stop()
         if self._thread is not None:
             self._thread.join(60.0)

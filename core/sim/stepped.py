@@ -25,6 +25,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -40,7 +41,7 @@ from core.geometry import heading_world_to_leader, leader_displacement, world_to
 from core.obstacles import Obstacle, as_array, seen_from, surface_distance
 from core.sim.profiles import GoalProfile
 from core.sim.run import SimulationLog
-from core.sim.team import disturbance_mask, make_team_state, step_team
+from core.sim.team import TeamState, disturbance_mask, make_team_state, step_team
 from core.types import BoolArray, Commands, FloatArray, Image, IntArray
 from core.vision.freespace import FreeSpaceScanner, ObstacleMemory, ScanSettings
 from core.vision.pipeline import PipelineSettings, VisionPipeline
@@ -165,6 +166,62 @@ class _Delays:
         return self.holding
 
 
+class _Eyes:
+    """What the leader knows each tick: the vision pipeline on rendered frames (and with
+    obstacles or a goal the free-space scan and its memory), or the truth plus the scenario's
+    measurement noise (and the boxes' nearest points). Draws from the run's generator in the
+    run's order: the same seed, the same run."""
+
+    def __init__(self, scenario: Scenario, rig: CameraConfig | None, gamma: Gamma | None, settings: PipelineSettings,
+                 rng: np.random.Generator, on_frame: Callable[[int, Image], None] | None) -> None:
+        self.scenario, self.rng, self.on_frame = scenario, rng, on_frame
+        self.boxes = as_array(scenario.obstacles)
+        self.renderer: Renderer | None = None
+        self.pipeline: VisionPipeline | None = None
+        self.scanner: FreeSpaceScanner | None = None
+        self.memory = ObstacleMemory()
+        if rig is not None:
+            assert gamma is not None and rig.model is not None
+            self.renderer = world_renderer(rig, scenario.obstacles)
+            self.pipeline = VisionPipeline(scenario.n, gamma, rig.working_area, rig.detect,
+                                           (rig.model.width, rig.model.height),
+                                           np.random.default_rng(scenario.seed + 1), settings)
+            if scenario.obstacles or isinstance(scenario.leader, GoalProfile):  # no obstacles scans empty: skip it
+                self.scanner = FreeSpaceScanner(gamma, rig.working_area, scan_settings_for(rig))
+                self.memory = ObstacleMemory(self.scanner.settings)
+
+    def look(self, k: int, state: TeamState, p_true: FloatArray, a_true: FloatArray, t_wall: float,
+             t_scn: float | None, odo: tuple[float, float, float], last_cmd: FloatArray, err_norm: FloatArray) -> tuple[
+            FloatArray, FloatArray, BoolArray, FloatArray, Any, FloatArray | None, Any]:
+        """(positions, headings, tracked, obstacle points, scan, start-up manoeuvre, pipeline output),
+        all in the leader's frame; ``t_scn`` None: the start-up is still on."""
+        n = self.scenario.n
+        scan = manoeuvre = out = None
+        if self.pipeline is not None and self.renderer is not None:
+            hidden = disturbance_mask(self.scenario.disturbances, n, t_scn, "hidden")[0] if t_scn is not None else None
+            # pixels are made only where the pipeline looks (bit for bit the whole frame's there)
+            frame = self.renderer.frame(state.leader, np.column_stack([p_true, a_true]), t_wall, self.rng,
+                                        hidden=hidden)
+            if self.on_frame is not None:
+                self.on_frame(k, frame)
+            out = self.pipeline.step(frame, 1.0 / self.scenario.rate_hz, odo, last_cmd, err_norm)
+            pos_m, head_m, tracked = out.positions, out.headings, out.tracked
+            manoeuvre = out.manoeuvre
+            if self.scanner is not None and manoeuvre is None:  # not during the start-up: nobody is tracked yet
+                scan = self.scanner.scan(frame, pos_m, tracked)
+        else:
+            meas = self.scenario.measurement
+            noise_p = self.rng.normal(0.0, meas.position_noise_m, (n, 2)) if meas.position_noise_m > 0 else 0.0
+            noise_a = self.rng.normal(0.0, meas.heading_noise_rad, n) if meas.heading_noise_rad > 0 else 0.0
+            pos_m, head_m, tracked = p_true + noise_p, a_true + noise_a, np.ones(n, dtype=bool)
+        self.memory.move(odo)  # the obstacles as the leader knows them (leader frame)
+        if scan is not None:
+            known_pts = self.memory.update(scan, t_wall, np.where(tracked[:, None], pos_m, np.nan))
+        else:
+            known_pts = seen_from(self.boxes, state.leader, p_true)
+        return pos_m, head_m, tracked, known_pts, scan, manoeuvre, out
+
+
 def simulate_stepped(
     scenario: Scenario,
     rig: CameraConfig | None = None,
@@ -188,16 +245,7 @@ def simulate_stepped(
     goal = scenario.leader if isinstance(scenario.leader, GoalProfile) else None
     nav = nav or NavSettings(speed_mps=goal.speed_mps if goal else NavSettings.speed_mps)
     boxes = as_array(scenario.obstacles)
-    renderer = pipeline = scanner = None
-    memory = ObstacleMemory()
-    if vision:
-        assert rig is not None and gamma is not None and rig.model is not None
-        renderer = world_renderer(rig, scenario.obstacles)
-        pipeline = VisionPipeline(n, gamma, rig.working_area, rig.detect, (rig.model.width, rig.model.height),
-                                  np.random.default_rng(scenario.seed + 1), settings)
-        if scenario.obstacles or goal is not None:  # a world without obstacles scans empty (tested): skip its cost
-            scanner = FreeSpaceScanner(gamma, rig.working_area, scan_settings_for(rig))
-            memory = ObstacleMemory(scanner.settings)
+    eyes = _Eyes(scenario, rig if vision else None, gamma, settings, rng, on_frame)
     state = make_team_state(scenario.initial_p, scenario.initial_a)
     memory_c: TeamMemory | None = None  # the control step's, from the first estimates on
     smooth = bool(scenario.switches) or goal is not None  # slots that move: followed smoothly (as the live loop does)
@@ -218,7 +266,6 @@ def simulate_stepped(
     t_ready: float | None = None if vision else 0.0
     k = 0
     steps_after = int(round(scenario.duration_s * scenario.rate_hz)) + 1
-    meas = scenario.measurement
     while True:
         t_wall = k * dt
         t_scn = t_wall - t_ready if t_ready is not None else -math.inf
@@ -230,31 +277,10 @@ def simulate_stepped(
         p_true = world_to_leader(state.followers[:, :2], state.leader[:2], theta)
         a_true = np.asarray(heading_world_to_leader(state.followers[:, 2], theta))
         odo = leader_displacement(prev_leader, state.leader)
-        scan = None
-        manoeuvre = None
-        if vision:
-            assert renderer is not None and pipeline is not None
-            hidden = disturbance_mask(scenario.disturbances, n, t_scn, "hidden")[0] if t_ready is not None else None
-            # pixels are made only where the pipeline looks (bit for bit the whole frame's there)
-            frame = renderer.frame(state.leader, np.column_stack([p_true, a_true]), t_wall, rng, hidden=hidden)
-            if on_frame is not None:
-                on_frame(k, frame)
-            out = pipeline.step(frame, dt, odo, last_cmd, err_norm)
-            pos_m, head_m, tracked = out.positions, out.headings, out.tracked
-            manoeuvre = out.manoeuvre
-            if scanner is not None and manoeuvre is None:  # not during the start-up: nobody is tracked yet
-                scan = scanner.scan(frame, pos_m, tracked)
-        else:
-            noise_p = rng.normal(0.0, meas.position_noise_m, (n, 2)) if meas.position_noise_m > 0 else 0.0
-            noise_a = rng.normal(0.0, meas.heading_noise_rad, n) if meas.heading_noise_rad > 0 else 0.0
-            pos_m, head_m, tracked = p_true + noise_p, a_true + noise_a, np.ones(n, dtype=bool)
+        seen = eyes.look(k, state, p_true, a_true, t_wall, t_scn if t_ready is not None else None, odo, last_cmd,
+                         err_norm)
+        pos_m, head_m, tracked, known_pts, scan, manoeuvre, out = seen
         prev_leader = state.leader.copy()
-        # the obstacles as the leader knows them (leader frame)
-        memory.move(odo)
-        if scan is not None:
-            known_pts = memory.update(scan, t_wall, np.where(tracked[:, None], pos_m, np.nan))
-        else:
-            known_pts = seen_from(boxes, state.leader, p_true)
 
         if delay.on:  # what reaches the controller is what the camera saw a while ago
             pos_m, head_m, tracked, known_pts = delay.observed(pos_m, head_m, tracked, known_pts)
@@ -283,49 +309,28 @@ def simulate_stepped(
                     reached_at = t_scn
             else:
                 twist = tuple(float(x) for x in scenario.leader.twist(t_scn))  # type: ignore[assignment]  # a pair
-            pos = known
             head = np.where(np.isfinite(head_m), head_m, math.pi / 2)
-            acting = None
-            if delay.on and delay.latency.compensate:  # each follower where it will be when this command acts
-                acting = delay.predicted(pos, head, twist)
-            step = team_step(memory_c, pos, head, tracked, slots_now, twist, scenario.gains, dt, obstacles=known_pts,
+            # each follower where it will be when this command acts
+            acting = delay.predicted(known, head, twist) if delay.on and delay.latency.compensate else None
+            step = team_step(memory_c, known, head, tracked, slots_now, twist, scenario.gains, dt, obstacles=known_pts,
                              safety=scenario.safety, scale=scale, smooth=smooth, acting=acting)
             memory_c = step.memory
             p_d = memory_c.slots.p_d
-            commands = step.control.commands
             if step.safety is not None:
                 status, changed = step.safety.status, step.safety.changed
-            v_cmd, w_cmd = np.asarray(commands.v), np.asarray(commands.w)
+            v_cmd, w_cmd = np.asarray(step.control.commands.v), np.asarray(step.control.commands.w)
             a_err = step.control.a_err
             err_norm = step.err_norm
 
-        rows["t"].append(t_wall)
-        rows["leader"].append(state.leader.copy())
-        rows["twist"].append(twist)
-        rows["fw"].append(state.followers.copy())
-        rows["p"].append(p_true)
-        rows["a"].append(a_true)
-        rows["pm"].append(pos_m)
-        rows["am"].append(head_m)
-        rows["pd"].append(p_d.copy() if t_ready is not None else np.full((n, 2), np.nan))  # no target yet
         last_cmd = np.column_stack([v_cmd, w_cmd])
-        rows["cmd"].append(last_cmd)
-        rows["aerr"].append(a_err)
-        rows["tracked"].append(tracked)
-        rows["dmin"].append(team_min_distance(p_true))
-        rows["gap"].append(float(surface_distance(state.followers[:, :2], boxes).min()) if len(boxes) else math.inf)
-        rows["lgap"].append(float(surface_distance(state.leader[None, :2], boxes).min()) if len(boxes) else math.inf)
-        rows["status"].append(status)
-        rows["changed"].append(changed)
-        rows["limit"].append((np.abs(v_cmd) >= scenario.gains.v_max - 1e-9) | (np.abs(w_cmd) >= scenario.gains.w_max - 1e-9))
-        rows["scale"].append(scale)
-        rows["scan"].append(scan.ranges if scan is not None else None)
-        rows["obs"].append(known_pts)
+        limit = (np.abs(v_cmd) >= scenario.gains.v_max - 1e-9) | (np.abs(w_cmd) >= scenario.gains.w_max - 1e-9)
+        _add(rows, t=t_wall, leader=state.leader.copy(), twist=twist, fw=state.followers.copy(), p=p_true, a=a_true,
+             pm=pos_m, am=head_m, pd=p_d.copy() if t_ready is not None else np.full((n, 2), np.nan),  # no target yet
+             cmd=last_cmd, aerr=a_err, tracked=tracked, status=status, changed=changed, limit=limit, scale=scale,
+             scan=scan.ranges if scan is not None else None, obs=known_pts)
+        _truth_rows(rows, state, p_true, boxes)
         if vision:
-            rows["meas"].append(out.heading_measured)
-            rows["phase"].append(out.phase)
-            rows["win"].append(out.windows)
-            rows["hue"].append(out.hues_deg)
+            _add(rows, meas=out.heading_measured, phase=out.phase, win=out.windows, hue=out.hues_deg)
 
         applied = delay.sent(last_cmd, twist) if delay.on else last_cmd  # the radio's delay: what acts now
         state = step_team(state, Commands(np.asarray(applied[:, 0]), np.asarray(applied[:, 1])), twist, dt,
@@ -334,6 +339,25 @@ def simulate_stepped(
         k += 1
 
     assert t_ready is not None
+    assignment = np.asarray(memory_c.assignment if memory_c is not None else np.arange(n))
+    return _run_from_rows(rows, scenario, t_ready, assignment, reached_at, eyes.scanner, vision)
+
+
+def _add(rows: dict[str, list[object]], **values: object) -> None:
+    for key, value in values.items():
+        rows[key].append(value)
+
+
+def _truth_rows(rows: dict[str, list[object]], state: TeamState, p_true: FloatArray, boxes: FloatArray) -> None:
+    """What the truth says of safety this tick: the closest two robots, followers and leader to a box."""
+    rows["dmin"].append(team_min_distance(p_true))
+    rows["gap"].append(float(surface_distance(state.followers[:, :2], boxes).min()) if len(boxes) else math.inf)
+    rows["lgap"].append(float(surface_distance(state.leader[None, :2], boxes).min()) if len(boxes) else math.inf)
+
+
+def _run_from_rows(rows: dict[str, list[object]], scenario: Scenario, t_ready: float, assignment: IntArray,
+                   reached_at: float, scanner: FreeSpaceScanner | None, vision: bool) -> SteppedRun:
+    """The logs of a stepped run from its per-tick rows (time from the end of the start-up)."""
     t = np.array(rows["t"]) - t_ready
     log = SimulationLog(
         scenario=scenario,
@@ -348,7 +372,7 @@ def simulate_stepped(
         p_d=np.array(rows["pd"]),
         commands=np.array(rows["cmd"]),
         a_err=np.array(rows["aerr"]),
-        assignment=np.asarray(memory_c.assignment if memory_c is not None else np.arange(n)),
+        assignment=assignment,
     )
     scans: list[FloatArray] = [np.asarray(r) for r in rows["scan"] if r is not None]
     safety = SafetyLog(

@@ -156,7 +156,7 @@ def test_the_service_holds_the_formation_with_the_firmware_and_stop_stops_it(fir
 
 
 def test_interrupting_the_service_stops_the_robots_and_killing_it_leaves_them_to_their_watchdog(firmware):
-    moving = lambda: all("moving" in firmware.events(r) for r in (1, 2, 3))  # noqa: E731
+    moving = lambda: all("moving" in firmware.events(r) for r in (1, 2, 3))
     run = serve_then_signal("--port", "0", "--feedback", "truth", "--no-record", "--link", f"serial:{firmware.link}",
                             until=moving, sig=signal.SIGINT)
     assert run.returncode == 0, run.stderr

@@ -105,7 +105,7 @@ def test_the_latency_is_recorded_and_reported(tmp_path):
 
 def test_the_latency_bench_measures_ticks_on_new_frames_over_the_serial_link():
     """bench --latency's own path, short and without a browser: frames from a folder, the serial
-    link to emulated robots, recording on; it prints the line the issue names."""
+    link to emulated robots, recording on; it prints the latency line the README quotes."""
     from app.cli.bench import bench_latency
 
     lines: list[str] = []

@@ -218,7 +218,7 @@ def _true_loss(whole, rec) -> int:
 
 @pytest.mark.parametrize("sample", SAMPLE_FILES, ids=lambda p: p.stem)
 def test_one_flipped_byte_anywhere_costs_at_most_a_second_and_a_half_and_the_loss_is_said_exactly(tmp_path, sample):
-    """The issue's table: one byte flipped at 2 %, 10 %, 50 %, 90 % of each sample. Every file
+    """The damage table: one byte flipped at 2 %, 10 %, 50 %, 90 % of each sample. Every file
     reads, the loss is at most 1.5 s of ticks, and what the reader and the report say was lost is
     what was lost (the ticks the whole file has and the damaged one has not)."""
     from app.recording.report import summarise

@@ -153,7 +153,7 @@ def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
     from tests.helpers import serve_then_signal
 
     hw = emulated.emulator.hw
-    moving = lambda: any(r.moving for r in emulated.emulator.snapshot().values())  # noqa: E731
+    moving = lambda: any(r.moving for r in emulated.emulator.snapshot().values())
     run = serve_then_signal("--port", "0", "--feedback", "truth", "--no-record", "--link", f"serial:{emulated.path}",
                             until=moving)
     assert run.returncode == 0, run.stderr

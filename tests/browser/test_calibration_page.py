@@ -4,6 +4,8 @@ the saved file places markers it never saw within the numbers the page promises.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import dataclasses
 import math
 
@@ -77,11 +79,11 @@ def test_from_an_empty_table_to_a_saved_calibration_in_the_browser(service, rig)
         page.get_by_role("button", name="Save camera file and table").click()
         page.get_by_text("saved", exact=False).first.wait_for(timeout=30_000)
         saved = panel.save_as.value
-        text = open(saved, encoding="utf-8").read()
+        text = Path(saved).read_text(encoding="utf-8")
         before = text
         page.get_by_role("button", name="Save camera file and table").click()  # again: never over it unasked
         page.get_by_text("tick Overwrite", exact=False).first.wait_for(timeout=30_000)
-        assert open(saved, encoding="utf-8").read() == before
+        assert Path(saved).read_text(encoding="utf-8") == before
     # the saved file, as locate and run load it, on 80 markers the page never saw
     gamma = parse_camera(text, "rig.toml").gamma
     assert gamma is not None

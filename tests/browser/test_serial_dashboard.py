@@ -29,7 +29,7 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
         svc.start()
         # the vision start-up and the formation, driven over the wire
         wait_for(lambda: svc.loop.last is not None and svc.loop.last.phase == "tracking", 60, "vision start-up")
-        err = lambda: np.linalg.norm(svc.loop.last.p_true - svc.loop.last.p_d, axis=1)  # noqa: E731
+        err = lambda: np.linalg.norm(svc.loop.last.p_true - svc.loop.last.p_d, axis=1)
         held_since = [None]
 
         def held(seconds: float = 3.0) -> bool:

@@ -1,5 +1,5 @@
 """Safe team navigation end to end in the stepped simulator (core.sim.stepped): the
-scenarios by name with ground truth and with vision in the loop, against what the issue asks:
+scenarios by name with ground truth and with vision in the loop, against what safe navigation must keep:
 no robot nearer than the minimum distance to another or 10 cm to an obstacle's surface, the
 leader at its goal, the formation held after the gap, and the paper's runs untouched."""
 
@@ -17,7 +17,7 @@ from core.sim.stepped import SteppedRun, simulate_stepped
 
 FOLLOWER_RADIUS = 0.15  # a 15 x 25 cm follower as a disc
 LEADER_RADIUS = 0.25
-CLEARANCE = 0.10  # the issue's "no robot within 0.10 m of an obstacle's surface"
+CLEARANCE = 0.10  # no robot within 0.10 m of an obstacle's surface: what every run here must keep
 
 
 def _check_clear_and_at_goal(name: str, run: SteppedRun, scenario: Scenario) -> None:

@@ -51,7 +51,7 @@ def test_vision_in_the_loop_reaches_and_holds_formation(rig, gamma, name):
     pos = np.linalg.norm(log.p_meas - log.p, axis=-1)[sel]
     head = np.degrees(np.abs(wrap_angle((log.a_meas - log.a)[sel])))
     form = np.linalg.norm(log.p_d - log.p, axis=-1)[sel]
-    rms = lambda e: np.sqrt((e**2).mean(axis=0))  # noqa: E731
+    rms = lambda e: np.sqrt((e**2).mean(axis=0))
     print(f"{name}: start-up {run.startup_s:.1f} s; position estimate RMS {rms(pos) * 100} cm,"
           f" heading RMS {rms(head)} deg, formation RMS {rms(form) * 100} cm")
     assert np.all(rms(pos) <= 0.02)
