@@ -22,20 +22,15 @@ from collections.abc import Callable
 import numpy as np
 
 from core.control.presets import FORMATION_PRESETS, PRESET_REACH_M, default_formation, formation_preset
-from core.types import GAIN_BOUNDS, Bound, FloatArray, Gains
+from core.bounds import (GAIN_BOUNDS, GOAL_LIMIT_M, LEADER_SPEED, LEADER_TURN, MAX_FOLLOWERS, MIN_SCALE,
+                         SAFETY_DISTANCE, SLOT_COORD, SLOT_LIMIT_M)
+from core.types import Bound, FloatArray, Gains
+
+__all__ = ["GOAL_LIMIT_M", "LEADER_MODES", "LEADER_SPEED", "LEADER_TURN", "MAX_FOLLOWERS", "MIN_SCALE", "SAFETY_DISTANCE",
+           "SLOT_COORD", "SLOT_LIMIT_M", "LeaderMode", "Notice", "Params", "ParamsStore", "default_slots"]
 
 LeaderMode = Literal["stop", "straight", "circle", "eq39", "goal"]
 LEADER_MODES: tuple[LeaderMode, ...] = get_args(LeaderMode)
-MAX_FOLLOWERS = 8
-SLOT_LIMIT_M = 2.0  # desired positions must stay where the camera can see them
-
-LEADER_SPEED = Bound(-0.3, 0.3, "m/s", "leader forward speed", lo_inclusive=True)
-LEADER_TURN = Bound(-30.0, 30.0, "deg/s", "leader turn rate, counter-clockwise positive", lo_inclusive=True)
-SAFETY_DISTANCE = Bound(0.15, 1.0, "m", "the safety filter's minimum distance between robots, centre to centre",
-                        lo_inclusive=True)
-MIN_SCALE = Bound(0.3, 1.0, "", "how narrow the formation may get to pass a gap", lo_inclusive=True)
-GOAL_LIMIT_M = 10.0  # a goal further than this from where the leader started is off the floor it knows
-SLOT_COORD = Bound(-SLOT_LIMIT_M, SLOT_LIMIT_M, "m", "desired position in the leader frame", lo_inclusive=True)
 
 
 @dataclass(frozen=True)
@@ -60,6 +55,26 @@ class Params:
     step_requests: int = 0
     reset_requests: int = 0
     version: int = 0
+
+    def __post_init__(self) -> None:
+        """A snapshot is valid or is not made: ValueError (one line) naming the field and what is
+        allowed, whoever builds it (the store, a scenario's starting values, an arena's)."""
+        if self.leader_mode not in LEADER_MODES:
+            raise ValueError(f"leader_mode = {self.leader_mode!r}: must be one of {', '.join(LEADER_MODES)}")
+        LEADER_SPEED.check("leader_speed_mps", self.leader_speed_mps)
+        LEADER_TURN.check("leader_turn_deg_s", self.leader_turn_deg_s)
+        SAFETY_DISTANCE.check("safety_distance_m", self.safety_distance_m)
+        MIN_SCALE.check("min_scale", self.min_scale)
+        if isinstance(self.n_followers, bool) or not 1 <= int(self.n_followers) <= MAX_FOLLOWERS \
+                or int(self.n_followers) != self.n_followers:
+            raise ValueError(f"n_followers = {self.n_followers!r}: must be a whole number from 1 to {MAX_FOLLOWERS}")
+        slots = np.asarray(self.slots)
+        if slots.ndim != 2 or slots.shape[1] != 2 or slots.shape[0] < 1 or not np.all(np.isfinite(slots)) \
+                or np.abs(slots).max() > SLOT_LIMIT_M:
+            raise ValueError(f"slots: must be rows of [x, y] with |x|, |y| <= {SLOT_LIMIT_M:g} m")
+        if self.goal is not None and not (all(math.isfinite(v) for v in self.goal)
+                                          and max(abs(v) for v in self.goal) <= GOAL_LIMIT_M):
+            raise ValueError(f"goal = {self.goal!r}: must be [x, y] with |x|, |y| <= {GOAL_LIMIT_M:g} m, or none")
 
     def replace(self, **changes: Any) -> "Params":
         return dataclasses.replace(self, **changes)

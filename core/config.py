@@ -21,7 +21,8 @@ from core.control.safety import SafetySettings
 from core.obstacles import Obstacle, as_array, surface_distance
 from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile, LeaderProfile, Segment, SegmentsProfile
 from core.sim.team import DISTURBANCE_KINDS, Disturbance, FollowerDynamics
-from core.types import GAIN_BOUNDS, FloatArray, Gains
+from core.bounds import GOAL_LIMIT_M, GOAL_SPEED, LEADER_SPEED, LEADER_TURN, MIN_SCALE, SAFETY_DISTANCE, SLOT_LIMIT_M
+from core.types import GAIN_BOUNDS, Bound, FloatArray, Gains
 
 
 class ConfigError(ValueError):
@@ -140,6 +141,10 @@ class Table:
             raise self.fail(name, value, allowed)
         return v
 
+    def bounded(self, name: str, bound: Bound, default: float | None = None) -> float:
+        """A number within one of core.bounds' declared ranges (the page and the store use the same)."""
+        return self.number(name, bound.lo, bound.hi, default=default, lo_open=not bound.lo_inclusive, unit=bound.unit)
+
     def integer(self, name: str, lo: int, hi: int, default: int | None = None) -> int:
         if default is not None and name not in self.data:
             self.used.add(name)
@@ -206,25 +211,24 @@ WORKSPACE_LIMIT_M = 10.0
 
 
 def _turn(t: Table) -> float:
-    return math.radians(t.number("turn_deg_s", -90.0, 90.0, default=0.0, unit="deg/s"))
+    return math.radians(t.bounded("turn_deg_s", LEADER_TURN, default=0.0))
 
 
 def _speed(t: Table) -> float:
-    return t.number("speed_mps", -1.0, 1.0, unit="m/s")
+    return t.bounded("speed_mps", LEADER_SPEED)
 
 
 def _parse_leader(t: Table) -> LeaderProfile:
     kind = t.text("profile", choices=("constant", "eq39", "segments", "goal"))
     profile: LeaderProfile
     if kind == "goal":
-        profile = GoalProfile(t.point("goal", WORKSPACE_LIMIT_M), t.number("speed_mps", 0.0, 0.5, lo_open=True,
-                                                                          unit="m/s"))
+        profile = GoalProfile(t.point("goal", GOAL_LIMIT_M), t.bounded("speed_mps", GOAL_SPEED))
     elif kind == "constant":
         profile = ConstantProfile(_speed(t), _turn(t))
     elif kind == "eq39":
         profile = Eq39Profile(
             speed_mps=_speed(t),
-            k1_rps=math.radians(t.number("k1_deg_s", -90.0, 90.0, unit="deg/s")),
+            k1_rps=math.radians(t.bounded("k1_deg_s", LEADER_TURN)),
             k2_per_s=t.number("k2_per_s", 0.0, 100.0, lo_open=True, unit="1/s"),
             t1_s=t.number("t1_s", 0.0, 1e6, unit="s"),
             t_start_s=t.number("t_start_s", 0.0, 1e6, unit="s"),
@@ -324,7 +328,7 @@ def parse_scenario(text: str, source: str) -> Scenario:
     slots_raw = formation.raw("slots")
     if not isinstance(slots_raw, list):
         raise formation.fail("slots", slots_raw, "a list of [x, y] points")
-    slots = [Table({"slot": s}, source, formation.key(f"slots[{i + 1}]")).point("slot", WORKSPACE_LIMIT_M)
+    slots = [Table({"slot": s}, source, formation.key(f"slots[{i + 1}]")).point("slot", SLOT_LIMIT_M)
              for i, s in enumerate(slots_raw)]
     if len(slots) < len(p0):
         raise formation.fail("slots", slots_raw, f"at least as many points as followers ({len(p0)})")
@@ -333,7 +337,7 @@ def parse_scenario(text: str, source: str) -> Scenario:
             if math.dist(slots[i], slots[j]) < MIN_SLOT_SPACING_M:
                 raise formation.fail("slots", slots_raw, f"points at least {MIN_SLOT_SPACING_M * 100:g} cm apart"
                                      f" (slots {j + 1} and {i + 1} are not: two robots cannot stand in one place)")
-    min_scale = formation.number("min_scale", 0.3, 1.0, default=1.0)
+    min_scale = formation.bounded("min_scale", MIN_SCALE, default=1.0)
     switches = _parse_switches(formation, len(p0), duration, seed)
     formation.finish()
 
@@ -426,7 +430,7 @@ def _parse_safety(top: Table) -> SafetySettings | None:
     if not t.flag("enabled", True):
         t.finish()
         return None
-    d = t.number("min_distance_m", 0.1, 1.0, default=0.25, unit="m")
+    d = t.bounded("min_distance_m", SAFETY_DISTANCE, default=0.25)
     margin = t.number("obstacle_margin_m", 0.0, 1.0, default=0.10, unit="m")
     t.finish()
     return SafetySettings.for_distance(d, obstacle_margin_m=margin)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.bounds import LEADER_SPEED, LEADER_TURN
 from core.camera.config import MIN_HUE_SEPARATION_DEG, hue_distance_deg
 from core.config import ConfigError, parse_dynamics, toml_document
 from core.control.presets import MIN_SPACING_M, PRESET_REACH_M, default_formation
@@ -99,8 +100,8 @@ def parse_fleet(text: str, source: str) -> FleetScenario:
         heading = math.radians(lt.number("heading_deg", -360.0, 360.0, default=90.0, unit="deg"))
         n = lt.integer("followers", 1, MAX_TEAM)
         mode = lt.text("mode", default="straight", choices=LEADER_MODES)
-        speed = lt.number("speed_mps", -0.3, 0.3, default=0.04, unit="m/s")
-        turn = lt.number("turn_deg_s", -45.0, 45.0, default=0.0, unit="deg/s")
+        speed = lt.bounded("speed_mps", LEADER_SPEED, default=0.04)
+        turn = lt.bounded("turn_deg_s", LEADER_TURN, default=0.0)
         hues: tuple[float, ...] | None = None
         if lt.has("hues_deg"):
             value = lt.raw("hues_deg")

@@ -66,7 +66,7 @@ def test_bad_scenario_file_exits_2_naming_file_key_value(tmp_path):
     bad.write_text(SCENARIO.read_text().replace("turn_deg_s = 1.5", "turn_deg_s = 400"))
     out = main_cli("simulate", str(bad))
     assert out.returncode == 2
-    assert "bad.toml: leader.turn_deg_s = 400: must be a number in [-90, 90] deg/s" in out.stderr
+    assert "bad.toml: leader.turn_deg_s = 400: must be a number in [-30, 30] deg/s" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
 
 

@@ -106,3 +106,38 @@ def test_presets_give_distinct_slots_inside_the_area(name, n):
     assert np.all(np.hypot(s[:, 0], s[:, 1]) >= 0.3)  # outside the leader's body / blind centre
     # a settled team leaves the safety filter (0.25 m by default) inactive
     assert spacing(s) >= MIN_SPACING_M > SafetySettings().min_distance_m
+
+
+@pytest.mark.parametrize("field, bound, toml_old, toml_new", [
+    ("safety_distance_m", "SAFETY_DISTANCE", "min_distance_m = 0.25", "min_distance_m = {v}"),
+    ("min_scale", "MIN_SCALE", "min_scale = 0.6", "min_scale = {v}"),
+    ("leader_speed_mps", "GOAL_SPEED", "speed_mps = 0.08", "speed_mps = {v}"),
+])
+def test_each_bound_is_declared_once_and_the_scenario_the_store_and_params_agree(field, bound, toml_old, toml_new):
+    """The scenario reader refuses what the store clamps and ``Params`` refuses, at the same
+    edge, with the same range in its line (core.bounds is the one declaration)."""
+    from app.files import resolve_scenario_path
+    from app.services.live import params_for
+    from core import bounds
+    from core.config import ConfigError, parse_scenario
+
+    b = getattr(bounds, bound)
+    text = resolve_scenario_path("obstacle_course").read_text()
+    assert toml_old in text
+    outside = b.hi + 0.05
+    with pytest.raises(ConfigError, match=rf"= {outside:g}: must be a number in [\[(]{b.lo:g}, {b.hi:g}\]"):
+        parse_scenario(text.replace(toml_old, toml_new.format(v=outside)), "edge.toml")
+    at_edge = parse_scenario(text.replace(toml_old, toml_new.format(v=b.hi)), "edge.toml")
+    assert getattr(params_for(at_edge, at_edge.n), field) == b.hi  # a scenario's starting values are valid Params
+    with pytest.raises(ValueError, match=rf"{field} = {outside!r}: must be a number in"):
+        Params(**{field: outside})
+    store = ParamsStore()
+    p, notices = store.update("bus", **{field: outside})
+    assert getattr(p, field) == b.hi and notices  # the page and the bus: clamped to the same edge, and said
+
+
+def test_params_refuses_what_no_control_can_hold():
+    for bad in ({"n_followers": 0}, {"n_followers": 9}, {"slots": np.array([[0.0, 2.5]])}, {"goal": (11.0, 0.0)},
+                {"leader_mode": "warp"}, {"leader_turn_deg_s": 31.0}, {"safety_distance_m": 0.1}):
+        with pytest.raises(ValueError):
+            Params(**bad)

@@ -23,7 +23,7 @@ def test_all_shipped_scenarios_parse():
     [
         ("rate_hz = 30.0", "rate_hz = 0.0", r"f.toml: rate_hz = 0.0: must be a number in \[1, 1000\] Hz"),
         ("rate_hz = 30.0", "rate_hz = \"fast\"", r"rate_hz = 'fast': must be a number"),
-        ("speed_mps = 0.06", "speed_mps = 9.0", r"leader.speed_mps = 9.0: must be a number in \[-1, 1\] m/s"),
+        ("speed_mps = 0.06", "speed_mps = 9.0", r"leader.speed_mps = 9.0: must be a number in \[-0.3, 0.3\] m/s"),
         ('profile = "constant"', 'profile = "zigzag"', r"leader.profile = 'zigzag': must be one of constant, eq39, segments"),
         ("heading_deg = 85.0", "heading_deg = 1e9", r"followers\[1\].heading_deg = 1000000000.0: must be a number in \[-360, 360\] deg"),
         ("position = [-0.70, 0.00]", "position = [-0.70]", r"followers\[1\].position = \[-0.7\]: must be \[x, y\]"),
