@@ -35,10 +35,9 @@ from core.vision.pipeline import PipelineSettings
 from core.types import BoolArray, Commands, FloatArray, IntArray
 
 from app.backends.hardware import HardwareTeam
-from app.backends.sim import SimTeam, spread_start
-from app.backends.arena import ArenaFeedback, ArenaTeam
+from app.backends.arena import ArenaTeam
+from app.backends.world import Backends
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
-from app.backends.feedback import TruthFeedback, VisionFeedback
 from app.params import Params, ParamsStore
 from app.tick import TickState
 
@@ -123,41 +122,26 @@ class ServiceLoop:
         switches: tuple[tuple[float, FloatArray], ...] = (),
         arena: ArenaTeam | None = None,
     ) -> None:
-        """``camera``: the synthetic rig and its calibrated Γ; with it the controller is fed
-        by the vision pipeline on rendered frames, without it by ground truth plus noise.
-        ``link``: a real follower link (serial); the simulated followers then move by what
-        the robots on it report (see app.backends.sim).
-        ``frames`` and ``hardware``: a real camera and real robots (no simulator); ``camera``
-        then holds the rig's calibration file (working area, detection, Γ).
-        ``obstacles``: boxes in the simulated world (a scenario's): the synthetic camera draws
-        them, truth feedback knows them; the filter and the goal mode keep clear of them.
+        """The team and its feedback are made by :class:`app.backends.world.Backends` from these
+        (its docstring says what each means); the loop only drives what it is handed.
         ``switches``: (time s, slots) a scenario's formation switches, applied as the operator's
-        would be (they count from the loop's start and from every reset).
-        ``arena``: this leader's robots in a fleet's shared arena (app.backends.arena); the
-        arena steps the world and the loop drives the robots it owns; with ``camera`` it sees them
-        through its camera rendered from the arena (the team found by its known hues), without it
-        through the arena's truth plus noise."""
+        would be (they count from the loop's start and from every reset)."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
         self.seed = seed
-        self.dynamics = dynamics or FollowerDynamics()  # ideal followers unless told (default.toml tells)
+        self.backends = Backends(seed, dynamics or FollowerDynamics(), position_noise_m, heading_noise_rad,
+                                 initial_poses, camera, link, frames, hardware,
+                                 pipeline_settings or PipelineSettings(), tuple(obstacles), arena)
+        self.dynamics = self.backends.dynamics
         self.position_noise_m = position_noise_m
         self.heading_noise_rad = heading_noise_rad
-        self._initial_poses = initial_poses
-        self.camera = camera
-        self.link = link
         self.frames = frames
         self.hardware = hardware
-        self.arena = arena
-        self.pipeline_settings = pipeline_settings or PipelineSettings()
-        self.obstacles = tuple(obstacles)
         self.switches = tuple(switches)
         self._switch_k = 0
         self._nav = (math.nan, 1.0)  # the goal mode's last heading and formation scale
         self._nav_out: NavOutput | None = None
-        if frames is not None and (hardware is None or camera is None):
-            raise ValueError("a real frame source needs the real team (hardware) and the rig's calibration (camera)")
         self.faults = 0
         self.fault = ""
         self._subscribers: list[Callable[[TickState], None]] = []
@@ -190,47 +174,15 @@ class ServiceLoop:
 
     # -- world ----------------------------------------------------------------------------
     def _make_world(self, params: Params) -> _World:
-        n = params.n_followers
-        rng = np.random.default_rng(self.seed + self._resets)
-        feedback: Feedback
-        team: Team
-        if self.hardware is not None:  # real robots: the same team after a reset, the start-up runs again
-            assert self.camera is not None
-            team = self.hardware
-            n = team.state.n
-            feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
-                                      source=self.frames, settings=self.pipeline_settings)
-            memory = _placeholder(n, params.slots)  # eq. 33 runs once the poses are known
-        elif self.arena is not None:  # a fleet's arena: the same robots after a reset, plus any adopted
-            self.arena.resize(n)
-            team = self.arena
-            if self.camera is not None:  # its camera rendered from the arena; the team found by its known hues
-                own, foreign = self.arena.team_hues()
-                vision = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
-                                        settings=self.pipeline_settings, scene=self.arena.scene,
-                                        scene_hues=self.arena.scene_hues(), hues_deg=own, foreign_hues_deg=foreign)
-                feedback = ArenaFeedback(self.arena, vision)  # and the other teams as obstacles
-                memory = _placeholder(n, params.slots)  # eq. 33 runs once the poses are known
-            else:
-                feedback = ArenaFeedback(self.arena)  # the truth, and the other teams as obstacles
-                memory = TeamMemory.start(self.arena.observe()[0], params.slots)
-        else:
-            if self._initial_poses is not None and self._initial_poses[0].shape[0] == n:
-                p0, a0 = self._initial_poses
-            else:
-                p0, a0 = spread_start(n, rng)
-            team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
-                           self.seed + 1000 + self._resets, link=self.link)
-            if self.camera is not None:
-                feedback = VisionFeedback(team, self.camera[0], self.camera[1], self.seed + 2000 + self._resets,
-                                          settings=self.pipeline_settings, obstacles=self.obstacles)
-            else:
-                feedback = TruthFeedback(team, self.obstacles)
-            memory = TeamMemory.start(p0, params.slots)
+        made = self.backends.make(params.n_followers, self._resets)
+        n = made.team.state.n
+        memory = TeamMemory.start(made.start_p, params.slots) if made.start_p is not None \
+            else _placeholder(n, params.slots)  # eq. 33 runs once the camera knows the poses
         self.t = 0.0
         self._nav = (math.nan, 1.0)
         self._switch_k = 0
-        return _World(team, feedback, memory, ready=self.camera is None, last_cmd=np.zeros((n, 2)), err_norm=np.zeros(n))
+        return _World(made.team, made.feedback, memory, ready=made.start_p is not None, last_cmd=np.zeros((n, 2)),
+                      err_norm=np.zeros(n))
 
     def _safety_settings(self, params: Params) -> SafetySettings:
         if self._safety is None or self._safety.min_distance_m != params.safety_distance_m:

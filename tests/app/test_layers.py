@@ -41,6 +41,14 @@ def test_no_folder_of_app_imports_one_above_it():
     assert not broken, broken
 
 
+def test_the_loop_builds_no_backend_itself():
+    """The loop is handed its team and feedback (app.backends.world): it imports no backend's
+    class to make one."""
+    text = (ROOT / "app" / "live" / "loop.py").read_text(encoding="utf-8")
+    for made_elsewhere in ("SimTeam(", "VisionFeedback(", "TruthFeedback(", "ArenaFeedback(", "spread_start("):
+        assert made_elsewhere not in text, made_elsewhere
+
+
 def test_the_modules_beside_the_contracts_import_no_folder():
     for name in ("contracts", "params", "tick", "keys", "files", "memory"):
         imported = _app_imports(ROOT / "app" / f"{name}.py")
