@@ -28,6 +28,7 @@ import numpy as np
 from core.camera.config import CaptureSettings
 
 from app.contracts import FrameSource
+from app.realtime import make_realtime
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -48,6 +49,12 @@ class _Threaded:
 
     def start(self) -> None:
         self._thread.start()
+
+    def make_realtime(self) -> str:
+        """The capture thread on SCHED_FIFO (app.realtime): a frame is stamped when it arrives,
+        not when the system gets round to it. '' when granted, else why not."""
+        ident = self._thread.native_id
+        return make_realtime(ident) if ident is not None else "the capture thread has not started"
 
     @property
     def state(self) -> str:

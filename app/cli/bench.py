@@ -31,7 +31,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     bench.add_argument("--latency", type=float_in(2.0, 3600.0, "s"), metavar="SECONDS",
                        help="instead: frame-to-command latency for this long on a real rig's path: a 30 fps folder of"
                             " the synthetic rig's pictures, the serial link to emulated robots on a pty, recording on,"
-                            " a browser attached")
+                            " a browser attached; at normal priority, then as run --realtime")
     bench.set_defaults(func=cmd_bench)
     soak = sub.add_parser("soak", help="run the live service for a long time and measure memory growth and loop rate",
                           description="What `make run` serves (vision in the loop, recording on), one browser"
@@ -223,8 +223,9 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    if args.latency is not None:
+    if args.latency is not None:  # as `run` does by default, then as `run --realtime`
         bench_latency(args.latency)
+        bench_latency(args.latency, realtime=True)
     elif args.long_recording is not None:
         bench_long_recording(args.long_recording)
     else:
@@ -232,24 +233,24 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, browsers: int = 1) -> dict[str, float]:
+def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, browsers: int = 1,
+                  realtime: bool = False) -> dict[str, float]:
     """Frame-to-command latency on a real rig's path: a folder of the synthetic rig's pictures of a
     team driving (experiment 1's first seconds, rendered) played at 30 fps, the vision pipeline,
     the serial link to emulated followers on a pty, recording on, ``browsers`` Chromium pages
     attached (on idle CPU, as in the soak). Latency is each tick's ``latency_ms``: the frame's
-    arrival to its commands written to the link."""
+    arrival to its commands written to the link. ``realtime``: as ``run --realtime`` (the loop's and
+    the camera's threads on SCHED_FIFO, app.realtime)."""
     import shutil
     import subprocess
     import sys
     import tempfile
-    import threading
     import time as _time
     from pathlib import Path
 
     import cv2
 
     from app.backends.camera import FolderSource
-    from app.backends.emulator import FollowerEmulator, PtyEndpoint, serve
     from app.backends.hardware import HardwareTeam
     from app.backends.serial_link import SerialLink
     from app.contracts import Rig
@@ -282,17 +283,17 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
                     renderer.render(np.array([0.0, 0.0, np.pi / 2]), np.column_stack([p, a]), k / 30, rng))
     print_fn(f"latency: {count} frames of the synthetic rig rendered; playing them at 30 fps"
              f" (looped) for {seconds:g} s")
-    emulator = FollowerEmulator([1, 2], seed=3)
-    endpoint = PtyEndpoint()
-    stop = threading.Event()
-    emu = threading.Thread(target=serve, args=(emulator, endpoint, stop), daemon=True)
-    emu.start()
+    # the robots are not in the service's process on a real rig: the emulator runs in its own
+    emu = subprocess.Popen([sys.executable, "-m", "app.cli", "emulate-follower", "--pty", "--followers", "2",
+                            "--seed", "3"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert emu.stdout is not None
+    pty_path = emu.stdout.readline().split(" on ", 1)[1].strip()
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
-    link = SerialLink(endpoint.path, 2)
+    link = SerialLink(pty_path, 2)
     source = FolderSource(frames_dir, fps=30.0, loop=True)
     camera = Rig(rig, rig.require_gamma())
     svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0, camera=camera, frames=source,
-                  hardware=HardwareTeam(2, link))
+                  hardware=HardwareTeam(2, link), realtime=realtime)
     recorder = start_recording(svc, config, None, None, camera, 10.0, folder / "latency.mcap")
     latencies: list[float] = []
     phases: list[str] = []
@@ -323,17 +324,17 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
             viewer.communicate("", timeout=60)
         svc.close()
         recorder.close()
-        stop.set()
-        emu.join(2)
-        endpoint.close()
+        emu.terminate()
+        emu.communicate(timeout=10)
         shutil.rmtree(folder, ignore_errors=True)
     n = min(len(latencies), len(phases), len(fresh))
     values = np.array([latencies[k] for k in range(n) if fresh[k] and np.isfinite(latencies[k])])
     stale = np.array([latencies[k] for k in range(n) if not fresh[k] and np.isfinite(latencies[k])])
     tracking = np.array([latencies[k] for k in range(n) if fresh[k] and phases[k] == "tracking"])
     p50, p99 = (float(np.percentile(values, q)) for q in (50, 99)) if len(values) else (float("nan"),) * 2
-    print_fn(f"frame-to-command latency: p50 {p50:.2f} ms, p99 {p99:.2f} ms ({len(values)} ticks on a new frame,"
-             f" {len(values) / seconds:.1f} Hz; target p99 <= 5 ms)")
+    how = f"the loop {svc.loop.priority}" if realtime else "normal priority"
+    print_fn(f"frame-to-command latency ({how}): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({len(values)} ticks on a"
+             f" new frame, {len(values) / seconds:.1f} Hz; target p99 <= 5 ms)")
     if len(tracking):
         print_fn(f"  while tracking: p50 {np.percentile(tracking, 50):.2f} ms, p99 {np.percentile(tracking, 99):.2f} ms"
                  f" ({len(tracking)} ticks)")

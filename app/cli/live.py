@@ -81,6 +81,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                      help="--fleet: a peer to connect to (repeatable)")
     run.add_argument("--fleet-control", action="store_true",
                      help="--fleet: take gains, formation and motion changes from the bus (STOP is always taken)")
+    run.add_argument("--realtime", action="store_true",
+                     help="the loop's and the camera's threads on real-time scheduling (SCHED_FIFO; needs root,"
+                          " CAP_SYS_NICE or an rtprio limit): fewer latency spikes on a busy machine")
     run.set_defaults(func=cmd_run)
 
 
@@ -326,7 +329,8 @@ def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None,
                        dynamics=config.dynamics, noise=config.measurement,
                        link=None if plan.real else link, frames=frames, hardware=hardware,
                        recordings=args.recordings, token=args.token, viewer_token=args.viewer_token,
-                       arena=fleet.arena_team if fleet else None, params=fleet.params if fleet else None)
+                       arena=fleet.arena_team if fleet else None, params=fleet.params if fleet else None,
+                       realtime=args.realtime)
     except OSError as exc:
         raise UserError(bind_error(args.host, args.port, exc)) from None
 
@@ -386,3 +390,10 @@ def _say_where(args: argparse.Namespace, plan: _RunPlan, service: Service, link:
     via = f"; followers on serial {port_name}" if port_name else "; observe only (no link)" if plan.real else ""
     print(f"omniformation: dashboard at {service.url}  (poses from {source}{via}; Ctrl-C to stop)", flush=True)
     print(f"omniformation: view only (watch and STOP, nothing else) at {service.gate.viewer_url}", flush=True)
+    if args.realtime:
+        import time
+
+        deadline = time.monotonic() + 5.0
+        while service.loop.tick_count == 0 and time.monotonic() < deadline and not service.loop.stopping:
+            time.sleep(0.02)  # the loop asks when its thread starts
+        print(f"omniformation: --realtime: the loop is scheduled {service.loop.priority}", flush=True)

@@ -37,6 +37,7 @@ from core.types import BoolArray, Commands, FloatArray, IntArray
 from app.backends.hardware import HardwareTeam
 from app.backends.arena import ArenaTeam
 from app.backends.world import Backends
+from app.realtime import make_realtime, scheduling
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
 from app.params import Params, ParamsStore
 from app.tick import TickState
@@ -121,8 +122,11 @@ class ServiceLoop:
         obstacles: tuple[Obstacle, ...] = (),
         switches: tuple[tuple[float, FloatArray], ...] = (),
         arena: ArenaTeam | None = None,
+        realtime: bool = False,
     ) -> None:
-        """The team and its feedback are made by :class:`app.backends.world.Backends` from these
+        """``realtime``: the loop's thread (and a real camera's capture thread) ask for SCHED_FIFO
+        when the loop starts (app.realtime); ``priority`` says what they got.
+        The team and its feedback are made by :class:`app.backends.world.Backends` from these
         (its docstring says what each means); the loop only drives what it is handed.
         ``switches``: (time s, slots) a scenario's formation switches, applied as the operator's
         would be (they count from the loop's start and from every reset)."""
@@ -138,6 +142,8 @@ class ServiceLoop:
         self.heading_noise_rad = heading_noise_rad
         self.frames = frames
         self.hardware = hardware
+        self.realtime = realtime
+        self.priority = "normal"  # how the loop's thread is scheduled, once it runs
         self.switches = tuple(switches)
         self._switch_k = 0
         self._nav = (math.nan, 1.0)  # the goal mode's last heading and formation scale
@@ -406,6 +412,16 @@ class ServiceLoop:
         if len(window) >= 2 and window[-1] > window[0]:
             self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
 
+    def _ask_realtime(self) -> None:
+        why = make_realtime()
+        camera = getattr(self.frames, "make_realtime", None)
+        camera_why = camera() if camera is not None else ""
+        self.priority = scheduling() if not why else f"normal (real-time refused: {why})"
+        if why or camera_why:
+            log.warning("loop: --realtime: %s", why or f"the camera's thread: {camera_why}")
+        else:
+            log.info("loop: real-time scheduling for the loop%s", " and the camera" if camera is not None else "")
+
     def _run_on_frames(self, frames: FrameSource) -> None:
         """Frame-triggered ticks: each starts as soon as a new frame arrives, so no frame waits for
         the loop's schedule. No frame within ``LATE_FRAME_PERIODS`` periods of the configured rate
@@ -467,6 +483,8 @@ class ServiceLoop:
     def run(self) -> None:
         """Tick until stop(): on a camera's frames when the loop has one (``frames``), else at the
         configured rate. Always leaves the followers at zero."""
+        if self.realtime:
+            self._ask_realtime()
         if self.frames is not None:
             self._run_on_frames(self.frames)
             return

@@ -105,13 +105,41 @@ def test_the_latency_is_recorded_and_reported(tmp_path):
 
 def test_the_latency_bench_measures_ticks_on_new_frames_over_the_serial_link():
     """bench --latency's own path, short and without a browser: frames from a folder, the serial
-    link to emulated robots, recording on; it prints the latency line the README quotes."""
+    link to emulated robots (their own process), recording on, as `run --realtime`; it prints the
+    latency line the README quotes, saying how the loop was scheduled."""
     from app.cli.bench import bench_latency
 
     lines: list[str] = []
-    out = bench_latency(3.0, lines.append, browsers=0)
-    line = next(ln for ln in lines if ln.startswith("frame-to-command latency: p50 "))
+    out = bench_latency(3.0, lines.append, browsers=0, realtime=True)
+    line = next(ln for ln in lines if ln.startswith("frame-to-command latency (the loop "))
+    assert "real-time (FIFO 10)" in line or "real-time refused" in line, line
     assert " ms, p99 " in line and out["ticks"] > 30 and out["p50_ms"] <= out["p99_ms"]
+
+
+def test_realtime_is_asked_for_one_thread_and_said_when_refused():
+    """app.realtime: SCHED_FIFO for the calling thread only (the others stay normal), or one
+    reason why not; how a thread is scheduled reads back."""
+    import os
+    import threading
+
+    from app.realtime import make_realtime, scheduling
+
+    got: dict[str, str] = {}
+
+    def worker() -> None:
+        got["why"] = make_realtime()
+        got["mine"] = scheduling()
+
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    assert scheduling() == "normal"  # this thread was not touched
+    if got["why"]:
+        assert got["mine"] == "normal" and ("not permitted" in got["why"] or "refused" in got["why"]), got
+    else:
+        assert got["mine"] == "real-time (FIFO 10)", got
+    assert make_realtime(native_id=2**22 + 12345) != ""  # no such thread: a reason, not an exception
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
 
 
 def test_a_real_rig_predicts_its_followers_over_the_measured_latency(rig_and_frame, tmp_path):
