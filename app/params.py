@@ -105,6 +105,15 @@ class ParamsStore:
     def get(self) -> Params:
         return self._params  # a reference read is atomic; Params is immutable
 
+    def load(self, params: Params, source: str) -> None:
+        """Put a whole parameter set in force (a replay showing what was in force at a moment); the
+        listeners hear it like any change."""
+        with self._lock:
+            self._params = params.replace(version=self._params.version + 1)
+            listeners = list(self._listeners)
+        for fn in listeners:
+            fn(self._params, source, ())
+
     def subscribe(self, fn: Callable[[Params, str, tuple[Notice, ...]], None]) -> None:
         """Call fn(params, source, notices) after every change (e.g. to sync other browsers)."""
         with self._lock:

@@ -55,7 +55,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         print(f"  [{done}/{total}] {what}", flush=True)
 
     try:
-        written = write_report(rec, out, progress)
+        written = write_report(rec, out, progress, fmt=args.format)
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise UserError(f"{args.file}: its ticks are not what omniformation records ({type(exc).__name__}: {exc})"[:300]) from None
     for p in written:
@@ -75,9 +75,11 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     rp.set_defaults(func=cmd_replay)
 
     rep = sub.add_parser("report", help="turn a recording into the paper's figures and a summary",
-                         description="Write PNG figures in the paper's style and summary.md / summary.json.")
+                         description="Write figures in the paper's style (PNG, SVG or PDF) and summary.md / summary.json.")
     rep.add_argument("file", type=Path, help="a recording (.mcap)")
     rep.add_argument("--out", type=Path, required=True, help="folder for the figures and summary")
+    rep.add_argument("--format", choices=("png", "svg", "pdf"), default="png",
+                     help="the figures' file format (default png)")
     rep.set_defaults(func=cmd_report)
 
     rr = sub.add_parser("rerun", help="re-run a recording's frames (or its simulation) with other settings",

@@ -7,6 +7,10 @@ errors per follower over time, and the followers' headings.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import math
+
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -31,11 +35,14 @@ colour = follower_hex  # each follower in its marker's colour, as on the page
 
 
 def trajectory_panel(ax: Axes, t: np.ndarray, leader: np.ndarray, followers_world: np.ndarray,
-                     p_d: np.ndarray, title: str, instants: int = 6) -> None:
+                     p_d: np.ndarray, title: str, instants: int = 6, boxes: np.ndarray | None = None,
+                     marks: Sequence[tuple[float, str, str]] = ()) -> None:
     """The team's trajectory in the world (the paper's fig. 16 / 19): the leader, each
     follower and its desired path (dashed), and the formation drawn at a few instants from
     t = 0 on (a vision run starts with its start-up manoeuvres at t < 0). ``leader`` (T, 3)
-    world pose, ``followers_world`` (T, n, >=2), ``p_d`` (T, n, 2) leader frame (NaN: none)."""
+    world pose, ``followers_world`` (T, n, >=2), ``p_d`` (T, n, 2) leader frame (NaN: none).
+    ``boxes``: obstacles (core.obstacles.as_array rows), drawn grey; ``marks``: (t, label,
+    matplotlib marker) drawn where the leader was then (STOPs, resets)."""
     ax.plot(leader[:, 0], leader[:, 1], color="tab:blue", lw=1.8, label="leader")
     for i in range(followers_world.shape[1]):
         ks = [k for k in range(0, len(t), 10) if np.all(np.isfinite(p_d[k, i]))]
@@ -44,13 +51,24 @@ def trajectory_panel(ax: Axes, t: np.ndarray, leader: np.ndarray, followers_worl
             ax.plot(dw[:, 0], dw[:, 1], "--", color=colour(i), lw=0.9)
         ax.plot(followers_world[:, i, 0], followers_world[:, i, 1], color=colour(i), lw=1.3,
                 label=f"follower {i + 1}")
-    start = int(np.searchsorted(t, 0.0))
+    start = int(np.argmax(np.nan_to_num(t, nan=-np.inf) >= 0.0))  # rows of NaN break the lines at a reset
     for k in np.linspace(min(start, len(t) - 1), len(t) - 1, instants).astype(int):
         pts = np.vstack([leader[k, :2], followers_world[k, :, :2]])
         if np.all(np.isfinite(pts)):
             ax.fill(pts[:, 0], pts[:, 1], facecolor="none", edgecolor="tab:red", lw=1.0)
             ax.annotate(f"{t[k]:.0f} s", (float(leader[k, 0]), float(leader[k, 1])), fontsize=7, color="tab:red",
                         xytext=(3, 3), textcoords="offset points")
+    for (x, y, heading, half_l, half_w) in np.asarray(boxes, dtype=float).reshape(-1, 5):  # the world's obstacles
+        c, s_ = math.cos(heading), math.sin(heading)
+        corners = np.array([[x + c * u - s_ * v, y + s_ * u + c * v]
+                            for u, v in ((half_l, half_w), (-half_l, half_w), (-half_l, -half_w), (half_l, -half_w))])
+        ax.fill(corners[:, 0], corners[:, 1], color="0.55", alpha=0.6, lw=0, label=None)
+    for when, what, mark in marks:  # STOPs and resets, where the leader was
+        k = int(np.argmin(np.abs(np.nan_to_num(t, nan=np.inf) - when)))
+        if np.all(np.isfinite(leader[k, :2])):
+            ax.plot(leader[k, 0], leader[k, 1], mark, color="black", ms=8, mfc="none")
+            ax.annotate(what, (float(leader[k, 0]), float(leader[k, 1])), fontsize=7, xytext=(4, -9),
+                        textcoords="offset points")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set(xlabel="x world (m)", ylabel="y world (m)", title=f"{title}: team trajectory (dashed: desired)")
     ax.grid(alpha=0.3)

@@ -577,6 +577,7 @@ def read_recording(path: Path) -> Recording:
 
     tick_t, ticks_at = where(TICK_TOPIC)
     frame_t, frames_at = where(IMAGE_TOPIC)
+    tick_t, frame_t = session_clock(tick_t), session_clock(frame_t)
 
     def tick(_: int, data: bytes) -> dict[str, Any]:
         return dict(json.loads(data))
@@ -622,13 +623,44 @@ def check_ticks(rec: Recording) -> None:
                                  f" ({type(exc).__name__}: {exc})"[:300]) from None
 
 
-def params_from_recording(rec: Recording) -> Params:
-    """The parameter set in force when the recording started."""
+def session_clock(t: np.ndarray) -> np.ndarray:
+    """Times in file order that never go back. Recordings made before the writer kept the
+    session's clock (app.recording.writer) set their time back to 0 at a reset; each such step
+    back is taken as one tick after the time before it (the median step), so a timeline reaches
+    every part of the session. Times that never go back are returned as they are."""
+    back = np.flatnonzero(np.diff(t) < -1e-9)
+    if not len(back):
+        return t
+    steps = np.diff(t)
+    step = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0.0
+    out = np.array(t, dtype=np.float64)
+    for i in back:  # in order: each shift carries the ones before it
+        out[i + 1:] += out[i] + step - out[i + 1]
+    return out
+
+
+def params_from_recording(rec: Recording, t: float | None = None) -> Params:
+    """The parameter set in force at session time ``t`` (None: when the recording started)."""
     if not rec.params:
         return Params()
-    from core.types import Gains
+    k = 0 if t is None else max(0, bisect.bisect_right([at for at, _ in rec.params], t + 1e-9) - 1)
+    return params_from_payload(rec.params[k][1])
 
-    d = rec.params[0][1]
-    return Params(gains=Gains(**d["gains"]), leader_mode=d["leader_mode"], leader_speed_mps=d["leader_speed_mps"],
-                  leader_turn_deg_s=d["leader_turn_deg_s"], slots=np.array(d["slots"], dtype=float).reshape(-1, 2),
-                  n_followers=int(d["n_followers"]))
+
+def params_from_payload(d: dict[str, Any]) -> Params:
+    """A recorded parameter set as ``Params``: what the file holds, within today's bounds (a value
+    an older version allowed is clamped, as the page would; a missing or damaged field keeps
+    its default)."""
+    from app.params import ParamsStore
+
+    store = ParamsStore()
+    keys = ("leader_mode", "leader_speed_mps", "leader_turn_deg_s", "slots", "n_followers", "safety",
+            "safety_distance_m", "goal", "min_scale", "stop", "paused")
+    changes = {key: d[key] for key in keys if key in d}
+    changes.update({name: value for name, value in (d.get("gains") or {}).items()})
+    for key, value in changes.items():  # one at a time: a spoiled field is skipped, not the whole set
+        try:
+            store.update("recording", **{key: value})
+        except (ValueError, TypeError):
+            continue
+    return store.get()

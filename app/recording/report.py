@@ -88,16 +88,19 @@ class _Block:
             like = first.get(name) if first.get(name) is not None and name not in PER_FOLLOWER_OPTIONAL else first["a_est"]
             self.cols[name] = np.full((size, *json_floats(like).shape), np.nan)
         self.cols["acting"] = np.zeros(size, dtype=bool)
+        self.cols["loop_t"] = np.full(size, np.nan)  # the loop's own clock (set back at a reset)
         self.cols["latency"] = np.full(size, np.nan)
         self.size, self.rows = size, 0
 
-    def add(self, tk: dict[str, Any]) -> None:
+    def add(self, tk: dict[str, Any], session_t: float) -> None:
+        """One tick, at its session time (the recording's clock; its own ``t`` is the loop's)."""
         k, cols = self.rows, self.cols
         cols["acting"][k] = str(tk.get("safety", "")).startswith(SAFETY_ACTING)
         latency = tk.get("latency_ms")
         cols["latency"][k] = latency if isinstance(latency, (int, float)) else np.nan
+        cols["loop_t"][k] = tk.get("t", np.nan)
         for name in SERIES_FIELDS:
-            value = tk.get(name)
+            value = session_t if name == "t" else tk.get(name)
             if name == "a_raw" and value is None:
                 value = tk["a_est"]
             if value is None and name in PER_FOLLOWER_OPTIONAL:
@@ -322,6 +325,7 @@ class Scan:
     t_last: float
     dt: float  # the median tick interval
     latency: LatencyTally = field(default_factory=LatencyTally)
+    segments: list["Segment"] = field(default_factory=list)  # between resets (one: the session had none)
 
     @property
     def truth(self) -> bool:
@@ -333,6 +337,10 @@ def scan(rec: Recording, block: int = DISTANCE_BLOCK, max_plotted: int = MAX_PLO
     after the other): each block goes into the summary's tallies and its every k-th tick into
     the figures' series. Memory is one block and `max_plotted` rows, whatever the file's length.
 
+    Time is the session's (the recording's own clock, which a reset does not set back). A reset
+    (the loop's clock starting again) begins a new segment: the figures break their lines there
+    (no line back to the start) and each segment has its own tally besides the session's.
+
     Errors use the true poses if any tick has them (simulation), else the estimates: both are
     tallied, since which one the recording has is known only at its end."""
     total = len(rec.ticks)
@@ -342,6 +350,7 @@ def scan(rec: Recording, block: int = DISTANCE_BLOCK, max_plotted: int = MAX_PLO
     n = json_floats(first["a_est"]).shape[0]
     t_end = float(rec.t[-1]) - start if len(rec.t) else 0.0
     tallies = {truth: Tally.of(rec, n, t_end, truth) for truth in (True, False)}
+    segments: list[Segment] = []
     has_filter = "safety" in first
     kept: list[dict[str, np.ndarray]] = []
     truth = False
@@ -353,10 +362,16 @@ def scan(rec: Recording, block: int = DISTANCE_BLOCK, max_plotted: int = MAX_PLO
     def flush() -> None:
         nonlocal truth, t_first, t_last, k0
         cols = rows.taken()
+        if not len(cols["t"]):
+            return
         latency.add(cols["latency"])
         truth = truth or bool(np.isfinite(cols["p_true"]).any())
         for which, tally in tallies.items():
             tally.add(_series(cols, start, which, has_filter))
+        loop = dict(cols, t=cols["loop_t"])  # a segment's own clock: the loop's, from its reset
+        for which, tally in segments[-1].tallies.items():
+            tally.add(_series(loop, start if len(segments) == 1 else 0.0, which, has_filter))
+        segments[-1].end_s = float(cols["t"][-1]) - start
         if k0 == 0:
             t_first = float(cols["t"][0]) - start
         t_last = float(cols["t"][-1]) - start
@@ -364,15 +379,37 @@ def scan(rec: Recording, block: int = DISTANCE_BLOCK, max_plotted: int = MAX_PLO
         kept.append({name: a[take] for name, a in cols.items()})
         k0 += len(cols["t"])
 
-    for tk in rec.ticks:
-        rows.add(tk)
+    resets = sorted(float(e["t"]) for e in rec.events if e.get("kind") == "reset")
+    previous = np.inf
+    for k, tk in enumerate(rec.ticks):
+        loop_t = float(tk.get("t", np.nan))
+        if not segments or loop_t < previous - 1e-9:  # the first tick, or a reset: a new segment
+            flush()
+            if kept:  # a row of NaN: the figures' lines break at the reset
+                kept.append({name: np.full((1, *a.shape[1:]), np.nan) if a.dtype.kind == "f" else a[-1:]
+                             for name, a in kept[-1].items()})
+            ends = [b for b in resets if b > float(rec.t[k]) + 1e-6] + [float(rec.t[-1])]
+            seg_end = max(0.0, ends[0] - float(rec.t[k]))  # its length (the next reset the writer noted, or the end)
+            segments.append(Segment(float(rec.t[k]) - start, float(rec.t[k]) - start,
+                                    {w: Tally.of(rec, n, seg_end, w) for w in (True, False)}))
+        previous = loop_t
+        rows.add(tk, float(rec.t[k]))
         if rows.full():
             flush()
-    if rows.rows:
-        flush()
+    flush()
     cols = {name: np.concatenate([c[name] for c in kept]) for name in kept[0]}
     dt = float(np.median(np.diff(rec.t))) if len(rec.t) > 1 else 0.0
-    return Scan(_series(cols, start, truth, has_filter), tallies[truth], t_first, t_last, dt, latency)
+    return Scan(_series(cols, start, truth, has_filter), tallies[truth], t_first, t_last, dt, latency, segments)
+
+
+@dataclass
+class Segment:
+    """A stretch of the session between two resets (session time, s) and its own tallies (its
+    times the loop's, from the reset)."""
+
+    start_s: float
+    end_s: float
+    tallies: dict[bool, Tally]
 
 
 COLLISION_M = 0.15  # two robot centres closer than this: their bodies (15 x 25 cm) touch
@@ -419,6 +456,8 @@ def summarise(rec: Recording, sc: Scan | None = None) -> dict[str, Any]:
         "errors_from": "true poses" if sc.truth else "estimated poses (no ground truth recorded)",
         "settled_means": f"error stays under {SETTLED_M * 100:.0f} cm to the end",
         "followers": sc.tally.followers(sc.dt),
+        "segments": [{"from_s": round(g.start_s, 2), "to_s": round(g.end_s, 2), "reset": k > 0,
+                      "followers": g.tallies[sc.truth].followers(sc.dt)} for k, g in enumerate(sc.segments)],
         "stop_events": [{"t": round(float(e["t"]), 2), "detail": e["detail"]} for e in stops],
         "events": len(rec.events),
         "latency_ms": sc.latency.summary(),  # frame (or observation) to commands written: p50, p95, p99, max
@@ -508,9 +547,10 @@ def _summary_md(sm: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _trajectory(s: Series, title: str, path: Path, instants: int = 6) -> None:
+def _trajectory(s: Series, title: str, path: Path, boxes: np.ndarray, marks: list[tuple[float, str, str]],
+                instants: int = 6) -> None:
     fig, ax = plt.subplots(figsize=(7.5, 7), constrained_layout=True)
-    trajectory_panel(ax, s.t, s.leader, s.followers_world, s.p_d, title, instants)
+    trajectory_panel(ax, s.t, s.leader, s.followers_world, s.p_d, title, instants, boxes, marks)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -626,18 +666,28 @@ def _safety(s: Series, gap: np.ndarray | None, path: Path) -> None:
     plt.close(fig)
 
 
-def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], None] | None = None) -> list[Path]:
+FORMATS = ("png", "svg", "pdf")
+
+
+def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], None] | None = None,
+                 fmt: str = "png") -> list[Path]:
+    """The figures (as ``fmt``: png, svg or pdf) and summary.json / summary.md in ``out``."""
+    if fmt not in FORMATS:
+        raise ValueError(f"format {fmt!r}: one of {', '.join(FORMATS)}")
     sc = scan(rec)  # one pass: every tick into the summary, every k-th into the figures
     shown = sc.shown
     title = rec.metadata.get("scenario", rec.path.stem)
     boxes = recorded_obstacles(rec)
+    start = float(rec.metadata.get("scenario_start_s", "0") or 0)
+    marks = [(float(e["t"]) - start, "STOP", "s") for e in rec.events if e.get("kind") == "stop"] + \
+            [(g.start_s, "reset", "D") for g in sc.segments[1:]]
     steps: list[tuple[str, Callable[[Path], None]]] = [
-        ("trajectory.png", lambda p: _trajectory(shown, title, p)),
-        ("errors.png", lambda p: _errors(shown, p)),
-        ("headings.png", lambda p: _headings(shown, p)),
-        ("lyapunov_commands.png", lambda p: _lyapunov_commands(shown, p)),
-        ("safety.png", lambda p: _safety(shown, obstacle_gap(boxes, shown), p)),
-        ("lyapunov.png", lambda p: _lyapunov_monitor(shown, p)),
+        (f"trajectory.{fmt}", lambda p: _trajectory(shown, title, p, boxes, marks)),
+        (f"errors.{fmt}", lambda p: _errors(shown, p)),
+        (f"headings.{fmt}", lambda p: _headings(shown, p)),
+        (f"lyapunov_commands.{fmt}", lambda p: _lyapunov_commands(shown, p)),
+        (f"safety.{fmt}", lambda p: _safety(shown, obstacle_gap(boxes, shown), p)),
+        (f"lyapunov.{fmt}", lambda p: _lyapunov_monitor(shown, p)),
     ]
     written = []
     total = len(steps) + 1

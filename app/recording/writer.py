@@ -195,7 +195,9 @@ class Recorder:
         self._frame_slots = threading.Semaphore(MAX_FRAMES_WAITING)  # raw frames (~1 MB each) the writer may owe
         self._prev: TickState | None = None
         self._params = params
-        self._last_t = 0.0
+        self._last_t = 0.0  # the session's time of the last tick (s; never goes back)
+        self._offset = 0.0  # session time minus the loop's, grown at each reset
+        self._step = 0.0  # the last tick's step of the loop's clock
         self._last_frame_t = -math.inf
         self._last_scan_t = -math.inf
         self.ticks = 0
@@ -228,22 +230,32 @@ class Recorder:
         return not self.failure and self._thread.is_alive()
 
     def on_tick(self, s: TickState) -> None:
-        """The loop's subscriber: one tick (and the frame when one is due)."""
+        """The loop's subscriber: one tick (and the frame when one is due).
+
+        Messages carry the session's time, which never goes back: after a reset the loop's own
+        clock (each tick's ``t``, kept in its payload) starts again at 0, and the session's goes
+        on from where it was (one tick later), so a replay's timeline and a report reach the
+        whole session, before and after."""
         if self.failure:
             return
-        self._last_t = s.t
-        self._put(TICK_TOPIC, s.t, tick_payload(s))
-        self._put(TF_TOPIC, s.t, transforms_payload(s, self._ns(s.t)))
+        if self._prev is not None and s.t < self._prev.t - 1e-9:  # a reset (its event came with the request)
+            self._offset = self._last_t + self._step - s.t
+        elif self._prev is not None and s.t > self._prev.t:
+            self._step = s.t - self._prev.t
+        t = self._offset + s.t
+        self._last_t = t
+        self._put(TICK_TOPIC, t, tick_payload(s))
+        self._put(TF_TOPIC, t, transforms_payload(s, self._ns(t)))
         for kind, detail in tick_events(self._prev, s):
-            self.event(s.t, kind, detail)
-        if s.scan is not None and s.t - self._last_scan_t >= 1.0 / SCAN_HZ - 1e-9:
-            self._last_scan_t = s.t
-            self._put(SCAN_TOPIC, s.t, scan_payload(s.scan, self._ns(s.t)))
-        if s.frame is not None and self.frame_rate_hz > 0 and s.t - self._last_frame_t >= 1.0 / self.frame_rate_hz - 1e-9:
-            self._last_frame_t = s.t
+            self.event(t, kind, detail)
+        if s.scan is not None and t - self._last_scan_t >= 1.0 / SCAN_HZ - 1e-9:
+            self._last_scan_t = t
+            self._put(SCAN_TOPIC, t, scan_payload(s.scan, self._ns(t)))
+        if s.frame is not None and self.frame_rate_hz > 0 and t - self._last_frame_t >= 1.0 / self.frame_rate_hz - 1e-9:
+            self._last_frame_t = t
             got = self._frame_slots.acquire(timeout=30.0) if self.lossless else self._frame_slots.acquire(blocking=False)
             if got:  # a stalled disk must not fill memory with frames
-                self._put(IMAGE_TOPIC, s.t, s.frame)  # a published frame is never changed: encoded later
+                self._put(IMAGE_TOPIC, t, s.frame)  # a published frame is never changed: encoded later
             else:
                 self.dropped += 1
         self._prev = s

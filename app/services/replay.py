@@ -23,7 +23,7 @@ from app.dashboard.widgets import as_text
 from app.dashboard.widgets import on_page_thread
 from app.tick import TickState
 from app.params import ParamsStore
-from app.recording.reader import Recording, params_from_recording
+from app.recording.reader import Recording, params_from_payload, params_from_recording
 from app.recording.schema import scenario_obstacles, tick_from_payload
 
 if TYPE_CHECKING:
@@ -41,6 +41,8 @@ class ReplayService:
         self.event_t = sorted(float(e["t"]) for e in rec.events)
         self.server, self.gate = serve_gated(host, port, token)
         self.store = ParamsStore(params_from_recording(rec))
+        self._param_t = [at for at, _ in rec.params]  # when each recorded parameter set came in force
+        self._params_shown = 0  # which of them the page shows
         self.dashboard = Dashboard(self.server, self.store, overlay=_overlay(rec), obstacles=scenario_obstacles(rec.metadata))
         self.dashboard.controls.set_replay(rec.path.name)
         gui = self.server.gui
@@ -168,7 +170,12 @@ class ReplayService:
             self.unreadable += 1
             self.event_text.content = f"**tick {k} could not be shown** ({type(exc).__name__}); playback goes on"
             return
+        j = max(0, bisect.bisect_right(self._param_t, float(self.t[k]) + 1e-9) - 1)
+
         def draw() -> None:
+            if j != self._params_shown and self.rec.params:  # the settings in force at this moment, not at the start
+                self._params_shown = j
+                self.store.load(params_from_payload(self.rec.params[j][1]), "replay")
             self.dashboard.publish(state)
             self.timeline.value = round(float(self.t[k]), 3)  # type: ignore[misc]  # viser's stubs: read-only on the base handle
 

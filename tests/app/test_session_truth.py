@@ -1,0 +1,104 @@
+"""A recording is the session as it was: one clock over the whole of it (a reset sets the
+loop's clock back, not the session's), the settings in force at any moment, a report that
+splits at resets instead of drawing lines back to the start. The live loop ticked by hand,
+the real writer, the real reader, the report, and a real replay server."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from app.live.loop import ServiceLoop
+from app.params import Params, ParamsStore
+from app.recording.reader import params_from_recording, read_recording, session_clock
+from app.recording.report import scan, summarise, write_report
+from app.recording.writer import Recorder
+
+
+def _session_with_a_reset(path):
+    """60 ticks; k_f1 to 0.15 at tick 30; STOP at 45; a reset at tick 60 (the loop's clock back
+    to 0); 90 ticks more, released."""
+    store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=4)
+    rec = Recorder(path, {"scenario": "reset-test"}, store.get(), frame_rate_hz=0.0)
+    loop.subscribe(rec.on_tick)
+    store.subscribe(rec.on_params)
+    loop_t = []
+    for k in range(150):
+        if k == 30:
+            store.update("browser:1", k_f1=0.15)
+        if k == 45:
+            store.update("browser:1", stop=True)
+        if k == 60:
+            store.update("browser:1", reset_requests=True, stop=False, leader_hold=False)
+        loop_t.append(loop.tick().t)
+    loop.close_team()
+    rec.close()
+    return np.array(loop_t)
+
+
+def test_a_reset_sets_back_the_loops_clock_not_the_sessions(tmp_path):
+    loop_t = _session_with_a_reset(tmp_path / "s.mcap")
+    assert np.any(np.diff(loop_t) < 0)  # the loop's own clock did go back
+    back = read_recording(tmp_path / "s.mcap")
+    assert len(back.t) == 150 and np.all(np.diff(back.t) > 0)  # the session's never does
+    assert abs(back.t[-1] - back.t[0] - 149 / 30) < 1e-6  # one tick apart, the reset included
+    resets = [e for e in back.events if e["kind"] == "reset"]
+    assert len(resets) == 1 and abs(resets[0]["t"] - back.t[59]) < 1e-6, back.events  # asked at the tick before
+    assert np.allclose([back.ticks[k]["t"] for k in (59, 60)], loop_t[59:61], atol=1e-5)  # each tick keeps the loop's own t
+    # the settings in force at a moment, not those at the start
+    assert params_from_recording(back, float(back.t[10])).gains.k_f1 == 0.1
+    assert params_from_recording(back, float(back.t[40])).gains.k_f1 == 0.15
+    assert params_from_recording(back, float(back.t[50])).stop
+    assert params_from_recording(back, float(back.t[149])).gains.k_f1 == 0.15  # a reset keeps the settings
+
+
+def test_the_report_splits_a_reset_session_and_never_steps_back_in_time(tmp_path):
+    _session_with_a_reset(tmp_path / "s.mcap")
+    back = read_recording(tmp_path / "s.mcap")
+    sc = scan(back)
+    t = sc.shown.t[np.isfinite(sc.shown.t)]
+    assert np.all(np.diff(t) > 0)  # no line drawn back to the start
+    assert np.isnan(sc.shown.t).sum() == 1  # one break, at the reset
+    summary = summarise(back, sc)
+    assert [g["reset"] for g in summary["segments"]] == [False, True]
+    assert summary["segments"][1]["from_s"] > summary["segments"][0]["to_s"]
+    assert summary["duration_s"] <= 150 / 30  # the whole session, not the clock after the reset
+    for f in summary["followers"]:  # settling measured on the session's clock: within it
+        assert f["settling_time_s"] is None or 0 <= f["settling_time_s"] <= summary["duration_s"] + 1e-6, f
+    (tmp_path / "out").mkdir()
+    written = write_report(back, tmp_path / "out", fmt="svg")
+    assert (tmp_path / "out" / "trajectory.svg").read_text(encoding="utf-8").lstrip().startswith("<?xml")
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["segments"]
+    assert all(p.suffix in (".svg", ".json", ".md") for p in written)
+
+
+def test_older_recordings_that_set_time_back_read_on_one_clock():
+    t = np.array([0.0, 1 / 30, 2 / 30, 3 / 30, 0.0, 1 / 30, 2 / 30])
+    out = session_clock(t)
+    assert np.all(np.diff(out) > 0) and np.allclose(np.diff(out), 1 / 30)
+    same = np.array([0.0, 0.5, 0.5, 1.0])
+    assert session_clock(same) is same
+
+
+def test_the_replay_shows_the_settings_in_force_at_the_moment_shown(tmp_path):
+    from app.services.replay import ReplayService
+
+    _session_with_a_reset(tmp_path / "s.mcap")
+    back = read_recording(tmp_path / "s.mcap")
+    replay = ReplayService(back, host="127.0.0.1", port=0)
+    try:
+        replay.seek(10)
+        assert replay.store.get().gains.k_f1 == 0.1
+        assert replay.dashboard.controls.gains["k_f1"].value == 0.1
+        replay.seek(40)
+        assert replay.store.get().gains.k_f1 == 0.15
+        assert replay.dashboard.controls.gains["k_f1"].value == 0.15
+        replay.seek(120)  # after the reset: on the timeline, with what was in force then
+        assert abs(float(replay.timeline.value) - round(float(back.t[120]), 3)) < 1e-6
+        assert replay.store.get().gains.k_f1 == 0.15 and not replay.store.get().stop
+        replay.seek(5)  # and back
+        assert replay.dashboard.controls.gains["k_f1"].value == 0.1
+    finally:
+        replay.close()
