@@ -78,7 +78,8 @@ GATE_HEADER = "X-Omniformation-Gate"
 # stays in view: a bar fixed to the window (outside viser's panel, which scrolls) carries a STOP
 # that presses the panel's own and the state line (running / stopped / why) copied from the
 # status, four times a second. Where the page has no STOP (the calibration page) the bar is not shown;
-# in a replay it shows the disabled STOP and the replay's state line.
+# in a replay it shows the disabled STOP and the replay's state line. Links to other pages (replays,
+# served on ports of their own) open in a new tab, and so does "Replay in a new tab".
 KEYBOARD_STOP = b"""<style>
 #omni-stopbar { position: fixed; top: 8px; left: 50%; transform: translateX(-50%); z-index: 2147483000;
   display: none; align-items: center; gap: 10px; max-width: min(720px, 70vw); padding: 6px 10px;
@@ -131,6 +132,33 @@ KEYBOARD_STOP = b"""<style>
     document.body.appendChild(el);
     return el;
   }
+  // a link to another page (a replay on its own port) opens in a new tab, never in place of this
+  // one; "Replay in a new tab" opens the tab at the click (browsers allow a tab only then) and
+  // sends it to the replay's link once the server has made it
+  function others() {
+    return Array.prototype.map.call(document.querySelectorAll("a[href]"), function (a) { return a.href; })
+      .filter(function (h) { return h.indexOf(location.origin + "/") !== 0 && /^https?:/.test(h); });
+  }
+  document.addEventListener("click", function (e) {
+    var target = e.target && e.target.closest ? e.target : null;
+    var a = target && target.closest("a[href]");
+    if (a && /^https?:/.test(a.href) && a.origin !== location.origin) {
+      e.preventDefault();
+      window.open(a.href, "_blank", "noopener");
+      return;
+    }
+    var b = target && target.closest("button");
+    if (!b || b.disabled || b.textContent.trim() !== "Replay in a new tab") return;
+    var before = {};
+    others().forEach(function (h) { before[h] = true; });
+    var tab = window.open("about:blank", "_blank");
+    var tries = 0;
+    var wait = setInterval(function () {
+      var fresh = others().filter(function (h) { return !before[h]; });
+      if (fresh.length && tab) { tab.location.href = fresh[0]; clearInterval(wait); }
+      else if (++tries > 120) { clearInterval(wait); if (tab) tab.close(); }  // 30 s: nothing came (the page says why)
+    }, 250);
+  }, true);
   setInterval(function () {
     var el = bar(), stop = panelStop();
     if (!el) return;

@@ -73,8 +73,15 @@ class RecordingsPanel:
         self._listed = {n: f for n, f in list_recordings(self.folder).items() if n != self.current}
         return list(self._listed) or [NONE]
 
+    def _recording_now(self) -> str:
+        """What the panel says of the file this session writes (listed once it is closed)."""
+        return (f"Recording now: {as_text(self.current)} (offered here once this session stops)"
+                if self.current else "")
+
     def rescan(self) -> None:
         options = self._options()
+        if not self.replays:
+            self._show(self._recording_now())
         keep = self.menu.value if self.menu.value in options else options[0]
         self.menu.options = options
         self.menu.value = keep  # type: ignore[misc]  # viser's stubs: read-only on the base handle

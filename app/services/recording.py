@@ -38,6 +38,7 @@ def start_recording(service: "Service", config: "ServiceConfig", scenario: "Scen
     def stopped(why: str) -> None:
         service.dashboard.controls.recording = f"STOPPED ({why}); {shown} keeps what was written"
         service.recordings.current = ""  # what was written can be replayed now
+        service.recordings.rescan()
         print(f"omniformation: recording stopped: {why}; {shown} keeps what was written; the robots carry on",
               file=sys.stderr, flush=True)
 

@@ -102,3 +102,22 @@ def test_the_replay_shows_the_settings_in_force_at_the_moment_shown(tmp_path):
         assert replay.dashboard.controls.gains["k_f1"].value == 0.1
     finally:
         replay.close()
+
+
+def test_the_recordings_panel_says_what_this_session_records(tmp_path):
+    """While a session records, its own file is not offered (it is being written) and the panel
+    says so, instead of "(no recordings yet)"."""
+    from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
+    from app.services.recording import start_recording
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    svc = Service(port=0, n_followers=2, recordings=tmp_path)
+    recorder = start_recording(svc, config, None, None, None, 0.0, tmp_path / "now.mcap", tmp_path)
+    try:
+        assert list(svc.recordings.menu.options) == ["(no recordings yet)"]
+        assert svc.recordings.links.content.startswith("Recording now: ") and "now.mcap" in svc.recordings.links.content
+    finally:
+        svc.close()
+        recorder.close()

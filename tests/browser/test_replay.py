@@ -102,11 +102,21 @@ def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
         options = svc.recordings.menu.options
         assert "recordings/samples/experiment2-vision.mcap" in options
         svc.recordings.menu.value = "recordings/samples/experiment2-vision.mcap"
-        page.get_by_role("button", name="Replay in a new tab").click(timeout=PAGE_MS)
+        with page.context.expect_page(timeout=PAGE_MS) as opened:  # a tab of its own, opened at the click
+            page.get_by_role("button", name="Replay in a new tab").click(timeout=PAGE_MS)
         link = page.locator("a", has_text="experiment2-vision.mcap").first
         link.wait_for(timeout=PAGE_MS)
         url = link.get_attribute("href")
         assert url and re.match(r"http://127\.0\.0\.1:\d+", url) and url != svc.url
+        tab = opened.value
+        tab.wait_for_url(url, wait_until="commit", timeout=PAGE_MS)  # the new tab goes to the replay
+        tab.close()  # (a second software-rendered 3D page would only measure this machine's CPU)
+        assert page.url == svc.url  # and the live page stays where it was
+        with page.context.expect_page(timeout=PAGE_MS) as again:  # the link too opens a tab, not in place
+            link.click(timeout=PAGE_MS)
+        again.value.wait_for_url(url, wait_until="commit", timeout=PAGE_MS)
+        again.value.close()
+        assert page.url == svc.url
         # the replay is served there (its page is the same dashboard, exercised by the test above;
         # a second software-rendered 3D page beside this one would only measure this machine's CPU)
         import urllib.request

@@ -68,7 +68,7 @@ def test_bad_obstacles_are_refused_in_one_line(extra, expected):
 
 
 @pytest.mark.parametrize("old, new, expected", [
-    ("[safety]\nmin_distance_m = 0.25", "[safety]\nmin_distance_m = 5.0", "safety.min_distance_m = 5.0: must be a number in [0.1, 1]"),
+    ("[safety]\nmin_distance_m = 0.25", "[safety]\nmin_distance_m = 5.0", "safety.min_distance_m = 5.0: must be a number in [0.15, 1] m"),
     ("[safety]\nmin_distance_m = 0.25", "[safety]\nenabled = 1", "safety.enabled = 1: must be true or false"),
     ("min_scale = 0.3", "min_scale = 0.0", "formation.min_scale = 0.0: must be a number in [0.3, 1]"),
     ('goal = [0.0, 5.0]', 'goal = [0.0, "far"]', "leader.goal = [0.0, 'far']: must be [x, y]"),
