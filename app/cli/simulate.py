@@ -246,11 +246,13 @@ def cmd_tune(args: argparse.Namespace) -> int:
     (args.out / "sweep.csv").write_text(result.csv(), encoding="utf-8")
     fig = sweep_figure(result)
     fig.savefig(args.out / "sweep.png", dpi=110)
+    from core.sim.sweep import BEST_RULE
+
     best = result.best()
     lines = [f"# Sweep: {scenario.name}, {test.label()}", "",
              f"- {len(grid)} runs with {result.feedback} feedback in {result.seconds:.1f} s",
              f"- from the team settled on its slots; the step at {LEAD_S:g} s, measured for {test.window_s:g} s",
-             f"- best (settled, then fastest, then least overshoot): {result.point_label(best) if best is not None else 'none'}",
+             f"- {BEST_RULE}: {result.point_label(best) if best is not None else 'none'}",
              "- Pareto front (settling time vs. overshoot): " + "; ".join(result.point_label(k) for k in result.pareto()),
              "", "sweep.csv: every point; sweep.png: heat map (or line) and Pareto plot."]
     (args.out / "summary.md").write_text("\n".join(lines) + "\n", encoding="utf-8")

@@ -31,12 +31,12 @@ from core.config import Scenario
 from core.control.presets import FORMATION_PRESETS
 from core.control.tuning import (LIMIT_NAMES, OFFSET_M, TURN_RPS, WINDOW_S, StepTest, flag_names,
                                  lyapunov_trend, parse_gain_range)
-from core.types import GAIN_BOUNDS
+from core.types import GAIN_BOUNDS, Gains
 
 from app.dashboard.widgets import assign
 from app.params import ParamsStore
 from app.live.sweep import SweepRunner
-from core.sim.sweep import SweepResult
+from core.sim.sweep import BEST_RULE, METRICS, SweepResult
 from app.tick import TickState
 from app.live.tuning import StepTests, Trial, trial_cells, trials_csv
 
@@ -151,11 +151,12 @@ class TuningPanel:
                                          hint="offset: one follower's slot moves sideways; switch: to the formation"
                                               " below; turn: the leader's turn rate steps")
             self.follower = gui.add_dropdown("Which follower", options=tuple(f"F{i + 1}" for i in range(n)), initial_value="F1")
-            self.size = gui.add_number("Step size", initial_value=10.0, step=1.0,
+            self.size = gui.add_number("Step size (cm)", initial_value=10.0, step=1.0,
                                        hint=f"offset: cm ({OFFSET_M[0] * 100:g} to {OFFSET_M[1] * 100:g}, either way);"
                                             f" turn: deg/s ({math.degrees(TURN_RPS[0]):g} to"
                                             f" {math.degrees(TURN_RPS[1]):g}, either way)")
-            self.formation = gui.add_dropdown("Switch to", options=FORMATION_PRESETS, initial_value="line abreast")
+            self.formation = gui.add_dropdown("Switch to", options=FORMATION_PRESETS, initial_value="line abreast",
+                                              visible=False)
             self.window = gui.add_number("Measure for (s)", initial_value=10.0, min=WINDOW_S[0], max=WINDOW_S[1], step=1.0,
                                          hint="how long each follower's response is measured")
             self.run_button = gui.add_button("Run test", hint="apply the test and measure: settling to 2 cm,"
@@ -164,7 +165,7 @@ class TuningPanel:
             self.status = gui.add_markdown("step test: idle")
             self.table = gui.add_html("<i>no trials yet</i>")
             self.row = gui.add_number("Trial #", initial_value=1, min=1, step=1)
-            self.reapply = gui.add_button("Apply trial's gains", hint="set the gains that trial ran with")
+            self.reapply = gui.add_button("Apply trial's gains", hint="set the gains that trial ran with", disabled=True)
             self.export = gui.add_button("Export trials CSV")
             with gui.add_folder("Sweep in the simulator"):
                 self.gain1 = gui.add_dropdown("Gain 1", options=SWEEP_GAINS, initial_value="k_w2")
@@ -180,6 +181,8 @@ class TuningPanel:
                 self.progress = gui.add_progress_bar(0.0, animated=False)
                 self.cancel_sweep = gui.add_button("Cancel sweep", color="gray", disabled=True)
                 self.sweep_status = gui.add_markdown("sweep: none yet")
+                self.metric = gui.add_dropdown("Heat map shows", options=tuple(METRICS), initial_value="settling",
+                                               hint="the colour and the number in each cell: one figure, with its unit")
                 self.figure = gui.add_image(np.full((8, 8, 3), 255, np.uint8), format="png", visible=False)
                 self.point = gui.add_dropdown("Sweep point", options=("none",), initial_value="none", disabled=True,
                                               hint="best first: settled, then fastest, then least overshoot")
@@ -229,7 +232,23 @@ class TuningPanel:
             vision = self._vision()
         return self.sweeps.start(scenario, test, twist, ranges, self.store.get().gains, vision)
 
+    def _show_fields(self) -> None:
+        """Only the fields the chosen test uses, the step size labelled with its unit."""
+        kind = str(self.kind.value)
+        self.follower.visible = kind == "offset"
+        self.size.visible = kind in ("offset", "turn")
+        self.size.label = "Step size (cm)" if kind == "offset" else "Step size (deg/s)"
+        self.formation.visible = kind == "switch"
+
     def _wire(self) -> None:
+        @self.kind.on_update
+        def _(event: viser.GuiEvent[Any]) -> None:
+            self._show_fields()
+
+        @self.metric.on_update
+        def _(event: viser.GuiEvent[Any]) -> None:
+            self._draw_sweep()
+
         @self.run_button.on_click
         def _(event: viser.GuiEvent[Any]) -> None:
             self.run_test()
@@ -292,6 +311,7 @@ class TuningPanel:
         return values
 
     def _set_gains(self, values: dict[str, float], what: str) -> None:
+        values = {k: float(f"{v:.4g}") for k, v in values.items()}  # a sweep's grid: 0.0875, not 0.08750000000000001
         _, notices = self.store.update("tuning", **values)
         shown = ", ".join(f"{k}={v:g}" for k, v in values.items())
         extra = f" ({'; '.join(n.message for n in notices)})" if notices else ""
@@ -302,16 +322,17 @@ class TuningPanel:
         trials = list(self.tests.trials)
         head = ("<tr><th>#</th><th>test</th><th>status</th><th>settle (s)</th><th>overshoot (cm)</th>"
                 "<th>steady RMS (cm)</th><th>effort</th><th>gains changed</th></tr>")
-        default = trials[0].gains.as_dict() if trials else {}
+        default = Gains().as_dict()  # the controller's defaults (README): what each trial changed from them
         body = []
         for t in trials[-12:]:
             cells = trial_cells(t)
-            changed = ", ".join(f"{k}={v:g}" for k, v in t.gains.as_dict().items() if default.get(k) != v) or "as #1"
+            changed = ", ".join(f"{k}={v:g}" for k, v in t.gains.as_dict().items() if default.get(k) != v) or "defaults"
             body.append(f"<tr data-trial='{t.number}'><td>{cells[0]}</td><td>{html.escape(cells[1])}</td>"
                         f"<td>{html.escape(cells[2])}</td><td>{cells[-4]}</td><td>{cells[-3]}</td><td>{cells[-2]}</td>"
                         f"<td>{cells[-1]}</td><td>{html.escape(changed)}</td></tr>")
         self.table.content = f'<table style="font-size:11px;width:100%">{head}{"".join(body)}</table>'
         assign(self.row, trial.number)
+        self.reapply.disabled = not trials
         self.status.content = f"step test: trial {trial.number} {trial.status}"
 
     def _on_progress(self, done: int, total: int) -> None:
@@ -319,13 +340,9 @@ class TuningPanel:
         self.sweep_status.content = f"sweep: {done} of {total} points"
 
     def _on_sweep(self, result: SweepResult) -> None:
-        from app.recording.plots import figure_rgb, sweep_figure
-
         self.result = result
         ran = sum(s is not None for s in result.scores)
-        fig = sweep_figure(result, width_in=4.6, stacked=True)
-        self.figure.image = figure_rgb(fig)
-        self.figure.visible = True
+        self._draw_sweep()
         order = [k for k in result.order() if result.scores[k] is not None]
         labels = [f"{rank + 1}. {result.point_label(k)}" for rank, k in enumerate(order)] or ["none"]
         self._point_index = {label: k for label, k in zip(labels, order)}
@@ -337,7 +354,16 @@ class TuningPanel:
         state = "cancelled" if result.cancelled else "done"
         errors = f"; {len(result.errors)} points failed: {result.errors[0]}" if result.errors else ""
         self.sweep_status.content = (f"sweep: {state}, {ran} of {len(result.gains)} points in {result.seconds:.1f} s"
-                                     f" ({result.feedback} feedback){errors}")
+                                     f" ({result.feedback} feedback){errors}  \n{BEST_RULE}")
+
+    def _draw_sweep(self) -> None:
+        from app.recording.plots import figure_rgb, sweep_figure
+
+        if self.result is None:
+            return
+        fig = sweep_figure(self.result, width_in=4.6, stacked=True, metric=str(self.metric.value))
+        self.figure.image = figure_rgb(fig)
+        self.figure.visible = True
 
     def set_followers(self, n: int) -> None:
         options = tuple(f"F{i + 1}" for i in range(n))

@@ -118,14 +118,26 @@ def plot_simulation(log: SimulationLog, path: Path, instants: int = 6) -> None:
     plt.close(fig)
 
 
-def sweep_figure(result: "SweepResult", width_in: float = 7.5, stacked: bool = False) -> "Figure":
-    """A sweep's result: for two gains a heat map of the settling time (not settled: grey,
-    hatched) with the overshoot (cm) in each cell, for one gain the settling time and
-    overshoot against it; beside it the Pareto plot (settling time vs. overshoot, the
-    front joined, the best point ringed)."""
+def _gain_label(name: str) -> str:
+    from core.types import GAIN_BOUNDS
+
+    unit = GAIN_BOUNDS[name].unit if name in GAIN_BOUNDS else ""
+    return f"{name} ({unit})" if unit else name
+
+
+def sweep_figure(result: "SweepResult", width_in: float = 7.5, stacked: bool = False,
+                 metric: str = "settling") -> "Figure":
+    """A sweep's result: for two gains a heat map of one ``metric`` (METRICS: its colour and the
+    number in each cell are the same figure, with its unit; the colour scale spans the 5th to
+    95th percentile so one slow row does not flatten the rest; not settled: grey, "no"), for one
+    gain the settling time and overshoot against it; beside it the Pareto plot (settling time vs.
+    overshoot, the front joined, the best point ringed)."""
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
 
+    from core.sim.sweep import METRICS
+
+    key, scale, label, decimals = METRICS[metric]
     if stacked:  # one above the other: the page's narrow panel
         fig = Figure(figsize=(width_in, width_in * 1.3), constrained_layout=True)
         ax, axp = fig.subplots(2, 1, gridspec_kw={"height_ratios": [1.15, 1]})
@@ -138,27 +150,35 @@ def sweep_figure(result: "SweepResult", width_in: float = 7.5, stacked: bool = F
     best = result.best()
     if len(result.ranges) == 2:
         r1 = result.ranges[1]
-        masked = np.ma.masked_invalid(settle)
+        shown = result.grid(key) * scale
+        if key != "settling_s":
+            shown = np.where(np.isfinite(settle), shown, np.nan)  # a point that did not settle shows "no"
+        finite = shown[np.isfinite(shown)]
+        lo, hi = (np.percentile(finite, [5, 95]) if finite.size else (0.0, 1.0))
+        hi = hi if hi > lo else lo + 1e-9
         ax.set_facecolor("0.85")
-        mesh = ax.imshow(masked.T, origin="lower", aspect="auto", cmap="viridis_r",
-                         extent=(-0.5, len(r0.values) - 0.5, -0.5, len(r1.values) - 0.5))
-        fig.colorbar(mesh, ax=ax, label="settling time (s)")
+        mesh = ax.imshow(np.ma.masked_invalid(shown).T, origin="lower", aspect="auto", cmap="viridis_r",
+                         vmin=lo, vmax=hi, extent=(-0.5, len(r0.values) - 0.5, -0.5, len(r1.values) - 0.5))
+        fig.colorbar(mesh, ax=ax, label=label, extend="both")
         for i in range(len(r0.values)):
             for j in range(len(r1.values)):
-                text = f"{over[i, j]:.1f}" if np.isfinite(over[i, j]) else ""
-                if not np.isfinite(settle[i, j]):
-                    text = "no" if not text else f"no\n{text}"
-                ax.text(i, j, text, ha="center", va="center", fontsize=6, color="k")
+                v = shown[i, j]
+                if np.isfinite(v):
+                    r, g, b, _ = mesh.cmap(mesh.norm(v))
+                    ink = "k" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "w"  # readable on every colour
+                    ax.text(i, j, f"{v:.{decimals}f}", ha="center", va="center", fontsize=6, color=ink)
+                else:
+                    ax.text(i, j, "no", ha="center", va="center", fontsize=6, color="k")
         ax.set_xticks(range(len(r0.values)), [f"{v:g}" for v in r0.values], fontsize=7)
         ax.set_yticks(range(len(r1.values)), [f"{v:g}" for v in r1.values], fontsize=7)
-        ax.set(xlabel=r0.name, ylabel=r1.name, title=f"{result.test.label()}: settling (overshoot cm)")
+        ax.set(xlabel=_gain_label(r0.name), ylabel=_gain_label(r1.name), title=f"{result.test.label()}: {label}")
         if best is not None:
             bi, bj = np.unravel_index(best, settle.shape)
             ax.add_patch(Rectangle((bi - 0.5, bj - 0.5), 1, 1, fill=False, edgecolor="red", lw=2))
     else:
         x = r0.values
         ax.plot(x, settle[:, 0], "o-", color="tab:blue", label="settling time (s)")
-        ax.set(xlabel=r0.name, ylabel="settling time (s)", title=result.test.label())
+        ax.set(xlabel=_gain_label(r0.name), ylabel="settling time (s)", title=result.test.label())
         ax2 = ax.twinx()
         ax2.plot(x, over[:, 0], "s--", color="tab:red", label="overshoot (cm)")
         ax2.set_ylabel("overshoot (cm)", color="tab:red")

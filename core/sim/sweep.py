@@ -78,6 +78,18 @@ def run_step_test(
     return StepRun(score, gains, lead_s)
 
 
+METRICS = {  # what a sweep's heat map can show: (the score's key, scale, label with its unit, decimals)
+    "settling": ("settling_s", 1.0, "settling time (s)", 1),
+    "overshoot": ("overshoot_m", 100.0, "overshoot (cm)", 1),
+    "steady error": ("steady_rms_m", 100.0, "steady error RMS (cm)", 2),
+    "effort": ("effort", 1.0, "effort (m²/s)", 3),
+}
+
+STEADY_SLACK = (1.5, 0.0005)  # a settled point's steady RMS may be this × the best one's + this (m) and still rank
+BEST_RULE = ("best: of the points that settle (within 2 cm), those whose steady error is at most 1.5 × the"
+             " smallest steady error + 0.05 cm; of those the fastest to settle, then the least overshoot")
+
+
 @dataclass(frozen=True)
 class SweepResult:
     """Every point of a sweep in grid order (the first gain varies slowest); a point not run
@@ -106,14 +118,25 @@ class SweepResult:
         return f"{where}: settles {settle}, overshoot {w['overshoot_m'] * 100:.1f} cm, effort {w['effort']:.3f}"
 
     def order(self) -> list[int]:
-        """Points from best to worst: settled before not, then shorter settling, then less overshoot."""
+        """Points from best to worst by :data:`BEST_RULE`: settled points whose steady error is
+        within STEADY_SLACK of the best steady error among settled points, by settling time then
+        overshoot; then the other settled points, by steady error; then the unsettled ones, by
+        steady error; points not run last."""
+        settled = [s.worst["steady_rms_m"] for s in self.scores
+                   if s is not None and math.isfinite(s.worst["settling_s"]) and math.isfinite(s.worst["steady_rms_m"])]
+        floor = min(settled) if settled else math.inf
+        limit = floor * STEADY_SLACK[0] + STEADY_SLACK[1]
+
         def key(k: int) -> tuple[float, float, float]:
             s = self.scores[k]
             if s is None:
-                return (2.0, math.inf, math.inf)
+                return (3.0, math.inf, math.inf)
             w = s.worst
-            settled = math.isfinite(w["settling_s"])
-            return (0.0 if settled else 1.0, w["settling_s"] if settled else w["steady_rms_m"], w["overshoot_m"])
+            if not math.isfinite(w["settling_s"]):
+                return (2.0, w["steady_rms_m"], w["overshoot_m"])
+            if w["steady_rms_m"] <= limit:
+                return (0.0, w["settling_s"], w["overshoot_m"])
+            return (1.0, w["steady_rms_m"], w["settling_s"])
         return sorted(range(len(self.gains)), key=key)
 
     def best(self) -> int | None:

@@ -202,3 +202,35 @@ def test_a_turn_step_in_eq39_mode_is_refused_with_the_reason(tmp_path):
     assert tests.trials[-1].status == "done"
     assert store.get().leader_mode == "stop"  # set back
     rec.close()
+
+
+def test_the_heat_map_shows_one_metric_in_colour_and_number_with_units():
+    """Each cell's number is the metric its colour shows (not settling in colour, overshoot in
+    numbers), in the colour bar's unit; the scale spans the 5th-95th percentile (one slow row does
+    not flatten the rest); the ink is readable on each cell; the gains' axes carry units."""
+    from core.control.tuning import GainRange, StepScore, StepTest
+    from core.sim.sweep import METRICS, SweepResult
+    from core.types import Gains
+
+    from app.recording.plots import sweep_figure
+
+    r0, r1 = GainRange("k_w2", np.array([1.0, 2.0, 3.0])), GainRange("k_f1", np.array([0.05, 0.1]))
+    scores, gains = [], []
+    for i, w2 in enumerate(r0.values):
+        for j, f1 in enumerate(r1.values):
+            settle = 40.0 if (i, j) == (0, 0) else 2.0 + i + j  # one very slow point
+            scores.append(StepScore(np.array([settle]), np.array([0.01 * (i + 1)]), np.array([0.001 * (j + 1)]),
+                                    np.array([0.2]), 300))
+            gains.append(Gains(k_w2=w2, k_f1=f1))
+    result = SweepResult((r0, r1), StepTest("offset", 0, 0.1, "", 10.0), "truth", tuple(gains), tuple(scores), 1.0)
+    for metric, (key, scale, label, decimals) in METRICS.items():
+        fig = sweep_figure(result, metric=metric)
+        ax = fig.axes[0]
+        numbers = sorted(float(t.get_text()) for t in ax.texts)
+        expected = sorted(round(s.worst[key] * scale, decimals) for s in scores)
+        assert numbers == pytest.approx(expected, abs=10 ** -decimals), metric
+        assert label in ax.get_title() and label in [a.get_ylabel() for a in fig.axes]  # the colour bar's unit
+        assert ax.get_xlabel() == "k_w2 (1/rad)" and ax.get_ylabel() == "k_f1 (m/s)"
+    fig = sweep_figure(result, metric="settling")
+    lo, hi = fig.axes[0].images[0].get_clim()
+    assert hi < 40.0  # the slow point does not stretch the scale

@@ -148,3 +148,24 @@ def test_a_step_in_the_simulator_settles_and_scores_like_the_gains_say():
 
 
 
+
+
+def test_the_best_sweep_point_settles_fast_without_giving_up_steady_error():
+    """A point that settles fastest but holds three times the steady error of another is not
+    "best" (core.sim.sweep.BEST_RULE): among settled points with a steady error near the
+    smallest, the fastest; an unsettled point never beats a settled one."""
+    import numpy as np
+
+    from core.control.tuning import GainRange, StepScore, StepTest
+    from core.sim.sweep import BEST_RULE, SweepResult
+    from core.types import Gains
+
+    def score(settle: float, rms_cm: float, over_cm: float = 1.0) -> StepScore:
+        return StepScore(np.array([settle]), np.array([over_cm / 100]), np.array([rms_cm / 100]), np.array([0.1]), 300)
+
+    scores = (score(1.7, 0.79), score(2.4, 0.19), score(2.2, 0.26), score(float("nan"), 0.05), None)
+    result = SweepResult((GainRange("k_f1", np.linspace(0.05, 0.25, 5)),), StepTest("offset", 0, 0.1, "", 10.0),
+                         "truth", tuple(Gains(k_f1=v) for v in np.linspace(0.05, 0.25, 5)), scores, 1.0)
+    assert result.best() == 2  # 0.26 cm is within 1.5 x 0.19 + 0.05; it settles sooner than the 0.19 one
+    assert result.order() == [2, 1, 0, 3, 4]  # then the slow precise one, the fast sloppy one, the unsettled, not run
+    assert "steady error" in BEST_RULE
