@@ -333,7 +333,9 @@ class TuningPanel:
         self.table.content = f'<table style="font-size:11px;width:100%">{head}{"".join(body)}</table>'
         assign(self.row, trial.number)
         self.reapply.disabled = not trials
-        self.status.content = f"step test: trial {trial.number} {trial.status}"
+        self.status.content = f"step test: trial {trial.number} {trial.status}" + (
+            f"  \n**warning: {html.escape(trial.disturbed)}: the scores are not the controller's alone**"
+            if trial.disturbed else "")
 
     def _on_progress(self, done: int, total: int) -> None:
         assign(self.progress, 100.0 * done / max(1, total))

@@ -63,6 +63,7 @@ class Trial:
     status: str  # "done" or "aborted: why"
     score: StepScore | None
     wheel_base_m: float = 0.12  # what the effort was computed with
+    disturbed: str = ""  # what besides the controller moved the team while measured (the scores include it)
 
     def payload(self) -> dict[str, Any]:
         """As recorded (/omniformation/trials) and exported."""
@@ -71,7 +72,7 @@ class Trial:
             {"follower": i + 1, "settling_s": _num(s.settling_s[i]), "overshoot_m": _num(s.overshoot_m[i]),
              "steady_rms_m": _num(s.steady_rms_m[i]), "effort": _num(s.effort[i])} for i in range(len(s.settling_s))]
         return {"number": self.number, "test": dataclasses.asdict(self.test), "label": self.test.label(),
-                "gains": self.gains.as_dict(), "t0": self.t0, "wheel_base_m": self.wheel_base_m, "status": self.status, "followers": per,
+                "gains": self.gains.as_dict(), "t0": self.t0, "wheel_base_m": self.wheel_base_m, "status": self.status, "disturbed": self.disturbed, "followers": per,
                 "team": None if s is None else {k: _num(v) for k, v in s.worst.items()}}
 
 
@@ -91,7 +92,8 @@ def trial_cells(t: Trial) -> list[str]:
         v = w.get(key, math.nan)
         return f"{v * scale:.{digits}f}" if math.isfinite(v) else ("not settled" if key == "settling_s" and w else "")
 
-    return [str(t.number), t.test.label(), t.status, f"{t.t0:.3f}", *(f"{v:g}" for v in t.gains.as_dict().values()),
+    status = f"{t.status} (warning: {t.disturbed})" if t.disturbed else t.status
+    return [str(t.number), t.test.label(), status, f"{t.t0:.3f}", *(f"{v:g}" for v in t.gains.as_dict().values()),
             fmt("settling_s"), fmt("overshoot_m", 100), fmt("steady_rms_m", 100, 3), fmt("effort", 1.0, 4)]
 
 
@@ -113,6 +115,19 @@ class _Running:
     n: int
     t0: float = math.nan
     rows: list[tuple[float, FloatArray, FloatArray, FloatArray]] = field(default_factory=list)
+    filtered: int = 0  # measured ticks on which the safety filter changed a command
+    twist0: tuple[float, float] | None = None  # the leader's twist at the first measured tick
+    leader_changed: bool = False  # it changed during the window (the goal navigator, an operator)
+
+    def disturbed(self) -> str:
+        """What besides the controller moved the team while it was measured ('' when nothing)."""
+        notes = []
+        if self.filtered:
+            notes.append(f"the safety filter changed commands on {100 * self.filtered / max(1, len(self.rows)):.0f} %"
+                         " of the measured ticks")
+        if self.leader_changed:
+            notes.append("the leader's motion changed while it was measured")
+        return "; ".join(notes)
 
 
 class StepTests:
@@ -199,6 +214,13 @@ class StepTests:
             return
         if math.isnan(r.t0):
             r.t0 = s.t
+        twist = (float(s.leader_twist[0]), float(s.leader_twist[1]))
+        if r.twist0 is None:
+            r.twist0 = twist
+        elif abs(twist[0] - r.twist0[0]) > 1e-3 or abs(twist[1] - r.twist0[1]) > 1e-3:
+            r.leader_changed = True
+        if s.safety_active is not None and bool(np.any(s.safety_active)):
+            r.filtered += 1
         target = s.slot_targets[s.assignment] * np.array([s.formation_scale, 1.0])
         r.rows.append((s.t, s.p_est.copy(), target, s.commands.copy()))
         if s.t >= r.t0 + r.test.window_s - 1e-9:
@@ -247,7 +269,7 @@ class StepTests:
                 return
             self._restore(r)
             self._emit_locked(Trial(len(self.trials) + 1, r.test, r.gains, r.t0, "done", score,
-                                     self.wheel_base_m))
+                                     self.wheel_base_m, r.disturbed()))
 
     def _abort(self, why: str) -> None:
         with self._lock:

@@ -234,3 +234,30 @@ def test_the_heat_map_shows_one_metric_in_colour_and_number_with_units():
     fig = sweep_figure(result, metric="settling")
     lo, hi = fig.axes[0].images[0].get_clim()
     assert hi < 40.0  # the slow point does not stretch the scale
+
+
+def test_a_step_test_warns_when_more_than_the_controller_moved_the_team(tmp_path):
+    """The leader's motion changed during the window (an operator, the goal navigator): the
+    trial is scored, and says so beside its status, in its record and on the page's table."""
+    from app.live.tuning import trial_cells
+
+    store, loop, tests, rec = _team(tmp_path)
+    store.update("browser:1", safety=False)  # only the leader's change here
+    _tick(loop, 3.0)
+    assert tests.request(StepTest("offset", 0, 0.1, window_s=4.0)) is None
+    _tick(loop, 1.0)
+    store.update("browser:1", leader_speed_mps=0.01)
+    _tick(loop, 4.5)
+    rec.close()
+    (trial,) = tests.trials
+    assert trial.status == "done" and "the leader's motion changed" in trial.disturbed, trial
+    assert "warning: the leader's motion changed" in trial_cells(trial)[2]
+    assert trial.payload()["disturbed"] == trial.disturbed
+    (tmp_path / "quiet").mkdir()
+    quiet_store, quiet_loop, quiet_tests, quiet_rec = _team(tmp_path / "quiet")
+    quiet_store.update("browser:1", safety=False)
+    _tick(quiet_loop, 3.0)
+    assert quiet_tests.request(StepTest("offset", 0, 0.1, window_s=4.0)) is None
+    _tick(quiet_loop, 5.0)
+    quiet_rec.close()
+    assert quiet_tests.trials[0].status == "done" and quiet_tests.trials[0].disturbed == ""
