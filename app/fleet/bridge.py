@@ -121,15 +121,16 @@ def _num(x: Any) -> Any:
     return x
 
 
-def state_payload(s: TickState, leader_id: str) -> dict[str, Any]:
-    """What a leader publishes each tick (docs/fleet-protocol.md): compact, SI units."""
+def state_payload(s: TickState, leader_id: str, takes: str = "stop") -> dict[str, Any]:
+    """What a leader publishes each tick (docs/fleet-protocol.md): compact, SI units. ``takes``:
+    what it obeys from the bus ("stop", or "all" with --fleet-control)."""
     return {
         "leader_id": leader_id, "tick": s.tick, "t": _num(s.t), "leader": _num(s.leader),
         "leader_twist": _num(list(s.leader_twist)), "p_est": _num(s.p_est), "a_est": _num(s.a_est),
         "tracked": _num(s.tracked.astype(bool)), "p_d": _num(s.p_d), "error_m": _num(np.linalg.norm(s.p_d - s.p_est, axis=1)),
         "p_true": _num(s.p_true),
         "commands": _num(s.commands), "gains": s.gains.as_dict(), "stopped": bool(s.stopped), "phase": s.phase,
-        "link_state": s.link_state, "rate_hz": _num(s.rate_hz),
+        "link_state": s.link_state, "rate_hz": _num(s.rate_hz), "takes": takes,
     }
 
 
@@ -200,7 +201,7 @@ class FleetBridge:
         self._publisher(s)
 
     def _publish_state(self, s: TickState) -> None:
-        text = json.dumps(state_payload(s, self.leader_id), separators=(",", ":"))
+        text = json.dumps(state_payload(s, self.leader_id, "all" if self.allow_control else "stop"), separators=(",", ":"))
         # the wall clock as the last thing before it goes (a subscriber's latency on the same machine)
         self._state_pub.put(f'{text[:-1]},"instance":"{self.instance}","started":{self.started:.6f},'
                             f'"sent":{time.time():.6f}}}')

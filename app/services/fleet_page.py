@@ -39,6 +39,7 @@ REFRESH_S = 0.1
 # page's process switches every 1 ms (`omniformation fleet` sets it).
 SWITCH_INTERVAL_S = 0.001
 GONE_AFTER_S = 2.0  # a leader whose state is older than this is shown as silent
+RESYNC_S = 2.0  # after a person moves a control, the leader's own value is shown again after this
 
 
 def hue_rgb(hue_deg: float) -> tuple[int, int, int]:
@@ -74,10 +75,13 @@ class LeaderPanel:
         self.stop.on_click(lambda _: view.send(leader_id, {"stop": True}))
         self.release.on_click(lambda _: view.send(leader_id, {"stop": False}))
         self._synced = False  # the controls show the leader's values once its first state came
+        self._moved_at = -math.inf  # when a person last moved one of them
+        self.controls = (self.k_f1, self.k_w2, self.mode, self.speed)
         for handle, key in ((self.k_f1, "k_f1"), (self.k_w2, "k_w2"), (self.mode, "leader_mode"),
                             (self.speed, "leader_speed_mps")):
             def changed(event: Any, key: str = key, handle: Any = handle) -> None:
                 if event.client is not None:  # a person moved it (not the page following the leader)
+                    self._moved_at = time.monotonic()
                     view.send(leader_id, {key: handle.value})
             handle.on_update(changed)
 
@@ -97,7 +101,17 @@ class LeaderPanel:
             f"**{self.leader_id}** {where}{stop}  \n{tracked}/{n} followers tracked, phase {state.get('phase', '?')}  \n"
             f"error RMS {rms:.1f} cm, worst {worst:.1f} cm  \nleader v {v or 0.0:.2f} m/s, ω {w or 0.0:.2f} rad/s,"
             f" loop {state.get('rate_hz') or 0.0:.1f} Hz")
-        if not self._synced:
+        # what the leader obeys from here: a STOP-only leader (no --fleet-control) refuses the rest,
+        # releasing its STOP included; Release is offered only to a stopped team
+        all_of_it = state.get("takes") == "all"
+        for handle in self.controls:
+            handle.disabled = not all_of_it
+        self.release.disabled = not (all_of_it and bool(state.get("stopped")))
+        if not all_of_it:
+            self.status.content += "  \ntakes only STOP from here (started without --fleet-control)"
+        # the controls show what the leader runs with: a refused or clamped value does not stay on
+        # the slider (a person's own move is left alone for a moment, while the leader answers)
+        if not self._synced or time.monotonic() - self._moved_at > RESYNC_S:
             gains = state.get("gains", {})
             assign(self.k_f1, float(gains.get("k_f1", self.k_f1.value)))
             assign(self.k_w2, float(gains.get("k_w2", self.k_w2.value)))

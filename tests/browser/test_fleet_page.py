@@ -84,10 +84,16 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             wait_for(lambda: all(v == [0.0, 0.0] for v in l1.loop.last.commands.tolist()), 30, "L1 at zero")
             wait_for(lambda: l2.loop.last.leader_twist == (0.0, 0.0), 30, "L2's own base stopped too")
 
-            # L1 takes the page's commands; L2's operator did not allow it (STOP only): refused, said so
+            # L1 takes the page's commands; L2's operator did not allow it (STOP only): its controls and
+            # Release are disabled, and say why; a release sent on the bus anyway is refused, and said so
+            page.get_by_text("takes only STOP from here", exact=False).first.wait_for(timeout=30_000)
+            assert page.get_by_role("button", name="Release STOP L2").is_disabled()
+            assert page.get_by_role("button", name="Release STOP L1").is_enabled()  # stopped, and it takes all
             page.get_by_role("button", name="Release STOP L1").click()
             wait_for(lambda: not l1.store.get().stop, 30, "L1 released")
-            page.get_by_role("button", name="Release STOP L2").click()
+            wait_for(lambda: page.get_by_role("button", name="Release STOP L1").is_disabled(), 30,
+                     "Release L1 disabled once it runs")
+            page_session.put("omniformation/three_teams/leader/L2/cmd", json.dumps({"set": {"stop": False}, "from": "test"}))
             page.get_by_text("L2: refused", exact=False).first.wait_for(timeout=30_000)
             assert l2.store.get().stop
             page.get_by_role("button", name="STOP L1", exact=True).click()
