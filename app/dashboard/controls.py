@@ -70,10 +70,10 @@ class Controls:
                                        initial_value=p.leader_turn_deg_s,
                                        hint="leader turn rate w_l (circle), or k1 of eq. 39")
             gx, gy = p.goal if p.goal is not None else (0.0, 2.0)
-            self.goal_x = gui.add_number("Goal x (m)", initial_value=float(gx), step=0.05, min=-GOAL_LIMIT_M,
+            self.goal_x = gui.add_number("Goal x (m, odometry frame)", initial_value=float(gx), step=0.05, min=-GOAL_LIMIT_M,
                                          max=GOAL_LIMIT_M, hint="where the leader drives in goal mode (the floor's"
                                                                 " frame: where the leader started); or shift-click the floor")
-            self.goal_y = gui.add_number("Goal y (m)", initial_value=float(gy), step=0.05, min=-GOAL_LIMIT_M,
+            self.goal_y = gui.add_number("Goal y (m, odometry frame)", initial_value=float(gy), step=0.05, min=-GOAL_LIMIT_M,
                                          max=GOAL_LIMIT_M)
             self.go_button = gui.add_button("Drive to goal", hint="leader mode goal, to the point above")
             self.min_scale = gui.add_slider("Narrowest formation", min=MIN_SCALE.lo, max=MIN_SCALE.hi, step=0.05,
@@ -295,8 +295,10 @@ class Controls:
              + (f" · frame to command {s.latency_ms:.1f} ms" if np.isfinite(s.latency_ms) else "")),
             f"stages (ms): {stages}",
             f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
-            f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
-            f" · link: {s.link_state} · " + (f"replaying {as_text(self.recording)}" if self.replay
+            (f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
+             if s.phase not in ("find", "base", "probe", "heading") else
+             f"start-up ({s.phase}): {int(np.sum(s.tracked))}/{s.n} followers found so far")
+            + f" · link: {s.link_state} · " + (f"replaying {as_text(self.recording)}" if self.replay
                                              else f"recording: {as_text(self.recording)}"),
             "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
             f"safety filter: {s.safety or '-'}"

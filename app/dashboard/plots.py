@@ -85,12 +85,12 @@ class Plots:
         chart("ey", "y error (m)", follower_names, colours)
         chart("a", "heading a (deg): Kalman-filtered (solid), measured eq. 34-37 (dashed)",
               follower_names + [f"{nm} raw" for nm in follower_names], colours + colours, dashed=n)
-        chart("V", "team V = Σ ½‖ρ̃‖² (m²)", ["V"], ["rgb(40,70,140)"])
+        chart("V", "team V = Σ ½‖ρ̃‖² (cm², as the Lyapunov monitor)", ["V"], ["rgb(40,70,140)"])
         chart("v", "command v (m/s)", follower_names, colours)
         chart("w", "command ω (rad/s)", follower_names, colours)
         self._names = ([f"F{i + 1} ex (m)" for i in range(n)] + [f"F{i + 1} ey (m)" for i in range(n)]
                        + [f"F{i + 1} a (deg)" for i in range(n)] + [f"F{i + 1} a raw (deg)" for i in range(n)]
-                       + ["V (m2)"] + [f"F{i + 1} v (m/s)" for i in range(n)] + [f"F{i + 1} w (rad/s)" for i in range(n)])
+                       + ["V (cm2)"] + [f"F{i + 1} v (m/s)" for i in range(n)] + [f"F{i + 1} w (rad/s)" for i in range(n)])
         self._n = n
         self.reset()
 
@@ -130,7 +130,7 @@ class Plots:
         # uPlot has no use for NaN: a heading not known yet is drawn at 90 deg (aligned)
         heads = np.degrees(np.nan_to_num(np.concatenate([s.a_est, a_raw]), nan=np.pi / 2))
         self._rows.append(np.concatenate([np.nan_to_num(err[:, 0]), np.nan_to_num(err[:, 1]), heads,
-                                          [float(np.nansum(s.v_lyap))], s.commands[:, 0], s.commands[:, 1]]))
+                                          [float(np.nansum(s.v_lyap)) * 1e4], s.commands[:, 0], s.commands[:, 1]]))
         while self._t and self._t[0] < s.t - KEPT_S:
             self._t.popleft()
             self._rows.popleft()

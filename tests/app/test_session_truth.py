@@ -121,3 +121,22 @@ def test_the_recordings_panel_says_what_this_session_records(tmp_path):
     finally:
         svc.close()
         recorder.close()
+
+
+def test_the_status_says_start_up_while_the_camera_finds_the_team_not_lost(tmp_path):
+    """During the vision start-up the followers are being found, not lost: the status says
+    what the overlay says."""
+    from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    svc = Service(port=0, n_followers=2, camera=config.camera(), recordings=tmp_path)
+    try:
+        state = svc.loop.tick()
+        assert state.phase in ("base", "probe", "heading", "find")
+        svc.dashboard.controls.update_status(state)
+        text = svc.dashboard.controls.status.content
+        assert "start-up (" in text and "found so far" in text and ", lost " not in text, text
+    finally:
+        svc.close()
