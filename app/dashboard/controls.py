@@ -99,9 +99,14 @@ class Controls:
             self.slot_folder = gui.add_folder("Desired positions (leader frame, m)")
             self.slot_inputs: list[tuple[Any, Any]] = []
         with gui.add_folder("View"):
+            self.camera_view = gui.add_dropdown("3D camera", options=CAMERA_VIEWS, initial_value=CAMERA_VIEWS[0],
+                                                hint="behind: 2.5 m behind the leader and 2 m up, turning with it;"
+                                                     " above: straight down on the leader from 6 m; free: yours")
+            self.reset_view = gui.add_button("Reset the 3D camera", hint="back to the chosen view's place")
             self.show_truth = gui.add_checkbox("Show true poses", initial_value=True,
                                                hint="simulation: the true pose as a wireframe beside the estimate")
-            self.follow_leader = gui.add_checkbox("Camera follows leader", initial_value=True)
+            self.layers = {name: gui.add_checkbox(name, initial_value=True) for name in LAYERS}
+            gui.add_markdown(LAYER_KEY)
         self._build_slot_inputs(p)
         self._wire()
         store.subscribe(self._on_params)
@@ -319,6 +324,15 @@ class Controls:
         if self.notice:
             lines.append(f"notice: {self.notice}")
         self.status.content = "  \n".join(lines)
+
+
+CAMERA_VIEWS = ("behind the leader", "above the leader", "free")
+LAYERS = ("Formation and slots", "Trails", "Obstacles as known", "Working-area rings", "Safety rings")
+LAYER_KEY = ("<small>**3D key** · dark box, coloured marker: a follower where the camera sees it (F1, F2, …) ·"
+             " wireframe: its true pose (simulation) · red line and red dots: the formation, leader to each slot"
+             " (drag a dot to move the slot; shift-click the floor sets a goal) · coloured lines: trails ·"
+             " orange points: obstacles as the leader knows them · blue rings: the camera's working area ·"
+             " red ring round a follower: the safety filter holding its command back · green pole: the goal</small>")
 
 
 def _phase_text(s: TickState) -> str:

@@ -22,6 +22,11 @@ WORKING_RING_M = (0.3, 1.5)
 TRAIL_SECONDS = 20.0
 
 
+SLOT_Z_M = 0.16  # slot dots above a follower's body (0.11 m high): a settled robot does not hide its slot
+BEHIND_M, BEHIND_UP_M = 2.5, 2.0  # the "behind the leader" camera: this far behind, this high
+ABOVE_M = 6.0  # the "above the leader" camera's height
+
+
 def yaw_wxyz(yaw: float) -> tuple[float, float, float, float]:
     return (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
 
@@ -48,8 +53,8 @@ class Scene:
                        wxyz=yaw_wxyz(0.0), position=(0, 0, 0.35))
         s.add_arrows("/leader/heading", points=np.array([[[0, 0.1, 0.25], [0, 0.45, 0.25]]]),
                      colors=(40, 70, 140), shaft_radius=0.015, head_radius=0.04, head_length=0.08)
-        for r in WORKING_RING_M:
-            s.add_line_segments(f"/leader/ring_{r}", _circle(r), colors=(120, 160, 220), thickness=0.01)
+        self.rings = [s.add_line_segments(f"/leader/ring_{r}", _circle(r), colors=(120, 160, 220), thickness=0.01)
+                      for r in WORKING_RING_M]
         self.slot_handles: list[viser.TransformControlsHandle] = []
         self.followers: list[viser.FrameHandle] = []
         self.ghosts: list[viser.FrameHandle] = []
@@ -59,6 +64,10 @@ class Scene:
         self._slots_key = b""
         self._trail_at = -1.0
         self._dragging = False
+        self._known_on = self._safety_on = True
+        self.formation_line: viser.LineSegmentsHandle | None = None
+        self._reset_asked = False
+        controls.reset_view.on_click(lambda _: self._ask_reset())
         for k, o in enumerate(obstacles):
             s.add_box(f"/obstacles/{k}", color=(160, 110, 60), dimensions=(o.length, o.width, o.height),
                       position=(o.x, o.y, o.height / 2), wxyz=yaw_wxyz(o.heading), opacity=0.85)
@@ -78,6 +87,9 @@ class Scene:
                 return  # the ray never meets the floor
             t = -oz / dz
             self.controls.drive_to(event, (ox + t * dx, oy + t * dy), what="goal clicked")
+    def _ask_reset(self) -> None:
+        self._reset_asked = True  # the next update places the cameras (on the page's thread)
+
     def _rebuild(self, n: int, state: TickState) -> None:
         s = self.server.scene
         for line in self.active:  # children of /followers/i: first, or removing the frames took them already
@@ -111,7 +123,7 @@ class Scene:
     def _add_slot_handle(self, j: int, xy: np.ndarray) -> None:
         h = self.server.scene.add_transform_controls(
             f"/leader/slots/{j}", scale=0.25, disable_rotations=True, active_axes=(True, True, False),
-            position=(float(xy[0]), float(xy[1]), 0.02), depth_test=False,
+            position=(float(xy[0]), float(xy[1]), SLOT_Z_M), depth_test=False,
         )
         self.server.scene.add_icosphere(f"/leader/slots/{j}/dot", radius=0.04, color=(200, 40, 40))
 
@@ -135,7 +147,7 @@ class Scene:
             self._slots_key = key
             slots = state.slot_targets
             for j, h in enumerate(self.slot_handles):
-                target = (float(slots[j, 0]), float(slots[j, 1]), 0.02)
+                target = (float(slots[j, 0]), float(slots[j, 1]), SLOT_Z_M)
                 if np.abs(np.asarray(h.position) - target).max() > 1e-6:
                     h.position = target
             # The formation polygon: leader -> assigned slots in angular order -> leader.
@@ -144,8 +156,9 @@ class Scene:
             ring = np.vstack([[0.0, 0.0], used[order], [0.0, 0.0]])
             pts = np.column_stack([ring, np.full(len(ring), 0.015)])
             seg = np.stack([pts[:-1], pts[1:]], axis=1)
-            self.server.scene.add_line_segments(
-                "/leader/formation", seg, colors=(200, 40, 40), thickness=0.012
+            self.formation_line = self.server.scene.add_line_segments(
+                "/leader/formation", seg, colors=(200, 40, 40), thickness=0.012,
+                visible=bool(self.controls.layers["Formation and slots"].value),
             )
 
         # Estimated poses (what the controller sees) drawn in the world.
@@ -178,16 +191,47 @@ class Scene:
                     self.trail_handles[i].points = np.stack([p3[:-1], p3[1:]], axis=1)
         if every_tenth:
             self._safety_view(state, est_world, known)
-        if self.controls.follow_leader.value and every_tenth:
-            for client in self.server.get_clients().values():
-                client.camera.look_at = (float(lx), float(ly), 0.0)
+        if every_tenth:
+            self._layers()
+            if self._reset_asked or self.controls.camera_view.value != "free":
+                self._place_cameras(float(lx), float(ly), float(lth), str(self.controls.camera_view.value))
+                self._reset_asked = False
+
+    def _layers(self) -> None:
+        """Each layer shown or hidden as the View folder's boxes say."""
+        on = {name: bool(box.value) for name, box in self.controls.layers.items()}
+        for slot in self.slot_handles:
+            slot.visible = on["Formation and slots"]
+        if self.formation_line is not None:
+            self.formation_line.visible = on["Formation and slots"]
+        for trail in self.trail_handles:
+            trail.visible = on["Trails"]
+        for ring in self.rings:
+            ring.visible = on["Working-area rings"]
+        self._known_on = on["Obstacles as known"]
+        self._safety_on = on["Safety rings"]
+
+    def _place_cameras(self, lx: float, ly: float, lth: float, view: str) -> None:
+        """Every browser's 3D camera where the chosen view puts it (``free``: an overview, on reset)."""
+        ahead = np.array([math.cos(lth), math.sin(lth)])
+        if view == "behind the leader":
+            eye, at = np.array([lx, ly]) - BEHIND_M * ahead, np.array([lx, ly]) + 0.8 * ahead
+            position, look_at = (float(eye[0]), float(eye[1]), BEHIND_UP_M), (float(at[0]), float(at[1]), 0.0)
+        elif view == "above the leader":  # a hair behind: straight down has no "up" on the screen
+            position, look_at = (lx - 0.01 * ahead[0], ly - 0.01 * ahead[1], ABOVE_M), (lx, ly, 0.0)
+        else:
+            position, look_at = (lx - 3.0, ly - 3.0, 3.0), (lx, ly, 0.0)
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.position = position
+                client.camera.look_at = look_at
 
     def _safety_view(self, state: TickState, est_world: np.ndarray, known: np.ndarray) -> None:
         """The obstacles the leader knows (scan and memory), the goal, the planned heading, and a
         red ring on each follower whose command the safety filter is holding back."""
         lx, ly, lth = (float(v) for v in state.leader)
         pts = state.obstacles
-        if pts is not None and len(pts):
+        if pts is not None and len(pts) and self._known_on:
             world = leader_to_world(pts, (lx, ly), lth)
             self.known.points = np.column_stack([world, np.full(len(world), 0.03)]).astype(np.float32)
             self.known.visible = True
@@ -203,4 +247,4 @@ class Scene:
                                         dtype=np.float32)
         active = state.safety_active if state.safety_active is not None else np.zeros(state.n, dtype=bool)
         for i, ring in enumerate(self.active):
-            ring.visible = bool(active[i]) and bool(known[i])
+            ring.visible = bool(active[i]) and bool(known[i]) and self._safety_on

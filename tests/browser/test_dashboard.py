@@ -207,3 +207,36 @@ def test_plots_window_freeze_and_csv_export(page, service, tmp_path):
     assert float(lines[1].split(",")[0]) == pytest.approx(frozen[0], abs=1e-3)
     page.locator(f'[id="{freeze}"] input, input[id="{freeze}"]').first.click()
     wait_for(lambda: plots.freeze.value is False, what="freeze off")
+
+
+def test_the_view_folder_places_the_camera_and_hides_layers(page, service):
+    """The 3D camera behind the leader (the default) turns with it; above the leader it looks
+    down on it; each layer's box hides its layer; the key names what is drawn."""
+    import math
+
+    import numpy as np
+
+    page.get_by_text("3D key", exact=False).first.wait_for(timeout=30_000)
+    wait_for(lambda: bool(service.server.get_clients()), 30.0, "the browser connected")
+    client = next(iter(service.server.get_clients().values()))
+
+    def behind() -> bool:
+        lx, ly, lth = service.loop.last.leader
+        eye = np.array([lx, ly]) - 2.5 * np.array([math.cos(lth), math.sin(lth)])
+        return bool(np.allclose(np.asarray(client.camera.position)[:2], eye, atol=0.3)
+                    and abs(client.camera.position[2] - 2.0) < 0.05)
+
+    wait_for(behind, 30.0, "the camera 2.5 m behind the leader, 2 m up")
+    controls, scene = service.dashboard.controls, service.dashboard.scene
+    controls.camera_view.value = "above the leader"
+    wait_for(lambda: abs(client.camera.position[2] - 6.0) < 0.05
+             and np.allclose(np.asarray(client.camera.look_at)[:2], service.loop.last.leader[:2], atol=0.3),
+             30.0, "the camera above the leader")
+    controls.layers["Trails"].value = False
+    controls.layers["Formation and slots"].value = False
+    wait_for(lambda: not any(h.visible for h in scene.trail_handles) and not any(h.visible for h in scene.slot_handles)
+             and scene.formation_line is not None and not scene.formation_line.visible, 30.0, "the layers hidden")
+    controls.layers["Trails"].value = True
+    controls.layers["Formation and slots"].value = True
+    controls.camera_view.value = "behind the leader"
+    wait_for(lambda: all(h.visible for h in scene.trail_handles), 30.0, "the trails back")
