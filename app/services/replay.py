@@ -31,6 +31,8 @@ if TYPE_CHECKING:
 
 SPEEDS = ("0.25", "0.5", "1", "2", "4", "8")
 PLAYBACK_HZ = 30.0
+MAX_MARKS = 200  # events marked on the timeline (a session with more keeps them in the list)
+MAX_LISTED = 2000  # events in the "Go to event" list
 
 
 class ReplayService:
@@ -55,14 +57,20 @@ class ReplayService:
         self.unreadable = 0  # ticks that could not be shown (a damaged file)
         t0, t1 = float(self.t[0]), float(self.t[-1])
         with gui.add_folder("Replay", order=self.dashboard.controls.status.order + 0.25):
+            marks = tuple(round(min(max(t, t0), t1), 3) for t in self.event_t[:MAX_MARKS])  # the events, on it
             self.timeline = gui.add_slider("Time (s)", min=round(t0, 3), max=round(max(t1, t0 + 1e-3), 3),
-                                           step=1.0 / PLAYBACK_HZ, initial_value=round(t0, 3))
+                                           step=1.0 / PLAYBACK_HZ, initial_value=round(t0, 3), marks=marks or None)
             self.play_button = gui.add_button("Play replay")
             self.speed_menu = gui.add_dropdown("Speed", options=SPEEDS, initial_value="1")
             self.step_button = gui.add_button("Step")
             self.prev_event = gui.add_button("Previous event")
             self.next_event = gui.add_button("Next event")
             self.event_text = gui.add_markdown(self._events_summary())
+            self._event_labels = [f"{float(e['t']):.1f} s · {e.get('kind', '?')}: {str(e.get('detail', ''))[:80]}"
+                                  for e in sorted(rec.events, key=lambda e: float(e["t"]))][:MAX_LISTED]
+            self.event_list = gui.add_dropdown("Go to event", options=("-", *self._event_labels), initial_value="-",
+                                               disabled=not self._event_labels,
+                                               hint="every event the session recorded, in time order")
         if rec.loss_note():
             with gui.add_folder("Recording"):
                 gui.add_markdown(f"**{as_text(rec.loss_note())}**")
@@ -107,6 +115,13 @@ class ReplayService:
             with self._lock:
                 self.seek(self._index_at(float(self.timeline.value)))
 
+        @self.event_list.on_update
+        def _(event: viser.GuiEvent[Any]) -> None:
+            if event.client_id is None or self.event_list.value == "-":
+                return
+            k = self._event_labels.index(str(self.event_list.value))
+            self.go_to_event(k)
+
         @self.next_event.on_click
         def _(_: viser.GuiEvent[Any]) -> None:
             self.jump_to_event(+1)
@@ -132,6 +147,15 @@ class ReplayService:
             if target is not None:
                 self.seek(self._index_at_or_after(target))
             return target
+
+    def go_to_event(self, k: int) -> float:
+        """To the k-th event in time order (the event list's row k): the first tick at or after it."""
+        target = self.event_t[k]
+        with self._lock:
+            self.playing = False
+            self.seek(self._index_at_or_after(target))
+        self.play_button.label = "Play replay"
+        return target
 
     def _index_at_or_after(self, t: float) -> int:
         return int(np.clip(np.searchsorted(self.t, t - 1e-6, side="left"), 0, len(self.t) - 1))

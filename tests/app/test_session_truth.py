@@ -100,6 +100,13 @@ def test_the_replay_shows_the_settings_in_force_at_the_moment_shown(tmp_path):
         assert replay.store.get().gains.k_f1 == 0.15 and not replay.store.get().stop
         replay.seek(5)  # and back
         assert replay.dashboard.controls.gains["k_f1"].value == 0.1
+        # every event listed in time order and marked on the timeline; choosing one goes there
+        labels = list(replay.event_list.options)[1:]
+        assert len(labels) == len(back.events) and any("reset" in label for label in labels)
+        assert len(replay.timeline._impl.props._marks or ()) == len(back.events)  # (viser keeps them private)
+        k = next(i for i, label in enumerate(labels) if "reset" in label)
+        t = replay.go_to_event(k)
+        assert float(back.t[replay.index]) >= t - 1e-6 and replay.index > 0
     finally:
         replay.close()
 
