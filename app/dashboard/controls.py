@@ -107,6 +107,7 @@ class Controls:
                                                hint="simulation: the true pose as a wireframe beside the estimate")
             self.layers = {name: gui.add_checkbox(name, initial_value=True) for name in LAYERS}
             gui.add_markdown(LAYER_KEY)
+            self.selected = gui.add_markdown("<small>click a robot in the 3D view to see its figures</small>")
         self._build_slot_inputs(p)
         self._wire()
         store.subscribe(self._on_params)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import viser
@@ -67,6 +69,7 @@ class Scene:
         self._known_on = self._safety_on = True
         self.formation_line: viser.LineSegmentsHandle | None = None
         self._reset_asked = False
+        self.selected: int | None = None  # the follower clicked in the 3D view
         controls.reset_view.on_click(lambda _: self._ask_reset())
         for k, o in enumerate(obstacles):
             s.add_box(f"/obstacles/{k}", color=(160, 110, 60), dimensions=(o.length, o.width, o.height),
@@ -87,6 +90,29 @@ class Scene:
                 return  # the ray never meets the floor
             t = -oz / dz
             self.controls.drive_to(event, (ox + t * dx, oy + t * dy), what="goal clicked")
+    def _selector(self, i: int) -> Callable[[Any], None]:
+        def chosen(_: Any) -> None:
+            self.select(i)
+        return chosen
+
+    def select(self, i: int | None) -> None:
+        """Follower ``i`` (0-based; None: nobody) described under the View folder from the next tick on."""
+        self.selected = i
+
+    def _describe(self, state: TickState) -> None:
+        i = self.selected
+        if i is None or i >= state.n:
+            self.controls.selected.content = "<small>click a robot in the 3D view to see its figures</small>"
+            return
+        p, a, pd = state.p_est[i], float(state.a_est[i]), state.p_d[i]
+        err = float(np.hypot(*(pd - p))) * 100 if np.all(np.isfinite(p)) else math.nan
+        v, w = (float(x) for x in state.commands[i])
+        seen = "tracked" if bool(state.tracked[i]) else "**not tracked**"
+        self.controls.selected.content = (
+            f"**F{i + 1}** ({seen}) · leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
+            f" {math.degrees(a):.0f}° · slot ({pd[0]:+.2f}, {pd[1]:+.2f}) m · error {err:.1f} cm ·"
+            f" command v {v:+.3f} m/s, ω {w:+.2f} rad/s · link: {state.link_state}")
+
     def _ask_reset(self) -> None:
         self._reset_asked = True  # the next update places the cameras (on the page's thread)
 
@@ -103,8 +129,11 @@ class Scene:
         for i in range(n):
             rgb = follower_rgb(i)
             f = s.add_frame(f"/followers/{i}", show_axes=False)
-            s.add_box(f"/followers/{i}/body", color=(45, 45, 45), dimensions=(0.25, 0.15, 0.10), position=(0, 0, 0.05))
-            s.add_box(f"/followers/{i}/marker", color=rgb, dimensions=(0.12, 0.08, 0.01), position=(0, 0, 0.105))
+            body = s.add_box(f"/followers/{i}/body", color=(45, 45, 45), dimensions=(0.25, 0.15, 0.10),
+                             position=(0, 0, 0.05))
+            marker = s.add_box(f"/followers/{i}/marker", color=rgb, dimensions=(0.12, 0.08, 0.01), position=(0, 0, 0.105))
+            for part in (body, marker):  # a click on a robot shows its pose, error, command and link
+                part.on_click(self._selector(i))
             s.add_arrows(f"/followers/{i}/heading", points=np.array([[[0.1, 0, 0.12], [0.35, 0, 0.12]]]), colors=rgb,
                          shaft_radius=0.01, head_radius=0.03, head_length=0.06)
             s.add_label(f"/followers/{i}/label", f"F{i + 1}", position=(0, 0, 0.3))
@@ -193,6 +222,7 @@ class Scene:
             self._safety_view(state, est_world, known)
         if every_tenth:
             self._layers()
+            self._describe(state)
             if self._reset_asked or self.controls.camera_view.value != "free":
                 self._place_cameras(float(lx), float(ly), float(lth), str(self.controls.camera_view.value))
                 self._reset_asked = False

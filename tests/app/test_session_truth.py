@@ -147,3 +147,27 @@ def test_the_status_says_start_up_while_the_camera_finds_the_team_not_lost(tmp_p
         assert "start-up (" in text and "found so far" in text and ", lost " not in text, text
     finally:
         svc.close()
+
+
+def test_a_robot_chosen_in_the_3d_view_is_described_each_tick(tmp_path):
+    """Its pose in the leader frame, its slot and error, its command and the link, as the tick
+    has them (``select`` is what a click on a robot's body or marker runs)."""
+    from app.services.live import Service
+    from app.dashboard.widgets import on_page_thread
+
+    svc = Service(port=0, n_followers=2, recordings=tmp_path)
+    try:
+        scene = svc.dashboard.scene
+        state = svc.loop.tick()
+        assert on_page_thread(svc.server, lambda: scene.update(state))
+        assert "click a robot" in svc.dashboard.controls.selected.content
+        scene.select(1)
+        scene._trail_at = -1.0  # the next update is a tenth of a second on
+        state = svc.loop.tick()
+        assert on_page_thread(svc.server, lambda: scene.update(state))
+        text = svc.dashboard.controls.selected.content
+        err = float(np.hypot(*(state.p_d[1] - state.p_est[1]))) * 100
+        assert text.startswith("**F2** (tracked)") and f"error {err:.1f} cm" in text, text
+        assert f"x {state.p_est[1][0]:+.3f} m" in text and f"v {state.commands[1][0]:+.3f} m/s" in text
+    finally:
+        svc.close()
