@@ -186,7 +186,7 @@ class CalibrationPanel:
                                  for b, d, u, v in zip(t.bearing_deg, t.metres, t.u, t.v)]
                 self._refit()
                 self.show_next()
-                return self._say(f"loaded {len(self.rows)} markers from {path}")
+                return self._say(f"loaded {_markers(len(self.rows))} from {path}")
             if path.suffix.lower() == ".toml":
                 cam = load_camera(path)
                 g = cam.gamma
@@ -210,7 +210,7 @@ class CalibrationPanel:
         n = len(self.rows)
         if n < 6:
             self.fit, self.held, self.warnings, self.fitted = None, None, [], n
-            self._show_quality(f"{n} markers: the fit needs at least 6 (and {DEGREE + 2} per bearing)")
+            self._show_quality(f"{_markers(n)}: the fit needs at least 6 (and {DEGREE + 2} at each bearing it uses)")
             return
         table = self.table()
         flip, offset = False, 0.0
@@ -229,7 +229,7 @@ class CalibrationPanel:
             warnings.insert(0, f"positions may be off by more than 3 cm (held-out p95 {held.p95_cm:.1f} cm):"
                                " capture more markers")
         self.fit, self.held, self.warnings, self.fitted = fit, held, warnings, n
-        rows = "".join(f"<tr><td>{s.bearing_deg:g}</td><td>{s.points}</td><td>{s.rms_cm:.2f}</td>"
+        rows = "".join(f"<tr><td>{_guide_deg(s.bearing_deg):g}</td><td>{s.points}</td><td>{s.rms_cm:.2f}</td>"
                        f"<td>{s.max_cm:.2f}</td></tr>" for s in fit.sectors)
         mounted = (f"<div>the camera is turned by {offset:+.1f} deg{' and mirrored' if flip else ''} (read from"
                    " the markers)</div>") if (flip or offset) else ""
@@ -251,7 +251,7 @@ class CalibrationPanel:
         from app.recording.plots import figure_rgb
 
         assert self.fit is not None
-        fig = Figure(figsize=(4.6, 2.4), constrained_layout=True)
+        fig = Figure(figsize=(6.4, 3.4), constrained_layout=True)
         ax: Any = fig.add_subplot(1, 2, 1, projection="polar")
         ax.set_theta_zero_location("N")
         tb = np.radians([t[0] for t in self.targets])
@@ -261,7 +261,8 @@ class CalibrationPanel:
         ax.tick_params(labelsize=6)
         bx = fig.add_subplot(1, 2, 2)
         sectors = self.fit.sectors
-        bx.bar([f"{s.bearing_deg:g}" for s in sectors], [s.rms_cm for s in sectors], color="tab:blue")
+        bx.bar([f"{_guide_deg(s.bearing_deg):g}" for s in sectors], [s.rms_cm for s in sectors], color="tab:blue")
+        bx.set_xlabel("sector (deg, as the guide names bearings)", fontsize=7)
         if self.held is not None:
             bx.axhline(self.held.p95_cm, color="tab:red", ls="--", lw=0.8, label="held-out p95")
             bx.legend(fontsize=6)
@@ -275,7 +276,8 @@ class CalibrationPanel:
         target = next_target(self.targets, [(r[0], r[1]) for r in self.rows])
         done = len(self.rows)
         if target is None:
-            self.guide.content = f"**{done} markers captured**: the guide's {len(self.targets)} are done; more anywhere help."
+            self.guide.content = (f"**{_markers(done)} captured**: the guide's {len(self.targets)} are done;"
+                                  " more anywhere help.")
             return
         b, d = target
         self.guide.content = (f"**Next marker ({done + 1} of {len(self.targets)})**: bearing {b:g}° (0 ahead,"
@@ -359,3 +361,12 @@ class CalibrationService:
         self.gate.close()
         quietly(self.server.stop)
         self.source.close()
+
+
+def _markers(n: int) -> str:
+    return f"{n} marker" if n == 1 else f"{n} markers"
+
+
+def _guide_deg(bearing_deg: float) -> float:
+    """A sector's bearing as the guide names bearings: 0 to 360 degrees (not -180 to 180)."""
+    return round(bearing_deg % 360.0, 6) % 360.0
