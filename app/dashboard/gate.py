@@ -89,6 +89,9 @@ KEYBOARD_STOP = b"""<style>
   font-weight: 700; font-size: 15px; cursor: pointer; }
 #omni-stopbar button:disabled { background: #f1a5a5; cursor: default; }
 #omni-stopstate { overflow: hidden; text-overflow: ellipsis; white-space: nowrap; }
+#omni-wide { position: fixed; left: 8px; bottom: 48px; z-index: 2147483000; padding: 4px 10px;
+  background: rgba(255, 255, 255, 0.94); border: 1px solid #888; border-radius: 6px;
+  font: 12px/1.3 system-ui, sans-serif; cursor: pointer; }
 </style>
 <script>
 (function () {
@@ -159,7 +162,48 @@ KEYBOARD_STOP = b"""<style>
       else if (++tries > 120) { clearInterval(wait); if (tab) tab.close(); }  // 30 s: nothing came (the page says why)
     }, 250);
   }, true);
+  // "Wide panel": the control panel (its charts and the camera) at half the window, and back;
+  // this browser only (the page's width is a matter for whoever looks at it)
+  function panelRoot() {
+    var n = document.querySelector(".uplot"), root = null;
+    for (; n; n = n.parentElement) if (n.classList && n.classList.contains("mantine-Paper-root")) root = n;
+    return root;
+  }
+  function widen(on) {
+    var root = panelRoot();
+    if (!root) return false;
+    root.style.width = on ? "50vw" : "";
+    root.style.maxWidth = on ? "50vw" : "";
+    root.style.transform = "";
+    var r = root.getBoundingClientRect();
+    if (on && r.right > window.innerWidth) root.style.transform = "translateX(" + (window.innerWidth - r.right - 8) + "px)";
+    Array.prototype.forEach.call(root.querySelectorAll("img[src^='blob:']"), function (img) {
+      img.style.width = on ? "100%" : "";
+    });
+    window.dispatchEvent(new Event("resize"));
+    return true;
+  }
+  function wideButton() {
+    var b = document.getElementById("omni-wide");
+    if (b || !document.body || !panelRoot()) return b;
+    b = document.createElement("button");
+    b.id = "omni-wide";
+    b.type = "button";
+    b.textContent = "Wide panel";
+    b.title = "the panel, its charts and the camera at half the window (this browser only)";
+    b.addEventListener("click", function () {
+      var on = b.getAttribute("aria-pressed") !== "true";
+      if (widen(on)) { b.setAttribute("aria-pressed", on ? "true" : "false"); b.textContent = on ? "Narrow panel" : "Wide panel"; }
+    });
+    document.body.appendChild(b);
+    return b;
+  }
   setInterval(function () {
+    var wide = wideButton();
+    if (wide && wide.getAttribute("aria-pressed") === "true") {  // a panel redrawn since keeps it
+      var root = panelRoot();
+      if (root && root.style.width !== "50vw") widen(true);
+    }
     var el = bar(), stop = panelStop();
     if (!el) return;
     el.style.display = stop ? "flex" : "none";

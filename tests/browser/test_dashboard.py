@@ -240,3 +240,23 @@ def test_the_view_folder_places_the_camera_and_hides_layers(page, service):
     controls.layers["Formation and slots"].value = True
     controls.camera_view.value = "behind the leader"
     wait_for(lambda: all(h.visible for h in scene.trail_handles), 30.0, "the trails back")
+
+
+def test_wide_panel_enlarges_the_charts_and_the_camera(page, service):
+    """The page's Wide panel button (this browser only): the charts and the camera at about half
+    the window, the panel still in view; pressed again, back."""
+    page.locator(".uplot").first.wait_for(state="attached", timeout=60_000)
+    narrow = page.locator(".uplot").first.bounding_box()
+    assert narrow is not None and narrow["width"] < 450
+    page.locator("#omni-wide").click(timeout=60_000)
+    wait_for(lambda: (page.locator(".uplot").first.bounding_box() or {"width": 0})["width"] > 550, 30.0,
+             "the charts wide")
+    img = page.locator("img[src^='blob:']").first
+    wait_for(lambda: (img.bounding_box() or {"width": 0})["width"] > 550, 30.0, "the camera wide")
+    box = page.locator(".uplot").first.bounding_box()
+    assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= page.viewport_size["width"]
+    ARTIFACTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "wide-panel.png"))
+    page.locator("#omni-wide").click(timeout=60_000)
+    wait_for(lambda: (page.locator(".uplot").first.bounding_box() or {"width": 999})["width"] < 450, 30.0,
+             "the charts narrow again")
