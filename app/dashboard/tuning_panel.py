@@ -41,8 +41,10 @@ from app.tick import TickState
 from app.live.tuning import StepTests, Trial, trial_cells, trials_csv
 
 STRIP_S = 10.0
-STRIP_ROW_PX = 5
+STRIP_ROW_PX = 8
 STRIP_WIDTH = 300
+STRIP_GUTTER_PX = 28  # the followers' names
+STRIP_AXIS_PX = 16  # the time axis
 REDRAW_S = 0.25
 LIMIT_RGB = ((230, 120, 20), (150, 60, 200), (200, 30, 30), (30, 110, 210), (20, 150, 90))
 TREND_TEXT = {-1: ("falling", "#1a7f37"), 0: ("flat", "#57606a"), 1: ("rising", "#cf222e")}
@@ -62,7 +64,8 @@ class LyapunovMonitor:
         self.server = server
         with server.gui.add_folder("Lyapunov monitor", expand_by_default=False):
             self.table = server.gui.add_html("<i>waiting for the loop</i>")
-            self.strip = server.gui.add_image(np.full((STRIP_ROW_PX, STRIP_WIDTH, 3), 255, np.uint8), label="last 10 s",
+            self.strip = server.gui.add_image(np.full((STRIP_ROW_PX, STRIP_GUTTER_PX + STRIP_WIDTH, 3), 255, np.uint8),
+                                              label="limits, last 10 s",
                                               format="png")
             server.gui.add_html(_legend())
         self._hist: deque[tuple[float, np.ndarray]] = deque()
@@ -105,8 +108,26 @@ class LyapunovMonitor:
                 "<th>V is</th><th>limits now</th></tr>" + "".join(rows) + "</table>")
 
     def render_strip(self, n: int) -> np.ndarray:
+        """Per follower one row per limit (LIMIT_RGB) over the last STRIP_S, the follower named in
+        its colour on the left, the time axis below (seconds before now)."""
+        import cv2
+
         k = len(LIMIT_NAMES)
-        img = np.full((max(1, n * k) * STRIP_ROW_PX, STRIP_WIDTH, 3), 255, np.uint8)
+        rows_px = max(1, n * k) * STRIP_ROW_PX
+        img = np.full((rows_px + STRIP_AXIS_PX, STRIP_GUTTER_PX + STRIP_WIDTH, 3), 255, np.uint8)
+        plot = img[:rows_px, STRIP_GUTTER_PX:]
+        for i in range(n):
+            r, g, b = follower_rgb(i)
+            cv2.putText(img, f"F{i + 1}", (3, i * k * STRIP_ROW_PX + (k * STRIP_ROW_PX) // 2 + 5),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.42, (r, g, b), 1, cv2.LINE_AA)
+            if i:
+                img[i * k * STRIP_ROW_PX - 1, :] = (r, g, b)
+        for frac, text in ((0.0, f"-{STRIP_S:g} s"), (0.5, f"-{STRIP_S / 2:g} s"), (1.0, "now")):
+            x = STRIP_GUTTER_PX + int(frac * (STRIP_WIDTH - 1))
+            img[rows_px:rows_px + 3, x] = 90
+            size = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0]
+            cv2.putText(img, text, (min(max(x - size // 2, 0), img.shape[1] - size), rows_px + 13),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.35, (60, 60, 60), 1, cv2.LINE_AA)
         if not self._hist:
             return img
         t = np.array([h[0] for h in self._hist])
@@ -115,13 +136,11 @@ class LyapunovMonitor:
             return img
         col = np.clip(((t - (t[-1] - STRIP_S)) / STRIP_S * (STRIP_WIDTH - 1)).astype(int), 0, STRIP_WIDTH - 1)
         for i in range(n):
-            for b in range(k):
-                on = col[((flags[:, i] >> b) & 1).astype(bool)]
+            for bit in range(k):
+                on = col[((flags[:, i] >> bit) & 1).astype(bool)]
                 if on.size:
-                    y0 = (i * k + b) * STRIP_ROW_PX
-                    img[y0:y0 + STRIP_ROW_PX - 1, on] = LIMIT_RGB[b]
-            if i:
-                img[i * k * STRIP_ROW_PX - 1, :] = follower_rgb(i)
+                    y0 = (i * k + bit) * STRIP_ROW_PX
+                    plot[y0:y0 + STRIP_ROW_PX - 1, on] = LIMIT_RGB[bit]
         return img
 
 

@@ -261,3 +261,28 @@ def test_a_step_test_warns_when_more_than_the_controller_moved_the_team(tmp_path
     _tick(quiet_loop, 5.0)
     quiet_rec.close()
     assert quiet_tests.trials[0].status == "done" and quiet_tests.trials[0].disturbed == ""
+
+
+def test_the_limits_strip_names_each_follower_and_its_time_axis():
+    """Rows per follower and limit, the follower's name in its colour on the left, the seconds
+    before now below; a limit active over the last seconds paints its row there."""
+    import cv2
+
+    from core.camera.render.looks import follower_rgb
+
+    from app.dashboard.tuning_panel import (LIMIT_RGB, STRIP_AXIS_PX, STRIP_GUTTER_PX, STRIP_ROW_PX, STRIP_WIDTH,
+                                            LyapunovMonitor)
+
+    monitor = LyapunovMonitor.__new__(LyapunovMonitor)  # the drawing alone (no page needed)
+    from collections import deque
+
+    monitor._hist = deque((k / 30, np.array([1 if k >= 150 else 0, 0])) for k in range(300))  # F1's first limit, last 5 s
+    img = monitor.render_strip(2)
+    k = len(LIMIT_RGB)
+    assert img.shape == (2 * k * STRIP_ROW_PX + STRIP_AXIS_PX, STRIP_GUTTER_PX + STRIP_WIDTH, 3)
+    gutter = img[:k * STRIP_ROW_PX, :STRIP_GUTTER_PX].reshape(-1, 3)
+    assert (np.abs(gutter.astype(int) - follower_rgb(0)).sum(axis=1) < 60).any()  # "F1" in F1's colour
+    row = img[2, STRIP_GUTTER_PX:]
+    assert (row[-10:] == LIMIT_RGB[0]).all() and (row[:100] == 255).all()  # on for the last half only
+    assert (img[-STRIP_AXIS_PX:] < 200).any()  # the axis' labels
+    assert cv2.imencode(".png", img)[0]
