@@ -210,7 +210,8 @@ class CalibrationPanel:
         n = len(self.rows)
         if n < 6:
             self.fit, self.held, self.warnings, self.fitted = None, None, [], n
-            self._show_quality(f"{_markers(n)}: the fit needs at least 6 (and {DEGREE + 2} at each bearing it uses)")
+            self._show_quality(f"{_markers(n)}: the fit needs at least 6, and {DEGREE + 2} at each bearing it"
+                               f" uses; {self._per_bearing()}")
             return
         table = self.table()
         flip, offset = False, 0.0
@@ -221,7 +222,7 @@ class CalibrationPanel:
             fit = fit_gamma(table, degree=DEGREE, source="the captures", flip=flip, bearing_offset_deg=offset)
         except CalibrationError as exc:
             self.fit, self.held, self.warnings, self.fitted = None, None, [], n
-            self._show_quality(f"not fitted yet: {exc}")
+            self._show_quality(f"not fitted yet: {exc}; {self._per_bearing()}")
             return
         held = held_out_error(table, fit.gamma, fit.gamma.degree)
         warnings = coverage_warnings(table)
@@ -240,6 +241,16 @@ class CalibrationPanel:
                   "<th>max (cm)</th></tr>" + rows + "</table>")
         self.quality.content = text
         self._draw_figure()
+
+    def _per_bearing(self) -> str:
+        """How many markers each bearing has against what the fit needs there (the guide's names)."""
+        counts: dict[float, int] = {}
+        for b, *_ in self.rows:
+            key = _guide_deg(b)
+            counts[key] = counts.get(key, 0) + 1
+        if not counts:
+            return "none captured yet"
+        return "so far " + ", ".join(f"{b:g}°: {c}/{DEGREE + 2}" for b, c in sorted(counts.items()))
 
     def _show_quality(self, text: str) -> None:
         self.quality.content = f"<div>{html.escape(text)}</div>"

@@ -165,7 +165,7 @@ KEYBOARD_STOP = b"""<style>
   // "Wide panel": the control panel (its charts and the camera) at half the window, and back;
   // this browser only (the page's width is a matter for whoever looks at it)
   function panelRoot() {
-    var n = document.querySelector(".uplot"), root = null;
+    var n = document.querySelector(".uplot") || document.querySelector("img[src^='blob:']"), root = null;
     for (; n; n = n.parentElement) if (n.classList && n.classList.contains("mantine-Paper-root")) root = n;
     return root;
   }
