@@ -216,7 +216,11 @@ def test_the_view_folder_places_the_camera_and_hides_layers(page, service):
 
     import numpy as np
 
-    page.get_by_text("3D key", exact=False).first.wait_for(timeout=30_000)
+    key = page.get_by_text("3D key", exact=False).first
+    key.wait_for(timeout=30_000)
+    key.scroll_into_view_if_needed()
+    ARTIFACTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "view-key.png"))  # the layers' boxes and the key beside the 3D view
     wait_for(lambda: bool(service.server.get_clients()), 30.0, "the browser connected")
     client = next(iter(service.server.get_clients().values()))
 
