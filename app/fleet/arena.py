@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from core.bounds import LEADER_SPEED, LEADER_TURN
 from core.control.safety import SafetySettings
 from core.fleet import MAX_TEAM, ArenaState, FleetScenario, closest_distance, initial_arena, step_arena
 from core.link.protocol import WATCHDOG_S
@@ -40,6 +41,7 @@ from app.keys import robot_index, robot_name, root
 
 log = logging.getLogger(__name__)
 
+STALE_DRIVE_S = 0.5  # a drive computed from a truth older than this moves nothing
 CONTACT_M = SafetySettings().min_distance_m  # two bodies' centres closer than this: the safety filter's limit broken
 
 
@@ -49,6 +51,7 @@ class ArenaCounts:
     drives: int = 0
     conflicts: int = 0  # a robot commanded by a leader that knew it did not own it (refused)
     late: int = 0  # a command from a robot's former owner that had not yet seen the truth of the change (refused)
+    stale: int = 0  # drives computed from a truth older than STALE_DRIVE_S, or naming none (refused whole)
     malformed: int = 0  # messages on the arena's keys that are not what docs/fleet-protocol.md says
     claims_granted: int = 0
     claims_repeated: int = 0  # a leader claiming a robot it owns already: answered yes, nothing changes
@@ -75,6 +78,7 @@ class Arena:
         self.owner_since = np.zeros(n_robots, dtype=np.int64)  # the first truth tick that shows each owner
         self.twists = np.zeros((len(self.ids), 2))
         self.twist_t = np.full(len(self.ids), -math.inf)
+        self._leader_turn = math.radians(LEADER_TURN.hi)
         self.alive: set[str] = set()
         self.ever_alive: set[str] = set()
         self.counts = ArenaCounts()
@@ -138,8 +142,16 @@ class Arena:
                 return
             self.counts.drives += 1
             i = self.ids.index(leader)
-            self.twists[i] = twist
-            self.twist_t[i] = self.t
+            # computed from a truth older than STALE_DRIVE_S (a partition healing, a stalled sender) or
+            # from none it names: no robot moves by it, nor the leader
+            too_old = seen_tick is None or (self.counts.steps - seen_tick) * self.dt > STALE_DRIVE_S
+            if too_old:
+                self.counts.stale += 1
+            else:  # the world's physics: a leader's base within its limits
+                self.twists[i] = (min(max(twist[0], -LEADER_SPEED.hi), LEADER_SPEED.hi),
+                                  min(max(twist[1], -self._leader_turn), self._leader_turn))
+                self.twist_t[i] = self.t
+            dyn = self.scenario.dynamics
             for r, v, w in parsed:
                 if self.owners[r] != leader:
                     if seen_tick is not None and seen_tick < self.owner_since[r]:
@@ -147,6 +159,10 @@ class Arena:
                     else:
                         self.counts.conflicts += 1
                     continue
+                if too_old:
+                    continue
+                v = min(max(v, -dyn.speed_max_mps), dyn.speed_max_mps)  # a robot's body within its limits
+                w = min(max(w, -dyn.turn_max_rps), dyn.turn_max_rps)
                 self.commands[r] = (v, w)
                 self.command_t[r] = self.t
                 self.commanded_by[r] = leader
@@ -247,7 +263,7 @@ class Arena:
             "alive": sorted(self.alive), "lost": sorted(self.ever_alive - self.alive),
             "watchdog": [bool(b) for b in self.watchdog_stopped],
             "command_age": [round(float(a), 3) if math.isfinite(a) else None for a in self.t - self.command_t],
-            "conflicts": self.counts.conflicts, "late": self.counts.late, "closest_m": round(self.gap_m, 4), "contacts": self.counts.contacts,
+            "conflicts": self.counts.conflicts, "late": self.counts.late, "stale": self.counts.stale, "closest_m": round(self.gap_m, 4), "contacts": self.counts.contacts,
         }
 
     # -- one step ------------------------------------------------------------------------------

@@ -319,3 +319,42 @@ def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned()
             tok.undeclare()
         arena.close()
         session.close()
+
+
+def test_the_arena_is_the_worlds_physics_and_ignores_drives_from_old_truths():
+    """A drive computed from a truth older than 0.5 s (or naming none) moves nothing and is
+    counted; a fresh one is held to the bodies' limits: a leader's base to the page's speed and
+    turn bounds, a robot to its dynamics' (a 50 m/s twist does not throw a leader across the
+    arena). A real arena, a real Zenoh session in-process."""
+    from app.fleet.arena import STALE_DRIVE_S, Arena
+    from app.fleet.bridge import open_session
+    from core.bounds import LEADER_SPEED, LEADER_TURN
+
+    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
+    session = open_session([], [])
+    arena = Arena(scenario, session)
+    try:
+        for _ in range(30):
+            arena.step()
+        r = arena.owners.index("L1")
+        key = f"omniformation/{FLEET}/arena/drive/L1"
+        old = arena.counts.steps - int(STALE_DRIVE_S * scenario.rate_hz) - 5
+        for tick in (old, None):
+            session.put(key, json.dumps({"tick": 1, "truth_tick": tick, "twist": [50.0, 0.0],
+                                         "commands": {f"R{r + 1}": [0.3, 0.0]}}))
+        wait_for(lambda: arena.counts.stale == 2, 10, "two stale drives counted")
+        assert np.all(arena.commands[r] == 0.0) and np.all(arena.twists[0] == 0.0)
+        session.put(key, json.dumps({"tick": 2, "truth_tick": arena.counts.steps, "twist": [50.0, 9.0],
+                                     "commands": {f"R{r + 1}": [5.0, 50.0]}}))
+        wait_for(lambda: arena.counts.drives == 3, 10, "the fresh drive")
+        assert tuple(arena.twists[0]) == pytest.approx((LEADER_SPEED.hi, math.radians(LEADER_TURN.hi)))
+        dyn = scenario.dynamics
+        assert tuple(arena.commands[r]) == pytest.approx((dyn.speed_max_mps, dyn.turn_max_rps))
+        start = arena.state.leaders[0, :2].copy()
+        for _ in range(30):
+            arena.step()
+        assert float(np.hypot(*(arena.state.leaders[0, :2] - start))) <= LEADER_SPEED.hi * 1.0 + 1e-6
+        assert arena.truth()["stale"] == 2 and arena.counts.conflicts == 0
+    finally:
+        arena.close()
+        session.close()
