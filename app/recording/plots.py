@@ -58,7 +58,7 @@ def trajectory_panel(ax: Axes, t: np.ndarray, leader: np.ndarray, followers_worl
             ax.fill(pts[:, 0], pts[:, 1], facecolor="none", edgecolor="tab:red", lw=1.0)
             ax.annotate(f"{t[k]:.0f} s", (float(leader[k, 0]), float(leader[k, 1])), fontsize=7, color="tab:red",
                         xytext=(3, 3), textcoords="offset points")
-    for (x, y, heading, half_l, half_w) in np.asarray(boxes, dtype=float).reshape(-1, 5):  # the world's obstacles
+    for (x, y, heading, half_l, half_w) in (np.zeros((0, 5)) if boxes is None else np.asarray(boxes, float).reshape(-1, 5)):
         c, s_ = math.cos(heading), math.sin(heading)
         corners = np.array([[x + c * u - s_ * v, y + s_ * u + c * v]
                             for u, v in ((half_l, half_w), (-half_l, half_w), (-half_l, -half_w), (half_l, -half_w))])
