@@ -4,8 +4,10 @@ glibc's malloc raises its mmap threshold each time a large block is freed (up to
 after the first camera frame (640 × 480 × 3 = 900 KiB) is freed, frames come from the heap
 arenas instead of fresh mappings; with several threads (the loop, the web server, the
 recorder) each holding an arena, the freed space is fragmented and the resident size creeps
-up over hours though nothing leaks. A fixed threshold keeps every block over 256 KiB in its
-own mapping, returned to the system when freed, and two arenas bound the fragmentation
+up over hours though nothing leaks. A fixed threshold keeps every block over 64 KiB in its
+own mapping, returned to the system when freed (the recorder's second-long chunks of ticks,
+100-200 KiB each, and the buffers that grow to hold them among them: at 256 KiB they stayed in
+the heaps, and the heaps' free space grew 1.6 MB an hour), and two arenas bound the fragmentation
 (mallopt(3), M_MMAP_THRESHOLD and M_ARENA_MAX). What is freed inside a heap's pages is given
 back once a minute (malloc_trim(3), from a thread of its own: never the robots' loop).
 Elsewhere than glibc this does nothing.
@@ -31,7 +33,7 @@ import threading
 
 M_MMAP_THRESHOLD = -3
 M_ARENA_MAX = -8
-MMAP_THRESHOLD_BYTES = 256 * 1024
+MMAP_THRESHOLD_BYTES = 64 * 1024
 ARENAS = 2
 TRIM_EVERY_S = 60.0
 
