@@ -60,14 +60,15 @@ class TeamMemory:
         """Eq. 33 on the first poses known; the slots at rest where they are assigned."""
         assignment = np.asarray(assign_slots(p, formation))
         return TeamMemory(ControllerState.initial(len(assignment)), SlotMotion.at_rest(formation[assignment]),
-                          assignment, np.array(formation, dtype=np.float64))
+                          assignment, formation)  # kept as given: the caller's slots are never changed in place
 
     def with_formation(self, p: FloatArray, formation: FloatArray) -> TeamMemory:
         """New slots: eq. 33 again, the current assignment kept unless clearly beaten."""
-        if self.formation.shape == formation.shape and np.array_equal(self.formation, formation):
+        if self.formation is formation or (self.formation.shape == formation.shape
+                                           and np.array_equal(self.formation, formation)):
             return self
         assignment = np.asarray(assign_slots(p, formation, current=self.assignment, margin_m2=REASSIGN_MARGIN_M2))
-        return dataclasses.replace(self, assignment=assignment, formation=np.array(formation, dtype=np.float64))
+        return dataclasses.replace(self, assignment=assignment, formation=formation)
 
     def moved(self, scale: float, dt: float, keep_out: float, smooth: bool = True) -> TeamMemory:
         """The slots one tick on towards their targets (narrowed by ``scale`` across, not along)."""
@@ -105,6 +106,7 @@ def team_step(
     advance: bool = True,
     smooth: bool = True,
     acting: tuple[FloatArray, FloatArray] | None = None,
+    limits: bool = True,
 ) -> TeamStep:
     """One tick of the team. ``p``/``a``: where the followers are seen (leader frame, finite);
     ``tracked``: which of them the observation knows; ``formation``: the slots asked for now;
@@ -116,7 +118,9 @@ def team_step(
     (STOP: every command is zero anyway); ``scale``: the goal mode's narrowing; ``advance``
     false holds the slots (paused); ``smooth`` false puts them at their targets at once (a
     scenario whose slots never move); ``acting``: where each follower will be when this
-    command acts (a latency bridged, core.control.prediction), default where it is seen."""
+    command acts (a latency bridged, core.control.prediction), default where it is seen;
+    ``limits`` false skips naming the limits that bound each command (the stepped simulator logs
+    its own saturation; the flags are then 0 but the filter's)."""
     memory = memory.with_formation(p, formation)
     if advance:
         memory = memory.moved(scale, dt, keep_out_m(safety), smooth)
@@ -124,8 +128,9 @@ def team_step(
     pa, aa = acting if acting is not None else (p, a)
     drive = tracked if active is None else active
     out = compute_commands(pa, aa, p_d, v_d, twist[0], twist[1], gains, memory.controller, dt, drive)
-    flags = limit_flags(pa, p_d, out.a_err, out.zeta_r, out.a_r_dot, twist[1],
-                        np.column_stack([out.commands.v, out.commands.w]), gains, drive)
+    flags = (limit_flags(pa, p_d, out.a_err, out.zeta_r, out.a_r_dot, twist[1],
+                         np.column_stack([out.commands.v, out.commands.w]), gains, drive)
+             if limits else np.zeros(len(drive), dtype=np.int64))
     result = None
     if safety is not None and filter_now:
         pts = obstacles if obstacles is not None else np.zeros((0, 2))

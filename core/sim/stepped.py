@@ -313,7 +313,7 @@ def simulate_stepped(
             # each follower where it will be when this command acts
             acting = delay.predicted(known, head, twist) if delay.on and delay.latency.compensate else None
             step = team_step(memory_c, known, head, tracked, slots_now, twist, scenario.gains, dt, obstacles=known_pts,
-                             safety=scenario.safety, scale=scale, smooth=smooth, acting=acting)
+                             safety=scenario.safety, scale=scale, smooth=smooth, acting=acting, limits=False)
             memory_c = step.memory
             p_d = memory_c.slots.p_d
             if step.safety is not None:
