@@ -157,13 +157,14 @@ def test_a_robot_chosen_in_the_3d_view_is_described_each_tick(tmp_path):
 
     svc = Service(port=0, n_followers=2, recordings=tmp_path)
     try:
+        svc.publisher.close()  # the page drawn here only, tick by tick (no other thread draws meanwhile)
         scene = svc.dashboard.scene
         state = svc.loop.tick()
         assert on_page_thread(svc.server, lambda: scene.update(state))
         assert "click a robot" in svc.dashboard.controls.selected.content
         scene.select(1)
-        scene._trail_at = -1.0  # the next update is a tenth of a second on
         state = svc.loop.tick()
+        scene._trail_at = -1.0  # the next update is a tenth of a second on: it describes
         assert on_page_thread(svc.server, lambda: scene.update(state))
         text = svc.dashboard.controls.selected.content
         err = float(np.hypot(*(state.p_d[1] - state.p_est[1]))) * 100
