@@ -2,9 +2,9 @@
 
 On a shared machine the operating system may keep the loop off the CPU for several
 milliseconds while other programs run (a browser, a compiler): measured here, the
-frame-to-command latency's p99 is 10-14 ms at normal priority with a browser attached and
-about 4.5 ms with the camera and loop threads on SCHED_FIFO (``omniformation bench
---latency``). Linux keeps 5 % of every second for other tasks however busy a real-time
+frame-to-command latency's p99 is 10-15 ms at normal priority with a browser attached and
+4-5 ms with the camera and loop threads on SCHED_FIFO and a 1 ms GIL switch interval
+(``omniformation bench --latency``). Linux keeps 5 % of every second for other tasks however busy a real-time
 thread is (``kernel.sched_rt_runtime_us``), and both threads sleep between frames.
 
 Asking needs the right to (root, CAP_SYS_NICE, or an ``rtprio`` limit): refused, the thread
