@@ -29,16 +29,22 @@ def browser():
         yield b
 
 
+def _replay_page(browser, svc: ReplayService):
+    """A 1400 x 900 page on the replay, its charts drawn."""
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page.goto(svc.url)
+    page.wait_for_selector(".uplot canvas", timeout=PAGE_MS)
+    settle(page)
+    return page
+
+
 def test_timeline_slider_shows_the_recorded_state_of_that_time(browser):
     rec = read_recording(SAMPLE)
     svc = ReplayService(rec, port=0)
     svc.start()
     try:
-        page = browser.new_page(viewport={"width": 1400, "height": 900})
-        page.goto(svc.url)
+        page = _replay_page(browser, svc)
         page.wait_for_selector('canvas[data-engine^="three.js"]', timeout=PAGE_MS)
-        page.wait_for_selector(".uplot canvas", timeout=PAGE_MS)
-        settle(page)
         page.get_by_text("replaying experiment2-vision.mcap").first.wait_for(timeout=PAGE_MS)
         # robot-commanding controls are disabled in replay, and say why
         assert page.get_by_role("button", name="STOP", exact=True).is_disabled(timeout=PAGE_MS)
@@ -130,3 +136,28 @@ def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
     finally:
         svc.close()
     assert svc.recordings.replays == []
+
+
+def test_the_replayed_page_shows_the_settings_in_force_at_the_moment_shown(browser, tmp_path):
+    """A session where k_f1 went from 0.1 to 0.15 at tick 30 and the team was reset at tick 60:
+    the replay's page shows 0.1 before the change and 0.15 after it, and the timeline reaches
+    the ticks after the reset (the session's clock, which the reset does not set back)."""
+    from tests.app.test_session_truth import _session_with_a_reset
+
+    _session_with_a_reset(tmp_path / "s.mcap")
+    rec = read_recording(tmp_path / "s.mcap")
+    svc = ReplayService(rec, port=0)
+    svc.start()
+    try:
+        page = _replay_page(browser, svc)
+        box = page.locator(f'[id="{control_id(page, "Time (s)")}"] + div input').first
+        k_f1 = page.locator(f'[id="{control_id(page, "k_f1 (m/s)")}"] + div input').first
+        for k, expected in ((10, "0.1"), (40, "0.15"), (120, "0.15"), (20, "0.1")):
+            target = round(float(rec.t[k]), 3)
+            box.fill(f"{target:g}", timeout=PAGE_MS)
+            box.press("Enter", timeout=PAGE_MS)
+            wait_for(lambda k=k: abs(svc.index - k) <= 1, WAIT_S, f"the replay at tick {k}")  # (the slider's step)
+            wait_for(lambda expected=expected: k_f1.input_value(timeout=PAGE_MS) == expected, WAIT_S,
+                     f"k_f1 {expected} on the page at tick {k}")
+    finally:
+        svc.close()
