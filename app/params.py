@@ -26,8 +26,10 @@ from core.bounds import (GAIN_BOUNDS, GOAL_LIMIT_M, LEADER_SPEED, LEADER_TURN, M
                          SAFETY_DISTANCE, SLOT_COORD, SLOT_LIMIT_M)
 from core.types import Bound, FloatArray, Gains
 
-__all__ = ["GOAL_LIMIT_M", "LEADER_MODES", "LEADER_SPEED", "LEADER_TURN", "MAX_FOLLOWERS", "MIN_SCALE", "SAFETY_DISTANCE",
-           "SLOT_COORD", "SLOT_LIMIT_M", "LeaderMode", "Notice", "Params", "ParamsStore", "default_slots"]
+# what the page, the CLI and the tests take from here: the store, and the bounds and presets (core's) it uses
+__all__ = ["FORMATION_PRESETS", "GOAL_LIMIT_M", "LEADER_MODES", "LEADER_SPEED", "LEADER_TURN", "MAX_FOLLOWERS",
+           "MIN_SCALE", "PRESET_REACH_M", "SAFETY_DISTANCE", "SLOT_COORD", "SLOT_LIMIT_M", "LeaderMode", "Notice",
+           "Params", "ParamsStore", "default_slots", "formation_preset"]
 
 LeaderMode = Literal["stop", "straight", "circle", "eq39", "goal"]
 LEADER_MODES: tuple[LeaderMode, ...] = get_args(LeaderMode)
@@ -109,10 +111,10 @@ class ParamsStore:
         """Put a whole parameter set in force (a replay showing what was in force at a moment); the
         listeners hear it like any change."""
         with self._lock:
-            self._params = params.replace(version=self._params.version + 1)
+            new = self._params = params.replace(version=self._params.version + 1)
             listeners = list(self._listeners)
         for fn in listeners:
-            fn(self._params, source, ())
+            fn(new, source, ())
 
     def subscribe(self, fn: Callable[[Params, str, tuple[Notice, ...]], None]) -> None:
         """Call fn(params, source, notices) after every change (e.g. to sync other browsers)."""
@@ -255,6 +257,3 @@ def _whole(key: str, value: Any) -> int:
 
 
 default_slots = default_formation  # the page's name for it
-
-
-__all__ = ["FORMATION_PRESETS", "PRESET_REACH_M", "formation_preset"]  # the page's presets live in core

@@ -21,12 +21,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from core.control.formation import ControlOutput, ControllerState
+from core.control.formation import ControlOutput
 from core.control.navigation import NavOutput, NavSettings, goal_in_leader_frame, navigate
 from core.control.prediction import predict_poses
 from core.control.safety import SafetyResult, SafetySettings, team_min_distance
 from core.control.step import TeamMemory, due, keep_out_m, team_step
-from core.control.targets import SlotMotion
 from core.control.tuning import RATE_WINDOW_S, lyapunov_rate
 from core.config import MeasurementNoise
 from core.obstacles import Obstacle
@@ -84,13 +83,6 @@ class _World:
     v_hist: deque[tuple[float, FloatArray]] = field(default_factory=deque)  # (t, V (n,)) over RATE_WINDOW_S
 
 
-def _placeholder(n: int, slots: FloatArray) -> TeamMemory:
-    """Before the poses are known (vision's start-up): slots by index, replaced by eq. 33 then."""
-    assignment = np.arange(n) % slots.shape[0]
-    return TeamMemory(ControllerState.initial(n), SlotMotion.at_rest(slots[assignment]), assignment,
-                      np.array(slots, dtype=np.float64))
-
-
 def safety_text(result: SafetyResult | None, on: bool) -> str:
     """The filter's state for people: what it changed this tick, and by how much."""
     if not on:
@@ -139,11 +131,6 @@ class ServiceLoop:
         self.backends = Backends(seed, dynamics or FollowerDynamics(), position_noise_m, heading_noise_rad,
                                  initial_poses, camera, link, frames, hardware,
                                  pipeline_settings or PipelineSettings(), tuple(obstacles), arena)
-        self.dynamics = self.backends.dynamics
-        self.position_noise_m = position_noise_m
-        self.heading_noise_rad = heading_noise_rad
-        self.frames = frames
-        self.hardware = hardware
         self.realtime = realtime
         self.priority = "normal"  # how the loop's thread is scheduled, once it runs
         self.switches = tuple(switches)
@@ -169,6 +156,27 @@ class ServiceLoop:
         self._safety: SafetySettings | None = None
         self._world = self._make_world(store.get())
 
+    # what the team is made of (the backends' own; read by the service, the tuning bench and run())
+    @property
+    def dynamics(self) -> FollowerDynamics:
+        return self.backends.dynamics
+
+    @property
+    def position_noise_m(self) -> float:
+        return self.backends.position_noise_m
+
+    @property
+    def heading_noise_rad(self) -> float:
+        return self.backends.heading_noise_rad
+
+    @property
+    def frames(self) -> FrameSource | None:
+        return self.backends.frames
+
+    @property
+    def hardware(self) -> HardwareTeam | None:
+        return self.backends.hardware
+
     # -- wiring ---------------------------------------------------------------------------
     def subscribe(self, fn: Callable[[TickState], None]) -> None:
         self._subscribers.append(fn)
@@ -185,7 +193,7 @@ class ServiceLoop:
         made = self.backends.make(params.n_followers, self._resets)
         n = made.team.state.n
         memory = TeamMemory.start(made.start_p, params.slots) if made.start_p is not None \
-            else _placeholder(n, params.slots)  # eq. 33 runs once the camera knows the poses
+            else TeamMemory.placeholder(n, params.slots)  # eq. 33 runs once the camera knows the poses
         self.t = 0.0
         self._nav = (math.nan, 1.0)
         self._switch_k = 0
@@ -362,9 +370,8 @@ class ServiceLoop:
         safety = None
         if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
             if world.ready:
-                world.memory = world.memory.with_formation(p, params.slots)
-                if advance:
-                    world.memory = world.memory.moved(self._nav[1], self.dt, keep_out_m(settings))
+                world.memory = world.memory.slots_on(p, params.slots, self._nav[1], self.dt, keep_out_m(settings),
+                                                     advance)
             move = advance and not params.stop
             manoeuvre = obs.manoeuvre * answering[:, None] if move else np.zeros((params.n_followers, 2))
             out = ControlOutput.idle(manoeuvre)
@@ -384,7 +391,7 @@ class ServiceLoop:
                 p, a = acting
         if world.team.link_lost:  # nobody answers: no command but zero until the robots do
             out = ControlOutput.idle(np.zeros((len(a), 2)))
-            world.memory = dataclasses.replace(world.memory, controller=ControllerState.initial(len(a)))
+            world.memory = world.memory.halted()
         elif not answering.all():  # and a robot that does not answer gets zero until it does
             out = dataclasses.replace(out, commands=Commands(np.where(answering, out.commands.v, 0.0),
                                                              np.where(answering, out.commands.w, 0.0)))
@@ -469,7 +476,7 @@ class ServiceLoop:
         """Command every follower to zero now (used on stop and on errors)."""
         n = self._world.team.state.n
         self._world.team.send(Commands.zeros(n))
-        self._world.memory = dataclasses.replace(self._world.memory, controller=ControllerState.initial(n))
+        self._world.memory = self._world.memory.halted()
         self._world.last_cmd = np.zeros((n, 2))
 
     def close_team(self) -> None:

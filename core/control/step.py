@@ -22,13 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.types import Gains
 from core.control.assignment import assign_slots
 from core.control.formation import ControlOutput, ControllerState, compute_commands
 from core.control.safety import SafetyResult, SafetySettings, filter_commands, obstacle_rows
 from core.control.targets import SlotMotion, step_slots
 from core.control.tuning import FILTER, limit_flags
-from core.types import BoolArray, FloatArray, IntArray
+from core.types import BoolArray, FloatArray, Gains, IntArray
 
 REASSIGN_MARGIN_M2 = 0.05  # eq. 33 re-solved for new slots keeps the old assignment unless this much cheaper
 KEEP_OUT_MARGIN_M = 0.2  # moving slots go round the leader at the safety distance plus this
@@ -61,6 +60,23 @@ class TeamMemory:
         assignment = np.asarray(assign_slots(p, formation))
         return TeamMemory(ControllerState.initial(len(assignment)), SlotMotion.at_rest(formation[assignment]),
                           assignment, formation)  # kept as given: the caller's slots are never changed in place
+
+    @staticmethod
+    def placeholder(n: int, formation: FloatArray) -> TeamMemory:
+        """Before the poses are known (a camera's start-up): slots by index, until :meth:`start`."""
+        assignment = np.arange(n) % formation.shape[0]
+        return TeamMemory(ControllerState.initial(n), SlotMotion.at_rest(formation[assignment]), assignment, formation)
+
+    def halted(self) -> TeamMemory:
+        """The controller started afresh (every follower commanded to zero meanwhile)."""
+        return dataclasses.replace(self, controller=ControllerState.initial(len(self.assignment)))
+
+    def slots_on(self, p: FloatArray, formation: FloatArray, scale: float, dt: float, keep_out: float,
+                 advance: bool = True, smooth: bool = True) -> TeamMemory:
+        """The slots of this tick: eq. 33 again if the formation changed, then (``advance``) one
+        tick on towards their targets."""
+        memory = self.with_formation(p, formation)
+        return memory.moved(scale, dt, keep_out, smooth) if advance else memory
 
     def with_formation(self, p: FloatArray, formation: FloatArray) -> TeamMemory:
         """New slots: eq. 33 again, the current assignment kept unless clearly beaten."""
@@ -121,9 +137,7 @@ def team_step(
     command acts (a latency bridged, core.control.prediction), default where it is seen;
     ``limits`` false skips naming the limits that bound each command (the stepped simulator logs
     its own saturation; the flags are then 0 but the filter's)."""
-    memory = memory.with_formation(p, formation)
-    if advance:
-        memory = memory.moved(scale, dt, keep_out_m(safety), smooth)
+    memory = memory.slots_on(p, formation, scale, dt, keep_out_m(safety), advance, smooth)
     p_d, v_d = memory.slots.p_d, memory.slots.v_d
     pa, aa = acting if acting is not None else (p, a)
     drive = tracked if active is None else active

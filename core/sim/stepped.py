@@ -244,7 +244,6 @@ def simulate_stepped(
     rng = np.random.default_rng(scenario.seed)
     goal = scenario.leader if isinstance(scenario.leader, GoalProfile) else None
     nav = nav or NavSettings(speed_mps=goal.speed_mps if goal else NavSettings.speed_mps)
-    boxes = as_array(scenario.obstacles)
     eyes = _Eyes(scenario, rig if vision else None, gamma, settings, rng, on_frame)
     state = make_team_state(scenario.initial_p, scenario.initial_a)
     memory_c: TeamMemory | None = None  # the control step's, from the first estimates on
@@ -328,7 +327,7 @@ def simulate_stepped(
              pm=pos_m, am=head_m, pd=p_d.copy() if t_ready is not None else np.full((n, 2), np.nan),  # no target yet
              cmd=last_cmd, aerr=a_err, tracked=tracked, status=status, changed=changed, limit=limit, scale=scale,
              scan=scan.ranges if scan is not None else None, obs=known_pts)
-        _truth_rows(rows, state, p_true, boxes)
+        _truth_rows(rows, state, p_true, eyes.boxes)
         if vision:
             _add(rows, meas=out.heading_measured, phase=out.phase, win=out.windows, hue=out.hues_deg)
 
