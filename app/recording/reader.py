@@ -639,11 +639,17 @@ def session_clock(t: np.ndarray) -> np.ndarray:
     return out
 
 
+def params_index(times: list[float], t: float) -> int:
+    """Which of the recorded parameter sets (coming in force at ``times``, in order) is in force
+    at session time ``t``: the last at or before it (the first one before any)."""
+    return max(0, bisect.bisect_right(times, t + 1e-9) - 1)
+
+
 def params_from_recording(rec: Recording, t: float | None = None) -> Params:
     """The parameter set in force at session time ``t`` (None: when the recording started)."""
     if not rec.params:
         return Params()
-    k = 0 if t is None else max(0, bisect.bisect_right([at for at, _ in rec.params], t + 1e-9) - 1)
+    k = 0 if t is None else params_index([at for at, _ in rec.params], t)
     return params_from_payload(rec.params[k][1])
 
 
@@ -652,12 +658,16 @@ def params_from_payload(d: dict[str, Any]) -> Params:
     an older version allowed is clamped, as the page would; a missing or damaged field keeps
     its default)."""
     from app.params import ParamsStore
+    from core.types import GAIN_BOUNDS
 
     store = ParamsStore()
+    if not isinstance(d, dict):  # a damaged record: the defaults
+        return store.get()
     keys = ("leader_mode", "leader_speed_mps", "leader_turn_deg_s", "slots", "n_followers", "safety",
             "safety_distance_m", "goal", "min_scale", "stop", "paused")
     changes = {key: d[key] for key in keys if key in d}
-    changes.update({name: value for name, value in (d.get("gains") or {}).items()})
+    gains = d.get("gains")
+    changes.update({k: v for k, v in gains.items() if k in GAIN_BOUNDS} if isinstance(gains, dict) else {})
     for key, value in changes.items():  # one at a time: a spoiled field is skipped, not the whole set
         try:
             store.update("recording", **{key: value})

@@ -23,7 +23,7 @@ from app.dashboard.widgets import as_text
 from app.dashboard.widgets import on_page_thread
 from app.tick import TickState
 from app.params import ParamsStore
-from app.recording.reader import Recording, params_from_payload, params_from_recording
+from app.recording.reader import Recording, params_from_payload, params_from_recording, params_index
 from app.recording.schema import scenario_obstacles, tick_from_payload
 
 if TYPE_CHECKING:
@@ -194,7 +194,7 @@ class ReplayService:
             self.unreadable += 1
             self.event_text.content = f"**tick {k} could not be shown** ({type(exc).__name__}); playback goes on"
             return
-        j = max(0, bisect.bisect_right(self._param_t, float(self.t[k]) + 1e-9) - 1)
+        j = params_index(self._param_t, float(self.t[k]))
 
         def draw() -> None:
             if j != self._params_shown and self.rec.params:  # the settings in force at this moment, not at the start

@@ -172,3 +172,19 @@ def test_a_robot_chosen_in_the_3d_view_is_described_each_tick(tmp_path):
         assert f"x {state.p_est[1][0]:+.3f} m" in text and f"v {state.commands[1][0]:+.3f} m/s" in text
     finally:
         svc.close()
+
+
+def test_a_recorded_parameter_set_of_any_shape_becomes_valid_settings():
+    """A damaged or hostile params record never stops a replay: every field that is not what
+    the page could set is skipped (the default stays), the rest is clamped as the page would."""
+    from app.recording.reader import params_from_payload
+
+    default = Params()
+    for bad in (None, [], "gains", 3, {"gains": [1, 2]}, {"gains": {"k_f1": "x", "reset_requests": 5, "stop": True}},
+                {"slots": [[float("nan"), 0.0]], "n_followers": 2.5, "leader_mode": "warp", "goal": "far"},
+                {"leader_speed_mps": 1e308, "leader_turn_deg_s": float("-inf"), "safety_distance_m": [0.3]}):
+        p = params_from_payload(bad)  # type: ignore[arg-type]
+        assert p.gains == default.gains and not p.stop and p.reset_requests == 0, bad
+        assert p.leader_mode == default.leader_mode and p.n_followers == default.n_followers
+    clamped = params_from_payload({"leader_speed_mps": 1e308, "gains": {"k_f1": 50.0}})
+    assert clamped.leader_speed_mps == 0.3 and clamped.gains.k_f1 == 1.0
