@@ -51,7 +51,7 @@ class ArenaCounts:
     drives: int = 0
     conflicts: int = 0  # a robot commanded by a leader that knew it did not own it (refused)
     late: int = 0  # a command from a robot's former owner that had not yet seen the truth of the change (refused)
-    stale: int = 0  # drives computed from a truth older than STALE_DRIVE_S, or naming none (refused whole)
+    stale: int = 0  # drives computed from a truth older than STALE_DRIVE_S, or naming none or one not yet made (refused whole)
     malformed: int = 0  # messages on the arena's keys that are not what docs/fleet-protocol.md says
     claims_granted: int = 0
     claims_repeated: int = 0  # a leader claiming a robot it owns already: answered yes, nothing changes
@@ -144,7 +144,8 @@ class Arena:
             i = self.ids.index(leader)
             # computed from a truth older than STALE_DRIVE_S (a partition healing, a stalled sender) or
             # from none it names: no robot moves by it, nor the leader
-            too_old = seen_tick is None or (self.counts.steps - seen_tick) * self.dt > STALE_DRIVE_S
+            # (a tick the arena has not reached yet is no truth the sender saw: refused the same way)
+            too_old = seen_tick is None or not 0 <= self.counts.steps - seen_tick <= STALE_DRIVE_S / self.dt
             if too_old:
                 self.counts.stale += 1
             else:  # the world's physics: a leader's base within its limits

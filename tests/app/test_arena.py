@@ -339,14 +339,15 @@ def test_the_arena_is_the_worlds_physics_and_ignores_drives_from_old_truths():
         r = arena.owners.index("L1")
         key = f"omniformation/{FLEET}/arena/drive/L1"
         old = arena.counts.steps - int(STALE_DRIVE_S * scenario.rate_hz) - 5
-        for tick in (old, None):
+        future = arena.counts.steps + 10_000  # a truth not yet published: forged, not seen
+        for tick in (old, None, future):
             session.put(key, json.dumps({"tick": 1, "truth_tick": tick, "twist": [50.0, 0.0],
                                          "commands": {f"R{r + 1}": [0.3, 0.0]}}))
-        wait_for(lambda: arena.counts.stale == 2, 10, "two stale drives counted")
+        wait_for(lambda: arena.counts.stale == 3, 10, "three stale drives counted")
         assert np.all(arena.commands[r] == 0.0) and np.all(arena.twists[0] == 0.0)
         session.put(key, json.dumps({"tick": 2, "truth_tick": arena.counts.steps, "twist": [50.0, 9.0],
                                      "commands": {f"R{r + 1}": [5.0, 50.0]}}))
-        wait_for(lambda: arena.counts.drives == 3, 10, "the fresh drive")
+        wait_for(lambda: arena.counts.drives == 4, 10, "the fresh drive")
         assert tuple(arena.twists[0]) == pytest.approx((LEADER_SPEED.hi, math.radians(LEADER_TURN.hi)))
         dyn = scenario.dynamics
         assert tuple(arena.commands[r]) == pytest.approx((dyn.speed_max_mps, dyn.turn_max_rps))
@@ -354,7 +355,7 @@ def test_the_arena_is_the_worlds_physics_and_ignores_drives_from_old_truths():
         for _ in range(30):
             arena.step()
         assert float(np.hypot(*(arena.state.leaders[0, :2] - start))) <= LEADER_SPEED.hi * 1.0 + 1e-6
-        assert arena.truth()["stale"] == 2 and arena.counts.conflicts == 0
+        assert arena.truth()["stale"] == 3 and arena.counts.conflicts == 0
     finally:
         arena.close()
         session.close()
