@@ -15,6 +15,10 @@ from __future__ import annotations
 import os
 
 PRIORITY = 10  # SCHED_FIFO 1..99: above every normal task, below the kernel's own real-time threads
+# Python hands the GIL between threads every 5 ms by default: a thread that holds it keeps it up to
+# that long after a waiting one asks. Where waiting matters (the loop with --realtime, the fleet
+# page's state callbacks) the process switches every 1 ms.
+SWITCH_INTERVAL_S = 0.001
 
 
 def make_realtime(native_id: int = 0, priority: int = PRIORITY) -> str:

@@ -805,7 +805,8 @@ def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision") -> tupl
 
     from app.dashboard.gate import quietly, serve_gated
     from app.fleet.bridge import loopback_endpoint, open_session
-    from app.services.fleet_page import SWITCH_INTERVAL_S, FleetView
+    from app.realtime import SWITCH_INTERVAL_S
+    from app.services.fleet_page import FleetView
 
     endpoint = loopback_endpoint()
     page_session = open_session([endpoint], [])

@@ -136,7 +136,8 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     from app.dashboard.gate import is_loopback, quietly, serve_gated
     from app.files import check_new_file, display_path
     from app.fleet.bridge import check_name
-    from app.services.fleet_page import SWITCH_INTERVAL_S, FleetView
+    from app.realtime import SWITCH_INTERVAL_S
+    from app.services.fleet_page import FleetView
     from app.fleet.recorder import FleetRecorder
 
     try:

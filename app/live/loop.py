@@ -37,7 +37,7 @@ from core.types import BoolArray, Commands, FloatArray, IntArray
 from app.backends.hardware import HardwareTeam
 from app.backends.arena import ArenaTeam
 from app.backends.world import Backends
-from app.realtime import make_realtime, scheduling
+from app.realtime import SWITCH_INTERVAL_S, make_realtime, scheduling
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
 from app.params import Params, ParamsStore
 from app.tick import TickState
@@ -54,7 +54,6 @@ DEFAULT_NOISE = MeasurementNoise(0.003, math.radians(1.0))  # truth feedback's n
 # clock, not by ticks, and the robots hold the newest command (they never see a burst as speed).
 CATCH_UP_S = 0.25
 CATCH_UP_TICKS = 3
-REALTIME_SWITCH_S = 0.001  # the GIL's switch interval with --realtime
 LATE_FRAME_PERIODS = 1.5  # frame-triggered ticks: no new frame within this many periods is a late camera
 DT_RANGE = (0.25, 3.0)  # a frame-triggered tick's dt, as a share of the configured period, at least and at most
 
@@ -422,9 +421,8 @@ class ServiceLoop:
             self.achieved_rate_hz = (len(window) - 1) / (window[-1] - window[0])
 
     def _ask_realtime(self) -> None:
-        # a thread that holds the GIL keeps it up to the switch interval after the loop asks for it
-        # (5 ms by default): with the loop on real-time scheduling that wait is what is left
-        sys.setswitchinterval(min(sys.getswitchinterval(), REALTIME_SWITCH_S))
+        # with the loop on real-time scheduling, a thread holding the GIL is what is left (app.realtime)
+        sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         why = make_realtime()
         camera = getattr(self.frames, "make_realtime", None)
         camera_why = camera() if camera is not None else ""

@@ -7,10 +7,8 @@ errors per follower over time, and the followers' headings.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import math
-
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 

@@ -34,10 +34,8 @@ from app.keys import root
 from app.fleet.recorder import FleetRecorder
 
 REFRESH_S = 0.1
-# Python hands the GIL between threads every 5 ms by default, so a state arriving while the page
-# redraws waited up to 5 ms for its callback to run (the bench's p99 was 4.4-5.0 ms); the fleet
-# page's process switches every 1 ms (`omniformation fleet` sets it).
-SWITCH_INTERVAL_S = 0.001
+# a state arriving while the page redraws waited up to the GIL's 5 ms switch interval for its callback
+# (the bench's p99 was 4.4-5.0 ms): `omniformation fleet` sets app.realtime's SWITCH_INTERVAL_S
 GONE_AFTER_S = 2.0  # a leader whose state is older than this is shown as silent
 RESYNC_S = 2.0  # after a person moves a control, the leader's own value is shown again after this
 
