@@ -66,6 +66,7 @@ CASES = [
     ("report {wrong_types.mcap} --out {dir}/rep2", "tick 0 is not what omniformation records"),
     ("replay {wrong_types.mcap} --port 0", "tick 0 is not what omniformation records"),
     ("report " + str(SAMPLE) + " --out /proc/rep", "/proc/rep: cannot write there"),
+    ("report " + str(SAMPLE) + " --out {dir}/rep3 --format <svg>", "--format: invalid choice: '<svg>'"),
     ("rerun " + str(SAMPLE) + " --out {dir}/r.mcap --pipeline-config {binary.toml}", "binary.toml: cannot read"),
     ("rerun " + str(SAMPLE) + " --out {dir}/r.mcap --gains ,,,", "give NAME=NUMBER pairs"),
     ("calibrate --synthetic static_config/camera/synthetic.toml --out {dir}/c.toml --center nan nan",
