@@ -24,6 +24,27 @@ SCENARIOS = ROOT / "static_config" / "scenarios"
 SAMPLES = ROOT / "recordings" / "samples"
 
 
+def fleet_session(keys: Path | None, identity: str | None, endpoint: str) -> Any:
+    """A third party on a fleet's bus, written from docs/fleet-protocol.md: a Zenoh client of the
+    hub at ``endpoint`` showing ``identity``'s certificate of the fleet at ``keys`` (mutual TLS);
+    with no identity, a plain peer (a client could not even open its session on a hub that
+    does not let it in; a peer opens and keeps trying)."""
+    import json
+
+    import zenoh
+
+    conf: dict[str, Any] = {"mode": "client" if identity else "peer",
+                            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+                            "listen": {"endpoints": []}, "connect": {"endpoints": [endpoint]}}
+    if identity is not None:
+        assert keys is not None
+        conf["transport"] = {"link": {"tls": {
+            "root_ca_certificate": str(keys / "ca.pem"), "enable_mtls": True,
+            "connect_private_key": str(keys / f"{identity}.key"), "connect_certificate": str(keys / f"{identity}.pem"),
+            "verify_name_on_connect": False}}}
+    return zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+
+
 def interrupt(*procs: subprocess.Popen) -> None:
     """Ctrl-C to every process still running (as a person stops them), then wait; killed only
     if one does not end within 30 s."""

@@ -9,18 +9,36 @@ import json
 import sys
 from pathlib import Path
 
-from app.cli.args import Parser, bind_error, float_in, port, token_arg
+from app.cli.args import Parser, bind_error, float_in, int_in, port, token_arg
 from app.files import UserError
 
 if TYPE_CHECKING:
     import zenoh
 
+    from app.fleet.security import FleetKeys
 
-def add_bus_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--zenoh-listen", action="append", default=[], metavar="tcp/HOST:PORT",
-                   help="an endpoint to listen on (repeatable; multicast discovery is off)")
-    p.add_argument("--zenoh-connect", action="append", default=[], metavar="tcp/HOST:PORT",
-                   help="a peer to connect to (repeatable)")
+
+def add_bus_args(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
+                   help=f"{prefix}an endpoint to listen on (repeatable; this process then forwards between those"
+                        " that connect to it): tls/HOST:PORT with --keys, else tcp/127.0.0.1:PORT (loopback only)")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                   help=f"{prefix}an endpoint to connect to (repeatable); nothing is discovered by itself")
+    p.add_argument("--keys", type=Path, metavar="DIR",
+                   help=f"{prefix}the fleet's keys (`omniformation fleet-keys`): mutual TLS and access control by"
+                        " identity; without them the bus stays on loopback")
+
+
+def fleet_keys(keys_dir: Path | None, identity: str, fleet: str) -> FleetKeys | None:
+    """``--keys DIR`` checked for this identity and fleet (one line naming the file, else)."""
+    if keys_dir is None:
+        return None
+    from app.fleet.security import KeyFileError, load_fleet_keys
+
+    try:
+        return load_fleet_keys(keys_dir, identity, fleet)
+    except KeyFileError as exc:
+        raise UserError(str(exc)) from None
 
 
 def register(sub: "argparse._SubParsersAction[Parser]") -> None:
@@ -59,12 +77,53 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                       help="record the whole fleet (a channel per leader) into this new file")
     page.set_defaults(func=cmd_fleet)
 
+    keys = sub.add_parser(
+        "fleet-keys",
+        help="make a fleet's keys: a CA and a certificate per identity (arena, page, each leader)",
+        description="Write DIR/ca.pem (the fleet's certificate authority), DIR/fleet.json (who is in the fleet) and,"
+                    " for the arena, the page and every leader, DIR/ID.pem and DIR/ID.key (the certificate's common"
+                    " name is the identity; keys mode 0600). Give each machine ca.pem, fleet.json and its own"
+                    " ID.pem/ID.key; keep DIR/ca.key off the robots (docs/fleet-protocol.md, Security).",
+    )
+    keys.add_argument("dir", type=Path, metavar="DIR", help="where to write them (made if missing)")
+    keys.add_argument("--fleet", metavar="NAME", required=True, help="the fleet's name on the bus")
+    keys.add_argument("--leaders", metavar="L1,L2,...", required=True, help="the leader ids, comma-separated")
+    keys.add_argument("--days", type=int_in(1, 3650), default=365, help="how long the certificates are valid (days,"
+                                                                         " default 365)")
+    keys.add_argument("--overwrite", action="store_true", help="replace keys already in DIR (a new CA: every"
+                                                               " identity needs its new files)")
+    keys.set_defaults(func=cmd_fleet_keys)
 
-def open_bus(listen: list[str], connect: list[str], who: str) -> zenoh.Session:
+
+def cmd_fleet_keys(args: argparse.Namespace) -> int:
+    from app.fleet.bridge import check_name
+    from app.fleet.security import make_fleet_keys, parse_leaders
+
+    try:
+        check_name(args.fleet, "--fleet")
+        leaders = parse_leaders(args.leaders)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if args.dir.exists() and not args.dir.is_dir():
+        raise UserError(f"{args.dir}: not a directory")
+    try:
+        written = make_fleet_keys(args.dir, args.fleet, leaders, overwrite=args.overwrite, days=args.days)
+    except FileExistsError as exc:
+        raise UserError(str(exc)) from None
+    except OSError as exc:
+        raise UserError(f"{args.dir}: cannot write keys ({exc.strerror or exc})") from None
+    print(f"omniformation: fleet {args.fleet}: {len(written)} files in {args.dir} (identities: arena, page,"
+          f" {', '.join(leaders)}; valid {args.days} days)", flush=True)
+    print("omniformation: give each machine ca.pem, fleet.json and its own ID.pem + ID.key; keep ca.key apart",
+          flush=True)
+    return 0
+
+
+def open_bus(listen: list[str], connect: list[str], who: str, keys: FleetKeys | None = None) -> zenoh.Session:
     from app.fleet.bridge import open_session
 
     try:
-        return open_session(listen, connect)
+        return open_session(listen, connect, keys)
     except ValueError as exc:
         raise UserError(str(exc)) from None
     except Exception as exc:  # noqa: BLE001 - zenoh says why it cannot open (an endpoint taken, ...)
@@ -87,7 +146,8 @@ def cmd_arena(args: argparse.Namespace) -> int:
         check_name(fleet, "--fleet" if args.fleet else f"{args.fleet_scenario}: name")
     except ValueError as exc:
         raise UserError(str(exc)) from None
-    session = open_bus(args.zenoh_listen, args.zenoh_connect, f"arena {fleet}")
+    keys = fleet_keys(args.keys, "arena", fleet)
+    session = open_bus(args.zenoh_listen, args.zenoh_connect, f"arena {fleet}", keys)
     replies = session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)
     if any(getattr(r, "ok", None) is not None for r in replies):
         session.close()
@@ -150,7 +210,8 @@ def cmd_fleet(args: argparse.Namespace) -> int:
             raise UserError(f"{args.record}: exists; a recording is never written over another (give a new name)")
     if args.viewer_token is not None and args.viewer_token == args.token:
         raise UserError("--viewer-token: must differ from --token (a viewer may not command the fleet)")
-    session = open_bus(args.zenoh_listen, args.zenoh_connect, f"fleet {args.fleet}")
+    keys = fleet_keys(args.keys, "page", args.fleet)
+    session = open_bus(args.zenoh_listen, args.zenoh_connect, f"fleet {args.fleet}", keys)
     try:
         server, gate = serve_gated(args.host, args.port, args.token, args.viewer_token)
     except OSError as exc:

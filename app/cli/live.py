@@ -75,10 +75,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                           " --leader-id; the fleet's name is the scenario's unless --fleet gives one)")
     run.add_argument("--fleet", metavar="NAME", help="join this fleet on the Zenoh bus (docs/fleet-protocol.md)")
     run.add_argument("--leader-id", metavar="ID", help="this leader's name in the fleet (with --fleet)")
-    run.add_argument("--zenoh-listen", action="append", default=[], metavar="tcp/HOST:PORT",
-                     help="--fleet: an endpoint to listen on (repeatable; multicast discovery is off)")
-    run.add_argument("--zenoh-connect", action="append", default=[], metavar="tcp/HOST:PORT",
-                     help="--fleet: a peer to connect to (repeatable)")
+    from app.cli.fleet import add_bus_args
+
+    add_bus_args(run, prefix="--fleet: ")
     run.add_argument("--fleet-control", action="store_true",
                      help="--fleet: take gains, formation and motion changes from the bus (STOP is always taken)")
     run.add_argument("--realtime", action="store_true",
@@ -214,17 +213,22 @@ def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
             raise UserError(f"--arena {args.arena}: --leader-id must be one of its leaders: {', '.join(ids)}"
                             + (f" (got {args.leader_id!r})" if args.leader_id else ""))
         args.fleet = args.fleet or fleet_scenario.name
-    fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect, args.fleet_control)
+    fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect, args.fleet_control, args.keys)
     if args.fleet is None and any(fleet_args):
-        raise UserError("--leader-id, --zenoh-listen, --zenoh-connect and --fleet-control go with --fleet NAME")
+        raise UserError("--leader-id, --zenoh-listen, --zenoh-connect, --keys and --fleet-control go with --fleet NAME")
     if args.fleet is not None:
+        from app.cli.fleet import fleet_keys
         from app.fleet.bridge import check_endpoint, check_name
 
         try:
             check_name(args.fleet, "--fleet")
             check_name(args.leader_id or "", "--leader-id")
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        args.fleet_keys = fleet_keys(args.keys, args.leader_id, args.fleet)
+        try:
             for endpoint in (*args.zenoh_listen, *args.zenoh_connect):
-                check_endpoint(endpoint)
+                check_endpoint(endpoint, args.fleet_keys)
         except ValueError as exc:
             raise UserError(str(exc)) from None
     return fleet_scenario
@@ -252,7 +256,7 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
     from app.cli.fleet import open_bus
     from app.fleet.bridge import name_taken
 
-    fleet = _Fleet(open_bus(args.zenoh_listen, args.zenoh_connect, f"--fleet {args.fleet}"))
+    fleet = _Fleet(open_bus(args.zenoh_listen, args.zenoh_connect, f"--fleet {args.fleet}", args.fleet_keys))
     stack.callback(fleet.session.close)
     config, fleet_scenario = plan.config, plan.fleet_scenario
     if fleet_scenario is not None:

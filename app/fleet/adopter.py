@@ -116,7 +116,7 @@ class Adopter:
     def _claim(self, r: int) -> int | None:
         """The arena's tick when it granted ``r`` to this leader, or None (refused, or no answer)."""
         payload = json.dumps({"leader": self.leader_id, "robot": robot_name(r)})
-        for reply in self.session.get(f"{root(self.fleet)}/arena/claim", payload=payload, timeout=2.0):
+        for reply in self.session.get(f"{root(self.fleet)}/arena/claim/{self.leader_id}", payload=payload, timeout=2.0):
             try:
                 answer = json.loads(reply.ok.payload.to_bytes())
             except (AttributeError, ValueError, TypeError):

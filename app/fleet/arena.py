@@ -56,6 +56,8 @@ class ArenaCounts:
     claims_granted: int = 0
     claims_repeated: int = 0  # a leader claiming a robot it owns already: answered yes, nothing changes
     claims_refused: int = 0
+    handovers_refused: int = 0
+    strangers: int = 0  # liveliness tokens under names that lead no team of this fleet (ignored)
     watchdog_stops: int = 0  # robots stopped by their own watchdog (their leader went quiet)
     contacts: int = 0  # steps on which two bodies came closer than CONTACT_M, centre to centre
     closest_m: float = math.inf  # the smallest centre-to-centre distance between two bodies so far
@@ -95,7 +97,7 @@ class Arena:
             session.declare_subscriber(f"{base}/drive/*", self._on_drive),
             session.liveliness().declare_subscriber(f"{root(self.fleet)}/alive/*", self._on_alive, history=True),
         ]
-        self._claims = session.declare_queryable(f"{base}/claim", self._on_claim)
+        self._claims = session.declare_queryable(f"{base}/claim/*", self._on_claim)
         self._handovers = session.declare_queryable(f"{base}/handover", self._on_handover)
 
     # -- in ------------------------------------------------------------------------------------
@@ -103,6 +105,12 @@ class Arena:
         leader = str(sample.key_expr).rsplit("/", 1)[-1]
         import zenoh
 
+        if leader not in self.ids:  # a token under a name that leads no team: it can be given nothing
+            with self._lock:
+                self.counts.strangers += 1
+            self.event("stranger", f"a liveliness token for {leader[:40]!r}, which is not a leader of"
+                                   f" {self.fleet}: ignored")
+            return
         with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self.alive.add(leader)
@@ -177,21 +185,26 @@ class Arena:
         self.commanded_by[r] = None
 
     def _on_claim(self, query: Any) -> None:
+        """A claim on ``arena/claim/<id>`` is leader <id>'s (with fleet keys only <id> may ask
+        there): a payload naming another leader is refused, never granted to either."""
+        leader = str(query.key_expr).rsplit("/", 1)[-1]
         try:
             msg = json.loads(query.payload.to_bytes() if query.payload is not None else b"")
-            leader, r = str(msg["leader"]), robot_index(msg["robot"], len(self.owners))
+            named, r = str(msg.get("leader", leader)), robot_index(msg["robot"], len(self.owners))
             if r is None:
                 raise ValueError
         except (ValueError, TypeError, KeyError, UnicodeDecodeError):
             with self._lock:
                 self.counts.malformed += 1
             query.reply(query.key_expr, json.dumps({"granted": False, "why": "a claim is"
-                                                    ' {"leader": ID, "robot": "R<n>"}'}))
+                                                    ' {"robot": "R<n>"} on arena/claim/<your id>'}))
             return
         with self._lock:
             owner = self.owners[r]
             repeated = False
-            if leader not in self.alive:
+            if named != leader:
+                why = f"a claim on arena/claim/{leader} is {leader}'s, not {named[:40]!r}'s"
+            elif leader not in self.alive:
                 why = f"{leader} is not alive on the bus"
             elif owner == leader:
                 why, repeated = "", True
@@ -243,6 +256,7 @@ class Arena:
                 why = ""
                 self._give(r, to)
             granted = why == ""
+            self.counts.handovers_refused += not granted
         query.reply(query.key_expr, json.dumps({"granted": granted, "robot": robot_name(r), "leader": to, "why": why,
                                                 "tick": self.counts.steps}))
         self.event("handover", f"{robot_name(r)} from {owner} to {to} by {sender}: "
@@ -264,8 +278,15 @@ class Arena:
             "alive": sorted(self.alive), "lost": sorted(self.ever_alive - self.alive),
             "watchdog": [bool(b) for b in self.watchdog_stopped],
             "command_age": [round(float(a), 3) if math.isfinite(a) else None for a in self.t - self.command_t],
-            "conflicts": self.counts.conflicts, "late": self.counts.late, "stale": self.counts.stale, "closest_m": round(self.gap_m, 4), "contacts": self.counts.contacts,
+            "conflicts": self.counts.conflicts, "late": self.counts.late, "stale": self.counts.stale,
+            "closest_m": round(self.gap_m, 4), "contacts": self.counts.contacts, "refused": self.refused(),
         }
+
+    def refused(self) -> dict[str, int]:
+        """What the arena turned away so far, by kind (the fleet page shows it)."""
+        c = self.counts
+        return {"conflicts": c.conflicts, "late": c.late, "stale": c.stale, "malformed": c.malformed,
+                "claims": c.claims_refused, "handovers": c.handovers_refused, "strangers": c.strangers}
 
     # -- one step ------------------------------------------------------------------------------
     def step(self) -> None:

@@ -40,8 +40,11 @@ log = logging.getLogger(__name__)
 if TYPE_CHECKING:
     import zenoh
 
+    from app.fleet.security import FleetKeys
+
 NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
-ENDPOINT = re.compile(r"(tcp|udp)/[A-Za-z0-9_.-]+:\d{1,5}|(tcp|udp)/\[[0-9a-fA-F:]+\]:\d{1,5}")
+ENDPOINT = re.compile(r"(tcp|udp|tls)/(?P<host>[A-Za-z0-9_.-]+|\[[0-9a-fA-F:]+\]):(?P<port>\d{1,5})")
+LOOPBACK_HOSTS = ("localhost", "[::1]")
 SETTABLE = ("k_f1", "k_f2", "a", "k_w1", "k_w2", "slots", "leader_mode", "leader_speed_mps", "leader_turn_deg_s",
             "stop", "safety", "safety_distance_m", "goal", "min_scale")
 
@@ -53,9 +56,26 @@ def check_name(value: str, what: str) -> str:
     return value
 
 
-def check_endpoint(value: str) -> str:
-    if not ENDPOINT.fullmatch(value):
-        raise ValueError(f"endpoint {value!r}: must be tcp/HOST:PORT or udp/HOST:PORT (e.g. tcp/127.0.0.1:7447)")
+def check_endpoint(value: str, keys: FleetKeys | None = None) -> str:
+    """An endpoint this process may use: with fleet keys ``tls/HOST:PORT`` (mutual TLS), without
+    them a loopback ``tcp/`` or ``udp/`` one only (an open bus is for one machine); else
+    ValueError (one line)."""
+    m = ENDPOINT.fullmatch(value)
+    if m is None or not 0 < int(m["port"]) < 65536:
+        raise ValueError(f"endpoint {value!r}: must be tls/HOST:PORT with --keys, or tcp/HOST:PORT or udp/HOST:PORT"
+                         " on loopback without (e.g. tcp/127.0.0.1:7447)")
+    if keys is not None and not value.startswith("tls/"):
+        raise ValueError(f"endpoint {value!r}: with --keys every endpoint is tls/HOST:PORT (mutual TLS; a plain"
+                         " one would let anyone in)")
+    if keys is None:
+        if value.startswith("tls/"):
+            raise ValueError(f"endpoint {value!r}: tls/ needs the fleet's keys (--keys DIR, made by"
+                             " `omniformation fleet-keys`)")
+        host = m["host"]
+        if not (host in LOOPBACK_HOSTS or host.startswith("127.")):
+            raise ValueError(f"endpoint {value!r}: without --keys the bus stays on this machine (127.0.0.1,"
+                             " localhost, [::1]); anyone on a network could drive the robots: make keys with"
+                             " `omniformation fleet-keys` and use tls/ endpoints with --keys")
     return value
 
 
@@ -69,24 +89,39 @@ def loopback_endpoint() -> str:
         return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
 
 
-def zenoh_config(listen: list[str], connect: list[str]) -> Any:
+def zenoh_config(listen: list[str], connect: list[str], keys: FleetKeys | None = None) -> Any:
+    """Only what is named: every omniformation process is a Zenoh router (routers forward for
+    one another, so a leader connected to a hub hears the leaders connected to it); one that
+    is not told to listen has no listener at all; multicast and gossip scouting are off, so
+    nothing finds anything by itself (docs/fleet-protocol.md, "Joining"). Zenoh peers would
+    not do: without gossip they do not forward between other peers, and with it they connect
+    to whomever they hear of."""
     import zenoh
 
-    c = zenoh.Config()
-    c.insert_json5("mode", '"peer"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    if listen:
-        c.insert_json5("listen/endpoints", json.dumps(listen))
-    if connect:
-        c.insert_json5("connect/endpoints", json.dumps(connect))
-    return c
+    from app.fleet.security import session_config
+
+    config: dict[str, Any] = {
+        "mode": "router",
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "listen": {"endpoints": list(listen)}, "connect": {"endpoints": list(connect)},
+    }
+    if keys is not None:
+        config.update(session_config(keys))
+    return zenoh.Config.from_json5(json.dumps(config))
 
 
-def open_session(listen: list[str], connect: list[str]) -> zenoh.Session:
-    """A Zenoh peer session on these endpoints (checked first: ValueError names a bad one)."""
+def open_session(listen: list[str], connect: list[str], keys: FleetKeys | None = None) -> zenoh.Session:
+    """A Zenoh session on these endpoints (checked first: ValueError names a bad one). With
+    ``keys``: mutual TLS and the fleet's access control (app.fleet.security); only a hub
+    (the arena, the page) listens."""
     import zenoh
 
-    return zenoh.open(zenoh_config([check_endpoint(e) for e in listen], [check_endpoint(e) for e in connect]))
+    listen = [check_endpoint(e, keys) for e in listen]
+    connect = [check_endpoint(e, keys) for e in connect]
+    if keys is not None and listen and not keys.is_hub:
+        raise ValueError(f"--zenoh-listen: with --keys only the fleet's hubs (the arena, the page) listen; leader"
+                         f" {keys.identity} connects to one of them")
+    return zenoh.open(zenoh_config(listen, connect, keys))
 
 
 def name_taken(session: Any, fleet: str, leader_id: str, within_s: float = 2.0) -> bool:
@@ -160,6 +195,7 @@ class FleetBridge:
         self.endpoints = list(connect or []) + list(listen or [])
         self.commands_taken = 0
         self.commands_refused = 0
+        self.states_refused = 0  # messages under this leader's own state key that are no leader's state
         self._state_pub = self.session.declare_publisher(f"{self.base}/state", express=True)  # not batched: latency
         self._event_pub = self.session.declare_publisher(f"{self.base}/events")
         self._token = token if token is not None else \
@@ -201,7 +237,9 @@ class FleetBridge:
         self._publisher(s)
 
     def _publish_state(self, s: TickState) -> None:
-        text = json.dumps(state_payload(s, self.leader_id, "all" if self.allow_control else "stop"), separators=(",", ":"))
+        payload = state_payload(s, self.leader_id, "all" if self.allow_control else "stop")
+        payload["refused"] = {"commands": self.commands_refused, "states": self.states_refused}
+        text = json.dumps(payload, separators=(",", ":"))
         # the wall clock as the last thing before it goes (a subscriber's latency on the same machine)
         self._state_pub.put(f'{text[:-1]},"instance":"{self.instance}","started":{self.started:.6f},'
                             f'"sent":{time.time():.6f}}}')
@@ -227,16 +265,20 @@ class FleetBridge:
         try:
             msg = json.loads(sample.payload.to_bytes())
         except (ValueError, UnicodeDecodeError):
-            return
-        if not isinstance(msg, dict):
-            return
-        other = msg.get("instance")
+            msg = None
+        other, started = (msg.get("instance"), msg.get("started")) if isinstance(msg, dict) else (None, None)
         if other == self.instance:
             return
-        other = str(other)[:16] if other is not None else "?"
-        started = msg.get("started")
-        # a leader that does not say when it started (an older version) is taken as the first
-        other_started = float(started) if isinstance(started, (int, float)) and math.isfinite(started) else -math.inf
+        # a twin is a leader: it says which process it is and when it started. Anything else under
+        # this id (a forged or damaged message) is no reason to stop the robots: counted, told
+        if not (isinstance(other, str) and re.fullmatch(r"[0-9a-f]{8}", other) and isinstance(started, (int, float))
+                and not isinstance(started, bool) and math.isfinite(started)):
+            self.states_refused += 1
+            if self.states_refused in (1, 10, 100, 1000):
+                self.event("refused", f"{self.states_refused} message(s) on {self.base}/state that are not a"
+                                      " leader's state (no instance and start time): ignored")
+            return
+        other_started = float(started)
         if (other_started, other) < (self.started, self.instance):
             if self.twin is not None:
                 return

@@ -45,6 +45,11 @@ def hue_rgb(hue_deg: float) -> tuple[int, int, int]:
     return int(r * 255), int(g * 255), int(b * 255)
 
 
+def refused_text(counts: dict[str, Any]) -> str:
+    """``{"conflicts": 2, "claims": 1}`` for people: what was turned away, by kind (nonzero only)."""
+    return ", ".join(f"{int(n)} {kind}" for kind, n in counts.items() if isinstance(n, int) and n) or "nothing"
+
+
 def team_errors_cm(state: dict[str, Any]) -> tuple[float, float]:
     errs = [e for e, ok in zip(state.get("error_m", []), state.get("tracked", [])) if e is not None and ok]
     if not errs:
@@ -107,6 +112,9 @@ class LeaderPanel:
         self.release.disabled = not (all_of_it and bool(state.get("stopped")))
         if not all_of_it:
             self.status.content += "  \ntakes only STOP from here (started without --fleet-control)"
+        refused = state.get("refused")
+        if isinstance(refused, dict) and any(refused.values()):
+            self.status.content += "  \nrefused: " + refused_text(refused)
         # the controls show what the leader runs with: a refused or clamped value does not stay on
         # the slider (a person's own move is left alone for a moment, while the leader answers)
         if not self._synced or time.monotonic() - self._moved_at > RESYNC_S:
@@ -278,6 +286,9 @@ class FleetView:
                 self.panels[lid].update(st, now - at, lid in alive)
             arena = "no arena" if truth is None else (f"arena t {truth.get('t', 0):.0f} s, {len(truth['robots'])} robots,"
                                                       f" conflicts {truth.get('conflicts', 0)}")
+            refused = truth.get("refused") if truth is not None else None
+            if isinstance(refused, dict):
+                arena += f"; arena refused: {refused_text(refused) if any(refused.values()) else 'nothing'}"
             rec = "" if self.recorder is None else f"  \n{self.recorder.status()}"
             self.status.content = (f"**fleet {self.fleet}**: leaders alive {', '.join(sorted(alive)) or 'none'};"
                                    f" {arena}{rec}")

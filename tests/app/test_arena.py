@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from core.config import ConfigError
 from core.fleet import FleetScenario, adoption_plan, initial_arena, parse_fleet, step_arena
 from core.sim.team import FollowerDynamics
 
-from tests.helpers import ROOT, interrupt, main_cli, wait_for
+from tests.helpers import ROOT, fleet_session, interrupt, main_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -32,12 +33,8 @@ FLEET = "three_teams"
 class Watcher:
     """Subscribes to the arena's truth and every leader's state."""
 
-    def __init__(self, endpoint: str) -> None:
-        c = zenoh.Config()
-        c.insert_json5("mode", '"peer"')
-        c.insert_json5("scouting/multicast/enabled", "false")
-        c.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        self.session = zenoh.open(c)
+    def __init__(self, endpoint: str, keys: Path) -> None:
+        self.session = fleet_session(keys, "page", endpoint)  # the operator's identity (it may hand over)
         self.lock = threading.Lock()
         self.truths: list[dict] = []
         self.states: dict[str, list[tuple[float, dict]]] = {}  # leader -> (arena t when received, state)
@@ -89,17 +86,22 @@ def _spawn(*args: str) -> subprocess.Popen:
 
 
 def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
-    endpoint = loopback_endpoint()
+    """With the fleet's keys (mutual TLS, access control by identity), as a fleet on a lab network
+    runs; tests/app/test_fleet.py and the fleet page's test run the open loopback bus."""
+    keys = tmp_path / "keys"
+    assert main_cli("fleet-keys", str(keys), "--fleet", FLEET, "--leaders", "L1,L2,L3").returncode == 0
+    endpoint = "tls/" + loopback_endpoint().split("/", 1)[1]
     summary = tmp_path / "arena.json"
-    arena = _spawn("arena", FLEET, "--zenoh-listen", endpoint, "--status-every", "0", "--summary", str(summary))
+    arena = _spawn("arena", FLEET, "--keys", str(keys), "--zenoh-listen", endpoint, "--status-every", "0",
+                   "--summary", str(summary))
     procs: dict[str, subprocess.Popen] = {}
     watcher = None
     try:
         assert arena.stdout is not None
         assert "arena three_teams: 3 leaders, 9 robots" in arena.stdout.readline()
-        watcher = Watcher(endpoint)
+        watcher = Watcher(endpoint, keys)
         for leader in ("L1", "L2", "L3"):
-            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--zenoh-connect", endpoint,
+            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys), "--zenoh-connect", endpoint,
                                    "--port", "0", "--no-record")
         w = watcher
         wait_for(lambda: sorted(w.last_truth()["alive"]) == ["L1", "L2", "L3"] if w.truths else False, 60,
@@ -114,7 +116,7 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         rms = {ld: team_rms_m(w.recent(ld, 4.0)) for ld in ("L1", "L2", "L3")}
         assert all(v <= 0.02 for v in rms.values()), rms
         # a second leader with an id on the bus already refuses to start, saying so
-        twin = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--zenoh-connect", endpoint, "--port", "0",
+        twin = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--keys", str(keys), "--zenoh-connect", endpoint, "--port", "0",
                         "--no-record")
         assert twin.returncode == 2 and "a leader with this id is alive on fleet three_teams" in twin.stderr, twin.stderr
         assert len(twin.stderr.strip().splitlines()) == 1
@@ -159,7 +161,7 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         assert w.last_truth()["conflicts"] == 0 and w.last_truth()["contacts"] == 0
 
         # L2 comes back empty-handed and waits; the operator hands it R5 back; its adopter lets go
-        procs["L2"] = _spawn("run", "--arena", FLEET, "--leader-id", "L2", "--zenoh-connect", endpoint, "--port", "0",
+        procs["L2"] = _spawn("run", "--arena", FLEET, "--leader-id", "L2", "--keys", str(keys), "--zenoh-connect", endpoint, "--port", "0",
                              "--no-record")
         assert procs["L2"].stdout is not None
         assert "L2 owns no robot in the arena now" in procs["L2"].stdout.readline()

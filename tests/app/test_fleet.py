@@ -217,13 +217,23 @@ def test_of_two_leaders_with_one_id_the_later_stands_down_and_the_first_carries_
         assert {s["instance"] for s in listener.states[-5:]} == {bridges["first"].instance}
         assert all(isinstance(s["started"], float) for s in listener.states[-5:])
         # a twin that started later: the first says so and carries on
-        listener.send("leader/L1/state", {"leader_id": "L1", "instance": "later", "started": bridges["first"].started + 5})
+        listener.send("leader/L1/state", {"leader_id": "L1", "instance": "0ba7e200", "started": bridges["first"].started + 5})
         wait_for(lambda: any(e["kind"] == "twin" and "appeared" in e["detail"] for e in listener.events), 10,
                  "the first's event")
         assert bridges["first"].twin is None and not stops["first"].is_set()
-        # a state under its id that does not say when its leader started counts as the first
-        listener.send("leader/L1/state", {"leader_id": "L1", "tick": 1})
-        wait_for(stops["first"].is_set, 10, "the first standing down for a leader that does not say when it started")
+        # what is not a leader's state (no instance and start time: a forged `{}`, a damaged message) stops
+        # nothing: counted and told
+        for junk in ({}, {"leader_id": "L1", "tick": 1}, {"instance": "0ba7e201", "started": "early"}, []):
+            listener.send("leader/L1/state", junk)
+        wait_for(lambda: bridges["first"].states_refused == 4, 10, "four messages refused as states")
+        wait_for(lambda: any(e["kind"] == "refused" and "not a leader's state" in e["detail"] for e in listener.events),
+                 10, "the refusal told")
+        wait_for(lambda: any(isinstance(m, dict) and m.get("refused", {}).get("states") == 4 for m in listener.states[-5:]),
+                 10, "the refusals in its state")
+        assert bridges["first"].twin is None and not stops["first"].is_set()
+        # a twin that started earlier than it: the first gives way after all
+        listener.send("leader/L1/state", {"leader_id": "L1", "instance": "0ba7e202", "started": bridges["first"].started - 5})
+        wait_for(stops["first"].is_set, 10, "the first standing down for a twin that started before it")
     finally:
         for e in stops.values():
             e.set()

@@ -108,10 +108,13 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             wait_for(lambda: arena.counts.malformed == malformed + 3 and arena.counts.conflicts == conflicts + 1, 30,
                      "three malformed drives and one conflict")
             replies = [json.loads(r.ok.payload.to_bytes()) for r in page_session.get(
-                f"{base}/claim", payload=json.dumps({"leader": "L2", "robot": "R1"}), timeout=5.0)]
+                f"{base}/claim/L2", payload=json.dumps({"leader": "L2", "robot": "R1"}), timeout=5.0)]
             assert replies and not replies[0]["granted"] and "L1 is alive" in replies[0]["why"], replies
+            replies = [json.loads(r.ok.payload.to_bytes()) for r in page_session.get(  # one id asking for another
+                f"{base}/claim/L2", payload=json.dumps({"leader": "L1", "robot": "R7"}), timeout=5.0)]
+            assert replies and not replies[0]["granted"] and "is L2's, not 'L1'" in replies[0]["why"], replies
             replies = [json.loads(r.ok.payload.to_bytes()) for r in page_session.get(
-                f"{base}/claim", payload=b"nonsense", timeout=5.0)]
+                f"{base}/claim/L1", payload=b"nonsense", timeout=5.0)]
             assert replies and not replies[0]["granted"], replies
             assert arena.owners[0] == "L1"
 

@@ -1,0 +1,310 @@
+"""The fleet's keys: who may say what on the bus (docs/fleet-protocol.md, "Security").
+
+`omniformation fleet-keys DIR --fleet NAME --leaders L1,L2` makes a fleet certificate authority
+and one certificate per identity (``arena``, ``page`` and every leader id; the certificate's
+common name is the identity). A process started with ``--keys DIR`` then speaks only mutual TLS
+(Zenoh's own ``tls/`` transport: both ends show a certificate of the fleet's CA) and runs
+Zenoh's access control (the ``access_control`` section of its session config): a message that
+comes in from an identity is let through only if that identity owns the key it writes.
+
+The certificates and keys are made with the ``cryptography`` package (no home-made crypto);
+the checks here run before anything joins the bus, so a wrong, missing, foreign or expired
+file is one line naming the file and the reason.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import json
+import os
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from app.keys import root
+
+ARENA = "arena"
+PAGE = "page"
+HUBS = (ARENA, PAGE)  # the identities that may listen and so forward the others' messages
+ROSTER = "fleet.json"
+CA_CERT = "ca.pem"
+CA_KEY = "ca.key"  # only fleet-keys needs it (a new identity): keep it off the robots
+DEFAULT_DAYS = 365
+MAX_DAYS = 3650
+
+# what a leader may write (its token and its claims apart); everyone may read the fleet's keys
+LEADER_WRITES = ("leader/{id}/state", "leader/{id}/events", "arena/drive/{id}")
+READS = ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query")
+EVERY_MESSAGE = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token",
+                 "declare_liveliness_subscriber", "liveliness_query")
+
+
+def organization(fleet: str) -> str:
+    return f"omniformation fleet {fleet}"
+
+
+@dataclass(frozen=True)
+class Roster:
+    """Who is in the fleet (DIR/fleet.json, written by fleet-keys with the certificates)."""
+
+    fleet: str
+    leaders: tuple[str, ...]
+
+    @property
+    def identities(self) -> tuple[str, ...]:
+        return (*HUBS, *self.leaders)
+
+
+@dataclass(frozen=True)
+class FleetKeys:
+    """One identity's files, checked: the fleet's CA, its certificate and key, the roster."""
+
+    identity: str
+    ca: Path
+    cert: Path
+    key: Path
+    roster: Roster
+
+    @property
+    def is_hub(self) -> bool:
+        return self.identity in HUBS
+
+
+def _identity_ok(name: str) -> bool:
+    from app.fleet.bridge import NAME
+
+    return bool(NAME.fullmatch(name))
+
+
+def parse_leaders(text: str) -> tuple[str, ...]:
+    """``L1,L2,...``: distinct leader ids, none of them a hub's name (ValueError says which)."""
+    ids = tuple(s.strip() for s in text.split(",") if s.strip())
+    if not ids:
+        raise ValueError("--leaders: give at least one leader id, e.g. L1,L2,L3")
+    for i in ids:
+        if not _identity_ok(i):
+            raise ValueError(f"--leaders: {i!r}: 1 to 32 characters of A-Z, a-z, 0-9, _ and -")
+        if i in HUBS:
+            raise ValueError(f"--leaders: {i!r} is taken by the {i} itself (a leader needs another id)")
+    if len(set(ids)) != len(ids):
+        dup = next(i for i in ids if ids.count(i) > 1)
+        raise ValueError(f"--leaders: {dup!r} twice (every leader has its own certificate)")
+    return ids
+
+
+# -- making keys ---------------------------------------------------------------------------------
+def make_fleet_keys(directory: Path, fleet: str, leaders: tuple[str, ...], *, overwrite: bool = False,
+                    days: int = DEFAULT_DAYS, now: dt.datetime | None = None) -> list[Path]:
+    """Writes DIR/ca.pem, DIR/ca.key, DIR/fleet.json and DIR/<identity>.pem/.key for ``arena``,
+    ``page`` and every leader; keys mode 0600. Refuses (FileExistsError naming the first file)
+    to write over any of them unless ``overwrite``. Returns the files written."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    roster = Roster(fleet, leaders)
+    names = [CA_CERT, CA_KEY, ROSTER] + [f"{i}{ext}" for i in roster.identities for ext in (".pem", ".key")]
+    if not overwrite:
+        for n in names:
+            if (directory / n).exists():
+                raise FileExistsError(f"{directory / n}: exists; fleet-keys writes over keys only with --overwrite")
+    directory.mkdir(parents=True, exist_ok=True)
+    now = now or dt.datetime.now(dt.UTC)
+    start, end = now - dt.timedelta(minutes=5), now + dt.timedelta(days=days)
+    org = x509.NameAttribute(NameOID.ORGANIZATION_NAME, organization(fleet))
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([org, x509.NameAttribute(NameOID.COMMON_NAME, f"{fleet} fleet CA")])
+    ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name).public_key(ca_key.public_key())
+          .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
+          .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+          .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=False,
+                                       data_encipherment=False, key_agreement=False, key_cert_sign=True,
+                                       crl_sign=True, encipher_only=False, decipher_only=False), critical=True)
+          .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
+          .sign(ca_key, hashes.SHA256()))
+    written: list[Path] = []
+
+    def write(name: str, data: bytes, secret: bool = False) -> None:
+        path = directory / name
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600 if secret else 0o644)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.chmod(path, 0o600 if secret else 0o644)  # also when it existed with another mode
+        written.append(path)
+
+    def pem_key(key: Any) -> bytes:
+        return bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                       serialization.NoEncryption()))
+
+    write(CA_CERT, ca.public_bytes(serialization.Encoding.PEM))
+    write(CA_KEY, pem_key(ca_key), secret=True)
+    for identity in roster.identities:
+        key = ec.generate_private_key(ec.SECP256R1())
+        cert = (x509.CertificateBuilder()
+                .subject_name(x509.Name([org, x509.NameAttribute(NameOID.COMMON_NAME, identity)]))
+                .issuer_name(ca_name).public_key(key.public_key()).serial_number(x509.random_serial_number())
+                .not_valid_before(start).not_valid_after(end)
+                .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+                .add_extension(x509.SubjectAlternativeName([x509.DNSName("localhost"),
+                                                            x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
+                               critical=False)
+                .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
+                                                      ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+                .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()),
+                               critical=False)
+                .sign(ca_key, hashes.SHA256()))
+        write(f"{identity}.pem", cert.public_bytes(serialization.Encoding.PEM))
+        write(f"{identity}.key", pem_key(key), secret=True)
+    write(ROSTER, (json.dumps({"fleet": fleet, "leaders": list(leaders)}, indent=1) + "\n").encode())
+    return written
+
+
+# -- checking keys -------------------------------------------------------------------------------
+class KeyFileError(ValueError):
+    """A key file that cannot serve: one line naming the file and the reason."""
+
+
+def _read(path: Path, what: str) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise KeyFileError(f"{path}: missing ({what}; `omniformation fleet-keys` writes it)") from None
+    except OSError as exc:
+        raise KeyFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
+def _parse(path: Path, data: bytes, loader: Any, what: str) -> Any:
+    try:
+        return loader(data)
+    except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+        raise KeyFileError(f"{path}: {what}") from None
+
+
+def _roster(directory: Path) -> Roster:
+    path = directory / ROSTER
+
+    def parse(data: bytes) -> Roster:
+        d = json.loads(data)
+        fleet, leaders = d["fleet"], d["leaders"]  # KeyError / TypeError: not a roster
+        if not isinstance(fleet, str) or not isinstance(leaders, list) or not all(isinstance(x, str) for x in leaders):
+            raise TypeError
+        return Roster(fleet, parse_leaders(",".join(leaders)))
+
+    roster: Roster = _parse(path, _read(path, "the fleet's roster"), parse,
+                            'not a fleet roster ({"fleet": NAME, "leaders": [ID, ...]})')
+    return roster
+
+
+def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datetime | None = None) -> FleetKeys:
+    """The files ``identity`` joins ``fleet`` with, checked: present and readable, the key not
+    readable by others, the certificate this fleet CA's, named ``identity``, in date and made
+    for this key. KeyFileError (a ValueError) names the file and the reason."""
+    from cryptography import x509
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.x509.oid import NameOID
+
+    if not directory.is_dir():
+        raise KeyFileError(f"--keys {directory}: not a directory (`omniformation fleet-keys {directory} ...` makes one)")
+    roster = _roster(directory)
+    if roster.fleet != fleet:
+        raise KeyFileError(f"{directory / ROSTER}: keys of fleet {roster.fleet!r}, not of {fleet!r}")
+    if identity not in roster.identities:
+        raise KeyFileError(f"{directory / ROSTER}: {identity!r} is not in fleet {fleet} (its identities:"
+                        f" {', '.join(roster.identities)}; fleet-keys makes the keys of a new one)")
+    now = now or dt.datetime.now(dt.UTC)
+    ca_path, cert_path, key_path = directory / CA_CERT, directory / f"{identity}.pem", directory / f"{identity}.key"
+    ca = _parse(ca_path, _read(ca_path, "the fleet's CA certificate"), x509.load_pem_x509_certificate,
+                "not a PEM certificate")
+    cert = _parse(cert_path, _read(cert_path, f"{identity}'s certificate"), x509.load_pem_x509_certificate,
+                  "not a PEM certificate")
+    mode = key_path.stat().st_mode if key_path.exists() else 0
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise KeyFileError(f"{key_path}: readable by others (mode {stat.S_IMODE(mode):04o}); `chmod 600 {key_path}`")
+    key = _parse(key_path, _read(key_path, f"{identity}'s private key"),
+                 lambda data: serialization.load_pem_private_key(data, password=None),
+                 "not an unencrypted PEM private key")
+
+    def org(c: Any) -> str:
+        attrs = c.subject.get_attributes_for_oid(NameOID.ORGANIZATION_NAME)
+        return str(attrs[0].value) if attrs else "?"
+
+    if org(ca) != organization(fleet):
+        raise KeyFileError(f"{ca_path}: the CA of {org(ca)!r}, not of {organization(fleet)!r}")
+    try:
+        cert.verify_directly_issued_by(ca)
+    except (ValueError, TypeError, InvalidSignature):
+        raise KeyFileError(f"{cert_path}: not signed by this fleet's CA ({ca_path}): a certificate of another"
+                        " fleet or of an older CA") from None
+    cns = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    cn = str(cns[0].value) if cns else ""
+    if cn != identity:
+        raise KeyFileError(f"{cert_path}: made for {cn!r}, not for {identity!r}")
+    for c, path in ((ca, ca_path), (cert, cert_path)):
+        if c.not_valid_after_utc < now:
+            raise KeyFileError(f"{path}: expired on {c.not_valid_after_utc:%Y-%m-%d %H:%M} UTC (make new keys with"
+                            " fleet-keys --overwrite)")
+        if c.not_valid_before_utc > now:
+            raise KeyFileError(f"{path}: not valid before {c.not_valid_before_utc:%Y-%m-%d %H:%M} UTC (is this"
+                            " machine's clock right?)")
+    pub = serialization.PublicFormat.SubjectPublicKeyInfo
+    if key.public_key().public_bytes(serialization.Encoding.DER, pub) != \
+            cert.public_key().public_bytes(serialization.Encoding.DER, pub):
+        raise KeyFileError(f"{key_path}: not the key of {cert_path}")
+    return FleetKeys(identity, ca_path.resolve(), cert_path.resolve(), key_path.resolve(), roster)
+
+
+# -- the session's config ------------------------------------------------------------------------
+def tls_config(keys: FleetKeys) -> dict[str, Any]:
+    """Mutual TLS: both ends show a certificate of the fleet's CA. Names are not checked against
+    addresses (robots move between networks): who is at the other end is its certificate's
+    common name, and the access control below judges by that."""
+    return {"root_ca_certificate": str(keys.ca), "enable_mtls": True,
+            "listen_private_key": str(keys.key), "listen_certificate": str(keys.cert),
+            "connect_private_key": str(keys.key), "connect_certificate": str(keys.cert),
+            "verify_name_on_connect": False}
+
+
+def access_control(roster: Roster) -> dict[str, Any]:
+    """Zenoh's access control for every member of the fleet (the same on each; each judges what
+    comes in from the identities it is connected to). Default deny; every member may read the
+    fleet's keys and be sent them; each writes only what it owns:
+
+    - a leader its ``leader/<id>/state|events``, ``arena/drive/<id>``, its ``alive/<id>`` token
+      and claims on ``arena/claim/<id>`` -- nothing else: not another leader's keys, not the
+      commands, not a handover, not the arena's truth;
+    - the hubs (the arena and the page, the only ones that listen) forward the others' messages,
+      which they checked as they came in, so they may write every key of the fleet: the
+      commands and handovers (the page), the truth and the answers to claims (the arena)."""
+    base = root(roster.fleet)
+    rules: list[dict[str, Any]] = [
+        {"id": "read", "permission": "allow", "flows": ["ingress"], "messages": list(READS),
+         "key_exprs": [f"{base}/**"]},
+        {"id": "hear", "permission": "allow", "flows": ["egress"], "messages": list(EVERY_MESSAGE),
+         "key_exprs": [f"{base}/**"]},
+        {"id": "relay", "permission": "allow", "flows": ["ingress"], "messages": list(EVERY_MESSAGE),
+         "key_exprs": [f"{base}/**"]},
+    ]
+    subjects = [{"id": i, "cert_common_names": [i]} for i in roster.identities]
+    policies = [{"id": "hubs", "rules": ["read", "hear", "relay"], "subjects": list(HUBS)}]
+    for lid in roster.leaders:
+        rules += [
+            {"id": f"{lid}-writes", "permission": "allow", "flows": ["ingress"], "messages": ["put"],
+             "key_exprs": [f"{base}/{k.format(id=lid)}" for k in LEADER_WRITES]},
+            {"id": f"{lid}-alive", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
+             "key_exprs": [f"{base}/alive/{lid}"]},
+            {"id": f"{lid}-claims", "permission": "allow", "flows": ["ingress"], "messages": ["query"],
+             "key_exprs": [f"{base}/arena/claim/{lid}"]},
+        ]
+        policies.append({"id": f"leader-{lid}", "rules": ["read", "hear", f"{lid}-writes", f"{lid}-alive",
+                                                          f"{lid}-claims"], "subjects": [lid]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def session_config(keys: FleetKeys) -> dict[str, Any]:
+    """The parts of a Zenoh session's config that ``--keys`` adds."""
+    return {"transport": {"link": {"tls": tls_config(keys)}}, "access_control": access_control(keys.roster)}
