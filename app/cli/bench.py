@@ -780,10 +780,12 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     except ImportError:
         print_fn("fleet: skipped (needs eclipse-zenoh: make test installs it)")
         return results
-    p50, p99, samples = bench_fleet_latency()
-    results["fleet_state_latency_p99_ms"] = p99
-    print_fn(f"fleet: a leader's state to the fleet page on loopback: median {p50:.2f} ms, p99 {p99:.2f} ms over"
-             f" {samples} states (target p99 <= 5 ms)")
+    for keyed in (False, True):
+        p50, p99, samples = bench_fleet_latency(keyed=keyed)
+        results["fleet_state_latency_p99_ms" + ("_keys" if keyed else "")] = p99
+        how = "with --keys (mutual TLS, access control)" if keyed else "open (tcp, no keys)"
+        print_fn(f"fleet: a leader's state to the fleet page on loopback, {how}: median {p50:.2f} ms, p99 {p99:.2f} ms"
+                 f" over {samples} states (target p99 <= 5 ms)")
     tick_ms = bench_arena_tick(10, 10)
     results["arena_tick_ms_10x10"] = tick_ms
     print_fn(f"fleet: arena step for 10 leaders x 10 followers (dynamics, truth, publish): {tick_ms:.2f} ms per tick"
@@ -796,26 +798,36 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     return results
 
 
-def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision") -> tuple[float, float, int]:
+def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision", keyed: bool = False) -> tuple[float, float, int]:
     """(median ms, p99 ms, states) from a leader process publishing its state (`run --fleet`, vision
-    in the loop, 30 Hz) to the fleet page's subscriber (FleetView) in this process, on loopback."""
+    in the loop, 30 Hz) to the fleet page's subscriber (FleetView) in this process, on loopback;
+    ``keyed``: both with the fleet's keys (mutual TLS and access control, fresh keys made here)."""
     import subprocess
     import sys
+    import tempfile
     import time as _time
+    from pathlib import Path
 
     from app.dashboard.gate import quietly, serve_gated
     from app.fleet.bridge import loopback_endpoint, open_session
+    from app.fleet.security import load_fleet_keys, make_fleet_keys
     from app.realtime import SWITCH_INTERVAL_S
     from app.services.fleet_page import FleetView
 
     endpoint = loopback_endpoint()
-    page_session = open_session([endpoint], [])
+    tmp = tempfile.TemporaryDirectory(prefix="omniformation-keys-")
+    keys_args: list[str] = []
+    if keyed:
+        make_fleet_keys(Path(tmp.name), "bench", ("L1",))
+        endpoint = "tls/" + endpoint.split("/", 1)[1]
+        keys_args = ["--keys", tmp.name]
+    page_session = open_session([endpoint], [], load_fleet_keys(Path(tmp.name), "page", "bench") if keyed else None)
     server, gate = serve_gated("127.0.0.1", 0)
     switch = sys.getswitchinterval()
     sys.setswitchinterval(SWITCH_INTERVAL_S)  # as `omniformation fleet` runs the page
     view = FleetView(server, page_session, "bench")
     leader = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record", "--fleet", "bench",
-                               "--leader-id", "L1", "--zenoh-connect", endpoint, "--feedback", feedback],
+                               "--leader-id", "L1", "--zenoh-connect", endpoint, "--feedback", feedback, *keys_args],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = _time.monotonic() + 120
@@ -835,6 +847,7 @@ def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision") -> tupl
         quietly(server.stop)
         page_session.close()
         sys.setswitchinterval(switch)
+        tmp.cleanup()
     if lat.size == 0:
         return float("nan"), float("nan"), 0
     return float(np.median(lat)), float(np.percentile(lat, 99)), int(lat.size)
