@@ -117,6 +117,12 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
                 f"{base}/claim/L1", payload=b"nonsense", timeout=5.0)]
             assert replies and not replies[0]["granted"], replies
             assert arena.owners[0] == "L1"
+            # what the arena refused is on the page, by kind
+            from app.services.fleet_page import refused_text
+
+            said = refused_text(arena.refused())
+            assert "1 conflicts" in said and "2 claims" in said and "malformed" in said, said
+            page.get_by_text(f"arena refused: {said}", exact=False).first.wait_for(timeout=30_000)
 
             # the operator hands a robot of the leader that never came (L3's R7) to L1: it joins L1's team
             page.get_by_text("Hand over a robot", exact=True).first.click()
