@@ -242,16 +242,31 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
         # what reached the arena was refused and counted (shown on the fleet page): the drives under its
         # own name for L1's robot (conflicts) and the claim under its own name for L1
         assert heard.truth["refused"]["claims"] == 1 and heard.truth["refused"]["conflicts"] > 0, heard.truth["refused"]
-        for tok in tokens:
-            tok.undeclare()
 
-        # the operator's identity may: a STOP from the page's certificate stops L1
+        # the operator's identity may: a STOP from the fleet page (its own process, the page's certificate)
+        # stops L1, and the page hears and records every leader
+        fleet_page = _spawn("fleet", "--fleet", FLEET, "--keys", str(keys), "--zenoh-connect", ep, "--port", "0",
+                            "--record", str(tmp_path / "fleet.mcap"))
+        procs["page"] = fleet_page
+        assert fleet_page.stdout is not None and "fleet three_teams at http" in fleet_page.stdout.readline()
         page.put(f"{BASE}/leader/L1/cmd", json.dumps({"set": {"stop": True}, "from": "test"}))
         wait_for(lambda: heard.states["L1"]["stopped"], 20, "L1 stopped by the page")
+        time.sleep(1.0)  # the page records a second of the fleet
+        # L1 dies while the third party still holds a token under its name: the arena sees L1 lost at once
+        procs["L1"].kill()
+        wait_for(lambda: "L1" in heard.truth["lost"] and heard.truth["alive"] == ["L2"], 20, "L1 lost")
+        for tok in tokens:
+            tok.undeclare()
     finally:
         for s in sessions:
             s.close()
         interrupt(*procs.values())
         interrupt(arena)
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "fleet.mcap", "rb") as f:
+        topics = [channel.topic for _, channel, _ in make_reader(f).iter_messages()]
+    assert topics.count("/fleet/L1/state") > 10 and topics.count("/fleet/L2/state") > 10, set(topics)
     counts = json.loads(summary.read_text())
-    assert counts["claims_granted"] == 0 and counts["strangers"] == 0 and counts["handovers_refused"] == 0, counts
+    # no token under a name outside the fleet, no handover reached the arena (the page made none)
+    assert counts["strangers"] == 0 and counts["handovers_refused"] == 0, counts
