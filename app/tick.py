@@ -66,3 +66,25 @@ class TickState:
     @property
     def n(self) -> int:
         return int(self.p_est.shape[0])
+
+
+class SessionClock:
+    """The time of a session, which never goes back: the loop's own clock (each tick's ``t``)
+    starts again at 0 after a reset; this one goes on from where it was, one tick later. The
+    recording's log time and a leader's ``t`` on the fleet bus are this clock."""
+
+    def __init__(self) -> None:
+        self._prev: float | None = None  # the loop's t at the last tick
+        self._offset = 0.0  # session time minus the loop's, grown at each reset
+        self._step = 0.0  # the last tick's step of the loop's clock
+        self.last = 0.0  # the session's time of the last tick (s)
+
+    def __call__(self, t: float) -> float:
+        """The session's time of a tick whose loop time is ``t``."""
+        if self._prev is not None and t < self._prev - 1e-9:  # a reset
+            self._offset = self.last + self._step - t
+        elif self._prev is not None and t > self._prev:
+            self._step = t - self._prev
+        self._prev = t
+        self.last = self._offset + t
+        return self.last

@@ -18,6 +18,7 @@ never waits on the network), the events from the parameter store's listeners.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -32,7 +33,7 @@ import numpy as np
 from app.dashboard import LatestStatePublisher
 from app.keys import root
 from app.params import Params, ParamsStore
-from app.tick import TickState
+from app.tick import SessionClock, TickState
 from app.recording.writer import params_events
 
 log = logging.getLogger(__name__)
@@ -205,6 +206,7 @@ class FleetBridge:
                       self.session.declare_subscriber(f"{self.base}/state", self._on_own_id_state)]
         self._last_params = store.get()
         self._t = 0.0
+        self._clock = SessionClock()
         store.subscribe(self._on_params)
         self._publisher = LatestStatePublisher(self._publish_state)
 
@@ -233,8 +235,10 @@ class FleetBridge:
 
     # -- out ------------------------------------------------------------------------------
     def on_tick(self, s: TickState) -> None:
-        self._t = s.t
-        self._publisher(s)
+        """Every tick of the loop. The state's ``t`` on the bus is this process's session time,
+        which never goes back (the loop's own restarts at 0 when the team changes)."""
+        self._t = self._clock(s.t)
+        self._publisher(dataclasses.replace(s, t=self._t))
 
     def _publish_state(self, s: TickState) -> None:
         payload = state_payload(s, self.leader_id, "all" if self.allow_control else "stop")

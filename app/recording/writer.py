@@ -195,9 +195,7 @@ class Recorder:
         self._frame_slots = threading.Semaphore(MAX_FRAMES_WAITING)  # raw frames (~1 MB each) the writer may owe
         self._prev: TickState | None = None
         self._params = params
-        self._last_t = 0.0  # the session's time of the last tick (s; never goes back)
-        self._offset = 0.0  # session time minus the loop's, grown at each reset
-        self._step = 0.0  # the last tick's step of the loop's clock
+        self._clock = SessionClock()  # the session's time (s; never goes back)
         self._last_frame_t = -math.inf
         self._last_scan_t = -math.inf
         self.ticks = 0
@@ -238,12 +236,7 @@ class Recorder:
         whole session, before and after."""
         if self.failure:
             return
-        if self._prev is not None and s.t < self._prev.t - 1e-9:  # a reset (its event came with the request)
-            self._offset = self._last_t + self._step - s.t
-        elif self._prev is not None and s.t > self._prev.t:
-            self._step = s.t - self._prev.t
-        t = self._offset + s.t
-        self._last_t = t
+        t = self._clock(s.t)  # after a reset (its event came with the request) it goes on
         self._put(TICK_TOPIC, t, tick_payload(s))
         self._put(TF_TOPIC, t, transforms_payload(s, self._ns(t)))
         for kind, detail in tick_events(self._prev, s):
@@ -269,13 +262,13 @@ class Recorder:
         """The store's subscriber: the new parameter set and what changed."""
         old, self._params = self._params, p
         for kind, detail in params_events(old, p, source):
-            self.event(self._last_t, kind, detail)
-        self._put(PARAMS_TOPIC, self._last_t, params_payload(p))
+            self.event(self._clock.last, kind, detail)
+        self._put(PARAMS_TOPIC, self._clock.last, params_payload(p))
 
     def on_trial(self, trial: Any) -> None:
         """A step test's row (app.live.tuning.Trial): its message, and an event for the list."""
         payload = trial.payload()
-        t = self._last_t
+        t = self._clock.last
         self._put(TRIAL_TOPIC, t, jsonable(payload))
         self.event(t, "trial", f"trial {payload['number']}: {payload['label']}, {payload['status']}")
 

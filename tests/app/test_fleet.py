@@ -243,3 +243,37 @@ def test_of_two_leaders_with_one_id_the_later_stands_down_and_the_first_carries_
             b.close()
         if listener is not None:
             listener.close()
+
+
+def test_a_leaders_t_on_the_bus_never_goes_back_when_its_team_changes():
+    """The loop's clock restarts at 0 when the team changes (a reset); the state's ``t`` on the
+    bus is the leader's session time: it goes on (docs/fleet-protocol.md, state)."""
+    endpoint = loopback_endpoint()
+    store = ParamsStore(Params(n_followers=2, slots=default_slots(2), leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+    bridge = FleetBridge(store, "arena5", "L1", listen=[endpoint])
+    loop.subscribe(bridge.on_tick)
+    listener = Listener(endpoint, "arena5")
+    try:
+        wait_for(lambda: bridge.peers() > 0, 10, "the listener connected")
+        seen: list[tuple[int, float]] = []
+
+        def tick_until(n: int) -> None:
+            while len(seen) < n:
+                loop.tick()
+                with listener._lock:
+                    seen[:] = [(m["tick"], m["t"]) for m in listener.states]
+                threading.Event().wait(1 / 60)
+
+        tick_until(20)
+        loop_t_before = loop.t
+        store.update("test", n_followers=3, slots=default_slots(3))  # a new team: the loop starts again
+        tick_until(len(seen) + 20)
+        assert loop.t < loop_t_before  # the loop's own clock did restart
+        ticks = [k for k, _ in seen]
+        ts = [t for _, t in seen]
+        assert ticks == sorted(ticks) and ts == sorted(ts), seen
+        assert ts[-1] > loop_t_before, (ts[-1], loop_t_before)
+    finally:
+        listener.close()
+        bridge.close()
