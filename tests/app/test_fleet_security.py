@@ -130,6 +130,25 @@ def test_bad_keys_and_open_endpoints_are_refused_in_one_line(tmp_path):
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
 
 
+def listening_ports(pid: int) -> set[int]:
+    """The TCP ports process ``pid`` listens on (its sockets matched in /proc/net/tcp{,6})."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    ports = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == "0A" and f[9] in inodes:  # LISTEN
+                ports.add(int(f[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
 def _spawn(*args: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "app.cli", *args], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -181,6 +200,14 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
         wait_for(lambda: heard.truth is not None and heard.truth["alive"] == ["L1", "L2"]
                  and {"L1", "L2"} <= set(heard.states), 60, "L1 and L2 alive, their states heard")
         owners = list(heard.truth["owners"])
+        # a leader told only where to connect listens on nothing but its own page (no implicit Zenoh
+        # listener): the page's gate, and the viser server behind it on a loopback port of its own
+        out = procs["L2"].stdout
+        assert out is not None
+        page_port = next(int(line.split("http://127.0.0.1:")[1].split("/")[0]) for line in iter(out.readline, "")
+                         if "dashboard at http://127.0.0.1:" in line)
+        ports = listening_ports(procs["L2"].pid)
+        assert page_port in ports and len(ports) == 2, (ports, page_port)
 
         # 1. no certificate: a plain TCP session to the same port hears nothing and changes nothing
         plain = fleet_session(None, None, "tcp/" + ep.split("/", 1)[1])
