@@ -33,7 +33,7 @@ import numpy as np
 
 from app.params import Params
 from core.types import Image
-from app.tick import TickState
+from app.tick import SessionClock, TickState
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
 from app.recording.mcap_out import SessionWriter
 from app.recording.reader import metadata_crc
