@@ -59,13 +59,19 @@ class Listener:
         self.session.close()
 
 
-def test_a_leader_is_seen_on_the_bus_and_takes_only_what_the_operator_allows():
+def leader_on_the_bus(fleet: str) -> tuple[ParamsStore, ServiceLoop, FleetBridge, Listener]:
+    """A simulated leader of two listening on a loopback bus of its own (the hub), its loop not
+    ticking yet, and a third program connected to it."""
     endpoint = loopback_endpoint()
     store = ParamsStore(Params(n_followers=2, slots=default_slots(2), leader_mode="straight"))
     loop = ServiceLoop(store, rate_hz=30.0, seed=1)
-    bridge = FleetBridge(store, "arena1", "L1", listen=[endpoint])
+    bridge = FleetBridge(store, fleet, "L1", listen=[endpoint])
     loop.subscribe(bridge.on_tick)
-    listener = Listener(endpoint, "arena1")
+    return store, loop, bridge, Listener(endpoint, fleet)
+
+
+def test_a_leader_is_seen_on_the_bus_and_takes_only_what_the_operator_allows():
+    store, loop, bridge, listener = leader_on_the_bus("arena1")
     stop_ticking = threading.Event()
 
     def ticking() -> None:
@@ -248,12 +254,7 @@ def test_of_two_leaders_with_one_id_the_later_stands_down_and_the_first_carries_
 def test_a_leaders_t_on_the_bus_never_goes_back_when_its_team_changes():
     """The loop's clock restarts at 0 when the team changes (a reset); the state's ``t`` on the
     bus is the leader's session time: it goes on (docs/fleet-protocol.md, state)."""
-    endpoint = loopback_endpoint()
-    store = ParamsStore(Params(n_followers=2, slots=default_slots(2), leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
-    bridge = FleetBridge(store, "arena5", "L1", listen=[endpoint])
-    loop.subscribe(bridge.on_tick)
-    listener = Listener(endpoint, "arena5")
+    store, loop, bridge, listener = leader_on_the_bus("arena5")
     try:
         wait_for(lambda: bridge.peers() > 0, 10, "the listener connected")
         seen: list[tuple[int, float]] = []
