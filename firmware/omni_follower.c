@@ -33,6 +33,11 @@ static uint8_t payload_len(uint8_t type) {
     case OF_MSG_PING: return 0;
     case OF_MSG_ACK: return 13;
     case OF_MSG_STATUS: return 9;
+    case OF_MSG_CLAIM: return 3;
+    case OF_MSG_HANDOVER: return 4;
+    case OF_MSG_DRIVE: return 7;
+    case OF_MSG_OWNER: return 3;
+    case OF_MSG_NACK: return 4;
     default: return 0xFF;
     }
 }
@@ -56,24 +61,111 @@ static void update_battery_flag(of_follower *f) {
     else f->flags &= (uint8_t)~OF_FLAG_LOW_BATTERY;
 }
 
+static uint16_t get_u16(const uint8_t *p) { return (uint16_t)(p[0] | ((uint16_t)p[1] << 8)); }
+
+static void set_velocity(of_follower *f, const uint8_t *vw) {
+    float v = (float)get_i16(vw) / 1000.0f;      /* mm/s */
+    float w = (float)get_i16(vw + 2) / 1000.0f;  /* mrad/s, counter-clockwise */
+    float half = w * f->hw.wheel_base_m / 2.0f;
+    float left = v - half, right = v + half;
+    float big = left < 0 ? -left : left;
+    float r = right < 0 ? -right : right;
+    if (r > big) big = r;
+    if (big > f->hw.wheel_speed_max_mps) {  /* both together: the path keeps its curvature */
+        float k = f->hw.wheel_speed_max_mps / big;
+        left *= k; right *= k;
+    }
+    set_targets(f, left, right);
+    f->last_command_ms = f->last_byte_ms;
+    f->commanded = 1;
+    f->flags &= (uint8_t)~(OF_FLAG_WATCHDOG | OF_FLAG_STOPPED);
+}
+
+static void send_ack(of_follower *f, uint8_t seq) {
+    uint8_t p[13];
+    int32_t lt, rt;
+    float lv, rv;
+    update_battery_flag(f);
+    hal_read_encoders(f->ctx, &lt, &rt);
+    hal_measured_wheel_speeds(f->ctx, &lv, &rv);
+    put_u32(p, (uint32_t)lt);
+    put_u32(p + 4, (uint32_t)rt);
+    put_u16(p + 8, (uint16_t)to_i16((lv + rv) / 2.0f * 1000.0f));
+    put_u16(p + 10, (uint16_t)to_i16((rv - lv) / f->hw.wheel_base_m * 1000.0f));
+    p[12] = f->flags;
+    send(f, seq, OF_MSG_ACK, p, 13);
+}
+
+/* ---- protocol 2: ownership (docs/follower-protocol.md, "Ownership") ---- */
+static int lease_lives(const of_follower *f) {
+    return f->owner != 0 && (int32_t)(f->lease_until_ms - f->last_byte_ms) > 0;
+}
+
+static void send_ownership(of_follower *f, uint8_t seq, uint8_t reason) {
+    uint8_t p[4];
+    uint32_t left = lease_lives(f) ? f->lease_until_ms - f->last_byte_ms : 0u;
+    p[0] = f->owner;
+    put_u16(p + 1, (uint16_t)(left > 65535u ? 65535u : left));
+    if (reason == 0) {
+        send(f, seq, OF_MSG_OWNER, p, 3);
+    } else {
+        p[3] = reason;
+        f->count.nacks++;
+        send(f, seq, OF_MSG_NACK, p, 4);
+    }
+}
+
+static void grant(of_follower *f, uint8_t seq, uint8_t leader, uint16_t lease) {
+    if (lease < OF_LEASE_MIN_MS) lease = OF_LEASE_MIN_MS;
+    if (lease > OF_LEASE_MAX_MS) lease = OF_LEASE_MAX_MS;
+    if (leader != f->owner) set_targets(f, 0.0f, 0.0f);  /* a new owner starts from rest */
+    f->owner = leader;
+    f->lease_ms = lease;
+    f->lease_until_ms = f->last_byte_ms + lease;
+    send_ownership(f, seq, 0);
+}
+
+static void ownership(of_follower *f, uint8_t seq, uint8_t type, const uint8_t *payload) {
+    if (type == OF_MSG_SET_VELOCITY) {  /* protocol 1 to a robot someone holds */
+        send_ownership(f, seq, OF_NACK_NOT_OWNER);
+    } else if (type == OF_MSG_CLAIM) {
+        uint8_t leader = payload[0];
+        if (leader == 0 || leader > OF_MAX_LEADER) send_ownership(f, seq, OF_NACK_NOT_OWNER);
+        else if (lease_lives(f) && f->owner != leader) send_ownership(f, seq, OF_NACK_OWNED);
+        else grant(f, seq, leader, get_u16(payload + 1));
+    } else if (type == OF_MSG_HANDOVER) {
+        uint8_t from = payload[0], to = payload[1];
+        if (f->owner == 0 || from != f->owner || to == 0 || to > OF_MAX_LEADER)
+            send_ownership(f, seq, OF_NACK_NOT_OWNER);
+        else grant(f, seq, to, get_u16(payload + 2));
+    } else {  /* DRIVE */
+        uint8_t leader = payload[0];
+        if (!lease_lives(f) || leader != f->owner) {
+            send_ownership(f, seq, OF_NACK_NOT_OWNER);
+        } else if (get_u16(payload + 1) > OF_MAX_OBSERVATION_AGE_MS) {
+            set_targets(f, 0.0f, 0.0f);  /* what it was computed from is gone: stand still */
+            send_ownership(f, seq, OF_NACK_STALE);
+        } else {
+            if (f->driven_by != 0 && f->driven_by != leader && f->last_byte_ms - f->driven_ms < OF_TWO_OWNERS_MS)
+                f->count.two_owners++;
+            set_velocity(f, payload + 3);
+            f->lease_until_ms = f->last_byte_ms + f->lease_ms;
+            f->driven_by = leader;
+            f->driven_ms = f->last_byte_ms;
+            send_ack(f, seq);
+        }
+    }
+}
+
 static void handle(of_follower *f, uint8_t address, uint8_t seq, uint8_t type, const uint8_t *payload) {
     if (address != f->address && address != OF_BROADCAST) return;
+    if (type == OF_MSG_CLAIM || type == OF_MSG_HANDOVER || type == OF_MSG_DRIVE ||
+        (type == OF_MSG_SET_VELOCITY && lease_lives(f))) {
+        if (address != OF_BROADCAST) ownership(f, seq, type, payload);  /* one robot's business */
+        return;
+    }
     if (type == OF_MSG_SET_VELOCITY) {
-        float v = (float)get_i16(payload) / 1000.0f;      /* mm/s */
-        float w = (float)get_i16(payload + 2) / 1000.0f;  /* mrad/s, counter-clockwise */
-        float half = w * f->hw.wheel_base_m / 2.0f;
-        float left = v - half, right = v + half;
-        float big = left < 0 ? -left : left;
-        float r = right < 0 ? -right : right;
-        if (r > big) big = r;
-        if (big > f->hw.wheel_speed_max_mps) {  /* both together: the path keeps its curvature */
-            float k = f->hw.wheel_speed_max_mps / big;
-            left *= k; right *= k;
-        }
-        set_targets(f, left, right);
-        f->last_command_ms = f->last_byte_ms;
-        f->commanded = 1;
-        f->flags &= (uint8_t)~(OF_FLAG_WATCHDOG | OF_FLAG_STOPPED);
+        set_velocity(f, payload);
     } else if (type == OF_MSG_STOP) {
         set_targets(f, 0.0f, 0.0f);
         if (!(f->flags & OF_FLAG_STOPPED)) hal_event(f->ctx, "STOP");
@@ -82,8 +174,8 @@ static void handle(of_follower *f, uint8_t address, uint8_t seq, uint8_t type, c
         return;  /* another robot's reply on a shared line */
     }
     if (address == OF_BROADCAST) return;  /* obeyed, never answered */
-    update_battery_flag(f);
     if (type == OF_MSG_PING) {
+        update_battery_flag(f);
         uint8_t p[9];
         uint32_t age = f->last_byte_ms - f->last_command_ms;
         put_u16(p, hal_battery_mv(f->ctx));
@@ -92,17 +184,7 @@ static void handle(of_follower *f, uint8_t address, uint8_t seq, uint8_t type, c
         put_u32(p + 5, f->last_byte_ms);
         send(f, seq, OF_MSG_STATUS, p, 9);
     } else {
-        uint8_t p[13];
-        int32_t lt, rt;
-        float lv, rv;
-        hal_read_encoders(f->ctx, &lt, &rt);
-        hal_measured_wheel_speeds(f->ctx, &lv, &rv);
-        put_u32(p, (uint32_t)lt);
-        put_u32(p + 4, (uint32_t)rt);
-        put_u16(p + 8, (uint16_t)to_i16((lv + rv) / 2.0f * 1000.0f));
-        put_u16(p + 10, (uint16_t)to_i16((rv - lv) / f->hw.wheel_base_m * 1000.0f));
-        p[12] = f->flags;
-        send(f, seq, OF_MSG_ACK, p, 13);
+        send_ack(f, seq);
     }
 }
 

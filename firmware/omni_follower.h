@@ -1,7 +1,8 @@
 /*
  * omniformation reference follower firmware: the follower protocol of
- * docs/follower-protocol.md, the watchdog and differential-drive odometry,
- * in portable C99 for a small microcontroller.
+ * docs/follower-protocol.md (protocol 2: ownership by one leader at a time, with a
+ * lease), the watchdog and differential-drive odometry, in portable C99 for a small
+ * microcontroller.
  *
  * One `of_follower` is one robot. The firmware calls:
  *   of_init()     once, with the robot's address and its hardware numbers;
@@ -26,8 +27,23 @@
 #define OF_MSG_SET_VELOCITY 0x01u
 #define OF_MSG_STOP 0x02u
 #define OF_MSG_PING 0x03u
+#define OF_MSG_CLAIM 0x04u     /* protocol 2: uint8 leader, uint16 lease ms */
+#define OF_MSG_HANDOVER 0x05u  /* protocol 2: uint8 from, uint8 to, uint16 lease ms */
+#define OF_MSG_DRIVE 0x06u     /* protocol 2: uint8 leader, uint16 observation age ms, int16 v, int16 w */
 #define OF_MSG_ACK 0x81u
 #define OF_MSG_STATUS 0x82u
+#define OF_MSG_OWNER 0x83u     /* protocol 2: uint8 owner, uint16 lease left ms */
+#define OF_MSG_NACK 0x84u      /* protocol 2: uint8 owner, uint16 lease left ms, uint8 reason */
+
+#define OF_PROTOCOL_VERSION 2u
+#define OF_NACK_OWNED 1u       /* another leader's lease lives */
+#define OF_NACK_NOT_OWNER 2u   /* the sender is not the owner (or the robot is owned and SET_VELOCITY came) */
+#define OF_NACK_STALE 3u       /* DRIVE from an observation older than OF_MAX_OBSERVATION_AGE_MS: stopped */
+#define OF_MAX_OBSERVATION_AGE_MS 300u
+#define OF_LEASE_MIN_MS 100u
+#define OF_LEASE_MAX_MS 10000u
+#define OF_MAX_LEADER 250u
+#define OF_TWO_OWNERS_MS 100u  /* DRIVEs of two leaders obeyed closer than this: counted (never expected) */
 
 #define OF_FLAG_WATCHDOG 0x01u
 #define OF_FLAG_STOPPED 0x02u
@@ -50,6 +66,8 @@ typedef struct {
     uint32_t type_errors;
     uint32_t partial_dropped;   /* frames cut off (OF_PARTIAL_FRAME_MS of silence inside one) */
     uint32_t skipped_bytes;
+    uint32_t nacks;             /* protocol 2: refusals sent */
+    uint32_t two_owners;        /* DRIVEs obeyed from a leader within OF_TWO_OWNERS_MS of another's */
 } of_counters;
 
 typedef struct {
@@ -64,6 +82,11 @@ typedef struct {
     uint8_t flags;
     float target_left_mps;
     float target_right_mps;
+    uint8_t owner;              /* protocol 2: the leader that owns the robot, 0 nobody */
+    uint16_t lease_ms;          /* the lease granted; each DRIVE of the owner renews it */
+    uint32_t lease_until_ms;
+    uint8_t driven_by;          /* the leader whose DRIVE was obeyed last, 0 none */
+    uint32_t driven_ms;
     of_counters count;
 } of_follower;
 

@@ -9,7 +9,14 @@ those of docs/follower-protocol.md:
 * STOP sets them to zero at once and raises FLAG_STOPPED until the next SET_VELOCITY;
 * a command older than WATCHDOG_S sets them to zero and raises FLAG_WATCHDOG;
 * PING only answers with STATUS (it does not feed the watchdog);
-* a broadcast frame is obeyed and never answered (robots would collide on a shared radio).
+* a broadcast frame is obeyed and never answered (robots would collide on a shared radio);
+* protocol 2, ownership: the robot holds an owner (a leader's number) and a lease. Only the
+  owner's DRIVE moves it while the lease lives (each one renews it); anyone else's motion is
+  refused with a NACK naming the owner; a CLAIM is granted when no lease lives (the owner
+  went quiet) or to the owner itself, a HANDOVER only from the owner; a DRIVE computed from an
+  observation older than MAX_OBSERVATION_AGE_MS stops the robot and is refused. STOP is
+  obeyed from anyone (stopping is always safe). firmware/omni_follower.c does the same
+  (tests/app/test_firmware.py holds the two to one script).
 """
 
 from __future__ import annotations
@@ -49,6 +56,22 @@ class FollowerState:
     command_age_s: float = math.inf  # since the last valid SET_VELOCITY
     flags: int = p.FLAG_WATCHDOG  # at power-on nothing has been commanded
     uptime_s: float = 0.0
+    # protocol 2: who owns the robot (a leader's number, 0: nobody) and for how much longer
+    owner: int = 0
+    lease_ms: int = 0  # the lease granted (each DRIVE of the owner renews it)
+    lease_left_s: float = 0.0
+    driven_by: int = 0  # the leader whose DRIVE the robot obeyed last
+    driven_age_s: float = math.inf
+    two_owners: int = 0  # DRIVEs obeyed from a leader within 100 ms of another's (never expected)
+    nacks: int = 0
+
+    @property
+    def lease_lives(self) -> bool:
+        return self.owner != 0 and self.lease_left_s > 0.0
+
+    def ownership(self, reason: int = 0) -> p.Ownership:
+        left = int(round(self.lease_left_s * 1000)) if self.lease_lives else 0
+        return p.Ownership(self.owner, left, reason)
 
     def ticks(self, hw: FollowerHardware) -> tuple[int, int]:
         return int(math.floor(self.dist_l_m / hw.metres_per_tick)), int(math.floor(self.dist_r_m / hw.metres_per_tick))
@@ -91,13 +114,68 @@ def step_follower(s: FollowerState, hw: FollowerHardware, dt: float) -> Follower
     return dataclasses.replace(
         s, target_l_mps=tl, target_r_mps=tr, wheel_l_mps=wl, wheel_r_mps=wr,
         dist_l_m=s.dist_l_m + (s.wheel_l_mps + wl) / 2 * dt, dist_r_m=s.dist_r_m + (s.wheel_r_mps + wr) / 2 * dt,
-        command_age_s=age, flags=flags, uptime_s=s.uptime_s + dt)
+        command_age_s=age, flags=flags, uptime_s=s.uptime_s + dt, lease_left_s=max(0.0, s.lease_left_s - dt),
+        driven_age_s=s.driven_age_s + dt)
+
+
+TWO_OWNERS_S = 0.1  # two leaders' DRIVEs obeyed closer together than this: one robot with two owners
+
+
+def _ownership(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:
+    """CLAIM, HANDOVER and DRIVE (protocol 2), and a protocol 1 SET_VELOCITY to an owned robot."""
+    def refuse(reason: int) -> tuple[FollowerState, p.Frame | None]:
+        r = dataclasses.replace(s, nacks=s.nacks + 1)
+        return r, p.nack(s.address, frame.seq, s.ownership(reason))
+
+    def grant(leader: int, lease_ms: int) -> tuple[FollowerState, p.Frame | None]:
+        lease = max(p.LEASE_MIN_MS, min(p.LEASE_MAX_MS, lease_ms))
+        r = s if leader == s.owner else dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0)  # from rest
+        r = dataclasses.replace(r, owner=leader, lease_ms=lease, lease_left_s=lease / 1000)
+        return r, p.owner(s.address, frame.seq, r.ownership())
+
+    if frame.msg_type == p.MSG_SET_VELOCITY:  # protocol 1: only a robot nobody holds takes it
+        return refuse(p.NACK_NOT_OWNER)
+    if frame.msg_type == p.MSG_CLAIM:
+        leader, lease = p.decode_claim(frame)
+        if not 1 <= leader <= p.MAX_FOLLOWER_ADDRESS:
+            return refuse(p.NACK_NOT_OWNER)
+        if s.lease_lives and s.owner != leader:
+            return refuse(p.NACK_OWNED)
+        return grant(leader, lease)
+    if frame.msg_type == p.MSG_HANDOVER:
+        frm, to, lease = p.decode_handover(frame)
+        if s.owner == 0 or frm != s.owner or not 1 <= to <= p.MAX_FOLLOWER_ADDRESS:
+            return refuse(p.NACK_NOT_OWNER)
+        return grant(to, lease)
+    d = p.decode_drive(frame)
+    if not s.lease_lives or d.leader != s.owner:
+        return refuse(p.NACK_NOT_OWNER)
+    if d.observation_age_ms > p.MAX_OBSERVATION_AGE_MS:  # what it was computed from is gone: stand still
+        s = dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0)
+        return refuse(p.NACK_STALE)
+    left, right = wheel_targets(d.v_mps, d.w_rps, hw)
+    two = s.driven_by not in (0, d.leader) and s.driven_age_s < TWO_OWNERS_S
+    s = dataclasses.replace(s, target_l_mps=left, target_r_mps=right, command_age_s=0.0,
+                            flags=s.flags & ~(p.FLAG_WATCHDOG | p.FLAG_STOPPED), lease_left_s=s.lease_ms / 1000,
+                            driven_by=d.leader, driven_age_s=0.0, two_owners=s.two_owners + two)
+    return s, _ack(s, hw, frame.seq)
+
+
+def _ack(s: FollowerState, hw: FollowerHardware, seq: int) -> p.Frame:
+    left, right = s.ticks(hw)
+    v_meas, w_meas = s.measured(hw)
+    return p.ack(s.address, seq, p.Ack(left, right, v_meas, w_meas, s.flags))
 
 
 def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:
     """Obey one frame addressed to this robot (or broadcast); return the new state and the reply."""
     if frame.address not in (s.address, p.BROADCAST):
         return s, None
+    if frame.msg_type in (p.MSG_CLAIM, p.MSG_HANDOVER, p.MSG_DRIVE) or \
+            (frame.msg_type == p.MSG_SET_VELOCITY and s.lease_lives):
+        if frame.address == p.BROADCAST:
+            return s, None  # ownership is one robot's business: never by broadcast, never answered
+        return _ownership(s, hw, frame)
     if frame.msg_type == p.MSG_SET_VELOCITY:
         left, right = wheel_targets(*p.decode_velocity(frame), hw)
         s = dataclasses.replace(s, target_l_mps=left, target_r_mps=right, command_age_s=0.0,
@@ -111,6 +189,4 @@ def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tupl
     if frame.msg_type == p.MSG_PING:
         age_ms = 0xFFFF if math.isinf(s.command_age_s) else int(min(0xFFFF, s.command_age_s * 1000))
         return s, p.status(s.address, frame.seq, p.Status(hw.battery_mv, s.flags, age_ms, int(s.uptime_s * 1000)))
-    left, right = s.ticks(hw)
-    v_meas, w_meas = s.measured(hw)
-    return s, p.ack(s.address, frame.seq, p.Ack(left, right, v_meas, w_meas, s.flags))
+    return s, _ack(s, hw, frame.seq)

@@ -40,9 +40,23 @@ MAX_FOLLOWER_ADDRESS = 250
 MSG_SET_VELOCITY = 0x01  # int16 v (mm/s), int16 w (mrad/s); feeds the watchdog; answered by ACK
 MSG_STOP = 0x02  # no payload: motors to zero at once, until the next SET_VELOCITY; answered by ACK
 MSG_PING = 0x03  # no payload: answered by STATUS; does NOT feed the watchdog
+# protocol 2: ownership (docs/follower-protocol.md, "Ownership")
+MSG_CLAIM = 0x04  # uint8 leader, uint16 lease (ms): answered by OWNER (granted) or NACK
+MSG_HANDOVER = 0x05  # uint8 from, uint8 to, uint16 lease (ms): the owner gives the robot away; OWNER or NACK
+MSG_DRIVE = 0x06  # uint8 leader, uint16 observation age (ms), int16 v, int16 w: the owner's SET_VELOCITY; ACK or NACK
 # robot -> host
 MSG_ACK = 0x81  # int32 left ticks, int32 right ticks, int16 v (mm/s), int16 w (mrad/s), uint8 flags
 MSG_STATUS = 0x82  # uint16 battery (mV), uint8 flags, uint16 command age (ms), uint32 uptime (ms)
+MSG_OWNER = 0x83  # uint8 owner, uint16 lease left (ms): a CLAIM or HANDOVER granted
+MSG_NACK = 0x84  # uint8 owner (0: none), uint16 lease left (ms), uint8 reason (NACK_*): refused, nothing changed
+
+PROTOCOL_VERSION = 2
+NACK_OWNED = 1  # another leader owns the robot and its lease lives (CLAIM)
+NACK_NOT_OWNER = 2  # the sender is not the owner, or the robot is owned and protocol 1 SET_VELOCITY came
+NACK_STALE = 3  # DRIVE computed from an observation older than MAX_OBSERVATION_AGE_MS: the robot stops
+NACK_NAMES = {NACK_OWNED: "owned", NACK_NOT_OWNER: "not the owner", NACK_STALE: "stale observation"}
+MAX_OBSERVATION_AGE_MS = 300  # a DRIVE from an older observation moves nothing
+LEASE_MIN_MS, LEASE_MAX_MS = 100, 10_000  # a lease asked for outside this is held to it
 
 FLAG_WATCHDOG = 0x01  # stopped by the watchdog: no valid SET_VELOCITY for WATCHDOG_S
 FLAG_STOPPED = 0x02  # stopped by a STOP message
@@ -53,10 +67,17 @@ WATCHDOG_S = 0.5  # a robot whose last valid SET_VELOCITY is older than this sto
 _ACK = struct.Struct("<iihhB")
 _STATUS = struct.Struct("<HBHI")
 _VELOCITY = struct.Struct("<hh")
+_CLAIM = struct.Struct("<BH")
+_HANDOVER = struct.Struct("<BBH")
+_DRIVE = struct.Struct("<BHhh")
+_OWNER = struct.Struct("<BH")
+_NACK = struct.Struct("<BHB")
 PAYLOAD_LEN = {MSG_SET_VELOCITY: _VELOCITY.size, MSG_STOP: 0, MSG_PING: 0, MSG_ACK: _ACK.size,
-               MSG_STATUS: _STATUS.size}
+               MSG_STATUS: _STATUS.size, MSG_CLAIM: _CLAIM.size, MSG_HANDOVER: _HANDOVER.size,
+               MSG_DRIVE: _DRIVE.size, MSG_OWNER: _OWNER.size, MSG_NACK: _NACK.size}
 MESSAGE_NAMES = {MSG_SET_VELOCITY: "SET_VELOCITY", MSG_STOP: "STOP", MSG_PING: "PING", MSG_ACK: "ACK",
-                 MSG_STATUS: "STATUS"}
+                 MSG_STATUS: "STATUS", MSG_CLAIM: "CLAIM", MSG_HANDOVER: "HANDOVER", MSG_DRIVE: "DRIVE",
+                 MSG_OWNER: "OWNER", MSG_NACK: "NACK"}
 INT16_MAX = 32767
 
 
@@ -107,6 +128,74 @@ def decode_velocity(frame: Frame) -> tuple[float, float]:
     """(v m/s, w rad/s) of a SET_VELOCITY frame."""
     v, w = _VELOCITY.unpack(frame.payload)
     return v / 1000.0, w / 1000.0
+
+
+# -- protocol 2: ownership -----------------------------------------------------------------------
+def _u16(x: int) -> int:
+    return max(0, min(0xFFFF, int(x)))
+
+
+def claim(address: int, seq: int, leader: int, lease_ms: int) -> Frame:
+    return Frame(address, seq, MSG_CLAIM, _CLAIM.pack(leader & 0xFF, _u16(lease_ms)))
+
+
+def handover(address: int, seq: int, from_leader: int, to_leader: int, lease_ms: int) -> Frame:
+    return Frame(address, seq, MSG_HANDOVER, _HANDOVER.pack(from_leader & 0xFF, to_leader & 0xFF, _u16(lease_ms)))
+
+
+def drive(address: int, seq: int, leader: int, observation_age_ms: int, v_mps: float, w_rps: float) -> Frame:
+    """DRIVE: SET_VELOCITY from ``leader``, computed from an observation this old (ms, saturated)."""
+    return Frame(address, seq, MSG_DRIVE, _DRIVE.pack(leader & 0xFF, _u16(observation_age_ms),
+                                                      _fixed(v_mps, 1000.0), _fixed(w_rps, 1000.0)))
+
+
+@dataclass(frozen=True)
+class Drive:
+    leader: int
+    observation_age_ms: int
+    v_mps: float
+    w_rps: float
+
+
+def decode_drive(frame: Frame) -> Drive:
+    leader, age, v, w = _DRIVE.unpack(frame.payload)
+    return Drive(leader, age, v / 1000.0, w / 1000.0)
+
+
+def decode_claim(frame: Frame) -> tuple[int, int]:
+    """(leader, lease ms) of a CLAIM."""
+    leader, lease = _CLAIM.unpack(frame.payload)
+    return leader, lease
+
+
+def decode_handover(frame: Frame) -> tuple[int, int, int]:
+    """(from, to, lease ms) of a HANDOVER."""
+    a, b, lease = _HANDOVER.unpack(frame.payload)
+    return a, b, lease
+
+
+@dataclass(frozen=True)
+class Ownership:
+    """A robot's answer about its owner: OWNER (granted) or NACK (refused, and why)."""
+
+    owner: int  # 0: none
+    lease_left_ms: int
+    reason: int = 0  # NACK_*; 0 in an OWNER
+
+
+def owner(address: int, seq: int, o: Ownership) -> Frame:
+    return Frame(address, seq, MSG_OWNER, _OWNER.pack(o.owner & 0xFF, _u16(o.lease_left_ms)))
+
+
+def nack(address: int, seq: int, o: Ownership) -> Frame:
+    return Frame(address, seq, MSG_NACK, _NACK.pack(o.owner & 0xFF, _u16(o.lease_left_ms), o.reason & 0xFF))
+
+
+def decode_ownership(frame: Frame) -> Ownership:
+    """OWNER or NACK."""
+    if frame.msg_type == MSG_OWNER:
+        return Ownership(*_OWNER.unpack(frame.payload))
+    return Ownership(*_NACK.unpack(frame.payload))
 
 
 @dataclass(frozen=True)

@@ -199,3 +199,88 @@ def test_a_low_battery_is_flagged_by_the_robot_and_shown_by_the_host(firmware_bi
     finally:
         link.close()
         fw.close()
+
+
+def ownership_script() -> list[tuple[int, p.Frame]]:
+    """Protocol 2 (docs/follower-protocol.md, "Ownership"), robot 4, step by step; the comments
+    say what the document asks for."""
+    a = 4
+    return [
+        (0, p.ping(a, 1)),                                   # STATUS
+        (10, p.set_velocity(a, 2, 0.10, 0.0)),               # nobody holds it: protocol 1 obeyed
+        (20, p.claim(a, 3, 1, 500)),                         # granted to leader 1; from rest
+        (30, p.set_velocity(a, 4, 0.10, 0.0)),               # owned: protocol 1 refused, owner named
+        (40, p.drive(a, 5, 2, 10, 0.20, 0.0)),               # not the owner's: refused
+        (50, p.drive(a, 6, 1, 50, 0.10, 0.5)),               # the owner's: obeyed, lease renewed
+        (60, p.claim(a, 7, 2, 500)),                         # its lease lives: refused, owner and lease named
+        (70, p.drive(a, 8, 1, 400, 0.10, 0.0)),              # from a stale observation: refused, standing still
+        (80, p.drive(a, 9, 1, 10, 0.20, 0.0)),               # obeyed again
+        (85, p.drive(p.BROADCAST, 10, 1, 10, 0.3, 0.0)),     # never by broadcast: ignored, unanswered
+        (90, p.handover(a, 11, 2, 3, 500)),                  # not from the owner: refused
+        (100, p.handover(a, 12, 1, 2, 300)),                 # the owner hands it to 2: granted, from rest
+        (120, p.drive(a, 13, 2, 10, 0.10, 0.0)),             # 40 ms after 1's last: counted as two owners
+        (130, p.stop(a, 14)),                                # STOP from anyone: obeyed
+        (300, p.drive(a, 15, 2, 10, 0.10, 0.0)),             # the owner again: moving, lease renewed
+        (1000, p.drive(a, 16, 2, 10, 0.10, 0.0)),            # its lease ran out (2 went quiet): refused
+        (1010, p.claim(a, 17, 0, 500)),                      # leader 0 is nobody: refused
+        (1020, p.claim(a, 18, 3, 5)),                        # a lapsed lease: granted to 3, held to 100 ms
+        (1050, p.claim(a, 19, 2, 500)),                      # 3's lease lives: refused
+        (1060, p.drive(a, 20, 3, 0, 0.1, -0.2)),             # the new owner drives
+        (1500, p.claim(a, 21, 3, 20_000)),                   # the owner renews: held to 10 s
+        (1510, p.set_velocity(a, 22, 0.1, 0.0)),             # owned: refused
+        (12_000, p.set_velocity(a, 23, 0.1, 0.0)),           # every lease lapsed: protocol 1 again
+    ]
+
+
+def test_the_firmware_and_the_python_follower_keep_ownership_alike(tmp_path):
+    """The reference firmware (built with -Werror -pedantic, driven by a script) and the Python
+    follower the emulator and the tests run answer every frame of the ownership script the
+    same: the same replies, owners, reasons and leases, the same wheel targets after each."""
+    from core.link.follower import FollowerHardware, FollowerState, handle_frame, step_follower
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    assert cc
+    binary = tmp_path / "conformance"
+    build = subprocess.run([cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2",
+                            str(FIRMWARE / "omni_follower.c"), str(FIRMWARE / "conformance.c"), "-o", str(binary)],
+                           capture_output=True, text=True)
+    assert build.returncode == 0, build.stderr
+    script = ownership_script()
+    text = "".join(f"{t} {p.encode_frame(f).hex(' ')}\n" for t, f in script)
+    run = subprocess.run([str(binary), "4"], input=text, capture_output=True, text=True, timeout=30)
+    assert run.returncode == 0, run.stderr
+    c_steps: list[tuple[list[p.Frame], list[int]]] = []
+    replies: list[p.Frame] = []
+    for line in run.stdout.splitlines():
+        if line.startswith(">"):
+            replies += p.FrameParser().feed(bytes.fromhex(line[1:]))
+        else:
+            c_steps.append((replies, [int(x) for x in line[1:].split()]))
+            replies = []
+    assert len(c_steps) == len(script)
+
+    hw = FollowerHardware(motor_tau_s=0.0)
+    s = FollowerState(address=4)
+    now = 0
+    for (t, frame), (c_replies, c_state) in zip(script, c_steps, strict=True):
+        s = step_follower(s, hw, (t - now) / 1000)
+        now = t
+        s, reply = handle_frame(s, hw, frame)
+        py_replies = [reply] if reply is not None else []
+        what = f"at {t} ms, {p.MESSAGE_NAMES[frame.msg_type]}"
+        assert [r.msg_type for r in py_replies] == [r.msg_type for r in c_replies], what
+        for mine, theirs in zip(py_replies, c_replies):
+            if mine.msg_type in (p.MSG_OWNER, p.MSG_NACK):
+                a, b = p.decode_ownership(mine), p.decode_ownership(theirs)
+                assert (a.owner, a.reason) == (b.owner, b.reason) and abs(a.lease_left_ms - b.lease_left_ms) <= 1, \
+                    (what, a, b)
+            elif mine.msg_type == p.MSG_ACK:
+                assert p.decode_ack(mine).flags == p.decode_ack(theirs).flags, what
+        owner, lease_left, left_mm, right_mm, flags, nacks, two = c_state
+        lease_py = int(round(s.lease_left_s * 1000)) if s.lease_lives else 0
+        assert (s.owner, s.flags, s.nacks, s.two_owners) == (owner, flags, nacks, two), (what, s, c_state)
+        assert abs(lease_py - lease_left) <= 1, (what, lease_py, lease_left)
+        assert (round(s.target_l_mps * 1000), round(s.target_r_mps * 1000)) == (left_mm, right_mm), (what, s, c_state)
+    # what the script was for: the robot ended with leader 3's lease lapsed, and counted one two-owner
+    # overlap (the handover driven at once) and every refusal
+    assert s.two_owners == 1 and s.nacks == 9 and s.owner == 3 and not s.lease_lives

@@ -24,6 +24,24 @@ def test_example_frame_of_the_protocol_document():
     assert p.FrameParser().feed(raw) == [p.set_velocity(1, 7, 0.1, -0.25)]
 
 
+def test_ownership_example_frames_of_the_protocol_document():
+    # docs/follower-protocol.md, "Ownership (protocol 2)": each example frame, and back
+    examples = [
+        (p.claim(3, 20, 1, 1000), "a5 5a 03 14 04 03 01 e8 03 fb b9"),
+        (p.drive(3, 21, 1, 40, 0.1, -0.25), "a5 5a 03 15 06 07 01 28 00 64 00 06 ff dd c0"),
+        (p.handover(3, 22, 1, 2, 1000), "a5 5a 03 16 05 04 01 02 e8 03 be 14"),
+        (p.owner(3, 20, p.Ownership(1, 1000)), "a5 5a 03 14 83 03 01 e8 03 ff fc"),
+        (p.nack(3, 23, p.Ownership(1, 640, p.NACK_OWNED)), "a5 5a 03 17 84 04 01 80 02 01 5e b7"),
+    ]
+    for frame, wire in examples:
+        assert p.encode_frame(frame).hex(" ") == wire
+        assert p.FrameParser().feed(bytes.fromhex(wire)) == [frame]
+    assert p.decode_claim(examples[0][0]) == (1, 1000)
+    assert p.decode_drive(examples[1][0]) == p.Drive(1, 40, 0.1, -0.25)
+    assert p.decode_handover(examples[2][0]) == (1, 2, 1000)
+    assert p.decode_ownership(examples[4][0]) == p.Ownership(1, 640, p.NACK_OWNED)
+
+
 @given(st.floats(-40, 40), st.floats(-40, 40), st.integers(0, 255), st.integers(0, 255))
 def test_set_velocity_round_trip_within_a_millimetre(v, w, addr, seq):
     frame = p.set_velocity(addr, seq, v, w)
@@ -181,15 +199,17 @@ def test_every_example_frame_in_the_protocol_document_is_valid():
 
     doc = (Path(__file__).resolve().parents[2] / "docs" / "follower-protocol.md").read_text()
     examples = re.findall(r"`(a5 5a(?: [0-9a-f]{2})+)`", doc)
-    assert len(examples) == 5
+    assert len(examples) == 10  # five of protocol 1, five of ownership (protocol 2)
+    frames = []
     for hex_text in examples:
         raw = bytes.fromhex(hex_text)
         parser = p.FrameParser()
         (frame,) = parser.feed(raw)
         assert p.encode_frame(frame) == raw and parser.rejected_total == 0
-    ack = p.decode_ack(p.FrameParser().feed(bytes.fromhex(examples[3]))[0])
+        frames.append(frame)
+    (ack,) = [p.decode_ack(f) for f in frames if f.msg_type == p.MSG_ACK]
     assert ack == p.Ack(1520, 1544, 0.098, -0.247, 0)
-    status = p.decode_status(p.FrameParser().feed(bytes.fromhex(examples[4]))[0])
+    (status,) = [p.decode_status(f) for f in frames if f.msg_type == p.MSG_STATUS]
     assert status == p.Status(7400, p.FLAG_WATCHDOG, 0xFFFF, 123456)
     assert "0x29B1" in doc and "0.5 s" in doc
 
