@@ -73,11 +73,13 @@ class SessionClock:
     starts again at 0 after a reset; this one goes on from where it was, one tick later. The
     recording's log time and a leader's ``t`` on the fleet bus are this clock."""
 
-    def __init__(self) -> None:
+    def __init__(self, start: float = 0.0) -> None:
+        """``start``: the session's time at the loop's first tick (a leader that waited for
+        robots before its loop ran goes on from the time it published while waiting)."""
         self._prev: float | None = None  # the loop's t at the last tick
-        self._offset = 0.0  # session time minus the loop's, grown at each reset
+        self._offset = start  # session time minus the loop's, grown at each reset
         self._step = 0.0  # the last tick's step of the loop's clock
-        self.last = 0.0  # the session's time of the last tick (s)
+        self.last = start  # the session's time of the last tick (s)
 
     def __call__(self, t: float) -> float:
         """The session's time of a tick whose loop time is ``t``."""

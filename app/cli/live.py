@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from app.backends.arena import ArenaTeam
     from app.backends.hardware import HardwareTeam
     from app.contracts import FollowerLink, FrameSource, Rig
-    from app.fleet.bridge import FleetBridge
+    from app.fleet.bridge import FleetBridge, Presence
     from app.live.config import ServiceConfig
     from app.params import Params
     from app.recording.writer import Recorder
@@ -110,6 +110,8 @@ class _Fleet:
     arena_team: ArenaTeam | None = None
     token: Any = None
     params: Params | None = None
+    presence: Presence | None = None  # set when it was on the bus before its loop (waiting for robots)
+    t_start: float = 0.0  # the session time it reached while waiting
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -281,9 +283,17 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
         if not team.owned:  # it comes back after its robots were adopted: alive, empty-handed
             fleet.token = fleet.session.liveliness().declare_token(f"{root(args.fleet)}/alive/{args.leader_id}")
             handed.callback(fleet.token.undeclare)
+            from app.fleet.bridge import Presence, WaitingState
+
+            fleet.presence = Presence.new()
+            waiting = WaitingState(fleet.session, args.fleet, args.leader_id, fleet.presence,
+                                   "all" if args.fleet_control else "stop")
             print(f"omniformation: {args.leader_id} owns no robot in the arena now (other leaders adopted"
                   " them); waiting for the operator to hand one over (the fleet page's Hand over)", flush=True)
-            team.wait_for_robots()
+            try:
+                team.wait_for_robots()
+            finally:
+                fleet.t_start = waiting.close()
         me = fleet_scenario.leaders[fleet_scenario.leader_index(args.leader_id)]
         n_owned = len(team.owned)
         slots = default_slots(n_owned) if fleet.token is None else team.slots_for_owned()
@@ -363,7 +373,8 @@ def _on_the_bus(args: argparse.Namespace, fleet: _Fleet, service: Service,
     from app.fleet.bridge import FleetBridge
 
     bridge = FleetBridge(service.store, args.fleet, args.leader_id, allow_control=args.fleet_control,
-                         session=fleet.session, token=fleet.token, on_twin=service.loop.stop)
+                         session=fleet.session, token=fleet.token, on_twin=service.loop.stop,
+                         presence=fleet.presence, t_start=fleet.t_start)
     stack.callback(bridge.close)
     service.loop.subscribe(bridge.on_tick)
     service.dashboard.extra.append(bridge.show_on(service.server))

@@ -24,7 +24,9 @@ import logging
 import math
 import re
 import secrets
+import threading
 import time
+from dataclasses import dataclass
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -33,6 +35,7 @@ import numpy as np
 from app.dashboard import LatestStatePublisher
 from app.keys import root
 from app.params import Params, ParamsStore
+from core.types import Gains
 from app.tick import SessionClock, TickState
 from app.recording.writer import params_events
 
@@ -170,19 +173,75 @@ def state_payload(s: TickState, leader_id: str, takes: str = "stop") -> dict[str
     }
 
 
+@dataclass(frozen=True)
+class Presence:
+    """This leader process among leaders that might share its id: ``instance`` (8 hex digits,
+    new at every start) and ``started`` (its wall clock when it joined, Unix s): both twins
+    compare the same two numbers (docs/fleet-protocol.md, "One leader per id")."""
+
+    instance: str
+    started: float
+
+    @classmethod
+    def new(cls) -> Presence:
+        return cls(secrets.token_hex(4), time.time())
+
+
+class WaitingState:
+    """The state of a leader that owns no robot yet (it came back after its robots were
+    adopted): an empty team, published every tick like any leader's state until it has robots
+    (docs/fleet-protocol.md: state comes every tick), from a thread of its own."""
+
+    def __init__(self, session: Any, fleet: str, leader_id: str, presence: Presence, takes: str,
+                 rate_hz: float = 30.0) -> None:
+        self.leader_id = leader_id
+        self.presence = presence
+        self.takes = takes
+        self.t = 0.0  # this process's session time (s), which the loop's states go on from
+        self._dt = 1.0 / rate_hz
+        self._pub = session.declare_publisher(f"{root(fleet)}/leader/{leader_id}/state", express=True)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="omniformation-waiting", daemon=True)
+        self._thread.start()
+
+    def payload(self) -> dict[str, Any]:
+        return {"leader_id": self.leader_id, "tick": 0, "t": round(self.t, 5), "leader": None,
+                "leader_twist": [0.0, 0.0], "p_est": [], "a_est": [], "tracked": [], "p_d": [], "error_m": [],
+                "p_true": [], "commands": [], "gains": Gains().as_dict(), "stopped": True, "phase": "waiting",
+                "link_state": "waiting for a robot (the operator hands one over)", "rate_hz": None,
+                "takes": self.takes, "refused": {"commands": 0, "states": 0}, "instance": self.presence.instance,
+                "started": self.presence.started}
+
+    def _run(self) -> None:
+        start = time.monotonic()
+        while not self._stop.wait(self._dt):
+            self.t = time.monotonic() - start
+            self._pub.put(json.dumps({**self.payload(), "sent": time.time()}, separators=(",", ":")))
+
+    def close(self) -> float:
+        """Stop publishing; the session time reached (the loop's states go on from it)."""
+        self._stop.set()
+        self._thread.join(5.0)
+        self._pub.undeclare()
+        return self.t + self._dt
+
+
 class FleetBridge:
     """One leader's presence on the bus; ``on_tick`` is the loop's subscriber."""
 
     def __init__(self, store: ParamsStore, fleet: str, leader_id: str, listen: list[str] | None = None,
                  connect: list[str] | None = None, allow_control: bool = False, session: Any = None,
-                 token: Any = None, on_twin: Callable[[], None] | None = None) -> None:
+                 token: Any = None, on_twin: Callable[[], None] | None = None, presence: Presence | None = None,
+                 t_start: float = 0.0) -> None:
         """``session``: one already open (then ``listen`` / ``connect`` are its business, and
         closing the bridge leaves it open). ``token``: this leader's liveliness token when it
         was declared already (a leader waiting for robots is alive before its loop runs).
         ``on_twin``: called once if another leader with this id started first (this one must
-        stop its robots and end; :attr:`twin` says why)."""
-        self.instance = secrets.token_hex(4)  # this process among leaders that share an id by mistake
-        self.started = time.time()  # wall clock: both twins compare the same two numbers
+        stop its robots and end; :attr:`twin` says why). ``presence``: this process's, when it
+        was on the bus already (waiting for robots); ``t_start``: the session time it reached."""
+        presence = presence or Presence.new()
+        self.instance = presence.instance  # this process among leaders that share an id by mistake
+        self.started = presence.started  # wall clock: both twins compare the same two numbers
         self.twin: str | None = None
         self._on_twin = on_twin
         self._twins_seen: set[str] = set()
@@ -206,7 +265,7 @@ class FleetBridge:
                       self.session.declare_subscriber(f"{self.base}/state", self._on_own_id_state)]
         self._last_params = store.get()
         self._t = 0.0
-        self._clock = SessionClock()
+        self._clock = SessionClock(t_start)
         store.subscribe(self._on_params)
         self._publisher = LatestStatePublisher(self._publish_state)
 

@@ -92,6 +92,13 @@ class LeaderPanel:
         if state is None:
             self.status.content = f"**{self.leader_id}**: {'alive, no state yet' if alive else 'not on the bus'}"
             return
+        if state.get("phase") == "waiting":  # alive, empty-handed (its robots were adopted while it was gone)
+            self.status.content = (f"**{self.leader_id}** {'alive' if alive else '**gone** (token lost)'}: owns no"
+                                   " robot, waiting for one (Hand over a robot)")
+            for handle in self.controls:
+                handle.disabled = True
+            self.release.disabled = True
+            return
         rms, worst = team_errors_cm(state)
         n = len(state.get("p_est", []))
         tracked = sum(bool(t) for t in state.get("tracked", []))

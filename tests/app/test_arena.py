@@ -166,6 +166,10 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         assert procs["L2"].stdout is not None
         assert "L2 owns no robot in the arena now" in procs["L2"].stdout.readline()
         wait_for(lambda: "L2" in w.last_truth()["alive"], 30, "L2 alive again")
+        # waiting, it still says how it is every tick: an empty team
+        wait_for(lambda: sum(m["phase"] == "waiting" for m in w.recent("L2", 2.0)) > 10, 30, "L2's waiting states")
+        waiting = w.recent("L2", 2.0)[-1]
+        assert waiting["phase"] == "waiting" and waiting["p_est"] == [] and waiting["stopped"], waiting
         giver = adopters[4]
         replies = [json.loads(r.ok.payload.to_bytes()) for r in w.session.get(
             f"omniformation/{FLEET}/arena/handover", payload=json.dumps({"robot": "R5", "to": "L2", "from": "test"}),
@@ -184,6 +188,12 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
             raise
         wait_for(lambda: len(w.recent(giver, 1.0)[-1]["error_m"]) == adopters.count(giver) - 1, 30,
                  f"{giver} let R5 go")
+        # one process, one clock: its states' t went on from where its waiting ones were, one instance throughout
+        with w.lock:
+            l2_states = [m for _, m in w.states["L2"] if m["instance"] == waiting["instance"]]
+        assert l2_states[-1]["phase"] != "waiting" and l2_states[-1]["t"] > waiting["t"]
+        ts = [m["t"] for m in l2_states]
+        assert ts == sorted(ts), ts[:5]
         assert w.last_truth()["conflicts"] == 0 and w.last_truth()["contacts"] == 0
     finally:
         interrupt(*procs.values())
