@@ -223,6 +223,18 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
         assert {k for k, _ in plain_heard.samples} == {f"{BASE}/all/cmd", f"{BASE}/leader/L1/state"}
         assert not heard.states["L1"]["stopped"]
 
+        # ... nor with a certificate of another fleet, or an expired one of this fleet: the handshake fails
+        other = tmp_path / "other"
+        assert main_cli("fleet-keys", str(other), "--fleet", FLEET, "--leaders", "L1,L2,L3").returncode == 0
+        stale = tmp_path / "stale"
+        stale.mkdir()
+        for f in keys.iterdir():
+            (stale / f.name).write_bytes(f.read_bytes())
+        _expired_certificate(stale, "L1")
+        for d in (other, stale):
+            with pytest.raises(zenoh.ZError):
+                sessions.append(fleet_session(d, "L1", ep))
+
         # 2. with L2's certificate, a third party written from the document
         mallory = fleet_session(keys, "L2", ep)
         sessions.append(mallory)
