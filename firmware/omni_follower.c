@@ -36,8 +36,9 @@ static uint8_t payload_len(uint8_t type) {
     case OF_MSG_CLAIM: return 3;
     case OF_MSG_HANDOVER: return 4;
     case OF_MSG_DRIVE: return 7;
-    case OF_MSG_OWNER: return 3;
-    case OF_MSG_NACK: return 4;
+    case OF_MSG_OWNER: return 4;
+    case OF_MSG_NACK: return 5;
+    case OF_MSG_DRIVEN: return 14;
     default: return 0xFF;
     }
 }
@@ -81,8 +82,9 @@ static void set_velocity(of_follower *f, const uint8_t *vw) {
     f->flags &= (uint8_t)~(OF_FLAG_WATCHDOG | OF_FLAG_STOPPED);
 }
 
-static void send_ack(of_follower *f, uint8_t seq) {
-    uint8_t p[13];
+/* ACK's payload, and for protocol 2 (asker != 0) DRIVEN's: the same with the leader answered. */
+static void send_odometry(of_follower *f, uint8_t seq, uint8_t asker) {
+    uint8_t p[14];
     int32_t lt, rt;
     float lv, rv;
     update_battery_flag(f);
@@ -93,7 +95,12 @@ static void send_ack(of_follower *f, uint8_t seq) {
     put_u16(p + 8, (uint16_t)to_i16((lv + rv) / 2.0f * 1000.0f));
     put_u16(p + 10, (uint16_t)to_i16((rv - lv) / f->hw.wheel_base_m * 1000.0f));
     p[12] = f->flags;
-    send(f, seq, OF_MSG_ACK, p, 13);
+    if (asker == 0) {
+        send(f, seq, OF_MSG_ACK, p, 13);
+    } else {
+        p[13] = asker;
+        send(f, seq, OF_MSG_DRIVEN, p, 14);
+    }
 }
 
 /* ---- protocol 2: ownership (docs/follower-protocol.md, "Ownership") ---- */
@@ -101,50 +108,53 @@ static int lease_lives(const of_follower *f) {
     return f->owner != 0 && (int32_t)(f->lease_until_ms - f->last_byte_ms) > 0;
 }
 
-static void send_ownership(of_follower *f, uint8_t seq, uint8_t reason) {
-    uint8_t p[4];
+static void send_ownership(of_follower *f, uint8_t seq, uint8_t reason, uint8_t asker) {
+    uint8_t p[5];
     uint32_t left = lease_lives(f) ? f->lease_until_ms - f->last_byte_ms : 0u;
     p[0] = f->owner;
     put_u16(p + 1, (uint16_t)(left > 65535u ? 65535u : left));
     if (reason == 0) {
-        send(f, seq, OF_MSG_OWNER, p, 3);
+        p[3] = asker;
+        send(f, seq, OF_MSG_OWNER, p, 4);
     } else {
         p[3] = reason;
+        p[4] = asker;
         f->count.nacks++;
-        send(f, seq, OF_MSG_NACK, p, 4);
+        send(f, seq, OF_MSG_NACK, p, 5);
     }
 }
 
-static void grant(of_follower *f, uint8_t seq, uint8_t leader, uint16_t lease) {
+static void grant(of_follower *f, uint8_t seq, uint8_t leader, uint16_t lease, uint8_t asker) {
     if (lease < OF_LEASE_MIN_MS) lease = OF_LEASE_MIN_MS;
     if (lease > OF_LEASE_MAX_MS) lease = OF_LEASE_MAX_MS;
     if (leader != f->owner) set_targets(f, 0.0f, 0.0f);  /* a new owner starts from rest */
     f->owner = leader;
     f->lease_ms = lease;
     f->lease_until_ms = f->last_byte_ms + lease;
-    send_ownership(f, seq, 0);
+    send_ownership(f, seq, 0, asker);
 }
 
 static void ownership(of_follower *f, uint8_t seq, uint8_t type, const uint8_t *payload) {
+    uint8_t asker = type == OF_MSG_SET_VELOCITY ? 0u : payload[0];  /* the leader (or, HANDOVER, the giver) */
     if (type == OF_MSG_SET_VELOCITY) {  /* protocol 1 to a robot someone holds */
-        send_ownership(f, seq, OF_NACK_NOT_OWNER);
+        send_ownership(f, seq, OF_NACK_NOT_OWNER, asker);
     } else if (type == OF_MSG_CLAIM) {
         uint8_t leader = payload[0];
-        if (leader == 0 || leader > OF_MAX_LEADER) send_ownership(f, seq, OF_NACK_NOT_OWNER);
-        else if (lease_lives(f) && f->owner != leader) send_ownership(f, seq, OF_NACK_OWNED);
-        else grant(f, seq, leader, get_u16(payload + 1));
+        if (leader == 0 || leader > OF_MAX_LEADER) send_ownership(f, seq, OF_NACK_NOT_OWNER, asker);
+        else if (lease_lives(f) && f->owner != leader) send_ownership(f, seq, OF_NACK_OWNED, asker);
+        else grant(f, seq, leader, get_u16(payload + 1), asker);
     } else if (type == OF_MSG_HANDOVER) {
         uint8_t from = payload[0], to = payload[1];
         if (f->owner == 0 || from != f->owner || to == 0 || to > OF_MAX_LEADER)
-            send_ownership(f, seq, OF_NACK_NOT_OWNER);
-        else grant(f, seq, to, get_u16(payload + 2));
+            send_ownership(f, seq, OF_NACK_NOT_OWNER, asker);
+        else grant(f, seq, to, get_u16(payload + 2), asker);
     } else {  /* DRIVE */
         uint8_t leader = payload[0];
         if (!lease_lives(f) || leader != f->owner) {
-            send_ownership(f, seq, OF_NACK_NOT_OWNER);
+            send_ownership(f, seq, OF_NACK_NOT_OWNER, asker);
         } else if (get_u16(payload + 1) > OF_MAX_OBSERVATION_AGE_MS) {
             set_targets(f, 0.0f, 0.0f);  /* what it was computed from is gone: stand still */
-            send_ownership(f, seq, OF_NACK_STALE);
+            send_ownership(f, seq, OF_NACK_STALE, asker);
         } else {
             if (f->driven_by != 0 && f->driven_by != leader && f->last_byte_ms - f->driven_ms < OF_TWO_OWNERS_MS)
                 f->count.two_owners++;
@@ -152,7 +162,7 @@ static void ownership(of_follower *f, uint8_t seq, uint8_t type, const uint8_t *
             f->lease_until_ms = f->last_byte_ms + f->lease_ms;
             f->driven_by = leader;
             f->driven_ms = f->last_byte_ms;
-            send_ack(f, seq);
+            send_odometry(f, seq, leader);
         }
     }
 }
@@ -184,7 +194,7 @@ static void handle(of_follower *f, uint8_t address, uint8_t seq, uint8_t type, c
         put_u32(p + 5, f->last_byte_ms);
         send(f, seq, OF_MSG_STATUS, p, 9);
     } else {
-        send_ack(f, seq);
+        send_odometry(f, seq, 0);
     }
 }
 

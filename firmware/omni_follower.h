@@ -32,8 +32,9 @@
 #define OF_MSG_DRIVE 0x06u     /* protocol 2: uint8 leader, uint16 observation age ms, int16 v, int16 w */
 #define OF_MSG_ACK 0x81u
 #define OF_MSG_STATUS 0x82u
-#define OF_MSG_OWNER 0x83u     /* protocol 2: uint8 owner, uint16 lease left ms */
-#define OF_MSG_NACK 0x84u      /* protocol 2: uint8 owner, uint16 lease left ms, uint8 reason */
+#define OF_MSG_OWNER 0x83u     /* protocol 2: uint8 owner, uint16 lease left ms, uint8 asker */
+#define OF_MSG_NACK 0x84u      /* protocol 2: uint8 owner, uint16 lease left ms, uint8 reason, uint8 asker */
+#define OF_MSG_DRIVEN 0x85u    /* protocol 2: an ACK's 13 bytes, uint8 asker: a DRIVE obeyed */
 
 #define OF_PROTOCOL_VERSION 2u
 #define OF_NACK_OWNED 1u       /* another leader's lease lives */

@@ -69,9 +69,9 @@ class FollowerState:
     def lease_lives(self) -> bool:
         return self.owner != 0 and self.lease_left_s > 0.0
 
-    def ownership(self, reason: int = 0) -> p.Ownership:
+    def ownership(self, reason: int = 0, asker: int = 0) -> p.Ownership:
         left = int(round(self.lease_left_s * 1000)) if self.lease_lives else 0
-        return p.Ownership(self.owner, left, reason)
+        return p.Ownership(self.owner, left, reason, asker)
 
     def ticks(self, hw: FollowerHardware) -> tuple[int, int]:
         return int(math.floor(self.dist_l_m / hw.metres_per_tick)), int(math.floor(self.dist_r_m / hw.metres_per_tick))
@@ -123,15 +123,17 @@ TWO_OWNERS_S = 0.1  # two leaders' DRIVEs obeyed closer together than this: one 
 
 def _ownership(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:
     """CLAIM, HANDOVER and DRIVE (protocol 2), and a protocol 1 SET_VELOCITY to an owned robot."""
+    asker = frame.payload[0] if frame.msg_type in (p.MSG_CLAIM, p.MSG_HANDOVER, p.MSG_DRIVE) else 0
+
     def refuse(reason: int) -> tuple[FollowerState, p.Frame | None]:
         r = dataclasses.replace(s, nacks=s.nacks + 1)
-        return r, p.nack(s.address, frame.seq, s.ownership(reason))
+        return r, p.nack(s.address, frame.seq, s.ownership(reason, asker))
 
     def grant(leader: int, lease_ms: int) -> tuple[FollowerState, p.Frame | None]:
         lease = max(p.LEASE_MIN_MS, min(p.LEASE_MAX_MS, lease_ms))
         r = s if leader == s.owner else dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0)  # from rest
         r = dataclasses.replace(r, owner=leader, lease_ms=lease, lease_left_s=lease / 1000)
-        return r, p.owner(s.address, frame.seq, r.ownership())
+        return r, p.owner(s.address, frame.seq, r.ownership(0, asker))
 
     if frame.msg_type == p.MSG_SET_VELOCITY:  # protocol 1: only a robot nobody holds takes it
         return refuse(p.NACK_NOT_OWNER)
@@ -158,7 +160,9 @@ def _ownership(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[
     s = dataclasses.replace(s, target_l_mps=left, target_r_mps=right, command_age_s=0.0,
                             flags=s.flags & ~(p.FLAG_WATCHDOG | p.FLAG_STOPPED), lease_left_s=s.lease_ms / 1000,
                             driven_by=d.leader, driven_age_s=0.0, two_owners=s.two_owners + two)
-    return s, _ack(s, hw, frame.seq)
+    left_t, right_t = s.ticks(hw)
+    v_meas, w_meas = s.measured(hw)
+    return s, p.driven(s.address, frame.seq, p.Ack(left_t, right_t, v_meas, w_meas, s.flags), d.leader)
 
 
 def _ack(s: FollowerState, hw: FollowerHardware, seq: int) -> p.Frame:

@@ -43,12 +43,14 @@ MSG_PING = 0x03  # no payload: answered by STATUS; does NOT feed the watchdog
 # protocol 2: ownership (docs/follower-protocol.md, "Ownership")
 MSG_CLAIM = 0x04  # uint8 leader, uint16 lease (ms): answered by OWNER (granted) or NACK
 MSG_HANDOVER = 0x05  # uint8 from, uint8 to, uint16 lease (ms): the owner gives the robot away; OWNER or NACK
-MSG_DRIVE = 0x06  # uint8 leader, uint16 observation age (ms), int16 v, int16 w: the owner's SET_VELOCITY; ACK or NACK
+MSG_DRIVE = 0x06  # uint8 leader, uint16 observation age (ms), int16 v, int16 w: the owner's SET_VELOCITY; DRIVEN or NACK
 # robot -> host
 MSG_ACK = 0x81  # int32 left ticks, int32 right ticks, int16 v (mm/s), int16 w (mrad/s), uint8 flags
 MSG_STATUS = 0x82  # uint16 battery (mV), uint8 flags, uint16 command age (ms), uint32 uptime (ms)
-MSG_OWNER = 0x83  # uint8 owner, uint16 lease left (ms): a CLAIM or HANDOVER granted
-MSG_NACK = 0x84  # uint8 owner (0: none), uint16 lease left (ms), uint8 reason (NACK_*): refused, nothing changed
+# protocol 2 replies name the leader they answer (on a shared radio every leader hears them all)
+MSG_OWNER = 0x83  # uint8 owner, uint16 lease left (ms), uint8 asker: a CLAIM or HANDOVER granted
+MSG_NACK = 0x84  # uint8 owner (0: none), uint16 lease left (ms), uint8 reason (NACK_*), uint8 asker: refused
+MSG_DRIVEN = 0x85  # an ACK's 13 bytes, then uint8 asker: a DRIVE obeyed
 
 PROTOCOL_VERSION = 2
 NACK_OWNED = 1  # another leader owns the robot and its lease lives (CLAIM)
@@ -70,14 +72,14 @@ _VELOCITY = struct.Struct("<hh")
 _CLAIM = struct.Struct("<BH")
 _HANDOVER = struct.Struct("<BBH")
 _DRIVE = struct.Struct("<BHhh")
-_OWNER = struct.Struct("<BH")
-_NACK = struct.Struct("<BHB")
+_OWNER = struct.Struct("<BHB")
+_NACK = struct.Struct("<BHBB")
 PAYLOAD_LEN = {MSG_SET_VELOCITY: _VELOCITY.size, MSG_STOP: 0, MSG_PING: 0, MSG_ACK: _ACK.size,
                MSG_STATUS: _STATUS.size, MSG_CLAIM: _CLAIM.size, MSG_HANDOVER: _HANDOVER.size,
-               MSG_DRIVE: _DRIVE.size, MSG_OWNER: _OWNER.size, MSG_NACK: _NACK.size}
+               MSG_DRIVE: _DRIVE.size, MSG_OWNER: _OWNER.size, MSG_NACK: _NACK.size, MSG_DRIVEN: _ACK.size + 1}
 MESSAGE_NAMES = {MSG_SET_VELOCITY: "SET_VELOCITY", MSG_STOP: "STOP", MSG_PING: "PING", MSG_ACK: "ACK",
                  MSG_STATUS: "STATUS", MSG_CLAIM: "CLAIM", MSG_HANDOVER: "HANDOVER", MSG_DRIVE: "DRIVE",
-                 MSG_OWNER: "OWNER", MSG_NACK: "NACK"}
+                 MSG_OWNER: "OWNER", MSG_NACK: "NACK", MSG_DRIVEN: "DRIVEN"}
 INT16_MAX = 32767
 
 
@@ -176,26 +178,48 @@ def decode_handover(frame: Frame) -> tuple[int, int, int]:
 
 @dataclass(frozen=True)
 class Ownership:
-    """A robot's answer about its owner: OWNER (granted) or NACK (refused, and why)."""
+    """A robot's answer about its owner: OWNER (granted) or NACK (refused, and why), to ``asker``."""
 
     owner: int  # 0: none
     lease_left_ms: int
     reason: int = 0  # NACK_*; 0 in an OWNER
+    asker: int = 0  # the leader whose frame this answers
 
 
 def owner(address: int, seq: int, o: Ownership) -> Frame:
-    return Frame(address, seq, MSG_OWNER, _OWNER.pack(o.owner & 0xFF, _u16(o.lease_left_ms)))
+    return Frame(address, seq, MSG_OWNER, _OWNER.pack(o.owner & 0xFF, _u16(o.lease_left_ms), o.asker & 0xFF))
 
 
 def nack(address: int, seq: int, o: Ownership) -> Frame:
-    return Frame(address, seq, MSG_NACK, _NACK.pack(o.owner & 0xFF, _u16(o.lease_left_ms), o.reason & 0xFF))
+    return Frame(address, seq, MSG_NACK, _NACK.pack(o.owner & 0xFF, _u16(o.lease_left_ms), o.reason & 0xFF,
+                                                    o.asker & 0xFF))
 
 
 def decode_ownership(frame: Frame) -> Ownership:
     """OWNER or NACK."""
     if frame.msg_type == MSG_OWNER:
-        return Ownership(*_OWNER.unpack(frame.payload))
+        who, left, asker = _OWNER.unpack(frame.payload)
+        return Ownership(who, left, 0, asker)
     return Ownership(*_NACK.unpack(frame.payload))
+
+
+def driven(address: int, seq: int, a: Ack, asker: int) -> Frame:
+    """DRIVEN: a DRIVE obeyed (the ACK's odometry), answering leader ``asker``."""
+    return Frame(address, seq, MSG_DRIVEN, ack(address, seq, a).payload + bytes((asker & 0xFF,)))
+
+
+def decode_driven(frame: Frame) -> tuple[Ack, int]:
+    """(the odometry, the leader answered) of a DRIVEN."""
+    return decode_ack(Frame(frame.address, frame.seq, MSG_ACK, frame.payload[:-1])), frame.payload[-1]
+
+
+def answers(frame: Frame) -> int | None:
+    """The leader a protocol 2 reply answers (None: a protocol 1 reply, which names nobody)."""
+    if frame.msg_type in (MSG_OWNER, MSG_NACK):
+        return decode_ownership(frame).asker
+    if frame.msg_type == MSG_DRIVEN:
+        return frame.payload[-1]
+    return None
 
 
 @dataclass(frozen=True)

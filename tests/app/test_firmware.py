@@ -272,8 +272,11 @@ def test_the_firmware_and_the_python_follower_keep_ownership_alike(tmp_path):
         for mine, theirs in zip(py_replies, c_replies):
             if mine.msg_type in (p.MSG_OWNER, p.MSG_NACK):
                 a, b = p.decode_ownership(mine), p.decode_ownership(theirs)
-                assert (a.owner, a.reason) == (b.owner, b.reason) and abs(a.lease_left_ms - b.lease_left_ms) <= 1, \
-                    (what, a, b)
+                assert (a.owner, a.reason, a.asker) == (b.owner, b.reason, b.asker), (what, a, b)
+                assert abs(a.lease_left_ms - b.lease_left_ms) <= 1, (what, a, b)
+            elif mine.msg_type == p.MSG_DRIVEN:
+                (ack_a, asker_a), (ack_b, asker_b) = p.decode_driven(mine), p.decode_driven(theirs)
+                assert (ack_a.flags, asker_a) == (ack_b.flags, asker_b), what
             elif mine.msg_type == p.MSG_ACK:
                 assert p.decode_ack(mine).flags == p.decode_ack(theirs).flags, what
         owner, lease_left, left_mm, right_mm, flags, nacks, two = c_state

@@ -30,8 +30,8 @@ def test_ownership_example_frames_of_the_protocol_document():
         (p.claim(3, 20, 1, 1000), "a5 5a 03 14 04 03 01 e8 03 fb b9"),
         (p.drive(3, 21, 1, 40, 0.1, -0.25), "a5 5a 03 15 06 07 01 28 00 64 00 06 ff dd c0"),
         (p.handover(3, 22, 1, 2, 1000), "a5 5a 03 16 05 04 01 02 e8 03 be 14"),
-        (p.owner(3, 20, p.Ownership(1, 1000)), "a5 5a 03 14 83 03 01 e8 03 ff fc"),
-        (p.nack(3, 23, p.Ownership(1, 640, p.NACK_OWNED)), "a5 5a 03 17 84 04 01 80 02 01 5e b7"),
+        (p.owner(3, 20, p.Ownership(1, 1000, 0, 1)), "a5 5a 03 14 83 04 01 e8 03 01 66 a6"),
+        (p.nack(3, 23, p.Ownership(1, 640, p.NACK_OWNED, 2)), "a5 5a 03 17 84 05 01 80 02 01 02 de ec"),
     ]
     for frame, wire in examples:
         assert p.encode_frame(frame).hex(" ") == wire
@@ -39,7 +39,11 @@ def test_ownership_example_frames_of_the_protocol_document():
     assert p.decode_claim(examples[0][0]) == (1, 1000)
     assert p.decode_drive(examples[1][0]) == p.Drive(1, 40, 0.1, -0.25)
     assert p.decode_handover(examples[2][0]) == (1, 2, 1000)
-    assert p.decode_ownership(examples[4][0]) == p.Ownership(1, 640, p.NACK_OWNED)
+    assert p.decode_ownership(examples[4][0]) == p.Ownership(1, 640, p.NACK_OWNED, 2)
+    assert p.answers(examples[4][0]) == 2 and p.answers(examples[3][0]) == 1 and p.answers(examples[0][0]) is None
+    a = p.Ack(1520, 1544, 0.098, -0.247, 0)
+    (back,) = p.FrameParser().feed(p.encode_frame(p.driven(3, 21, a, 1)))
+    assert p.decode_driven(back) == (a, 1) and p.answers(back) == 1
 
 
 @given(st.floats(-40, 40), st.floats(-40, 40), st.integers(0, 255), st.integers(0, 255))

@@ -1,0 +1,164 @@
+"""`omniformation radio`: one emulated radio that several leaders share (a fleet on real robots).
+
+Each leader gets a pseudo-terminal of its own (its serial link, as a radio dongle would be);
+every frame a leader writes reaches every follower on the medium, and every follower's reply
+reaches every leader (a leader's own link sorts out what answers it). The medium loses a frame
+with probability ``drop`` and delivers the rest ``delay`` later, in order. A leader's link can
+be cut for a while (:meth:`Radio.cut`): nothing it writes goes out, nothing reaches it.
+
+The followers are :mod:`core.link.follower` (the reference firmware's rules, protocol 2
+ownership included: one owner with a lease; docs/follower-protocol.md), stepped in real time.
+Each robot counts what ownership is for: DRIVEs obeyed from two leaders within 100 ms
+(``two_owners``, never expected) and the refusals it sent.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import json
+import select
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from core.link import protocol as p
+
+from app.backends.emulator import STEP_S, FollowerEmulator, PtyEndpoint
+
+
+@dataclass
+class RadioStats:
+    from_leaders: list[int] = field(default_factory=list)  # frames each leader sent on the air
+    to_leaders: list[int] = field(default_factory=list)  # reply frames each leader was given
+    dropped: int = 0  # frames the medium lost
+    cut: int = 0  # frames that met a cut link (not sent, or not delivered)
+
+
+class Radio:
+    """``leaders`` pseudo-terminals and followers at addresses 1..``followers`` on one medium."""
+
+    def __init__(self, leaders: int, followers: int, drop: float = 0.0, delay_s: float = 0.0, seed: int = 0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.robots = FollowerEmulator(list(range(1, followers + 1)))
+        self.endpoints = [PtyEndpoint() for _ in range(leaders)]
+        self.paths = [e.path for e in self.endpoints]
+        self._parsers = [p.FrameParser() for _ in range(leaders)]
+        self._replies = p.FrameParser()
+        self.drop, self.delay_s = drop, delay_s
+        self._rng = np.random.default_rng(seed)
+        self._clock = clock
+        self._air: list[tuple[float, int, int, bytes]] = []  # (deliver at, order, to: -1 robots / leader i, bytes)
+        self._order = itertools.count()
+        self._cut_until = [-float("inf")] * leaders
+        self._lock = threading.Lock()
+        self.stats = RadioStats([0] * leaders, [0] * leaders)
+
+    def cut(self, leader: int, seconds: float) -> None:
+        """Cut leader ``leader``'s link (0-based) for ``seconds`` from now."""
+        with self._lock:
+            self._cut_until[leader] = self._clock() + seconds
+
+    def _is_cut(self, leader: int, now: float) -> bool:
+        return now < self._cut_until[leader]
+
+    def _send(self, to: int, data: bytes, now: float) -> None:
+        """Put one frame on the air (under the lock): lost, or delivered ``delay_s`` later."""
+        if self._rng.random() < self.drop:
+            self.stats.dropped += 1
+            return
+        heapq.heappush(self._air, (now + self.delay_s, next(self._order), to, data))
+
+    def _from_leader(self, i: int, data: bytes, now: float) -> None:
+        with self._lock:
+            for frame in self._parsers[i].feed(data):
+                if self._is_cut(i, now):
+                    self.stats.cut += 1
+                    continue
+                self.stats.from_leaders[i] += 1
+                self._send(-1, p.encode_frame(frame), now)
+
+    def _deliver(self, now: float) -> list[tuple[int, bytes]]:
+        """What is due now: frames to the robots are answered (the replies go on the air);
+        replies are handed to every leader whose link is not cut."""
+        out: list[tuple[int, bytes]] = []
+        with self._lock:
+            while self._air and self._air[0][0] <= now:
+                _, _, to, data = heapq.heappop(self._air)
+                if to < 0:
+                    for reply in self._replies.feed(self.robots.receive(data)):
+                        for i in range(len(self.endpoints)):
+                            self._send(i, p.encode_frame(reply), now)
+                elif self._is_cut(to, now):
+                    self.stats.cut += 1
+                else:
+                    self.stats.to_leaders[to] += 1
+                    out.append((to, data))
+        return out
+
+    def run(self, stop: threading.Event) -> None:
+        """Carry frames and step the robots in real time until ``stop``."""
+        fds = {e.master: i for i, e in enumerate(self.endpoints)}
+        last = self._clock()
+        while not stop.is_set():
+            ready, _, _ = select.select(list(fds), [], [], STEP_S / 2)
+            now = self._clock()
+            for fd in ready:
+                i = fds[fd]
+                data = self.endpoints[i].read(0.0)
+                if data:
+                    self._from_leader(i, data, now)
+            for i, data in self._deliver(now):
+                self.endpoints[i].write(data)
+            while now - last >= STEP_S:
+                self.robots.step(STEP_S)
+                last += STEP_S
+
+    def summary(self) -> dict[str, Any]:
+        """Each robot's owner and counts, and the medium's (for `radio --summary`)."""
+        robots = self.robots.snapshot()
+        return {
+            "robots": {f"R{a}": {"owner": s.owner, "two_owners": s.two_owners, "nacks": s.nacks,
+                                 "moving": s.moving} for a, s in sorted(robots.items())},
+            "two_owners": sum(s.two_owners for s in robots.values()),
+            "from_leaders": list(self.stats.from_leaders), "to_leaders": list(self.stats.to_leaders),
+            "dropped": self.stats.dropped, "cut": self.stats.cut,
+        }
+
+    def close(self) -> None:
+        for e in self.endpoints:
+            e.close()
+
+
+def run_radio(leaders: int, followers: int, drop: float, delay_ms: float, seed: int,
+              summary_path: Any = None, minutes: float | None = None) -> int:
+    """`omniformation radio` (arguments: app.cli.emulator)."""
+    import signal
+    import sys
+
+    radio = Radio(leaders, followers, drop, delay_ms / 1000.0, seed)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"omniformation: radio with followers 1..{followers}, {leaders} leader links (drop {drop:g},"
+          f" delay {delay_ms:g} ms)", flush=True)
+    for i, path in enumerate(radio.paths):
+        print(f"leader {i + 1}: {path}", flush=True)
+    if minutes is not None:
+        timer = threading.Timer(minutes * 60, stop.set)
+        timer.daemon = True
+        timer.start()
+    try:
+        radio.run(stop)
+    finally:
+        s = radio.summary()
+        radio.close()
+        if summary_path is not None:
+            summary_path.write_text(json.dumps(s, indent=1) + "\n")
+        print(f"omniformation: radio stopped: {sum(s['from_leaders'])} frames from leaders, {s['dropped']} lost,"
+              f" robots obeying two owners within 100 ms: {s['two_owners']}", file=sys.stderr, flush=True)
+    return 0

@@ -1,0 +1,165 @@
+"""One radio, two leaders (docs/follower-protocol.md, "Ownership"): the robots themselves hold
+their owner, over real pseudo-terminals with a lossy, delayed medium and a cut link."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import serial
+
+from app.backends.radio import Radio
+from core.link import protocol as p
+
+from tests.helpers import main_cli, wait_for
+
+ROBOTS = (1, 2, 3)
+
+
+class Leader:
+    """A leader's end of the radio, written from the protocol document: frames out, every
+    reply that reaches it kept (replies to the other leader included: it is one medium)."""
+
+    def __init__(self, path: str, number: int) -> None:
+        self.number = number
+        self.port = serial.Serial(path, 115200, timeout=0.01)
+        self.parser = p.FrameParser()
+        self.lock = threading.Lock()
+        self.replies: list[p.Frame] = []
+        self.seq = 0
+        self._stop = threading.Event()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            data = self.port.read(256)
+            if data:
+                with self.lock:
+                    self.replies += self.parser.feed(data)
+
+    def send(self, make) -> tuple[int, int]:
+        """Write ``make(seq)``; (the sequence used, how many replies had come before it)."""
+        with self.lock:
+            self.seq = (self.seq + 1) % 256
+            seq, before = self.seq, len(self.replies)
+        self.port.write(p.encode_frame(make(seq)))
+        return seq, before
+
+    def answer(self, robot: int, sent: tuple[int, int]) -> p.Frame | None:
+        """Its own answer to a frame sent: after it, the robot, the sequence and the asker (one
+        medium: the other leader's replies come here too, and sequences of two leaders meet;
+        its own wrap at 256)."""
+        seq, before = sent
+        with self.lock:
+            return next((f for f in self.replies[before:] if f.address == robot and f.seq == seq
+                         and p.answers(f) == self.number), None)
+
+    def ask(self, robot: int, make, timeout: float = 10.0) -> p.Frame:
+        """Send until the robot's answer comes (the medium loses frames)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            sent = self.send(make)
+            t = time.monotonic()
+            while time.monotonic() - t < 0.15:
+                got = self.answer(robot, sent)
+                if got is not None:
+                    return got
+                time.sleep(0.005)
+        raise AssertionError(f"robot {robot} never answered leader {self.number}")
+
+    def close(self) -> None:
+        self._stop.set()
+        self._reader.join(2)
+        self.port.close()
+
+
+def test_on_one_radio_a_robot_obeys_one_leader_and_passes_to_another_only_when_its_lease_lapses():
+    radio = Radio(2, len(ROBOTS), drop=0.1, delay_s=0.01, seed=3)
+    stop = threading.Event()
+    medium = threading.Thread(target=radio.run, args=(stop,), daemon=True)
+    medium.start()
+    a, b = Leader(radio.paths[0], 1), Leader(radio.paths[1], 2)
+    driving = threading.Event()
+    obs_age = {"ms": 20}
+
+    def drive_all(leader: Leader) -> None:  # 30 Hz, as a leader's loop does, while ``driving``
+        while driving.is_set():
+            for r in ROBOTS:
+                leader.send(lambda seq, r=r: p.drive(r, seq, leader.number, obs_age["ms"], 0.05, 0.0))
+            time.sleep(1 / 30)
+
+    try:
+        # A claims its three robots (a 2 s lease, renewed by each DRIVE) and drives them
+        for r in ROBOTS:
+            got = a.ask(r, lambda seq, r=r: p.claim(r, seq, 1, 2000))
+            assert got.msg_type == p.MSG_OWNER and p.decode_ownership(got).owner == 1
+        driving.set()
+        pump = threading.Thread(target=drive_all, args=(a,), daemon=True)
+        pump.start()
+        wait_for(lambda: all(s.moving for s in radio.robots.snapshot().values()), 10, "A's robots moving")
+        # B can neither take nor drive them while A's lease lives: each refusal names the owner
+        for r in ROBOTS:
+            got = b.ask(r, lambda seq, r=r: p.claim(r, seq, 2, 2000))
+            assert got.msg_type == p.MSG_NACK and p.decode_ownership(got).owner == 1
+            assert p.decode_ownership(got).reason == p.NACK_OWNED
+            got = b.ask(r, lambda seq, r=r: p.drive(r, seq, 2, 10, 0.3, 0.0))
+            assert got.msg_type == p.MSG_NACK and p.decode_ownership(got).reason == p.NACK_NOT_OWNER
+        # a short cut of A's link (less than its lease): its first command after, computed from an
+        # observation taken before the cut, moves nothing; fresh ones drive again
+        radio.cut(0, 0.5)
+        obs_age["ms"] = 600
+        time.sleep(0.6)
+        got = a.ask(1, lambda seq: p.drive(1, seq, 1, 600, 0.05, 0.0))
+        assert got.msg_type == p.MSG_NACK and p.decode_ownership(got).reason == p.NACK_STALE
+        wait_for(lambda: radio.robots.snapshot()[1].target_l_mps == 0.0, 5, "robot 1 standing still")
+        obs_age["ms"] = 20
+        wait_for(lambda: radio.robots.snapshot()[1].target_l_mps > 0.0, 5, "robot 1 driven again")
+        # A cut for longer than its lease: the robots stop by their watchdog, their lease lapses, and
+        # B's claims are granted; A, back, is refused at once (it no longer owns them)
+        radio.cut(0, 4.0)
+        cut_at = time.monotonic()
+        wait_for(lambda: not any(s.moving for s in radio.robots.snapshot().values()), 10, "the watchdog stops")
+        refused = 0
+        for r in ROBOTS:  # B keeps asking, as an adopter does: refused while A's lease lives, then granted
+            while (got := b.ask(r, lambda seq, r=r: p.claim(r, seq, 2, 2000))).msg_type == p.MSG_NACK:
+                assert p.decode_ownership(got).owner == 1
+                refused += 1
+                time.sleep(0.05)
+                assert time.monotonic() - cut_at < 10, "never granted"
+            if r == ROBOTS[0]:
+                assert time.monotonic() - cut_at >= 2.0 - 0.1  # not before A's lease lapsed
+        assert refused > 0
+        driving.clear()
+        pump.join(5)
+        driving.set()
+        pump = threading.Thread(target=drive_all, args=(b,), daemon=True)
+        pump.start()
+        wait_for(lambda: all(s.moving for s in radio.robots.snapshot().values()), 10, "B's robots moving")
+        wait_for(lambda: time.monotonic() - cut_at > 4.1, 10, "A's link back")
+        for r in ROBOTS:
+            got = a.ask(r, lambda seq, r=r: p.drive(r, seq, 1, 20, 0.2, 0.0))
+            assert got.msg_type == p.MSG_NACK and p.decode_ownership(got).owner == 2, got
+        driving.clear()
+        pump.join(5)
+    finally:
+        driving.clear()
+        stop.set()
+        medium.join(5)
+        a.close()
+        b.close()
+        radio.close()
+    s = radio.summary()
+    assert s["two_owners"] == 0 and all(r["owner"] == 2 for r in s["robots"].values()), s
+    assert s["dropped"] > 0 and s["cut"] > 0, s  # the medium did lose and cut
+
+
+def test_the_radio_command_prints_a_link_per_leader_and_its_summary(tmp_path):
+    summary = tmp_path / "radio.json"
+    r = main_cli("radio", "--leaders", "3", "--followers", "2", "--minutes", "0.01", "--summary", str(summary))
+    assert r.returncode == 0, r.stderr
+    assert [ln.split(":")[0] for ln in r.stdout.splitlines()[1:]] == ["leader 1", "leader 2", "leader 3"]
+    assert json.loads(summary.read_text())["robots"].keys() == {"R1", "R2"}
+    bad = main_cli("radio", "--drop", "1.5")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
