@@ -159,10 +159,13 @@ GAIN_INDEX: dict[str, int] = {f.name: i for i, f in enumerate(dataclasses.fields
 
 @dataclass(frozen=True)
 class Commands:
-    """Per-follower velocity commands: v (n,) m/s, w (n,) rad/s."""
+    """Per-follower velocity commands: v (n,) m/s, w (n,) rad/s; ``observed_at``: the
+    monotonic time of the observation they were computed from (NaN: not said), which a link
+    that can (protocol 2's DRIVE) sends along so that a robot refuses a command from an old one."""
 
     v: FloatArray
     w: FloatArray
+    observed_at: float = float("nan")
 
     @staticmethod
     def zeros(n: int) -> "Commands":

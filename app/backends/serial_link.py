@@ -64,7 +64,12 @@ BACKOFF_S = (0.25, 2.0)
 DEGRADED_LOSS = 0.2  # more than this share of a follower's recent commands unanswered: "degraded"
 QUALITY_WINDOW = 30  # recent commands a follower's loss share is taken over (1 s at 30 Hz)
 EXPIRED_KEPT = 1024  # unanswered (address, sequence) pairs remembered, so a late reply is known as late
-REPLY_TO = {p.MSG_SET_VELOCITY: p.MSG_ACK, p.MSG_STOP: p.MSG_ACK, p.MSG_PING: p.MSG_STATUS}
+# what answers each frame of ours (protocol 2's CLAIM and DRIVE: docs/follower-protocol.md, "Ownership")
+REPLIES = {p.MSG_SET_VELOCITY: (p.MSG_ACK,), p.MSG_STOP: (p.MSG_ACK,), p.MSG_PING: (p.MSG_STATUS,),
+           p.MSG_CLAIM: (p.MSG_OWNER, p.MSG_NACK), p.MSG_DRIVE: (p.MSG_DRIVEN, p.MSG_NACK)}
+MOTION = (p.MSG_SET_VELOCITY, p.MSG_DRIVE)  # the frames counted as sent (one per robot per tick)
+LEASE_MS = 1000  # with a radio id: the lease asked for; each DRIVE renews it
+CLAIM_RETRY_S = 0.5  # a robot another leader holds is asked again this often (its lease may have lapsed)
 
 
 @dataclass
@@ -91,6 +96,11 @@ class FollowerLinkStats:
     right_ticks: int = 0
     flags: int = 0
     battery_mv: int = 0
+    # protocol 2 (a radio id given): whether this leader owns the robot, who does as far as it said
+    owned: bool = False
+    owner: int = 0
+    next_claim: float = -math.inf
+    stale: int = 0  # DRIVEs the robot refused as computed from too old an observation
 
 
 def parse_link_spec(spec: str) -> str:
@@ -111,8 +121,13 @@ class SerialLink:
 
     def __init__(self, port: str, n: int, baud: int = 115200, v_max: float = 0.3, w_max: float = 2.0,
                  clock: Callable[[], float] = time.monotonic,
-                 opener: Callable[..., Any] | None = None, addresses: list[int] | None = None) -> None:
-        """``addresses``: instead of 1..n, e.g. [0] for the leader base (docs/follower-protocol.md)."""
+                 opener: Callable[..., Any] | None = None, addresses: list[int] | None = None,
+                 radio_id: int | None = None) -> None:
+        """``addresses``: instead of 1..n, e.g. [0] for the leader base (docs/follower-protocol.md).
+        ``radio_id``: this leader's number on a radio other leaders share (1..250): protocol 2,
+        it claims its robots, drives only those it owns (DRIVE, with the observation's age) and
+        STOPs only those; without it, protocol 1 (one leader on the line)."""
+        self.radio_id = radio_id
         self.port_name = port
         self.baud = baud
         self.v_max, self.w_max = v_max, w_max
@@ -161,7 +176,7 @@ class SerialLink:
     @property
     def pending(self) -> int:
         with self._lock:
-            return sum(1 for key in self._pending if key[2] == p.MSG_SET_VELOCITY)
+            return sum(1 for key in self._pending if key[2] in MOTION)
 
     def quality(self) -> list[str]:
         """Per follower: "" when it answers well, else why not ("silent 1.2 s", "37 % lost")."""
@@ -172,7 +187,9 @@ class SerialLink:
                 age = now - s.last_reply
                 recent = list(s.recent)
                 loss = 1.0 - sum(recent) / len(recent) if recent else 0.0
-                if not _alive(s, now, SILENT_S):
+                if self.radio_id is not None and not s.owned:
+                    out.append(f"owned by leader {s.owner}" if s.owner and s.owner != self.radio_id else "not claimed yet")
+                elif not _alive(s, now, SILENT_S):
                     out.append("never answered" if not math.isfinite(age) else f"silent {age:.1f} s")
                 elif len(recent) >= QUALITY_WINDOW // 2 and loss > DEGRADED_LOSS:
                     out.append(f"{loss * 100:.0f} % lost")
@@ -182,6 +199,10 @@ class SerialLink:
 
     @property
     def link_state(self) -> str:
+        if self.radio_id is not None and self._port is not None and not any(s.owned for s in self.stats):
+            heard = self._clock() - max(s.last_reply for s in self.stats) < 4 * CLAIM_RETRY_S
+            if heard:  # the robots answer, and another leader holds every one: this one waits
+                return f"serial {self.port_name}: owns no robot yet ({', '.join(f'{_name(s.address)} {why}' for s, why in zip(self.stats, self.quality()))})"
         if not self.connected:
             with self._lock:
                 echoes = sum(s.echoes for s in self.stats)
@@ -217,7 +238,8 @@ class SerialLink:
         timeout of now. Only such a robot is sent anything but zero."""
         now = self._clock()
         with self._lock:
-            return np.array([_alive(s, now, REPLY_TIMEOUT_S) for s in self.stats], dtype=bool)
+            return np.array([_alive(s, now, REPLY_TIMEOUT_S) and (self.radio_id is None or s.owned)
+                             for s in self.stats], dtype=bool)
 
     def measured(self) -> tuple[FloatArray, FloatArray]:
         """(v, w) per follower from the encoders; zero where the odometry is stale."""
@@ -252,8 +274,17 @@ class SerialLink:
             for i, s in enumerate(self.stats):
                 vi = float(v[i]) if i < len(v) else 0.0
                 wi = float(w[i]) if i < len(w) else 0.0
-                out += p.encode_frame(p.set_velocity(s.address, seq, vi, wi))
-                keys.append((s.address, seq, p.MSG_SET_VELOCITY))
+                if self.radio_id is None:
+                    out += p.encode_frame(p.set_velocity(s.address, seq, vi, wi))
+                    keys.append((s.address, seq, p.MSG_SET_VELOCITY))
+                elif s.owned:
+                    age_ms = _age_ms(commands.observed_at, now, vi, wi)
+                    out += p.encode_frame(p.drive(s.address, seq, self.radio_id, age_ms, vi, wi))
+                    keys.append((s.address, seq, p.MSG_DRIVE))
+                elif now >= s.next_claim:  # not ours (yet): ask; granted once nobody's lease lives
+                    s.next_claim = now + CLAIM_RETRY_S
+                    out += p.encode_frame(p.claim(s.address, seq, self.radio_id, LEASE_MS))
+                    keys.append((s.address, seq, p.MSG_CLAIM))
             if now >= self._next_ping and self.stats:
                 s = self.stats[self._ping_index % len(self.stats)]
                 self._ping_index += 1
@@ -266,7 +297,7 @@ class SerialLink:
         if self._write(port, bytes(out)):
             with self._lock:
                 for key in keys:
-                    if key[2] == p.MSG_SET_VELOCITY:
+                    if key[2] in MOTION:
                         self._by_addr[key[0]].sent += 1
         else:
             with self._lock:
@@ -282,13 +313,16 @@ class SerialLink:
         return self._seq
 
     def _stop_frames(self) -> bytes:
-        """STOP to every follower, addressed (answered) and broadcast (for robots we do not know)."""
+        """STOP to every follower, addressed (answered) and broadcast (for robots we do not know).
+        On a shared radio (a radio id) only to the robots this leader owns: the others are
+        other leaders' to stop."""
         seq = self._next_seq()
         now = self._clock()
-        for a in self.addresses:
+        mine = [s.address for s in self.stats if self.radio_id is None or s.owned]
+        for a in mine:
             self._pending[(a, seq, p.MSG_STOP)] = now  # its ACK is an answer, not a stranger
-        data = b"".join(p.encode_frame(p.stop(a, seq)) for a in self.addresses)
-        return data + p.encode_frame(p.stop(p.BROADCAST, seq))
+        data = b"".join(p.encode_frame(p.stop(a, seq)) for a in mine)
+        return data + (p.encode_frame(p.stop(p.BROADCAST, seq)) if self.radio_id is None else b"")
 
     def stop_all(self) -> None:
         """STOP to every follower now."""
@@ -345,7 +379,7 @@ class SerialLink:
         for key, t_sent in list(self._pending.items()):
             if now - t_sent > REPLY_TIMEOUT_S:
                 del self._pending[key]
-                if key[2] == p.MSG_SET_VELOCITY:
+                if key[2] in MOTION:
                     s = self._by_addr[key[0]]
                     s.lost += 1
                     s.recent.append(False)
@@ -400,13 +434,15 @@ class SerialLink:
                 s = self._by_addr.get(f.address)
                 if s is None:
                     continue
-                if f.msg_type in REPLY_TO:  # a frame of the host's kind: our own, come back
+                if f.msg_type in REPLIES:  # a frame of the host's kind: our own, come back
                     s.echoes += 1
                     continue
-                request = next((key for key in ((f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type)
-                                if key in self._pending), None)
+                asker = p.answers(f)
+                if asker is not None and asker != self.radio_id:
+                    continue  # a protocol 2 reply to another leader on the same radio: not ours
+                asked = [(f.address, f.seq, t) for t, rs in REPLIES.items() if f.msg_type in rs]
+                request = next((key for key in asked if key in self._pending), None)
                 if request is None:
-                    asked = [(f.address, f.seq, t) for t, r in REPLY_TO.items() if r == f.msg_type]
                     maybe = next((key for key in asked if key in self._unsent), None)
                     if maybe is not None:  # the answer to a write we counted as failed: not sent, not a stranger
                         if now - self._unsent.pop(maybe) <= REPLY_TIMEOUT_S:
@@ -417,30 +453,51 @@ class SerialLink:
                         s.unmatched += 1
                         continue
                     del self._expired[late]
-                    if late[2] == p.MSG_SET_VELOCITY:  # counted lost when given up on: it was late
+                    if late[2] in MOTION:  # counted lost when given up on: it was late
                         s.lost -= 1
                         s.late += 1
                     continue  # it is there, but what it says is old news: not an answer, not alive
                 t_sent = self._pending.pop(request)
                 if now - t_sent > REPLY_TIMEOUT_S:  # matched, but after the timeout (not yet expired): late
-                    if request[2] == p.MSG_SET_VELOCITY:
+                    if request[2] in MOTION:
                         s.late += 1
                         s.recent.append(False)
                     continue
                 s.prev_reply, s.last_reply = s.last_reply, now
-                if f.msg_type == p.MSG_ACK:
-                    a = p.decode_ack(f)
+                if request[2] in MOTION:
+                    s.answered += 1
+                    s.recent.append(True)
+                    rtt = (now - t_sent) * 1e3
+                    s.rtt_ms = rtt
+                    s.rtt_mean_ms = rtt if math.isnan(s.rtt_mean_ms) else 0.9 * s.rtt_mean_ms + 0.1 * rtt
+                if f.msg_type in (p.MSG_ACK, p.MSG_DRIVEN):
+                    a = p.decode_ack(f) if f.msg_type == p.MSG_ACK else p.decode_driven(f)[0]
                     s.v_meas, s.w_meas, s.flags = a.v_mps, a.w_rps, a.flags
                     s.left_ticks, s.right_ticks = a.left_ticks, a.right_ticks
-                    if request[2] == p.MSG_SET_VELOCITY:
-                        s.answered += 1
-                        s.recent.append(True)
-                        rtt = (now - t_sent) * 1e3
-                        s.rtt_ms = rtt
-                        s.rtt_mean_ms = rtt if math.isnan(s.rtt_mean_ms) else 0.9 * s.rtt_mean_ms + 0.1 * rtt
-                else:
+                elif f.msg_type == p.MSG_STATUS:
                     st = p.decode_status(f)
                     s.battery_mv, s.flags = st.battery_mv, st.flags
+                else:  # OWNER or NACK: who holds the robot, as it says
+                    o = p.decode_ownership(f)
+                    s.owner = o.owner
+                    if f.msg_type == p.MSG_OWNER:
+                        s.owned = True
+                    elif o.reason == p.NACK_STALE:
+                        s.stale += 1  # still ours; it stands still until a fresh command
+                    else:  # another's, or no longer ours (its lease lapsed and another took it): at once
+                        s.owned = False
+                        s.next_claim = now + CLAIM_RETRY_S
+                        s.v_meas = s.w_meas = 0.0
+
+
+def _age_ms(observed_at: float, now: float, v: float, w: float) -> int:
+    """The age DRIVE carries: of the observation the command came from; a command to stand still
+    is safe whatever one saw (0); a moving one from an unknown observation is refused (65535)."""
+    if v == 0.0 and w == 0.0:
+        return 0
+    if not math.isfinite(observed_at):
+        return 0xFFFF
+    return int(min(0xFFFF, max(0.0, (now - observed_at) * 1000.0)))
 
 
 def _alive(s: FollowerLinkStats, now: float, within: float) -> bool:
@@ -505,15 +562,18 @@ class PortPerFollowerLink:
 
 
 def make_link(port_spec: str, n: int, baud: int = 115200, v_max: float = 0.3,
-              w_max: float = 2.0) -> SerialLink | PortPerFollowerLink:
+              w_max: float = 2.0, radio_id: int | None = None) -> SerialLink | PortPerFollowerLink:
     """One port for the whole team, or a comma-separated list: one port per follower.
+    ``radio_id``: this leader's number on a shared radio (protocol 2; one port only).
 
     ValueError (one line) when the number of ports is neither 1 nor n."""
     ports = [p_.strip() for p_ in port_spec.split(",")]
     if any(not p_ for p_ in ports):
         raise ValueError(f"--link serial:{port_spec}: an empty port name in the list")
+    if radio_id is not None and len(ports) != 1:
+        raise ValueError("--radio-id: a radio is one port that every leader shares; give one (serial:PATH)")
     if len(ports) == 1:
-        return SerialLink(ports[0], n, baud, v_max, w_max)
+        return SerialLink(ports[0], n, baud, v_max, w_max, radio_id=radio_id)
     if len(ports) != n:
         raise ValueError(f"--link serial:{port_spec}: {len(ports)} ports for {n} followers; give one port for the"
                          " whole team or one per follower")

@@ -64,6 +64,10 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                      help="with --camera: the leader base's port (its wheel odometry, for eq. 38); without it the"
                           " leader is taken to stand still")
     run.add_argument("--baud", type=int_in(1200, 4_000_000), default=115200, help="serial baud rate (default 115200)")
+    run.add_argument("--radio-id", type=int_in(1, 250), metavar="N",
+                     help="with --link serial:PATH on a radio other leaders share: this leader's number (1..250);"
+                          " it claims its robots and drives only those it owns (docs/follower-protocol.md,"
+                          " Ownership)")
     run.add_argument("--no-record", action="store_true", help="do not record the session (default: recordings/<UTC>_<name>.mcap)")
     run.add_argument("--recordings", type=Path, metavar="DIR",
                      help="where sessions are recorded and listed for replay (default: recordings/ in the working folder)")
@@ -189,6 +193,8 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
         raise UserError(str(exc)) from None
     if leader_port == "" and args.leader is not None:
         raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
+    if args.radio_id is not None and not link_port:
+        raise UserError("--radio-id goes with --link serial:PATH (the radio this leader shares with others)")
     camera: Rig | None
     if real:
         from app.files import load_calibration
@@ -313,7 +319,7 @@ def _build_rig(args: argparse.Namespace, plan: _RunPlan,
     if plan.link_port:
         try:
             link = make_link(plan.link_port, plan.n_followers, baud=args.baud, v_max=limits.v_max,
-                             w_max=limits.w_max)
+                             w_max=limits.w_max, radio_id=args.radio_id)
         except ValueError as exc:
             raise UserError(str(exc)) from None
         handed.callback(link.close)

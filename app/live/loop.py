@@ -323,7 +323,7 @@ class ServiceLoop:
         t2 = time.perf_counter()
         stage["control"] = (t2 - t1) * 1e3
 
-        world.team.send(out.commands)
+        world.team.send(dataclasses.replace(out.commands, observed_at=obs.observed_at))
         sent_at = time.monotonic()
         t3 = time.perf_counter()
         stage["link"] = (t3 - t2) * 1e3
