@@ -195,8 +195,14 @@ class ArenaTeam:
         return time.monotonic() - self._truth_at > STALE_TRUTH_S
 
     def answering(self) -> BoolArray:
-        """The arena answers for every robot this leader owns (its truth is the robots' link)."""
-        return np.ones(self.state.n, dtype=bool)
+        """The robots the newest truth says are this leader's (its truth is the robots' link). A
+        robot the arena gave to another leader (after a partition, a handover) is not: the loop
+        counts it untracked and commands it nothing from that tick, before the adopter lets it
+        go from the formation."""
+        truth = self.latest_truth()
+        owners = truth["owners"] if truth is not None else []
+        return np.array([r < len(owners) and owners[r] == self.leader_id for r in self.active[:self.state.n]],
+                        dtype=bool)
 
     def link_detail(self) -> str:
         return f"arena {self.fleet}: robots {', '.join(robot_name(r) for r in self.active)}"

@@ -129,17 +129,29 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         procs["L2"].send_signal(signal.SIGKILL)
         procs["L2"].wait(10)
         t_kill = w.arena_t()
-        wait_for(lambda: all(w.last_truth()["watchdog"][r] for r in orphans), 30, "the orphans' watchdogs")
-        # the robot's own watchdog: zero within 0.5 s of its last command. The first truth saying so is
-        # published after the step that zeroed it: that step began one step (1/30 s) before its age
+        # each orphan stops by its own watchdog, unless a survivor adopted and drove it first (with the
+        # fleet's keys the token's loss can travel faster than the watchdog's 0.5 s)
+        wait_for(lambda: all(w.last_truth()["watchdog"][r] or w.last_truth()["owners"][r] in ("L1", "L3")
+                             for r in orphans), 30, "the orphans stopped by their watchdogs or adopted")
         with w.lock:
             truths = list(w.truths)
+        # what must hold: no robot ever moves on a command older than the watchdog's 0.5 s (plus the step
+        # during which it ages: the arena zeroes a command for the whole step in which it would pass 0.5 s)
+        k_kill = next(k for k, tr in enumerate(truths) if tr["t"] >= t_kill)
+        for tr in truths[k_kill:]:
+            for r in orphans:
+                age = tr["command_age"][r]
+                assert tr["watchdog"][r] or age is None or age <= 0.5 + 1 / 30 + 1e-3, (r, tr["t"], age)
+
+        # the robot's own watchdog: zero within 0.5 s of its last command. The first truth saying so is
+        # published after the step that zeroed it: that step began one step (1/30 s) before its age
         def first_stop(r: int) -> float | None:  # the truth after its last one still driven
             last_driven = max(k for k, tr in enumerate(truths) if not tr["watchdog"][r])
             age = truths[last_driven + 1]["command_age"][r]
             return None if age is None else age - 1 / 30
 
-        stop_after = [first_stop(r) for r in orphans]
+        stopped = [r for r in orphans if any(tr["watchdog"][r] for tr in truths[k_kill:])]
+        stop_after = [first_stop(r) for r in stopped]
         assert all(a is not None and a <= 0.5 + 1e-3 for a in stop_after), stop_after
         wait_for(lambda: "L2" in w.last_truth()["lost"], 30, "L2 lost")
         wait_for(lambda: all(w.last_truth()["owners"][r] in ("L1", "L3") for r in orphans), 30, "every orphan claimed")
@@ -155,7 +167,8 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         wait_for(seated, 120, "every orphan in a slot")
         t_seated = w.arena_t() - t_kill
         print(f"arena: formation RMS {', '.join(f'{k} {v * 100:.2f} cm' for k, v in rms.items())}; orphans stopped"
-              f" {max(stop_after):.2f} s after their last command; claimed {t_claimed:.1f} s, all seated {t_seated:.1f} s (arena time) after the"
+              f" by their watchdog {len(stop_after)} of {len(orphans)}, at most"
+              f" {max(stop_after, default=float('nan')):.2f} s after their last command; claimed {t_claimed:.1f} s, all seated {t_seated:.1f} s (arena time) after the"
               f" kill; owners {adopters}; closest two bodies so far {min(tr['closest_m'] for tr in w.truths) * 100:.1f} cm apart")
         assert t_seated <= 15.0, t_seated
         assert w.last_truth()["conflicts"] == 0 and w.last_truth()["contacts"] == 0
@@ -322,6 +335,14 @@ def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned()
         assert sorted(team.owned) == sorted(set(team.owned)) and len(team.owned) == 3 + taken
         params = store.get()
         assert params.n_followers == len(team.owned) and len(params.slots) == params.n_followers
+        # a robot the arena gives away is no longer one this leader may command, from the truth that says so
+        team.resize(len(team.owned))
+        wait_for(lambda: team.answering().all(), 10, "the truth showing every robot it took")
+        given = team.active[0]
+        with arena._lock:
+            arena._give(given, "L3")
+        wait_for(lambda: team.latest_truth()["owners"][given] == "L3", 10, "the truth of the handover")
+        assert list(team.answering()) == [r != given for r in team.active]
     finally:
         adopter.close()
         team.close()
