@@ -202,3 +202,71 @@ def keep_ticks(service: Any, limit: int = 3000) -> list[Any]:
     service.loop.subscribe(keep)
     service.seen = seen
     return seen
+
+
+class TcpRelay:
+    """A TCP relay on a loopback port to ``target_port``, for network partitions on a kernel
+    without netem: ``cut(seconds)`` holds every byte in both directions for that long, as a
+    link that went away and came back does (TCP keeps what was sent and delivers it late)."""
+
+    def __init__(self, target_port: int) -> None:
+        import socket
+
+        self._target = ("127.0.0.1", target_port)
+        self._server = socket.create_server(("127.0.0.1", 0))
+        self.port = self._server.getsockname()[1]
+        self._open = threading.Event()
+        self._open.set()  # set: bytes flow; clear: cut
+        self._closed = False
+        self._socks: list[Any] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        import socket
+
+        while not self._closed:
+            try:
+                a, _ = self._server.accept()
+            except OSError:
+                return
+            try:
+                b = socket.create_connection(self._target)
+            except OSError:
+                a.close()
+                continue
+            self._socks += [a, b]
+            for src, dst in ((a, b), (b, a)):
+                threading.Thread(target=self._pump, args=(src, dst), daemon=True).start()
+
+    def _pump(self, src: Any, dst: Any) -> None:
+        try:
+            while True:
+                data = src.recv(65536)
+                if not data:
+                    break
+                self._open.wait()  # a cut: held here, delivered when it heals
+                dst.sendall(data)
+        except OSError:
+            pass
+        for s in (src, dst):
+            with contextlib.suppress(OSError):
+                s.close()
+
+    def cut(self, seconds: float) -> None:
+        self._open.clear()
+        timer = threading.Timer(seconds, self._open.set)
+        timer.daemon = True
+        timer.start()
+
+    @property
+    def is_cut(self) -> bool:
+        return not self._open.is_set()
+
+    def close(self) -> None:
+        self._closed = True
+        self._open.set()
+        with contextlib.suppress(OSError):
+            self._server.close()
+        for s in self._socks:
+            with contextlib.suppress(OSError):
+                s.close()
