@@ -33,8 +33,9 @@ FLEET = "three_teams"
 class Watcher:
     """Subscribes to the arena's truth and every leader's state."""
 
-    def __init__(self, endpoint: str, keys: Path) -> None:
-        self.session = fleet_session(keys, "page", endpoint)  # the operator's identity (it may hand over)
+    def __init__(self, endpoint: str, keys: Path | None = None) -> None:
+        # with the fleet's keys, the operator's identity (it may hand over); else a plain session
+        self.session = fleet_session(keys, "page" if keys is not None else None, endpoint)
         self.lock = threading.Lock()
         self.truths: list[dict] = []
         self.states: dict[str, list[tuple[float, dict]]] = {}  # leader -> (arena t when received, state)

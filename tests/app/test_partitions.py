@@ -8,12 +8,12 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import threading
 
 import pytest
 
 from app.fleet.bridge import loopback_endpoint
 
+from tests.app.test_arena import Watcher
 from tests.helpers import ROOT, TcpRelay, interrupt, wait_for
 
 zenoh = pytest.importorskip("zenoh")
@@ -28,35 +28,6 @@ def _spawn(*args: str) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True)
 
 
-class Watch:
-    def __init__(self, endpoint: str) -> None:
-        conf = {"mode": "client", "connect": {"endpoints": [endpoint]}}
-        self.session = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
-        self.lock = threading.Lock()
-        self.truths: list[dict] = []
-        self.states: dict[str, list[dict]] = {}
-        self.subs = [self.session.declare_subscriber(f"{BASE}/arena/truth", self._truth),
-                     self.session.declare_subscriber(f"{BASE}/leader/*/state", self._state)]
-
-    def _truth(self, s) -> None:
-        with self.lock:
-            self.truths.append(json.loads(s.payload.to_bytes()))
-
-    def _state(self, s) -> None:
-        msg = json.loads(s.payload.to_bytes())
-        with self.lock:
-            self.states.setdefault(msg["leader_id"], []).append(msg)
-
-    def truth(self) -> dict:
-        with self.lock:
-            return self.truths[-1]
-
-    def last(self, leader: str) -> dict | None:
-        with self.lock:
-            rows = self.states.get(leader)
-            return rows[-1] if rows else None
-
-
 def test_a_cut_leader_moves_nothing_on_old_truths_and_drops_what_was_adopted_while_it_was_gone(tmp_path):
     endpoint = loopback_endpoint()
     port = int(endpoint.rsplit(":", 1)[1])
@@ -67,24 +38,24 @@ def test_a_cut_leader_moves_nothing_on_old_truths_and_drops_what_was_adopted_whi
     watch = None
     try:
         assert arena.stdout is not None and "arena three_teams" in arena.stdout.readline()
-        watch = Watch(endpoint)
+        watch = Watcher(endpoint)
         procs["L1"] = _spawn("run", "--arena", FLEET, "--leader-id", "L1", "--zenoh-connect",
                              f"tcp/127.0.0.1:{relay.port}", "--port", "0", "--no-record", "--feedback", "truth")
         procs["L2"] = _spawn("run", "--arena", FLEET, "--leader-id", "L2", "--zenoh-connect", endpoint, "--port", "0",
                              "--no-record", "--feedback", "truth")
         w = watch
-        wait_for(lambda: bool(w.truths) and w.truth()["alive"] == ["L1", "L2"], 60, "L1 and L2 alive")
-        mine = [r for r, o in enumerate(w.truth()["owners"]) if o == "L1"]
-        wait_for(lambda: all(w.truth()["command_age"][r] is not None for r in mine), 30, "L1 driving")
+        wait_for(lambda: bool(w.truths) and w.last_truth()["alive"] == ["L1", "L2"], 60, "L1 and L2 alive")
+        mine = [r for r, o in enumerate(w.last_truth()["owners"]) if o == "L1"]
+        wait_for(lambda: all(w.last_truth()["command_age"][r] is not None for r in mine), 30, "L1 driving")
 
         # a short cut (3 s): L1's drives wait in the relay and arrive late, each naming a truth 0.5-3 s old
-        stale_before = w.truth()["stale"]
+        stale_before = w.last_truth()["stale"]
         with w.lock:
             k_cut = len(w.truths)
         relay.cut(3.0)
         wait_for(lambda: not relay.is_cut, 10, "the relay healed")
-        wait_for(lambda: w.truth()["stale"] > stale_before, 30, "the held drives refused as stale")
-        wait_for(lambda: all(w.truth()["command_age"][r] is not None and w.truth()["command_age"][r] < 0.2
+        wait_for(lambda: w.last_truth()["stale"] > stale_before, 30, "the held drives refused as stale")
+        wait_for(lambda: all(w.last_truth()["command_age"][r] is not None and w.last_truth()["command_age"][r] < 0.2
                              for r in mine), 30, "L1 driving again on fresh truths")
         with w.lock:
             after_cut = w.truths[k_cut:]
@@ -93,21 +64,21 @@ def test_a_cut_leader_moves_nothing_on_old_truths_and_drops_what_was_adopted_whi
                 age = tr["command_age"][r]
                 assert tr["watchdog"][r] or age is None or age <= WATCHDOG_BOUND_S, (r, tr["t"], age)
         assert any(tr["watchdog"][r] for tr in after_cut for r in mine)  # they did stop while it was cut
-        assert w.truth()["conflicts"] == 0
+        assert w.last_truth()["conflicts"] == 0
 
         # a long cut (12 s, past Zenoh's 10 s lease): L1 is lost, L2 adopts its robots; back, L1 drops them
         relay.cut(12.0)
-        wait_for(lambda: "L1" in w.truth()["lost"], 30, "L1 lost")
-        wait_for(lambda: all(w.truth()["owners"][r] == "L2" for r in mine), 30, "L2 adopting L1's robots")
+        wait_for(lambda: "L1" in w.last_truth()["lost"], 30, "L1 lost")
+        wait_for(lambda: all(w.last_truth()["owners"][r] == "L2" for r in mine), 30, "L2 adopting L1's robots")
         wait_for(lambda: not relay.is_cut, 30, "the relay healed")
         with w.lock:
             k_heal = len(w.truths)
-            seen = len(w.states.get("L1", []))
-        wait_for(lambda: "L1" in w.truth()["alive"], 60, "L1 back on the bus")
+            seen = len(w.states.get("L1", []))  # (arena t when heard, state) rows
+        wait_for(lambda: "L1" in w.last_truth()["alive"], 60, "L1 back on the bus")
 
         def l1_after() -> list[dict]:
             with w.lock:
-                return w.states.get("L1", [])[seen:]
+                return [m for _, m in w.states.get("L1", [])[seen:]]
 
         wait_for(lambda: len(l1_after()) > 30, 30, "a second of L1's states after it came back")
         back = l1_after()
@@ -117,19 +88,19 @@ def test_a_cut_leader_moves_nothing_on_old_truths_and_drops_what_was_adopted_whi
         assert first_clean <= 30, [s["tracked"] for s in back[:first_clean + 1]]
         late = [s for s in back[first_clean:] if any(s["tracked"]) or any(v or ww for v, ww in s["commands"])]
         assert not late, late[:1]
-        wait_for(lambda: len(w.last("L1")["p_est"]) == 1, 30, "L1 letting go of all but its last")
+        wait_for(lambda: len(w.recent("L1", 1.0)[-1]["p_est"]) == 1, 30, "L1 letting go of all but its last")
         with w.lock:
             after_heal = w.truths[k_heal:]
         for tr in after_heal:
             for r in mine:
                 age = tr["command_age"][r]
                 assert tr["watchdog"][r] or age is None or age <= WATCHDOG_BOUND_S, (r, tr["t"], age)
-        assert w.truth()["conflicts"] == 0 and all(w.truth()["owners"][r] == "L2" for r in mine)
+        assert w.last_truth()["conflicts"] == 0 and all(w.last_truth()["owners"][r] == "L2" for r in mine)
     finally:
         interrupt(*procs.values())
         interrupt(arena)
         relay.close()
         if watch is not None:
-            watch.session.close()
+            watch.close()
     counts = json.loads(summary.read_text())
     assert counts["conflicts"] == 0 and counts["stale"] > 0, counts
