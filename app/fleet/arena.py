@@ -106,10 +106,11 @@ class Arena:
         import zenoh
 
         if leader not in self.ids:  # a token under a name that leads no team: it can be given nothing
-            with self._lock:
-                self.counts.strangers += 1
-            self.event("stranger", f"a liveliness token for {leader[:40]!r}, which is not a leader of"
-                                   f" {self.fleet}: ignored")
+            if sample.kind == zenoh.SampleKind.PUT:
+                with self._lock:
+                    self.counts.strangers += 1
+                self.event("stranger", f"a liveliness token for {leader[:40]!r}, which is not a leader of"
+                                       f" {self.fleet}: ignored")
             return
         with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:

@@ -3,8 +3,11 @@ Zenoh, and the parameter changes addressed to it (paper §6: leaders that see ea
 can take over each other's robots build on this). The key expressions and payloads are in
 docs/fleet-protocol.md; a plain Zenoh subscriber (or a ROS 2 system on rmw_zenoh) reads them.
 
-Zenoh runs in peer mode with multicast scouting off: a leader listens on and connects to the
-endpoints it is given (on loopback in the tests), and nothing else finds it.
+Every process is a Zenoh router with multicast and gossip scouting off: it listens on and
+connects to the endpoints it is given, and nothing else finds it (:func:`zenoh_config`).
+Without the fleet's keys every endpoint is on loopback; with them (``--keys``,
+app.fleet.security) every link is mutual TLS and Zenoh's access control lets each identity
+write only its own keys.
 
 Who may command the robots over the bus: a fleet-wide STOP is always obeyed (stopping is
 always safe); anything else (gains, formation, leader motion, releasing STOP) only when the

@@ -117,6 +117,13 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
                 f"{base}/claim/L1", payload=b"nonsense", timeout=5.0)]
             assert replies and not replies[0]["granted"], replies
             assert arena.owners[0] == "L1"
+            # a token under a name that leads no team is counted and can be given nothing
+            squatter = page_session.liveliness().declare_token("omniformation/three_teams/alive/X9")
+            wait_for(lambda: arena.counts.strangers == 1, 10, "the stranger's token counted")
+            replies = [json.loads(r.ok.payload.to_bytes()) for r in page_session.get(
+                f"{base}/handover", payload=json.dumps({"robot": "R7", "to": "X9", "from": "test"}), timeout=5.0)]
+            assert replies and not replies[0]["granted"] and "X9 is not alive" in replies[0]["why"], replies
+            squatter.undeclare()
             # what the arena refused is on the page, by kind
             from app.services.fleet_page import refused_text
 
