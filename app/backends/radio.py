@@ -1,8 +1,8 @@
 """`omniformation radio`: one emulated radio that several leaders share (a fleet on real robots).
 
 Each leader gets a pseudo-terminal of its own (its serial link, as a radio dongle would be);
-every frame a leader writes reaches every follower on the medium, and every follower's reply
-reaches every leader (a leader's own link sorts out what answers it). The medium loses a frame
+every frame a leader writes reaches every follower and every other leader on the medium, and
+every follower's reply reaches every leader (a leader's own link sorts out what answers it). The medium loses a frame
 with probability ``drop`` and delivers the rest ``delay`` later, in order. A leader's link can
 be cut for a while (:meth:`Radio.cut`): nothing it writes goes out, nothing reaches it.
 
@@ -34,7 +34,7 @@ from app.backends.emulator import STEP_S, FollowerEmulator, PtyEndpoint
 @dataclass
 class RadioStats:
     from_leaders: list[int] = field(default_factory=list)  # frames each leader sent on the air
-    to_leaders: list[int] = field(default_factory=list)  # reply frames each leader was given
+    to_leaders: list[int] = field(default_factory=list)  # frames each leader was given (replies, others' frames)
     dropped: int = 0  # frames the medium lost
     cut: int = 0  # frames that met a cut link (not sent, or not delivered)
 
@@ -80,7 +80,11 @@ class Radio:
                     self.stats.cut += 1
                     continue
                 self.stats.from_leaders[i] += 1
-                self._send(-1, p.encode_frame(frame), now)
+                raw = p.encode_frame(frame)
+                self._send(-1, raw, now)
+                for j in range(len(self.endpoints)):  # the other leaders hear it too: one medium
+                    if j != i:
+                        self._send(j, raw, now)
 
     def _deliver(self, now: float) -> list[tuple[int, bytes]]:
         """What is due now: frames to the robots are answered (the replies go on the air);

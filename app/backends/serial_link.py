@@ -68,6 +68,7 @@ EXPIRED_KEPT = 1024  # unanswered (address, sequence) pairs remembered, so a lat
 REPLIES = {p.MSG_SET_VELOCITY: (p.MSG_ACK,), p.MSG_STOP: (p.MSG_ACK,), p.MSG_PING: (p.MSG_STATUS,),
            p.MSG_CLAIM: (p.MSG_OWNER, p.MSG_NACK), p.MSG_DRIVE: (p.MSG_DRIVEN, p.MSG_NACK)}
 MOTION = (p.MSG_SET_VELOCITY, p.MSG_DRIVE)  # the frames counted as sent (one per robot per tick)
+HOST_KINDS = (*REPLIES, p.MSG_HANDOVER)  # frames a host sends, never a robot
 LEASE_MS = 1000  # with a radio id: the lease asked for; each DRIVE renews it
 CLAIM_RETRY_S = 0.5  # a robot another leader holds is asked again this often (its lease may have lapsed)
 
@@ -434,8 +435,11 @@ class SerialLink:
                 s = self._by_addr.get(f.address)
                 if s is None:
                     continue
-                if f.msg_type in REPLIES:  # a frame of the host's kind: our own, come back
-                    s.echoes += 1
+                if f.msg_type in HOST_KINDS:
+                    # on a shared radio another leader's frames are heard too: only ours coming back is an echo
+                    mine = self.radio_id is None or (f.msg_type in (p.MSG_CLAIM, p.MSG_DRIVE, p.MSG_HANDOVER)
+                                                     and f.payload[0] == self.radio_id)
+                    s.echoes += mine
                     continue
                 asker = p.answers(f)
                 if asker is not None and asker != self.radio_id:
@@ -486,7 +490,8 @@ class SerialLink:
                         s.stale += 1  # still ours; it stands still until a fresh command
                     else:  # another's, or no longer ours (its lease lapsed and another took it): at once
                         s.owned = False
-                        s.next_claim = now + CLAIM_RETRY_S
+                        # our own lapsed lease (our DRIVEs lost for its length): ask again at once
+                        s.next_claim = now if o.owner == self.radio_id else now + CLAIM_RETRY_S
                         s.v_meas = s.w_meas = 0.0
 
 

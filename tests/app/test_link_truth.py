@@ -302,3 +302,27 @@ def test_a_robot_that_does_not_answer_in_time_is_sent_only_zero(device, answerin
         loop.halt_followers()
         link.close()
         line.close()
+
+
+def test_on_a_shared_radio_only_our_own_frames_coming_back_are_echoes():
+    """With a radio id, another leader's CLAIM, DRIVE and HANDOVER heard on the line are that
+    leader's traffic, not an echo; our own coming back are echoes; protocol 2 replies to the
+    other leader are not ours (neither answers nor unmatched)."""
+    def behave(data: bytes) -> bytes:
+        other = b"".join(p.encode_frame(f) for f in (p.claim(1, 3, 7, 1000), p.drive(1, 4, 7, 10, 0.1, 0.0),
+                                                     p.handover(1, 5, 7, 9, 1000),
+                                                     p.nack(1, 6, p.Ownership(7, 900, p.NACK_OWNED, 7))))
+        return other + data  # another leader's traffic, then ours echoed
+    line = Line(behave)
+    link = SerialLink(line.path, 1, radio_id=2)
+    try:
+        wait_for(lambda: link.connects == 1, 5, "the port to open")
+        run_at_30hz(link, 1.2)
+        s = link.stats[0]
+        claims = sum(f.msg_type == p.MSG_CLAIM and f.payload[0] == 2 for f in line.frames)
+        assert claims >= 2 and s.echoes >= claims - 1, (claims, s.echoes)  # each of ours came back
+        assert s.echoes <= claims and s.unmatched == 0 and not s.owned, s
+        assert not any(f.msg_type in (p.MSG_SET_VELOCITY, p.MSG_DRIVE) for f in line.frames)  # nothing it does not own
+    finally:
+        link.close()
+        line.close()
