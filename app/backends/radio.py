@@ -22,6 +22,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -95,8 +96,9 @@ class Radio:
                 _, _, to, data = heapq.heappop(self._air)
                 if to < 0:
                     for reply in self._replies.feed(self.robots.receive(data)):
+                        raw = p.encode_frame(reply)  # each reply a frame of its own on the air
                         for i in range(len(self.endpoints)):
-                            self._send(i, p.encode_frame(reply), now)
+                            self._send(i, raw, now)
                 elif self._is_cut(to, now):
                     self.stats.cut += 1
                 else:
@@ -139,7 +141,7 @@ class Radio:
 
 
 def run_radio(leaders: int, followers: int, drop: float, delay_ms: float, seed: int,
-              summary_path: Any = None, minutes: float | None = None) -> int:
+              summary_path: Path | None = None, minutes: float | None = None) -> int:
     """`omniformation radio` (arguments: app.cli.emulator)."""
     import signal
     import sys

@@ -437,9 +437,7 @@ class SerialLink:
                     continue
                 if f.msg_type in HOST_KINDS:
                     # on a shared radio another leader's frames are heard too: only ours coming back is an echo
-                    mine = self.radio_id is None or (f.msg_type in (p.MSG_CLAIM, p.MSG_DRIVE, p.MSG_HANDOVER)
-                                                     and f.payload[0] == self.radio_id)
-                    s.echoes += mine
+                    s.echoes += self.radio_id is None or p.sender(f) == self.radio_id
                     continue
                 asker = p.answers(f)
                 if asker is not None and asker != self.radio_id:

@@ -815,13 +815,15 @@ def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision", keyed: 
     from app.services.fleet_page import FleetView
 
     endpoint = loopback_endpoint()
-    tmp = tempfile.TemporaryDirectory(prefix="omniformation-keys-")
+    tmp = tempfile.TemporaryDirectory(prefix="omniformation-keys-") if keyed else None
     keys_args: list[str] = []
-    if keyed:
+    page_keys = None
+    if tmp is not None:
         make_fleet_keys(Path(tmp.name), "bench", ("L1",))
         endpoint = "tls/" + endpoint.split("/", 1)[1]
         keys_args = ["--keys", tmp.name]
-    page_session = open_session([endpoint], [], load_fleet_keys(Path(tmp.name), "page", "bench") if keyed else None)
+        page_keys = load_fleet_keys(Path(tmp.name), "page", "bench")
+    page_session = open_session([endpoint], [], page_keys)
     server, gate = serve_gated("127.0.0.1", 0)
     switch = sys.getswitchinterval()
     sys.setswitchinterval(SWITCH_INTERVAL_S)  # as `omniformation fleet` runs the page
@@ -847,7 +849,8 @@ def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision", keyed: 
         quietly(server.stop)
         page_session.close()
         sys.setswitchinterval(switch)
-        tmp.cleanup()
+        if tmp is not None:
+            tmp.cleanup()
     if lat.size == 0:
         return float("nan"), float("nan"), 0
     return float(np.median(lat)), float(np.percentile(lat, 99)), int(lat.size)

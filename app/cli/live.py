@@ -292,8 +292,7 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
             from app.fleet.bridge import Presence, WaitingState
 
             fleet.presence = Presence.new()
-            waiting = WaitingState(fleet.session, args.fleet, args.leader_id, fleet.presence,
-                                   "all" if args.fleet_control else "stop")
+            waiting = WaitingState(fleet.session, args.fleet, args.leader_id, fleet.presence, args.fleet_control)
             print(f"omniformation: {args.leader_id} owns no robot in the arena now (other leaders adopted"
                   " them); waiting for the operator to hand one over (the fleet page's Hand over)", flush=True)
             try:

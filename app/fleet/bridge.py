@@ -163,6 +163,20 @@ def _num(x: Any) -> Any:
     return x
 
 
+def takes(allow_control: bool) -> str:
+    """What a leader obeys from the bus, as its state says: everything (``--fleet-control``) or STOP."""
+    return "all" if allow_control else "stop"
+
+
+def on_the_wire(payload: dict[str, Any], presence: Presence) -> str:
+    """A state as it goes on the bus: compact JSON, then which process sent it and when it
+    started, and its wall clock as the last thing before it goes (a subscriber's latency on
+    the same machine)."""
+    text = json.dumps(payload, separators=(",", ":"))
+    return (f'{text[:-1]},"instance":"{presence.instance}","started":{presence.started:.6f},'
+            f'"sent":{time.time():.6f}}}')
+
+
 def state_payload(s: TickState, leader_id: str, takes: str = "stop") -> dict[str, Any]:
     """What a leader publishes each tick (docs/fleet-protocol.md): compact, SI units. ``takes``:
     what it obeys from the bus ("stop", or "all" with --fleet-control)."""
@@ -195,11 +209,11 @@ class WaitingState:
     adopted): an empty team, published every tick like any leader's state until it has robots
     (docs/fleet-protocol.md: state comes every tick), from a thread of its own."""
 
-    def __init__(self, session: Any, fleet: str, leader_id: str, presence: Presence, takes: str,
+    def __init__(self, session: Any, fleet: str, leader_id: str, presence: Presence, allow_control: bool,
                  rate_hz: float = 30.0) -> None:
         self.leader_id = leader_id
         self.presence = presence
-        self.takes = takes
+        self.takes = takes(allow_control)
         self.t = 0.0  # this process's session time (s), which the loop's states go on from
         self._dt = 1.0 / rate_hz
         self._pub = session.declare_publisher(f"{root(fleet)}/leader/{leader_id}/state", express=True)
@@ -212,14 +226,13 @@ class WaitingState:
                 "leader_twist": [0.0, 0.0], "p_est": [], "a_est": [], "tracked": [], "p_d": [], "error_m": [],
                 "p_true": [], "commands": [], "gains": Gains().as_dict(), "stopped": True, "phase": "waiting",
                 "link_state": "waiting for a robot (the operator hands one over)", "rate_hz": None,
-                "takes": self.takes, "refused": {"commands": 0, "states": 0}, "instance": self.presence.instance,
-                "started": self.presence.started}
+                "takes": self.takes, "refused": {"commands": 0, "states": 0}}
 
     def _run(self) -> None:
         start = time.monotonic()
         while not self._stop.wait(self._dt):
             self.t = time.monotonic() - start
-            self._pub.put(json.dumps({**self.payload(), "sent": time.time()}, separators=(",", ":")))
+            self._pub.put(on_the_wire(self.payload(), self.presence))
 
     def close(self) -> float:
         """Stop publishing; the session time reached (the loop's states go on from it)."""
@@ -242,9 +255,7 @@ class FleetBridge:
         ``on_twin``: called once if another leader with this id started first (this one must
         stop its robots and end; :attr:`twin` says why). ``presence``: this process's, when it
         was on the bus already (waiting for robots); ``t_start``: the session time it reached."""
-        presence = presence or Presence.new()
-        self.instance = presence.instance  # this process among leaders that share an id by mistake
-        self.started = presence.started  # wall clock: both twins compare the same two numbers
+        self.presence = presence or Presence.new()  # this process among leaders that share an id by mistake
         self.twin: str | None = None
         self._on_twin = on_twin
         self._twins_seen: set[str] = set()
@@ -271,6 +282,15 @@ class FleetBridge:
         self._clock = SessionClock(t_start)
         store.subscribe(self._on_params)
         self._publisher = LatestStatePublisher(self._publish_state)
+
+    @property
+    def instance(self) -> str:
+        return self.presence.instance
+
+    @property
+    def started(self) -> float:
+        """Its wall clock when it joined: both twins compare the same two numbers."""
+        return self.presence.started
 
     def peers(self) -> int:
         """How many Zenoh peers this leader's session is connected to now."""
@@ -303,12 +323,9 @@ class FleetBridge:
         self._publisher(dataclasses.replace(s, t=self._t))
 
     def _publish_state(self, s: TickState) -> None:
-        payload = state_payload(s, self.leader_id, "all" if self.allow_control else "stop")
+        payload = state_payload(s, self.leader_id, takes(self.allow_control))
         payload["refused"] = {"commands": self.commands_refused, "states": self.states_refused}
-        text = json.dumps(payload, separators=(",", ":"))
-        # the wall clock as the last thing before it goes (a subscriber's latency on the same machine)
-        self._state_pub.put(f'{text[:-1]},"instance":"{self.instance}","started":{self.started:.6f},'
-                            f'"sent":{time.time():.6f}}}')
+        self._state_pub.put(on_the_wire(payload, self.presence))
 
     def event(self, kind: str, detail: str) -> None:
         self._event_pub.put(json.dumps({"leader_id": self.leader_id, "t": round(self._t, 3), "kind": kind,

@@ -121,9 +121,24 @@ def step_follower(s: FollowerState, hw: FollowerHardware, dt: float) -> Follower
 TWO_OWNERS_S = 0.1  # two leaders' DRIVEs obeyed closer together than this: one robot with two owners
 
 
+def _obey(s: FollowerState, hw: FollowerHardware, v: float, w: float) -> FollowerState:
+    """A motion command taken (SET_VELOCITY, or the owner's DRIVE): the wheels' targets, the
+    watchdog fed, WATCHDOG and STOPPED cleared."""
+    left, right = wheel_targets(v, w, hw)
+    return dataclasses.replace(s, target_l_mps=left, target_r_mps=right, command_age_s=0.0,
+                               flags=s.flags & ~(p.FLAG_WATCHDOG | p.FLAG_STOPPED))
+
+
+def _odometry(s: FollowerState, hw: FollowerHardware) -> p.Ack:
+    """What an ACK (and a DRIVEN) carries: the encoder counts and the velocity they measure."""
+    left, right = s.ticks(hw)
+    v_meas, w_meas = s.measured(hw)
+    return p.Ack(left, right, v_meas, w_meas, s.flags)
+
+
 def _ownership(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:
     """CLAIM, HANDOVER and DRIVE (protocol 2), and a protocol 1 SET_VELOCITY to an owned robot."""
-    asker = frame.payload[0] if frame.msg_type in (p.MSG_CLAIM, p.MSG_HANDOVER, p.MSG_DRIVE) else 0
+    asker = p.sender(frame) or 0
 
     def refuse(reason: int) -> tuple[FollowerState, p.Frame | None]:
         r = dataclasses.replace(s, nacks=s.nacks + 1)
@@ -139,14 +154,14 @@ def _ownership(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[
         return refuse(p.NACK_NOT_OWNER)
     if frame.msg_type == p.MSG_CLAIM:
         leader, lease = p.decode_claim(frame)
-        if not 1 <= leader <= p.MAX_FOLLOWER_ADDRESS:
+        if not 1 <= leader <= p.MAX_LEADER:
             return refuse(p.NACK_NOT_OWNER)
         if s.lease_lives and s.owner != leader:
             return refuse(p.NACK_OWNED)
         return grant(leader, lease)
     if frame.msg_type == p.MSG_HANDOVER:
         frm, to, lease = p.decode_handover(frame)
-        if s.owner == 0 or frm != s.owner or not 1 <= to <= p.MAX_FOLLOWER_ADDRESS:
+        if s.owner == 0 or frm != s.owner or not 1 <= to <= p.MAX_LEADER:
             return refuse(p.NACK_NOT_OWNER)
         return grant(to, lease)
     d = p.decode_drive(frame)
@@ -155,35 +170,22 @@ def _ownership(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[
     if d.observation_age_ms > p.MAX_OBSERVATION_AGE_MS:  # what it was computed from is gone: stand still
         s = dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0)
         return refuse(p.NACK_STALE)
-    left, right = wheel_targets(d.v_mps, d.w_rps, hw)
     two = s.driven_by not in (0, d.leader) and s.driven_age_s < TWO_OWNERS_S
-    s = dataclasses.replace(s, target_l_mps=left, target_r_mps=right, command_age_s=0.0,
-                            flags=s.flags & ~(p.FLAG_WATCHDOG | p.FLAG_STOPPED), lease_left_s=s.lease_ms / 1000,
-                            driven_by=d.leader, driven_age_s=0.0, two_owners=s.two_owners + two)
-    left_t, right_t = s.ticks(hw)
-    v_meas, w_meas = s.measured(hw)
-    return s, p.driven(s.address, frame.seq, p.Ack(left_t, right_t, v_meas, w_meas, s.flags), d.leader)
-
-
-def _ack(s: FollowerState, hw: FollowerHardware, seq: int) -> p.Frame:
-    left, right = s.ticks(hw)
-    v_meas, w_meas = s.measured(hw)
-    return p.ack(s.address, seq, p.Ack(left, right, v_meas, w_meas, s.flags))
+    s = dataclasses.replace(_obey(s, hw, d.v_mps, d.w_rps), lease_left_s=s.lease_ms / 1000, driven_by=d.leader,
+                            driven_age_s=0.0, two_owners=s.two_owners + two)
+    return s, p.driven(s.address, frame.seq, _odometry(s, hw), d.leader)
 
 
 def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:
     """Obey one frame addressed to this robot (or broadcast); return the new state and the reply."""
     if frame.address not in (s.address, p.BROADCAST):
         return s, None
-    if frame.msg_type in (p.MSG_CLAIM, p.MSG_HANDOVER, p.MSG_DRIVE) or \
-            (frame.msg_type == p.MSG_SET_VELOCITY and s.lease_lives):
+    if frame.msg_type in p.FROM_A_LEADER or (frame.msg_type == p.MSG_SET_VELOCITY and s.lease_lives):
         if frame.address == p.BROADCAST:
             return s, None  # ownership is one robot's business: never by broadcast, never answered
         return _ownership(s, hw, frame)
     if frame.msg_type == p.MSG_SET_VELOCITY:
-        left, right = wheel_targets(*p.decode_velocity(frame), hw)
-        s = dataclasses.replace(s, target_l_mps=left, target_r_mps=right, command_age_s=0.0,
-                                flags=s.flags & ~(p.FLAG_WATCHDOG | p.FLAG_STOPPED))
+        s = _obey(s, hw, *p.decode_velocity(frame))
     elif frame.msg_type == p.MSG_STOP:
         s = dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0, flags=s.flags | p.FLAG_STOPPED)
     elif frame.msg_type != p.MSG_PING:
@@ -193,4 +195,4 @@ def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tupl
     if frame.msg_type == p.MSG_PING:
         age_ms = 0xFFFF if math.isinf(s.command_age_s) else int(min(0xFFFF, s.command_age_s * 1000))
         return s, p.status(s.address, frame.seq, p.Status(hw.battery_mv, s.flags, age_ms, int(s.uptime_s * 1000)))
-    return s, _ack(s, hw, frame.seq)
+    return s, p.ack(s.address, frame.seq, _odometry(s, hw))

@@ -56,9 +56,10 @@ PROTOCOL_VERSION = 2
 NACK_OWNED = 1  # another leader owns the robot and its lease lives (CLAIM)
 NACK_NOT_OWNER = 2  # the sender is not the owner, or the robot is owned and protocol 1 SET_VELOCITY came
 NACK_STALE = 3  # DRIVE computed from an observation older than MAX_OBSERVATION_AGE_MS: the robot stops
-NACK_NAMES = {NACK_OWNED: "owned", NACK_NOT_OWNER: "not the owner", NACK_STALE: "stale observation"}
 MAX_OBSERVATION_AGE_MS = 300  # a DRIVE from an older observation moves nothing
 LEASE_MIN_MS, LEASE_MAX_MS = 100, 10_000  # a lease asked for outside this is held to it
+MAX_LEADER = 250  # leaders are numbered 1..250 on a radio (0: nobody)
+FROM_A_LEADER = (MSG_CLAIM, MSG_HANDOVER, MSG_DRIVE)  # protocol 2 requests: each names its sender first
 
 FLAG_WATCHDOG = 0x01  # stopped by the watchdog: no valid SET_VELOCITY for WATCHDOG_S
 FLAG_STOPPED = 0x02  # stopped by a STOP message
@@ -211,6 +212,12 @@ def driven(address: int, seq: int, a: Ack, asker: int) -> Frame:
 def decode_driven(frame: Frame) -> tuple[Ack, int]:
     """(the odometry, the leader answered) of a DRIVEN."""
     return decode_ack(Frame(frame.address, frame.seq, MSG_ACK, frame.payload[:-1])), frame.payload[-1]
+
+
+def sender(frame: Frame) -> int | None:
+    """The leader a protocol 2 request is from (a CLAIM's or DRIVE's leader, a HANDOVER's
+    giver: the first byte of each); None for any other frame, which names nobody."""
+    return frame.payload[0] if frame.msg_type in FROM_A_LEADER else None
 
 
 def answers(frame: Frame) -> int | None:

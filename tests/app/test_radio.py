@@ -165,6 +165,12 @@ def test_the_radio_command_prints_a_link_per_leader_and_its_summary(tmp_path):
     assert json.loads(summary.read_text())["robots"].keys() == {"R1", "R2"}
     bad = main_cli("radio", "--drop", "1.5")
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
+    for args, words in ((["--radio-id", "0"], "--radio-id"), (["--radio-id", "251"], "--radio-id"),
+                        (["--radio-id", "3"], "--radio-id goes with --link serial:PATH"),
+                        (["--radio-id", "3", "--link", "serial:/dev/a,/dev/b", "--followers", "2"],
+                         "a radio is one port")):
+        r = main_cli("run", "--port", "0", "--no-record", *args)
+        assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
 
 
 def _leader(path: str, radio_id: int) -> subprocess.Popen:
