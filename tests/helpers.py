@@ -270,3 +270,75 @@ class TcpRelay:
         for s in self._socks:
             with contextlib.suppress(OSError):
                 s.close()
+
+
+class PtyRelay:
+    """A leader's radio link through a lossy hop, for partitions on a serial line: the leader
+    opens :attr:`path` (a fresh pty); bytes go to and from ``target`` (the radio's pty for this
+    leader) ``delay_s`` late, a chunk lost with probability ``drop``; ``cut(seconds)`` loses
+    everything both ways for that long (a radio out of range keeps nothing for later)."""
+
+    def __init__(self, target: str, delay_s: float = 0.0, drop: float = 0.0, seed: int = 0) -> None:
+        import os
+        import random
+        import tty
+
+        self._far = os.open(target, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        tty.setraw(self._far)
+        self._near = PtyEndpoint()
+        self.path = self._near.path
+        self.delay_s, self.drop = delay_s, drop
+        self._rng = random.Random(seed)
+        self._cut_until = 0.0
+        self._closed = threading.Event()
+        self.lost = 0  # chunks lost (dropped or cut)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def cut(self, seconds: float) -> None:
+        self._cut_until = time.monotonic() + seconds
+
+    @property
+    def is_cut(self) -> bool:
+        return time.monotonic() < self._cut_until
+
+    def _run(self) -> None:
+        import heapq
+        import itertools
+        import os
+        import select
+
+        near = self._near.master
+        queue: list[tuple[float, int, int, bytes]] = []  # (due, order, destination fd, bytes)
+        order = itertools.count()
+        while not self._closed.is_set():
+            wait = max(0.0, min(0.01, queue[0][0] - time.monotonic())) if queue else 0.01
+            ready, _, _ = select.select([near, self._far], [], [], wait)
+            now = time.monotonic()
+            for fd in ready:
+                try:
+                    data = os.read(fd, 4096)
+                except OSError:
+                    continue
+                if not data:
+                    continue
+                if now < self._cut_until or self._rng.random() < self.drop:
+                    self.lost += 1
+                    continue
+                heapq.heappush(queue, (now + self.delay_s, next(order), self._far if fd == near else near, data))
+            while queue and queue[0][0] <= now:
+                _, _, dst, data = heapq.heappop(queue)
+                if now < self._cut_until:
+                    self.lost += 1
+                    continue
+                with contextlib.suppress(OSError):
+                    os.write(dst, data)
+
+    def close(self) -> None:
+        import os
+
+        self._closed.set()
+        self._thread.join(2.0)
+        self._near.close()
+        with contextlib.suppress(OSError):
+            os.close(self._far)

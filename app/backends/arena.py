@@ -18,7 +18,7 @@ import logging
 import math
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,6 +28,9 @@ from core.sim.team import TeamState, measure_followers
 from core.types import BoolArray, Commands, FloatArray
 
 from app.contracts import Observation
+
+if TYPE_CHECKING:
+    from app.backends.serial_link import SerialLink
 from app.keys import robot_name, root
 
 log = logging.getLogger(__name__)
@@ -73,6 +76,15 @@ class ArenaTeam:
         self._twist: tuple[float, float] = (0.0, 0.0)
         self._tick: int = 0
         self.state: TeamState = self._state_from(truth)
+        self.link: SerialLink | None = None  # with a radio: the robots' link (the arena gives only the world)
+
+    def use_radio(self, port: str, radio_id: int, baud: int = 115200) -> None:
+        """Command the robots over a radio (`arena --radio`): this leader's serial link with its
+        radio id claims the robots it owns and drives them (protocol 2, DRIVE with the
+        observation's age); the arena's drive key carries only this leader's own twist."""
+        from app.backends.serial_link import SerialLink
+
+        self.link = SerialLink(port, 0, baud, addresses=[r + 1 for r in self.owned], radio_id=radio_id)
 
     # -- truth in --------------------------------------------------------------------------
     def _on_truth(self, sample: Any) -> None:
@@ -108,6 +120,17 @@ class ArenaTeam:
     def adopt(self, robot: int) -> None:
         if robot not in self.owned:
             self.owned.append(robot)
+        self.want(robot)
+
+    def want(self, robot: int) -> None:
+        """On a radio: claim ``robot`` (again and again until it grants it)."""
+        if self.link is not None:
+            self.link.want(robot + 1)
+
+    def unwant(self, robot: int) -> None:
+        """On a radio: stop claiming or driving ``robot``."""
+        if self.link is not None:
+            self.link.let_go(robot + 1)
 
     def _bodies_here(self, truth: dict[str, Any]) -> tuple[FloatArray, FloatArray]:
         """(every robot (R, 3), every other leader (L - 1, 3)) as poses (x, y, a) in this
@@ -183,16 +206,19 @@ class ArenaTeam:
     def release(self, robot: int) -> None:
         if robot in self.owned:
             self.owned.remove(robot)
+        self.unwant(robot)
 
     # -- the Team contract ----------------------------------------------------------------
     @property
     def link_state(self) -> str:
         age = time.monotonic() - self._truth_at
-        return "arena" if age <= STALE_TRUTH_S else f"arena: no truth for {age:.1f} s"
+        if age > STALE_TRUTH_S:
+            return f"arena: no truth for {age:.1f} s"
+        return "arena" if self.link is None else f"arena; radio {self.link.link_state}"
 
     @property
     def link_lost(self) -> bool:
-        return time.monotonic() - self._truth_at > STALE_TRUTH_S
+        return time.monotonic() - self._truth_at > STALE_TRUTH_S or (self.link is not None and self.link.lost)
 
     def answering(self) -> BoolArray:
         """The robots the newest truth says are this leader's (its truth is the robots' link). A
@@ -201,11 +227,15 @@ class ArenaTeam:
         go from the formation."""
         truth = self.latest_truth()
         owners = truth["owners"] if truth is not None else []
-        return np.array([r < len(owners) and owners[r] == self.leader_id for r in self.active[:self.state.n]],
+        mine = np.array([r < len(owners) and owners[r] == self.leader_id for r in self.active[:self.state.n]],
                         dtype=bool)
+        if self.link is not None:  # on a radio: and the robot answers this leader as its owner
+            mine &= self.link.answering_at([r + 1 for r in self.active[:self.state.n]])
+        return mine
 
     def link_detail(self) -> str:
-        return f"arena {self.fleet}: robots {', '.join(robot_name(r) for r in self.active)}"
+        robots = f"arena {self.fleet}: robots {', '.join(robot_name(r) for r in self.active)}"
+        return robots if self.link is None else f"{robots}; radio: {self.link.detail()}"
 
     def observe(self) -> tuple[FloatArray, FloatArray, BoolArray]:
         truth = self.latest_truth()
@@ -223,6 +253,10 @@ class ArenaTeam:
         owners = truth["owners"] if truth is not None else []
         # only the robots the arena says are this leader's: one another leader was granted is never commanded
         mine = [(k, r) for k, r in enumerate(self.active) if k < len(v) and r < len(owners) and owners[r] == self.leader_id]
+        if self.link is not None:  # on a radio the robots take it from there (each refuses what is not its owner's)
+            k_n = min(len(self.active), len(v))
+            self.link.send(Commands(v[:k_n], w[:k_n], commands.observed_at), [r + 1 for r in self.active[:k_n]])
+            mine = []
         payload = {"tick": self._tick, "truth_tick": int(truth["tick"]) if truth is not None else None,
                    "twist": [round(self._twist[0], 6), round(self._twist[1], 6)],
                    "commands": {robot_name(r): [round(float(v[k]), 6), round(float(w[k]), 6)] for k, r in mine}}
@@ -240,6 +274,8 @@ class ArenaTeam:
             self._twist = (0.0, 0.0)
             self.send(Commands.zeros(len(self.active)))
             self._drive.undeclare()
+        if self.link is not None:
+            self.link.close()  # STOP to the robots it owns
         self._sub.undeclare()
 
 

@@ -62,13 +62,7 @@ class FollowerEmulator:
         out = bytearray()
         with self._lock:
             for frame in self.parser.feed(data):
-                self.stats.frames_in += 1
-                targets = self.followers if frame.address == p.BROADCAST else (
-                    [frame.address] if frame.address in self.followers else [])
-                for a in targets:
-                    self.followers[a], reply = handle_frame(self.followers[a], self.hw, frame)
-                    if reply is None:
-                        continue
+                for reply in self._handle(frame):
                     if self._rng.random() < self.drop:
                         self.stats.dropped += 1
                         continue
@@ -80,6 +74,22 @@ class FollowerEmulator:
                     out += raw
                     self.stats.replies += 1
         return bytes(out)
+
+    def handle(self, frame: p.Frame) -> list[p.Frame]:
+        """One frame, already parsed (the arena's own link to its robots): the replies."""
+        with self._lock:
+            return self._handle(frame)
+
+    def _handle(self, frame: p.Frame) -> list[p.Frame]:
+        self.stats.frames_in += 1
+        targets = self.followers if frame.address == p.BROADCAST else (
+            [frame.address] if frame.address in self.followers else [])
+        replies = []
+        for a in targets:
+            self.followers[a], reply = handle_frame(self.followers[a], self.hw, frame)
+            if reply is not None:
+                replies.append(reply)
+        return replies
 
     def step(self, dt: float) -> None:
         with self._lock:
@@ -122,6 +132,16 @@ class PtyEndpoint:
                 select.select([], [self.master], [], 0.05)
                 continue
             view = view[k:]
+
+    def offer(self, data: bytes) -> bool:
+        """Write ``data`` if the pty takes all of it now, without waiting: whether it did. A
+        reader that does not read (a leader killed, its port still open here) misses frames, as
+        a radio receiver that is off does; nobody else waits for it."""
+        try:
+            k = os.write(self.master, data)
+        except OSError:  # full (EAGAIN), or no peer
+            return False
+        return k == len(data)
 
     def close(self) -> None:
         for fd in (self.master, self._slave):

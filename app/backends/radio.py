@@ -38,14 +38,18 @@ class RadioStats:
     to_leaders: list[int] = field(default_factory=list)  # frames each leader was given (replies, others' frames)
     dropped: int = 0  # frames the medium lost
     cut: int = 0  # frames that met a cut link (not sent, or not delivered)
+    unread: list[int] = field(default_factory=list)  # frames a leader's port did not take (nobody reading it)
 
 
 class Radio:
     """``leaders`` pseudo-terminals and followers at addresses 1..``followers`` on one medium."""
 
     def __init__(self, leaders: int, followers: int, drop: float = 0.0, delay_s: float = 0.0, seed: int = 0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self.robots = FollowerEmulator(list(range(1, followers + 1)))
+                 clock: Callable[[], float] = time.monotonic, robots: FollowerEmulator | None = None) -> None:
+        """``robots``: followers someone else steps (the arena's, moving in its world); by default
+        the radio's own, stepped in real time by :meth:`run`."""
+        self.robots = robots if robots is not None else FollowerEmulator(list(range(1, followers + 1)))
+        self._steps_robots = robots is None
         self.endpoints = [PtyEndpoint() for _ in range(leaders)]
         self.paths = [e.path for e in self.endpoints]
         self._parsers = [p.FrameParser() for _ in range(leaders)]
@@ -57,7 +61,7 @@ class Radio:
         self._order = itertools.count()
         self._cut_until = [-float("inf")] * leaders
         self._lock = threading.Lock()
-        self.stats = RadioStats([0] * leaders, [0] * leaders)
+        self.stats = RadioStats([0] * leaders, [0] * leaders, unread=[0] * leaders)
 
     def cut(self, leader: int, seconds: float) -> None:
         """Cut leader ``leader``'s link (0-based) for ``seconds`` from now."""
@@ -119,8 +123,9 @@ class Radio:
                 if data:
                     self._from_leader(i, data, now)
             for i, data in self._deliver(now):
-                self.endpoints[i].write(data)
-            while now - last >= STEP_S:
+                if not self.endpoints[i].offer(data):  # a leader that does not read misses it; the medium goes on
+                    self.stats.unread[i] += 1
+            while self._steps_robots and now - last >= STEP_S:
                 self.robots.step(STEP_S)
                 last += STEP_S
 
@@ -132,7 +137,7 @@ class Radio:
                                  "moving": s.moving} for a, s in sorted(robots.items())},
             "two_owners": sum(s.two_owners for s in robots.values()),
             "from_leaders": list(self.stats.from_leaders), "to_leaders": list(self.stats.to_leaders),
-            "dropped": self.stats.dropped, "cut": self.stats.cut,
+            "dropped": self.stats.dropped, "cut": self.stats.cut, "unread": list(self.stats.unread),
         }
 
     def close(self) -> None:

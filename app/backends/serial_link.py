@@ -129,6 +129,7 @@ class SerialLink:
         it claims its robots, drives only those it owns (DRIVE, with the observation's age) and
         STOPs only those; without it, protocol 1 (one leader on the line)."""
         self.radio_id = radio_id
+        self.on_owned: Callable[[int], None] | None = None  # told (in the reader) of each robot granted to us
         self.port_name = port
         self.baud = baud
         self.v_max, self.w_max = v_max, w_max
@@ -201,7 +202,7 @@ class SerialLink:
     @property
     def link_state(self) -> str:
         if self.radio_id is not None and self._port is not None and not any(s.owned for s in self.stats):
-            heard = self._clock() - max(s.last_reply for s in self.stats) < 4 * CLAIM_RETRY_S
+            heard = self._clock() - max((s.last_reply for s in self.stats), default=-math.inf) < 4 * CLAIM_RETRY_S
             if heard:  # the robots answer, and another leader holds every one: this one waits
                 return f"serial {self.port_name}: owns no robot yet ({', '.join(f'{_name(s.address)} {why}' for s, why in zip(self.stats, self.quality()))})"
         if not self.connected:
@@ -236,11 +237,52 @@ class SerialLink:
 
     def answering(self) -> np.ndarray:
         """(n,) bool per robot: its last two answers came in time, the last one within the reply
-        timeout of now. Only such a robot is sent anything but zero."""
+        timeout of now (and, with a radio id, this leader owns it). Only such a robot is sent
+        anything but zero."""
         now = self._clock()
         with self._lock:
-            return np.array([_alive(s, now, REPLY_TIMEOUT_S) and (self.radio_id is None or s.owned)
-                             for s in self.stats], dtype=bool)
+            return np.array([self._answering(s, now) for s in self.stats], dtype=bool)
+
+    def answering_at(self, addresses: list[int]) -> np.ndarray:
+        """:meth:`answering` for these robots (False for one not on this link)."""
+        now = self._clock()
+        with self._lock:
+            return np.array([a in self._by_addr and self._answering(self._by_addr[a], now) for a in addresses],
+                            dtype=bool)
+
+    def _answering(self, s: FollowerLinkStats, now: float) -> bool:
+        return _alive(s, now, REPLY_TIMEOUT_S) and (self.radio_id is None or s.owned)
+
+    # -- robots taken in and let go (a fleet on a radio: app.backends.arena) -----------------
+    def want(self, address: int) -> None:
+        """Add robot ``address`` to this link: with a radio id it is claimed at the next send and
+        every CLAIM_RETRY_S until granted (an orphan whose lease has not lapsed yet)."""
+        with self._lock:
+            if address not in self._by_addr:
+                s = FollowerLinkStats(address)
+                self.stats.append(s)
+                self._by_addr[address] = s
+                self.addresses.append(address)
+
+    def let_go(self, address: int) -> None:
+        """Robot ``address`` leaves this link: nothing more is sent to it (its lease lapses)."""
+        with self._lock:
+            s = self._by_addr.pop(address, None)
+            if s is not None:
+                self.stats.remove(s)
+                self.addresses.remove(address)
+
+    def owns(self, address: int) -> bool:
+        """With a radio id: the robot granted this leader's claim and has not refused it since."""
+        with self._lock:
+            s = self._by_addr.get(address)
+            return s is not None and s.owned
+
+    def owner_of(self, address: int) -> int:
+        """Who holds robot ``address`` as it last said (0: nobody, or not heard)."""
+        with self._lock:
+            s = self._by_addr.get(address)
+            return s.owner if s is not None else 0
 
     def measured(self) -> tuple[FloatArray, FloatArray]:
         """(v, w) per follower from the encoders; zero where the odometry is stale."""
@@ -252,17 +294,19 @@ class SerialLink:
         return np.where(fresh, v, 0.0), np.where(fresh, w, 0.0)
 
     # -- FollowerLink ---------------------------------------------------------------------
-    def send(self, commands: Commands) -> None:
+    def send(self, commands: Commands, addresses: list[int] | None = None) -> None:
         """One SET_VELOCITY per follower (clamped; zero while the link is lost), written without
-        blocking the loop. A fresh port gets STOP for everyone first."""
+        blocking the loop. A fresh port gets STOP for everyone first. ``addresses``: the robot
+        each command is for (default: the link's robots in order); a robot of the link given no
+        command is sent zero (with a radio id: held still, its lease kept)."""
         v = np.clip(np.nan_to_num(np.asarray(commands.v, dtype=float)), -self.v_max, self.v_max)
         w = np.clip(np.nan_to_num(np.asarray(commands.w, dtype=float)), -self.w_max, self.w_max)
         if self.lost:  # nobody answers: nothing but zero goes out (it also asks for replies)
             v, w = np.zeros_like(v), np.zeros_like(w)
-        alive = self.answering()  # and a robot that does not answer gets zero until it does
-        v, w = v[:len(alive)] * alive[:len(v)], w[:len(alive)] * alive[:len(w)]
         now = self._clock()
         with self._lock:
+            order = self.addresses if addresses is None else addresses
+            given = {a: (float(v[k]), float(w[k])) for k, a in enumerate(order) if k < len(v) and k < len(w)}
             port = self._port
             if port is None:
                 return  # nothing written, nothing sent
@@ -272,9 +316,9 @@ class SerialLink:
                 out += self._stop_frames()
             seq = self._next_seq()
             keys = []
-            for i, s in enumerate(self.stats):
-                vi = float(v[i]) if i < len(v) else 0.0
-                wi = float(w[i]) if i < len(w) else 0.0
+            for s in self.stats:
+                # a robot that does not answer gets zero until it does
+                vi, wi = given.get(s.address, (0.0, 0.0)) if self._answering(s, now) else (0.0, 0.0)
                 if self.radio_id is None:
                     out += p.encode_frame(p.set_velocity(s.address, seq, vi, wi))
                     keys.append((s.address, seq, p.MSG_SET_VELOCITY))
@@ -483,6 +527,8 @@ class SerialLink:
                     o = p.decode_ownership(f)
                     s.owner = o.owner
                     if f.msg_type == p.MSG_OWNER:
+                        if not s.owned and self.on_owned is not None:
+                            self.on_owned(f.address)
                         s.owned = True
                     elif o.reason == p.NACK_STALE:
                         s.stale += 1  # still ours; it stands still until a fresh command

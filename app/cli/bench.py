@@ -859,6 +859,7 @@ def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision", keyed: 
 def bench_arena_tick(leaders: int, followers: int, ticks: int = 300) -> float:
     """Median ms of one arena step (every robot's dynamics, the truth built and published) for
     ``leaders`` x ``followers`` (built directly: more robots than one fleet's hues allow)."""
+    import dataclasses
     import time as _time
 
     from app.fleet.arena import Arena
@@ -872,11 +873,11 @@ def bench_arena_tick(leaders: int, followers: int, ticks: int = 300) -> float:
     session = open_session([], [])
     arena = Arena(sc, session, "bench")
     try:
-        arena.commands[:] = (0.05, 0.1)
-        arena.command_t[:] = 0.0
         times = []
         for _ in range(ticks):
-            arena.command_t[:] = arena.t  # every robot commanded this tick
+            for a, f in arena.robots.followers.items():  # every robot commanded this tick
+                arena.robots.followers[a] = dataclasses.replace(f, target_l_mps=0.044, target_r_mps=0.056,
+                                                                command_age_s=0.0)
             t0 = _time.perf_counter()
             arena.step()
             times.append(_time.perf_counter() - t0)

@@ -9,7 +9,7 @@ import json
 import sys
 from pathlib import Path
 
-from app.cli.args import Parser, bind_error, float_in, int_in, port, token_arg
+from app.cli.args import Parser, bind_error, float_in, int_in, port, probability, token_arg
 from app.files import UserError
 
 if TYPE_CHECKING:
@@ -56,6 +56,14 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                        help="stop after this long (default: until Ctrl-C)")
     arena.add_argument("--status-every", type=float_in(0.0, 3600.0, "s", lo_inclusive=True), default=5.0,
                        help="print a status line this often (s, default 5; 0: never)")
+    arena.add_argument("--radio", action="store_true",
+                       help="the robots take commands over an emulated radio, not the bus: one pty per leader is"
+                            " printed (`run --arena FLEET --leader-id ID --link serial:PTY`); the arena is only the"
+                            " world, the robots say who owns them (docs/fleet-protocol.md, Real robots)")
+    arena.add_argument("--radio-drop", type=probability, default=0.0, metavar="P",
+                       help="with --radio: the share of frames the radio loses (default 0)")
+    arena.add_argument("--radio-delay-ms", type=float_in(0.0, 2000.0, "ms", lo_inclusive=True), default=0.0,
+                       metavar="D", help="with --radio: how late the radio delivers a frame (default 0)")
     arena.add_argument("--summary", type=Path, metavar="FILE.json",
                        help="write the arena's counts and the robots' owners here when it stops")
     arena.set_defaults(func=cmd_arena)
@@ -152,14 +160,25 @@ def cmd_arena(args: argparse.Namespace) -> int:
     if any(getattr(r, "ok", None) is not None for r in replies):
         session.close()
         raise UserError(f"fleet {fleet}: an arena runs on this bus already; one world per fleet")
-    arena = Arena(scenario, session, fleet)
+    if not args.radio and (args.radio_drop or args.radio_delay_ms):
+        session.close()
+        raise UserError("--radio-drop and --radio-delay-ms go with --radio")
+    arena = Arena(scenario, session, fleet, radio=args.radio, radio_drop=args.radio_drop,
+                  radio_delay_s=args.radio_delay_ms / 1000.0)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     stepper = threading.Thread(target=arena.run, args=(stop,), name="omniformation-arena", daemon=True)
     stepper.start()
+    carrier = None
+    if arena.radio is not None:
+        carrier = threading.Thread(target=arena.radio.run, args=(stop,), name="omniformation-radio", daemon=True)
+        carrier.start()
     print(f"omniformation: arena {fleet}: {len(scenario.leaders)} leaders, {scenario.robots} robots at"
           f" {scenario.rate_hz:g} Hz; truth on {root(fleet)}/arena/truth (Ctrl-C to stop)", flush=True)
+    if arena.radio is not None:
+        for i, (lid, path) in enumerate(zip(arena.ids, arena.radio.paths)):
+            print(f"radio {lid}: {path} (radio id {i + 1})", flush=True)
     start = time.monotonic()
     try:
         while not stop.is_set():
@@ -175,8 +194,13 @@ def cmd_arena(args: argparse.Namespace) -> int:
     finally:
         stop.set()
         stepper.join(10.0)
+        if carrier is not None:
+            carrier.join(5.0)
         summary = {"fleet": fleet, "t": round(arena.t, 3), **vars(arena.counts), "owners": list(arena.owners),
-                   "alive": sorted(arena.alive), "ever_alive": sorted(arena.ever_alive)}
+                   "alive": sorted(arena.alive), "ever_alive": sorted(arena.ever_alive),
+                   "two_owners": arena.two_owners}
+        if arena.radio is not None:
+            summary["radio"] = arena.radio.summary()
         arena.close()
         session.close()
         if args.summary is not None:

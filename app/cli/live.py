@@ -193,7 +193,7 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
         raise UserError(str(exc)) from None
     if leader_port == "" and args.leader is not None:
         raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
-    if args.radio_id is not None and not link_port:
+    if args.radio_id is not None and not link_port and not getattr(args, "arena_radio", ""):
         raise UserError("--radio-id goes with --link serial:PATH (the radio this leader shares with others)")
     camera: Rig | None
     if real:
@@ -212,15 +212,16 @@ def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
     if args.arena is not None:
         from app.files import load_fleet
 
-        if args.scenario or args.camera or args.link or args.followers or args.leader:
+        if args.scenario or args.camera or args.followers or args.leader:
             raise UserError("--arena leads the arena's robots: it cannot be combined with --scenario, --camera,"
-                            " --link, --leader or --followers")
+                            " --leader or --followers")
         fleet_scenario = load_fleet(args.arena)
         ids = [ld.id for ld in fleet_scenario.leaders]
         if args.leader_id not in ids:
             raise UserError(f"--arena {args.arena}: --leader-id must be one of its leaders: {', '.join(ids)}"
                             + (f" (got {args.leader_id!r})" if args.leader_id else ""))
         args.fleet = args.fleet or fleet_scenario.name
+        args.arena_radio = _arena_radio(args, ids.index(args.leader_id) + 1)
     fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect, args.fleet_control, args.keys)
     if args.fleet is None and any(fleet_args):
         raise UserError("--leader-id, --zenoh-listen, --zenoh-connect, --keys and --fleet-control go with --fleet NAME")
@@ -240,6 +241,30 @@ def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
         except ValueError as exc:
             raise UserError(str(exc)) from None
     return fleet_scenario
+
+
+def _arena_radio(args: argparse.Namespace, number: int) -> str:
+    """With ``--arena``, ``--link serial:PTY`` is this leader's radio (`arena --radio` prints one
+    per leader): the robots are commanded over it, the arena gives the world. The leader's radio
+    id is its place among the arena's leaders (given, it must be that). "": no radio."""
+    from app.backends.serial_link import parse_link_spec
+
+    if args.link is None:
+        if args.radio_id is not None:
+            raise UserError("--radio-id goes with --link serial:PATH (the radio this leader shares with others)")
+        return ""
+    try:
+        port = parse_link_spec(args.link) if args.link != "none" else ""
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if not port or "," in port:
+        raise UserError(f"--arena with --link {args.link!r}: the link is this leader's radio, one serial:PATH"
+                        " (`omniformation arena FLEET --radio` prints one per leader)")
+    if args.radio_id is not None and args.radio_id != number:
+        raise UserError(f"--radio-id {args.radio_id}: on {args.arena}'s radio {args.leader_id} is radio id {number}"
+                        " (its place among the arena's leaders); leave --radio-id out")
+    args.radio_id, args.link = number, None  # the arena team drives the radio, not the simulated team's link
+    return port
 
 
 def _open_camera(args: argparse.Namespace, plan: _RunPlan, handed: contextlib.ExitStack) -> FrameSource | None:
@@ -278,6 +303,8 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
         except NoArena as exc:
             raise UserError(f"--arena {args.arena}: {exc}") from None
         handed.callback(fleet.arena_team.close)
+        if args.arena_radio:
+            fleet.arena_team.use_radio(args.arena_radio, args.radio_id, args.baud)
     if name_taken(fleet.session, args.fleet, args.leader_id):
         raise UserError(f"--leader-id {args.leader_id}: a leader with this id is alive on fleet {args.fleet}"
                         " already; every leader needs its own id")

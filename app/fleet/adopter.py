@@ -47,6 +47,11 @@ class Adopter:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()
+        self._adopting = threading.Lock()
+        self._retry_at = float("inf")  # when the lease of a robot that refused a claim lapses
+        self._wanted: set[int] = set()  # on a radio: robots claimed and not yet granted
+        if team.link is not None:  # a robot granting our claim says so at once
+            team.link.on_owned = lambda address: self._wake.set()
         self._sub = session.liveliness().declare_subscriber(f"{root(fleet)}/alive/*", self._on_alive, history=True)
         self._thread = threading.Thread(target=self._run, name="omniformation-adopter", daemon=True)
         self._thread.start()
@@ -64,8 +69,12 @@ class Adopter:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self._wake.wait(1.0)  # also looks once a second: a claim refused for a moment is tried again
+            # also looks once a second (a claim refused for a moment is tried again), and as soon as
+            # a refused claim's lease has lapsed
+            self._wake.wait(max(0.02, min(1.0, self._retry_at - time.monotonic())))
             self._wake.clear()
+            if time.monotonic() >= self._retry_at:
+                self._retry_at = float("inf")
             if self._stop.is_set():
                 return
             try:
@@ -83,6 +92,17 @@ class Adopter:
         truth = self.team.latest_truth() or truth
         tick = int(truth.get("tick", 0))
         owners: list[str | None] = list(truth["owners"])
+        with self._lock:
+            alive = set(self.alive)
+        for r in list(self._wanted):  # on a radio: granted (the truth shows it), or another's after all
+            if owners[r] == self.leader_id or (owners[r] in alive and truth.get("leases", [0] * len(owners))[r] > 0):
+                self._wanted.discard(r)
+                if owners[r] != self.leader_id:
+                    self.team.unwant(r)
+                    self.event("refused", f"claim for {robot_name(r)}: {owners[r]} holds it")
+                else:
+                    self._changed_at[r] = tick
+                    self._take(r, truth, "adopted")
         for r, o in enumerate(owners):
             if o == self.leader_id and r not in self.team.owned and tick > self._changed_at.get(r, -1):
                 self._changed_at[r] = tick
@@ -93,13 +113,18 @@ class Adopter:
                 self._release(r, truth, owners[r])
 
     def _adopt_orphans(self, truth: dict[str, Any]) -> None:
+        with self._adopting:  # one claim round at a time: a robot taken is in the team before the next looks
+            self._adopt_orphans_now(truth)
+
+    def _adopt_orphans_now(self, truth: dict[str, Any]) -> None:
         with self._lock:
             alive = set(self.alive) | {self.leader_id}
         owners: list[str | None] = list(truth["owners"])
         lost = set(truth.get("lost", ())) - alive  # joined, and gone (as the arena and this leader both see it)
         # a robot this leader already took is no orphan, whatever an older truth still says of it:
         # claiming it again would be granted (it is ours) and seat it twice
-        orphans = [r for r, o in enumerate(owners) if (o is None or o in lost) and r not in self.team.owned]
+        orphans = [r for r, o in enumerate(owners) if (o is None or o in lost) and r not in self.team.owned
+                   and r not in self._wanted]
         if not orphans or set(truth.get("alive", ())) - alive:
             return  # nobody to adopt, or the arena knows of leaders this one has not heard of yet
         leaders = {lid: (float(pose[0]), float(pose[1]), sum(1 for o in owners if o == lid))
@@ -114,7 +139,13 @@ class Adopter:
                 self._take(r, truth, "adopted")
 
     def _claim(self, r: int) -> int | None:
-        """The arena's tick when it granted ``r`` to this leader, or None (refused, or no answer)."""
+        """The arena's tick when it granted ``r`` to this leader, or None (refused, or no answer).
+        On a radio the robot is asked (the link claims it until it grants or another holds it):
+        None now, and it is taken in when the truth shows it granted."""
+        if self.team.link is not None:
+            self._wanted.add(r)
+            self.team.want(r)
+            return None
         payload = json.dumps({"leader": self.leader_id, "robot": robot_name(r)})
         for reply in self.session.get(f"{root(self.fleet)}/arena/claim/{self.leader_id}", payload=payload, timeout=2.0):
             try:
@@ -123,6 +154,9 @@ class Adopter:
                 continue
             if answer.get("granted") and robot_index(answer.get("robot"), 10_000) == r:
                 return int(answer.get("tick", 0))
+            left = answer.get("lease_left_ms")
+            if isinstance(left, int) and 0 < left <= 60_000:  # the robot's lease lives: ask again when it lapses
+                self._retry_at = min(self._retry_at, time.monotonic() + left / 1000 + 0.05)
             self.event("refused", f"claim for {robot_name(r)}: {answer.get('why', '?')}")
         return None
 

@@ -12,10 +12,18 @@ command which robot:
   is that old stands still too. A real robot's timer runs continuously; the arena steps, so a
   command that would pass 0.5 s of age during a step is zeroed for the whole step: a robot
   never moves on a command older than 0.5 s;
-* a leader that joined and whose liveliness token is gone (process killed, network lost)
-  leaves orphans: a **claim** by a living leader for an orphan is granted once (the first
-  claim wins; the robot is then that leader's), any other claim is refused with the reason.
-  The robots of a leader that has not joined yet are nobody's to take.
+* who owns a robot is the robot's to say, as on real robots: each arena robot runs the
+  followers' own rules (core.link.follower, held to the reference firmware by
+  tests/app/test_firmware.py), protocol 2's owner and lease included. A leader's drive for a
+  robot reaches it as a DRIVE (with the age of the truth it was computed from), a claim as a
+  CLAIM, the operator's handover as a HANDOVER from the robot's owner; the robot obeys, grants
+  or refuses (docs/follower-protocol.md, "Ownership"). A leader's lease (1 s) lives while its
+  drives come; when it went quiet (process killed, network lost) its robots are orphans, and a
+  **claim** by a living leader is granted by the robot once the lease has lapsed (the first
+  claim wins). The robots of a leader that has not joined yet are nobody's to take;
+* with ``--radio`` the arena is only the world: every leader has a radio (a pty,
+  app.backends.radio) that reaches every robot, and the robots take commands, claims and
+  handovers from the radio alone. The arena's drive key then carries a leader's own twist.
 
 Key expressions and payloads: docs/fleet-protocol.md ("The arena").
 """
@@ -32,17 +40,25 @@ from typing import Any
 
 import numpy as np
 
+import dataclasses
+
 from core.bounds import LEADER_SPEED, LEADER_TURN
 from core.control.safety import SafetySettings
 from core.fleet import MAX_TEAM, ArenaState, FleetScenario, closest_distance, initial_arena, step_arena
+from core.link import protocol as p
 from core.link.protocol import WATCHDOG_S
 
+from app.backends.emulator import FollowerEmulator
+from app.backends.radio import Radio
 from app.keys import robot_index, robot_name, root
+from core.types import FloatArray
 
 log = logging.getLogger(__name__)
 
 STALE_DRIVE_S = 0.5  # a drive computed from a truth older than this moves nothing
 CONTACT_M = SafetySettings().min_distance_m  # two bodies' centres closer than this: the safety filter's limit broken
+LEASE_MS = 1000  # the lease a claim asks for on a leader's behalf (as `run --radio-id` does)
+START_LEASE_MS = LEASE_MS  # at power-up each robot is its scenario leader's, as if just claimed
 
 
 @dataclass
@@ -52,6 +68,8 @@ class ArenaCounts:
     conflicts: int = 0  # a robot commanded by a leader that knew it did not own it (refused)
     late: int = 0  # a command from a robot's former owner that had not yet seen the truth of the change (refused)
     stale: int = 0  # drives computed from a truth older than STALE_DRIVE_S, or naming none or one not yet made (refused whole)
+    robot_stale: int = 0  # DRIVEs a robot refused as computed from an observation older than its bound
+    radio_commands: int = 0  # with --radio: robot commands sent to the arena's key, not the radio (refused)
     malformed: int = 0  # messages on the arena's keys that are not what docs/fleet-protocol.md says
     claims_granted: int = 0
     claims_repeated: int = 0  # a leader claiming a robot it owns already: answered yes, nothing changes
@@ -66,17 +84,29 @@ class ArenaCounts:
 class Arena:
     """The shared world on the bus. ``step()`` is its loop's one step (the caller paces it)."""
 
-    def __init__(self, scenario: FleetScenario, session: Any, fleet: str | None = None) -> None:
+    def __init__(self, scenario: FleetScenario, session: Any, fleet: str | None = None, radio: bool = False,
+                 radio_drop: float = 0.0, radio_delay_s: float = 0.0, seed: int = 0) -> None:
+        """``radio``: the robots take commands over an emulated radio (:attr:`radio`, one pty per
+        leader, leader i's radio number i + 1, robot R<n> at address n), not from the bus."""
         self.scenario = scenario
         self.fleet = fleet or scenario.name
         self.session = session
         self.state: ArenaState = initial_arena(scenario)
         self.ids = [ld.id for ld in scenario.leaders]
         n_robots = self.state.robots.shape[0]
+        # the robots themselves (the followers' rules): each its scenario leader's at power-up
+        self.robots = FollowerEmulator(list(range(1, n_robots + 1)))
+        for r, i in enumerate(scenario.owners):
+            a = r + 1
+            self.robots.followers[a] = dataclasses.replace(self.robots.followers[a], owner=int(i) + 1,
+                                                           lease_ms=START_LEASE_MS, lease_left_s=START_LEASE_MS / 1000)
+        self.radio = Radio(len(self.ids), n_robots, radio_drop, radio_delay_s, seed, robots=self.robots) \
+            if radio else None
+        self._seq = 0
         self.owners: list[str | None] = [self.ids[i] for i in scenario.owners]
-        self.commands = np.zeros((n_robots, 2))
-        self.command_t = np.full(n_robots, -math.inf)  # arena time of each robot's last command
-        self.commanded_by: list[str | None] = [None] * n_robots
+        self.leases = np.full(n_robots, START_LEASE_MS / 1000)
+        self.command_age = np.full(n_robots, math.inf)  # since each robot's last obeyed command (its own clock)
+        self.two_owners = 0
         self.owner_since = np.zeros(n_robots, dtype=np.int64)  # the first truth tick that shows each owner
         self.twists = np.zeros((len(self.ids), 2))
         self.twist_t = np.full(len(self.ids), -math.inf)
@@ -162,7 +192,11 @@ class Arena:
                                   min(max(twist[1], -self._leader_turn), self._leader_turn))
                 self.twist_t[i] = self.t
             dyn = self.scenario.dynamics
+            age_ms = 0 if too_old or seen_tick is None else int((self.counts.steps - seen_tick) * self.dt * 1000)
             for r, v, w in parsed:
+                if self.radio is not None:  # the robots listen to the radio only
+                    self.counts.radio_commands += 1
+                    continue
                 if self.owners[r] != leader:
                     if seen_tick is not None and seen_tick < self.owner_since[r]:
                         self.counts.late += 1  # its former owner, before the truth told it: refused all the same
@@ -173,17 +207,74 @@ class Arena:
                     continue
                 v = min(max(v, -dyn.speed_max_mps), dyn.speed_max_mps)  # a robot's body within its limits
                 w = min(max(w, -dyn.turn_max_rps), dyn.turn_max_rps)
-                self.commands[r] = (v, w)
-                self.command_t[r] = self.t
-                self.commanded_by[r] = leader
+                self._drive(r, i + 1, age_ms, v, w)
 
-    def _give(self, r: int, leader: str) -> None:
-        """Robot ``r`` is ``leader``'s from the next truth on (under the lock): standing until its
-        new owner's first command; nobody else's moves it."""
-        self.owners[r] = leader
-        self.owner_since[r] = self.counts.steps + 1
-        self.commands[r] = 0.0
-        self.commanded_by[r] = None
+    # -- the robots' own word (under the lock) ---------------------------------------------
+    def _ask(self, frame: p.Frame) -> p.Frame | None:
+        replies = self.robots.handle(frame)
+        return replies[0] if replies else None
+
+    def _next_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFF
+        return self._seq
+
+    def _drive(self, r: int, k: int, age_ms: int, v: float, w: float) -> None:
+        """Leader number ``k``'s command to robot ``r`` as the robot takes it: a DRIVE. Its own
+        lease lapsed (its drives were late for its length) and nobody took the robot: claimed
+        again for it first, as a leader's serial link does on that NACK."""
+        frame = p.drive(r + 1, self._next_seq(), k, age_ms, v, w)
+        reply = self._ask(frame)
+        if reply is not None and reply.msg_type == p.MSG_NACK:
+            o = p.decode_ownership(reply)
+            if o.reason == p.NACK_NOT_OWNER and o.owner == k:
+                self._ask(p.claim(r + 1, self._next_seq(), k, LEASE_MS))
+                reply = self._ask(frame)
+        if reply is not None and reply.msg_type == p.MSG_NACK:
+            o = p.decode_ownership(reply)
+            if o.reason == p.NACK_STALE:
+                self.counts.robot_stale += 1
+            else:
+                self.counts.conflicts += 1
+        self._refresh()
+
+    def _hand_over(self, r: int, to: str) -> str:
+        """The operator's word, as robot ``r`` takes it: a HANDOVER to ``to`` from its owner (a
+        CLAIM when it has none). "" when granted, else why not."""
+        k_to = self.ids.index(to) + 1
+        k_from = self.robots.snapshot()[r + 1].owner
+        reply = self._ask(p.handover(r + 1, self._next_seq(), k_from, k_to, LEASE_MS) if k_from
+                          else p.claim(r + 1, self._next_seq(), k_to, LEASE_MS))
+        self._refresh()
+        if reply is not None and reply.msg_type == p.MSG_OWNER:
+            return ""
+        return f"{robot_name(r)} refused it ({'no answer' if reply is None else p.decode_ownership(reply)})"
+
+    def robot_commands(self) -> FloatArray:
+        """(R, 2) what each robot's wheels are set to, as body velocity (v m/s, w rad/s)."""
+        snap = self.robots.snapshot()
+        targets = np.array([(snap[r + 1].target_l_mps, snap[r + 1].target_r_mps) for r in range(len(self.owners))])
+        return np.column_stack([targets.sum(axis=1) / 2, (targets[:, 1] - targets[:, 0]) / self.robots.hw.wheel_base_m])
+
+    def _name(self, number: int) -> str | None:
+        """A leader's radio number as its id (0: nobody; a number no leader of the fleet has:
+        ``radio <n>``, a stranger on the radio)."""
+        if number == 0:
+            return None
+        return self.ids[number - 1] if number <= len(self.ids) else f"radio {number}"
+
+    def _refresh(self) -> None:
+        """The owners, leases and command ages as the robots hold them (a change of owner is
+        shown from the next truth on)."""
+        snap = self.robots.snapshot()
+        for r in range(len(self.owners)):
+            f = snap[r + 1]
+            name = self._name(f.owner)
+            if name != self.owners[r]:
+                self.owners[r] = name
+                self.owner_since[r] = self.counts.steps + 1
+            self.leases[r] = f.lease_left_s if f.lease_lives else 0.0
+            self.command_age[r] = f.command_age_s
+        self.two_owners = sum(f.two_owners for f in snap.values())
 
     def _on_claim(self, query: Any) -> None:
         """A claim on ``arena/claim/<id>`` is leader <id>'s (with fleet keys only <id> may ask
@@ -200,22 +291,29 @@ class Arena:
             query.reply(query.key_expr, json.dumps({"granted": False, "why": "a claim is"
                                                     ' {"robot": "R<n>"} on arena/claim/<your id>'}))
             return
+        lease_left_ms = 0
         with self._lock:
             owner = self.owners[r]
             repeated = False
             if named != leader:
                 why = f"a claim on arena/claim/{leader} is {leader}'s, not {named[:40]!r}'s"
+            elif leader not in self.ids:
+                why = f"{leader[:40]!r} leads no team of {self.fleet}"
+            elif self.radio is not None:
+                why = "the robots are claimed over the radio (arena --radio)"
             elif leader not in self.alive:
                 why = f"{leader} is not alive on the bus"
-            elif owner == leader:
-                why, repeated = "", True
-            elif owner is not None and owner in self.alive:
-                why = f"{robot_name(r)} is {owner}'s, and {owner} is alive"
-            elif owner is not None and owner not in self.ever_alive:
+            elif owner is not None and owner != leader and owner in self.ids and owner not in self.ever_alive:
                 why = f"{robot_name(r)} is {owner}'s, and {owner} has not joined yet"
-            else:  # its leader joined and is gone: an orphan
-                why = ""
-                self._give(r, leader)
+            else:  # the robot says: granted once nobody's lease lives (its owner went quiet)
+                reply = self._ask(p.claim(r + 1, self._next_seq(), self.ids.index(leader) + 1, LEASE_MS))
+                self._refresh()
+                if reply is not None and reply.msg_type == p.MSG_OWNER:
+                    why, repeated = "", owner == leader
+                else:
+                    o = p.decode_ownership(reply) if reply is not None else p.Ownership(0, 0)
+                    lease_left_ms = o.lease_left_ms
+                    why = f"{robot_name(r)} is {self._name(o.owner)}'s, its lease lives {o.lease_left_ms} ms more"
             granted = why == ""
             if repeated:
                 self.counts.claims_repeated += 1
@@ -224,7 +322,7 @@ class Arena:
             else:
                 self.counts.claims_refused += 1
         query.reply(query.key_expr, json.dumps({"granted": granted, "robot": robot_name(r), "leader": leader,
-                                                "why": why, "tick": self.counts.steps}))
+                                                "why": why, "tick": self.counts.steps, "lease_left_ms": lease_left_ms}))
         self.event("claim", f"{robot_name(r)} to {leader}: " + ("granted" if granted else f"refused ({why})"))
 
     def _on_handover(self, query: Any) -> None:
@@ -253,9 +351,10 @@ class Arena:
                 why = f"{to} has {mine} followers, the most a team takes"
             elif owner is not None and owner in self.alive and sum(1 for o in self.owners if o == owner) <= 1:
                 why = f"{robot_name(r)} is {owner}'s only follower"
+            elif self.radio is not None:
+                why = "on a radio only the robot's owner hands it over (a HANDOVER frame)"
             else:
-                why = ""
-                self._give(r, to)
+                why = self._hand_over(r, to)
             granted = why == ""
             self.counts.handovers_refused += not granted
         query.reply(query.key_expr, json.dumps({"granted": granted, "robot": robot_name(r), "leader": to, "why": why,
@@ -278,7 +377,9 @@ class Arena:
             "hues_deg": list(self.scenario.hues_deg), "owners": list(self.owners),
             "alive": sorted(self.alive), "lost": sorted(self.ever_alive - self.alive),
             "watchdog": [bool(b) for b in self.watchdog_stopped],
-            "command_age": [round(float(a), 3) if math.isfinite(a) else None for a in self.t - self.command_t],
+            "command_age": [round(float(a), 3) if math.isfinite(a) else None for a in self.command_age],
+            "leases": [round(float(x), 3) for x in self.leases], "two_owners": self.two_owners,
+            "radio": self.radio is not None,
             "conflicts": self.counts.conflicts, "late": self.counts.late, "stale": self.counts.stale,
             "closest_m": round(self.gap_m, 4), "contacts": self.counts.contacts, "refused": self.refused(),
         }
@@ -286,26 +387,33 @@ class Arena:
     def refused(self) -> dict[str, int]:
         """What the arena turned away so far, by kind (the fleet page shows it)."""
         c = self.counts
-        return {"conflicts": c.conflicts, "late": c.late, "stale": c.stale, "malformed": c.malformed,
-                "claims": c.claims_refused, "handovers": c.handovers_refused, "strangers": c.strangers}
+        return {"conflicts": c.conflicts, "late": c.late, "stale": c.stale + c.robot_stale, "malformed": c.malformed,
+                "claims": c.claims_refused, "handovers": c.handovers_refused, "strangers": c.strangers,
+                "radio_commands": c.radio_commands}
 
     # -- one step ------------------------------------------------------------------------------
     def step(self) -> None:
         with self._lock:
-            # a command from before this is past the watchdog's age before this step ends: zero for the whole step
-            expired_before = self.t + self.dt - WATCHDOG_S - 1e-9
-            stale = self.command_t < expired_before
-            newly = stale & ~self.watchdog_stopped & np.isfinite(self.command_t)
+            snap = self.robots.snapshot()
+            ages = np.array([snap[r + 1].command_age_s for r in range(len(self.owners))])
+            commands = self.robot_commands()  # the arena's bodies move as their wheels are set
+            # a command that passes the watchdog's age during this step is zero for the whole step (the
+            # robot's own watchdog would zero it within it; a robot never moves on one older than 0.5 s)
+            stale = ages + self.dt > WATCHDOG_S + 1e-9
+            newly = stale & ~self.watchdog_stopped & np.isfinite(ages)
             self.counts.watchdog_stops += int(newly.sum())
             self.watchdog_stopped = stale
-            commands = np.where(stale[:, None], 0.0, self.commands)
+            commands = np.where(stale[:, None], 0.0, commands)
+            expired_before = self.t + self.dt - WATCHDOG_S - 1e-9
             twists = np.where((self.twist_t < expired_before)[:, None], 0.0, self.twists)
             self.state = step_arena(self.state, twists, commands, self.dt, self.scenario.dynamics)
+            self.robots.step(self.dt)
             self.gap_m = closest_distance(self.state)
             self.counts.closest_m = min(self.counts.closest_m, self.gap_m)
             self.counts.contacts += int(self.gap_m < CONTACT_M)
             self.t += self.dt
             self.counts.steps += 1
+            self._refresh()
             payload = json.dumps(self.truth(), separators=(",", ":"))
         self._truth_pub.put(payload)
 
@@ -327,3 +435,5 @@ class Arena:
         self._claims.undeclare()
         self._handovers.undeclare()
         self._token.undeclare()
+        if self.radio is not None:
+            self.radio.close()

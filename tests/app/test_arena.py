@@ -325,6 +325,8 @@ def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned()
     adopter = Adopter(session, FLEET, "L1", team, store)
     try:
         wait_for(lambda: arena.alive == {"L1", "L2", "L3"} and adopter.alive >= {"L1", "L2", "L3"}, 10, "three alive")
+        # nobody drives L2's robots: their power-up lease lapses, and the robots grant a claim
+        wait_for(lambda: all(arena.leases[r] == 0 for r, o in enumerate(arena.owners) if o == "L2"), 10, "leases lapsed")
         tokens.pop("L2").undeclare()
         wait_for(lambda: "L2" not in arena.alive and "L2" not in adopter.alive, 10, "L2 gone")
         stale = arena.truth()  # L2's robots orphans in it; the newest truth the adopter sees, twice
@@ -340,8 +342,8 @@ def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned()
         team.resize(len(team.owned))
         wait_for(lambda: team.answering().all(), 10, "the truth showing every robot it took")
         given = team.active[0]
-        with arena._lock:
-            arena._give(given, "L3")
+        with arena._lock:  # the operator's handover, as the robot takes it
+            assert arena._hand_over(given, "L3") == ""
         wait_for(lambda: team.latest_truth()["owners"][given] == "L3", 10, "the truth of the handover")
         assert list(team.answering()) == [r != given for r in team.active]
     finally:
@@ -378,13 +380,16 @@ def test_the_arena_is_the_worlds_physics_and_ignores_drives_from_old_truths():
             session.put(key, json.dumps({"tick": 1, "truth_tick": tick, "twist": [50.0, 0.0],
                                          "commands": {f"R{r + 1}": [0.3, 0.0]}}))
         wait_for(lambda: arena.counts.stale == 3, 10, "three stale drives counted")
-        assert np.all(arena.commands[r] == 0.0) and np.all(arena.twists[0] == 0.0)
+        assert np.all(arena.robot_commands()[r] == 0.0) and np.all(arena.twists[0] == 0.0)
         session.put(key, json.dumps({"tick": 2, "truth_tick": arena.counts.steps, "twist": [50.0, 9.0],
                                      "commands": {f"R{r + 1}": [5.0, 50.0]}}))
         wait_for(lambda: arena.counts.drives == 4, 10, "the fresh drive")
         assert tuple(arena.twists[0]) == pytest.approx((LEADER_SPEED.hi, math.radians(LEADER_TURN.hi)))
         dyn = scenario.dynamics
-        assert tuple(arena.commands[r]) == pytest.approx((dyn.speed_max_mps, dyn.turn_max_rps))
+        # the body's limits, then the wheels' (both scaled together: the same curvature, slower)
+        v, w = arena.robot_commands()[r]
+        assert 0 < v <= dyn.speed_max_mps and 0 < w <= dyn.turn_max_rps
+        assert w / v == pytest.approx(dyn.turn_max_rps / dyn.speed_max_mps, rel=1e-2)
         start = arena.state.leaders[0, :2].copy()
         for _ in range(30):
             arena.step()
