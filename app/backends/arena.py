@@ -77,6 +77,9 @@ class ArenaTeam:
         self._tick: int = 0
         self.state: TeamState = self._state_from(truth)
         self.link: SerialLink | None = None  # with a radio: the robots' link (the arena gives only the world)
+        # every robot it had is another's now (adopted while it was cut off): the loop keeps the last
+        # one's place (a team has one at least), commands it nothing, and the state is an empty team
+        self.emptied: bool = False
 
     def use_radio(self, port: str, radio_id: int, baud: int = 115200) -> None:
         """Command the robots over a radio (`arena --radio`): this leader's serial link with its

@@ -422,6 +422,8 @@ def _on_the_bus(args: argparse.Namespace, fleet: _Fleet, service: Service,
 
         adopter = Adopter(fleet.session, args.fleet, args.leader_id, fleet.arena_team, service.store,
                           event=bridge.event)
+        team = fleet.arena_team
+        bridge.empty = lambda: team.emptied
         stack.callback(adopter.close)
     print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"
           f" ({'taking commands' if args.fleet_control else 'STOP only'} from it)", flush=True)

@@ -104,6 +104,10 @@ class Adopter:
                     self._changed_at[r] = tick
                     self._take(r, truth, "adopted")
         for r, o in enumerate(owners):
+            if o == self.leader_id and r in self.team.owned and self.team.emptied:  # its last one, handed back
+                self.team.emptied = False
+                self.team.want(r)
+                self.event("handed over", f"{robot_name(r)}: {self.leader_id}'s again")
             if o == self.leader_id and r not in self.team.owned and tick > self._changed_at.get(r, -1):
                 self._changed_at[r] = tick
                 self._take(r, truth, "handed over")
@@ -172,6 +176,13 @@ class Adopter:
         here = self._in_my_frame(truth, r)
         current = self.store.get()
         slots = current.slots[:current.n_followers]
+        rebuild = 0
+        if self.team.emptied:  # the place its last robot (another's now) held is this one's: the loop
+            for old in list(self.team.owned):  # makes its team afresh (a reset), this robot in it
+                self.team.release(old)
+            slots = slots[:0]
+            self.team.emptied = False
+            rebuild = 1
         robots, leaders = self.team.others()
         new_slot = slot_for_newcomer(slots, here, avoid=np.vstack([robots[np.hypot(*(robots - here).T) > 1e-6]
                                                                    if len(robots) else robots, leaders]))
@@ -179,14 +190,21 @@ class Adopter:
         self.adopted.append((r, time.monotonic()))
         n = len(self.team.owned)
         self.store.fixed_followers = n
-        self.store.update(f"fleet:{how} {robot_name(r)}", n_followers=n, slots=np.vstack([slots, new_slot]))
+        self.store.update(f"fleet:{how} {robot_name(r)}", n_followers=n, slots=np.vstack([slots, new_slot]),
+                          reset_requests=current.reset_requests + rebuild)
         self.event(how, f"{robot_name(r)}: now follower {n} of {self.leader_id}")
         log.info("%s %s (team of %d)", how, robot_name(r), n)
 
     def _release(self, r: int, truth: dict[str, Any], to: str | None) -> None:
         """The arena gave ``r`` to another leader: out of this team, with the slot nearest to it."""
-        if len(self.team.owned) <= 1:
-            return  # the arena never takes a living leader's last follower; nothing to follow without one
+        if len(self.team.owned) <= 1:  # its last: a team has one at least, so the loop keeps its place
+            if not self.team.emptied:
+                self.team.emptied = True
+                self.team.unwant(r)
+                self.event("released", f"{robot_name(r)}: now {to}'s; {self.leader_id} owns no robot and waits"
+                                       " for the operator to hand one over")
+                log.info("released %s to %s: no robot left", robot_name(r), to)
+            return
         here = self._in_my_frame(truth, r)
         current = self.store.get()
         slots = current.slots[:current.n_followers]

@@ -190,6 +190,17 @@ def state_payload(s: TickState, leader_id: str, takes: str = "stop") -> dict[str
     }
 
 
+def waiting_payload(leader_id: str, t: float, takes: str, tick: int = 0,
+                    refused: dict[str, int] | None = None) -> dict[str, Any]:
+    """The state of a leader that owns no robot (it came back after its robots were adopted, or
+    they were all adopted while its link was cut): an empty team, standing."""
+    return {"leader_id": leader_id, "tick": tick, "t": round(t, 5), "leader": None,
+            "leader_twist": [0.0, 0.0], "p_est": [], "a_est": [], "tracked": [], "p_d": [], "error_m": [],
+            "p_true": [], "commands": [], "gains": Gains().as_dict(), "stopped": True, "phase": "waiting",
+            "link_state": "waiting for a robot (the operator hands one over)", "rate_hz": None,
+            "takes": takes, "refused": refused or {"commands": 0, "states": 0}}
+
+
 @dataclass(frozen=True)
 class Presence:
     """This leader process among leaders that might share its id: ``instance`` (8 hex digits,
@@ -222,11 +233,7 @@ class WaitingState:
         self._thread.start()
 
     def payload(self) -> dict[str, Any]:
-        return {"leader_id": self.leader_id, "tick": 0, "t": round(self.t, 5), "leader": None,
-                "leader_twist": [0.0, 0.0], "p_est": [], "a_est": [], "tracked": [], "p_d": [], "error_m": [],
-                "p_true": [], "commands": [], "gains": Gains().as_dict(), "stopped": True, "phase": "waiting",
-                "link_state": "waiting for a robot (the operator hands one over)", "rate_hz": None,
-                "takes": self.takes, "refused": {"commands": 0, "states": 0}}
+        return waiting_payload(self.leader_id, self.t, self.takes)
 
     def _run(self) -> None:
         start = time.monotonic()
@@ -282,6 +289,7 @@ class FleetBridge:
         self._clock = SessionClock(t_start)
         store.subscribe(self._on_params)
         self._publisher = LatestStatePublisher(self._publish_state)
+        self.empty: Callable[[], bool] = lambda: False  # set by an arena leader: it owns no robot now
 
     @property
     def instance(self) -> str:
@@ -323,8 +331,12 @@ class FleetBridge:
         self._publisher(dataclasses.replace(s, t=self._t))
 
     def _publish_state(self, s: TickState) -> None:
-        payload = state_payload(s, self.leader_id, takes(self.allow_control))
-        payload["refused"] = {"commands": self.commands_refused, "states": self.states_refused}
+        refused = {"commands": self.commands_refused, "states": self.states_refused}
+        if self.empty():  # every robot it had is another's now: its loop holds none of them
+            payload = waiting_payload(self.leader_id, s.t, takes(self.allow_control), s.tick, refused)
+        else:
+            payload = state_payload(s, self.leader_id, takes(self.allow_control))
+            payload["refused"] = refused
         self._state_pub.put(on_the_wire(payload, self.presence))
 
     def event(self, kind: str, detail: str) -> None:

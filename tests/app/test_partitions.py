@@ -88,7 +88,9 @@ def test_a_cut_leader_moves_nothing_on_old_truths_and_drops_what_was_adopted_whi
         assert first_clean <= 30, [s["tracked"] for s in back[:first_clean + 1]]
         late = [s for s in back[first_clean:] if any(s["tracked"]) or any(v or ww for v, ww in s["commands"])]
         assert not late, late[:1]
-        wait_for(lambda: len(w.recent("L1", 1.0)[-1]["p_est"]) == 1, 30, "L1 letting go of all but its last")
+        # every robot it had is L2's: its state is an empty team, waiting for the operator
+        wait_for(lambda: w.recent("L1", 1.0)[-1]["phase"] == "waiting" and w.recent("L1", 1.0)[-1]["p_est"] == [], 30,
+                 "L1 letting go of every robot")
         with w.lock:
             after_heal = w.truths[k_heal:]
         for tr in after_heal:
@@ -96,6 +98,24 @@ def test_a_cut_leader_moves_nothing_on_old_truths_and_drops_what_was_adopted_whi
                 age = tr["command_age"][r]
                 assert tr["watchdog"][r] or age is None or age <= WATCHDOG_BOUND_S, (r, tr["t"], age)
         assert w.last_truth()["conflicts"] == 0 and all(w.last_truth()["owners"][r] == "L2" for r in mine)
+        # the operator hands one back: L1's team is that robot, in a slot on its side
+        replies = [json.loads(r.ok.payload.to_bytes()) for r in w.session.get(
+            f"{BASE}/arena/handover", payload=json.dumps({"robot": f"R{mine[0] + 1}", "to": "L1", "from": "test"}),
+            timeout=5.0)]
+        assert replies and replies[0]["granted"], replies
+
+        def l1_has_it() -> bool:
+            last = w.recent("L1", 1.0)
+            return bool(last) and last[-1]["phase"] != "waiting" and last[-1]["tracked"] == [True] \
+                and last[-1]["error_m"][0] <= 0.05
+
+        try:
+            wait_for(l1_has_it, 60, f"R{mine[0] + 1} in L1's slot")
+        except AssertionError:
+            last = w.recent("L1", 1.0)[-1]
+            print({k: last[k] for k in ("phase", "tracked", "error_m", "p_est", "p_d", "link_state", "stopped")},
+                  w.last_truth()["owners"])
+            raise
     finally:
         interrupt(*procs.values())
         interrupt(arena)

@@ -109,7 +109,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
                      "three malformed drives and one conflict")
             replies = [json.loads(r.ok.payload.to_bytes()) for r in page_session.get(
                 f"{base}/claim/L2", payload=json.dumps({"leader": "L2", "robot": "R1"}), timeout=5.0)]
-            assert replies and not replies[0]["granted"] and "L1 is alive" in replies[0]["why"], replies
+            assert replies and not replies[0]["granted"] and "R1 is L1's, its lease lives" in replies[0]["why"], replies
             replies = [json.loads(r.ok.payload.to_bytes()) for r in page_session.get(  # one id asking for another
                 f"{base}/claim/L2", payload=json.dumps({"leader": "L1", "robot": "R7"}), timeout=5.0)]
             assert replies and not replies[0]["granted"] and "is L2's, not 'L1'" in replies[0]["why"], replies
