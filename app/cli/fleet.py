@@ -154,15 +154,14 @@ def cmd_arena(args: argparse.Namespace) -> int:
         check_name(fleet, "--fleet" if args.fleet else f"{args.fleet_scenario}: name")
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    if not args.radio and (args.radio_drop or args.radio_delay_ms):
+        raise UserError("--radio-drop and --radio-delay-ms go with --radio")
     keys = fleet_keys(args.keys, "arena", fleet)
     session = open_bus(args.zenoh_listen, args.zenoh_connect, f"arena {fleet}", keys)
     replies = session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)
     if any(getattr(r, "ok", None) is not None for r in replies):
         session.close()
         raise UserError(f"fleet {fleet}: an arena runs on this bus already; one world per fleet")
-    if not args.radio and (args.radio_drop or args.radio_delay_ms):
-        session.close()
-        raise UserError("--radio-drop and --radio-delay-ms go with --radio")
     arena = Arena(scenario, session, fleet, radio=args.radio, radio_drop=args.radio_drop,
                   radio_delay_s=args.radio_delay_ms / 1000.0)
     stop = threading.Event()

@@ -278,6 +278,14 @@ def test_the_arena_steps_every_robot_and_leader():
     (["run", "--arena", "nofleet", "--leader-id", "L1"], "fleet scenario 'nofleet' not found"),
     (["arena", "nofleet"], "fleet scenario 'nofleet' not found"),
     (["arena", FLEET, "--zenoh-listen", "127.0.0.1:1"], "tcp/HOST:PORT"),
+    (["arena", FLEET, "--radio-drop", "0.1"], "--radio-drop and --radio-delay-ms go with --radio"),
+    (["arena", FLEET, "--radio", "--radio-drop", "2"], "--radio-drop"),
+    (["arena", FLEET, "--radio", "--radio-delay-ms", "-1"], "--radio-delay-ms"),
+    (["run", "--arena", FLEET, "--leader-id", "L2", "--link", "serial:/dev/null", "--radio-id", "1"],
+     "on three_teams's radio L2 is radio id 2"),
+    (["run", "--arena", FLEET, "--leader-id", "L1", "--link", "sim"], "the link is this leader's radio"),
+    (["run", "--arena", FLEET, "--leader-id", "L1", "--link", "serial:/a,/b"], "the link is this leader's radio"),
+    (["run", "--arena", FLEET, "--leader-id", "L1", "--radio-id", "1"], "--radio-id goes with --link serial:PATH"),
 ])
 def test_bad_arena_arguments_are_one_line(args, words):
     r = main_cli(*args, *(["--port", "0", "--no-record"] if args[0] == "run" else []))

@@ -9,6 +9,8 @@ import sys
 import threading
 import time
 
+import numpy as np
+import pytest
 import serial
 
 from app.backends.radio import Radio
@@ -229,3 +231,83 @@ def test_two_leader_processes_on_one_radio_a_standby_takes_over_when_the_first_d
         radio.close()
     s = radio.summary()
     assert s["two_owners"] == 0, s
+
+
+def test_a_leader_that_reads_nothing_never_holds_up_the_radio():
+    """A leader killed with its port still open here reads nothing: its pty fills. The medium
+    goes on for everyone else (frames to the full port are missed and counted), as a radio
+    receiver that is off misses them."""
+    radio = Radio(2, 1)
+    stop = threading.Event()
+    carrier = threading.Thread(target=radio.run, args=(stop,), daemon=True)
+    try:
+        deaf = radio.endpoints[1]
+        filled = 0
+        while deaf.offer(b"\0" * 1024):  # nobody reads leader 2's end: full
+            filled += 1
+            assert filled < 100_000
+        assert not deaf.offer(b"\0" * 1024)  # refused at once, nothing waits
+        carrier.start()
+        a = Leader(radio.paths[0], 1)
+        try:
+            def status(sent: tuple[int, int]) -> bool:
+                seq, before = sent
+                with a.lock:
+                    return any(f.address == 1 and f.seq == seq and f.msg_type == p.MSG_STATUS
+                               for f in a.replies[before:])
+
+            for _ in range(20):  # leader 1's frames go to leader 2 too (one medium): each missed there
+                sent = a.send(lambda seq: p.ping(1, seq))
+                wait_for(lambda sent=sent: status(sent), 10, "the robot's STATUS")
+        finally:
+            a._stop.set()
+            a._reader.join(2)
+            a.port.close()
+        assert radio.stats.unread[1] >= 20 and radio.stats.unread[0] == 0, radio.stats
+    finally:
+        stop.set()
+        carrier.join(5)
+        radio.close()
+
+
+def test_a_radio_link_takes_in_and_lets_go_of_robots_and_commands_each_by_its_address():
+    """A leader in a fleet on a radio (app.backends.arena): its link starts with its own robot,
+    claims one more when told (granted: nobody holds it), sends each command to the robot it is
+    for, and after letting one go sends it nothing more (its lease lapses)."""
+    from app.backends.serial_link import SerialLink
+    from core.types import Commands
+
+    radio = Radio(1, 2)
+    stop = threading.Event()
+    carrier = threading.Thread(target=radio.run, args=(stop,), daemon=True)
+    carrier.start()
+    link = SerialLink(radio.paths[0], 0, addresses=[1], radio_id=1)
+    granted: list[int] = []
+    link.on_owned = granted.append
+    try:
+        def tick(v2: float) -> None:  # the loop's team: robot 2 only, robot 1 held still
+            link.send(Commands(np.array([v2]), np.array([0.0]), observed_at=time.monotonic()), [2])
+            time.sleep(1 / 30)
+
+        link.want(2)
+        deadline = time.monotonic() + 10
+        while not (link.owns(1) and link.owns(2)) and time.monotonic() < deadline:
+            tick(0.0)
+        assert link.owns(1) and link.owns(2) and sorted(granted) == [1, 2]
+        for _ in range(30):
+            tick(0.1)
+        robots = radio.robots.snapshot()
+        assert robots[2].target_l_mps == robots[2].target_r_mps == pytest.approx(0.1, abs=1e-3)
+        assert robots[1].target_l_mps == robots[1].target_r_mps == 0.0 and robots[1].lease_lives  # held, still
+        link.let_go(1)
+        assert link.addresses == [2] and link.answering_at([1, 2]).tolist() == [False, True]
+        for _ in range(45):  # 1.5 s: robot 1's lease (1 s) lapses, robot 2's lives
+            tick(0.1)
+        robots = radio.robots.snapshot()
+        assert not robots[1].lease_lives and robots[2].lease_lives and robots[2].owner == 1
+        assert radio.summary()["two_owners"] == 0
+    finally:
+        link.close()
+        stop.set()
+        carrier.join(5)
+        radio.close()
