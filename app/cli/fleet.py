@@ -188,7 +188,8 @@ def cmd_arena(args: argparse.Namespace) -> int:
                 c = arena.counts
                 print(f"  t {arena.t:7.1f} s  alive {' '.join(sorted(arena.alive)) or '-'}  conflicts {c.conflicts}"
                       f"  watchdog stops {c.watchdog_stops}  claims {c.claims_granted} granted,"
-                      f" {c.claims_refused} refused  malformed {c.malformed}  closest {arena.gap_m * 100:.0f} cm"
+                      f" {c.claims_refused} refused  malformed {c.malformed}  two owners {arena.two_owners}"
+                      f"  closest {arena.gap_m * 100:.0f} cm"
                       f" (contacts {c.contacts})", flush=True)
     finally:
         stop.set()

@@ -30,6 +30,7 @@ Key expressions and payloads: docs/fleet-protocol.md ("The arena").
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -40,18 +41,16 @@ from typing import Any
 
 import numpy as np
 
-import dataclasses
-
 from core.bounds import LEADER_SPEED, LEADER_TURN
 from core.control.safety import SafetySettings
 from core.fleet import MAX_TEAM, ArenaState, FleetScenario, closest_distance, initial_arena, step_arena
 from core.link import protocol as p
 from core.link.protocol import WATCHDOG_S
+from core.types import FloatArray
 
 from app.backends.emulator import FollowerEmulator
 from app.backends.radio import Radio
 from app.keys import robot_index, robot_name, root
-from core.types import FloatArray
 
 log = logging.getLogger(__name__)
 
