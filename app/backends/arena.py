@@ -62,6 +62,13 @@ class ArenaTeam:
         self._got = threading.Event()
         self._sub = session.declare_subscriber(f"{root(fleet)}/arena/truth", self._on_truth)
         self._drive: Any = None  # declared at the first command: a leader refused at start-up never drives
+        # no truth at once: is an arena alive at all (its token)? None: say so now, not after wait_s
+        if not self._got.wait(min(wait_s, 2.0)) and not any(
+                getattr(r, "ok", None) is not None
+                for r in session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)):
+            self._sub.undeclare()
+            raise NoArena(f"no arena is alive on fleet {fleet}'s bus (its token {root(fleet)}/arena/alive): start"
+                          f" `omniformation arena` first, and connect to it (--zenoh-connect)")
         if not self._got.wait(wait_s):
             self._sub.undeclare()
             raise NoArena(f"no arena publishes {root(fleet)}/arena/truth (waited {wait_s:g} s): start"
