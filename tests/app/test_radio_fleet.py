@@ -39,6 +39,25 @@ def _no_robot_moved_on_an_old_command(truths: list[dict]) -> None:
             assert tr["watchdog"][r] or age is None or age <= WATCHDOG_BOUND_S, (r, tr["t"], age)
 
 
+def _cut_and_back(w: Watcher, relay: PtyRelay, seconds: float, owners: list[str]) -> None:
+    """Cut L1's radio for ``seconds``: its robots stop by their own watchdog and their leases
+    lapse, nobody takes them (L1 is alive on the bus), and L1 claims and drives them again when
+    its radio is back; no robot moves on a command older than the watchdog allows."""
+    mine = [r for r, o in enumerate(owners) if o == "L1"]
+    with w.lock:
+        k_cut = len(w.truths)
+    relay.cut(seconds)
+    wait_for(lambda: not relay.is_cut, seconds + 10, f"the {seconds:g} s cut healed")
+    wait_for(lambda: all(w.last_truth()["leases"][r] > 0 and w.last_truth()["command_age"][r] < 0.2 for r in mine),
+             30, "L1 driving its robots again")
+    with w.lock:
+        truths = w.truths[k_cut:]
+    assert any(all(tr["leases"][r] == 0 and tr["watchdog"][r] for r in mine) for tr in truths), \
+        "L1's robots stopped and their leases lapsed during the cut"
+    assert all(tr["owners"] == owners for tr in truths), "nobody took L1's robots, nor any other"
+    _no_robot_moved_on_an_old_command(truths)
+
+
 def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cuts(tmp_path):
     endpoint = loopback_endpoint()
     summary = tmp_path / "arena.json"
@@ -70,18 +89,8 @@ def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cut
         assert truth["radio"] and truth["owners"] == ["L1"] * 3 + ["L2"] * 3 + ["L3"] * 3, truth["owners"]
         assert all(x > 0 for x in truth["leases"]), truth["leases"]  # every robot held by its leader's drives
 
-        # 1. L1's radio cut for 3 s: its robots stop by their own watchdog, their leases lapse (nobody
-        #    takes them: L1 is alive on the bus), and L1 claims them again when its radio is back
-        l1 = [0, 1, 2]
-        relay.cut(3.0)
-        wait_for(lambda: not relay.is_cut, 10, "the short cut healed")
-        wait_for(lambda: all(w.last_truth()["leases"][r] > 0 and w.last_truth()["command_age"][r] < 0.2 for r in l1),
-                 30, "L1 driving its robots again")
-        with w.lock:
-            truths = list(w.truths)
-        assert any(all(tr["leases"][r] == 0 for r in l1) for tr in truths), "L1's leases lapsed during the cut"
-        assert all(tr["owners"][:3] == ["L1"] * 3 for tr in truths), "nobody took L1's robots"
-        _no_robot_moved_on_an_old_command(truths)
+        # 1. L1's radio cut for 3 s
+        _cut_and_back(w, relay, 3.0, truth["owners"])
 
         # 2. SIGKILL L2: its robots' leases lapse; L1 and L3 claim them by the plan and seat them
         orphans = [3, 4, 5]
@@ -109,18 +118,9 @@ def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cut
         t_seated = w.arena_t() - t_kill
         assert t_seated <= 15.0, t_seated
 
-        # 3. L1's radio cut for 12 s: the same, longer; L1 is alive on the bus, so its robots are nobody's
-        #    to adopt, and it takes them back when its radio returns
-        l1 = [r for r, o in enumerate(owners) if o == "L1"]
-        relay.cut(12.0)
-        wait_for(lambda: not relay.is_cut, 30, "the long cut healed")
-        wait_for(lambda: all(w.last_truth()["leases"][r] > 0 and w.last_truth()["command_age"][r] < 0.2 for r in l1),
-                 30, "L1 driving its robots again")
-        with w.lock:
-            truths = list(w.truths)
-        assert all(tr["owners"] == owners for tr in truths if tr["t"] >= t_kill + t_seated)
-        _no_robot_moved_on_an_old_command(truths)
-        print(f"radio fleet: formation RMS {', '.join(f'{k} {v * 100:.2f} cm' for k, v in rms.items())}; orphans"
+        # 3. L1's radio cut for 12 s, with the orphans it adopted
+        _cut_and_back(w, relay, 12.0, owners)
+        print(f"radio fleet: formation RMS when all were first in formation {', '.join(f'{k} {v * 100:.2f} cm' for k, v in rms.items())}; orphans"
               f" claimed {max(delays):.2f} s at most after their lease lapsed, all seated {t_seated:.1f} s after the"
               f" kill; owners {owners}; relay lost {relay.lost} chunks")
         assert w.last_truth()["two_owners"] == 0 and w.last_truth()["contacts"] == 0
