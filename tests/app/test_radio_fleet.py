@@ -61,8 +61,8 @@ def _cut_and_back(w: Watcher, relay: PtyRelay, seconds: float, owners: list[str]
 def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cuts(tmp_path):
     endpoint = loopback_endpoint()
     summary = tmp_path / "arena.json"
-    arena = _spawn("arena", FLEET, "--radio", "--zenoh-listen", endpoint, "--status-every", "0",
-                   "--summary", str(summary))
+    arena = _spawn("arena", FLEET, "--radio", "--radio-drop", "0.02", "--radio-delay-ms", "5",  # a lossy, late medium
+                   "--zenoh-listen", endpoint, "--status-every", "0", "--summary", str(summary))
     procs: dict[str, subprocess.Popen] = {}
     relay = None
     watch = None
@@ -135,4 +135,5 @@ def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cut
     # the robots' own count: never a DRIVE obeyed from two leaders within 100 ms
     assert counts["two_owners"] == 0 and counts["radio"]["two_owners"] == 0, counts
     assert counts["radio_commands"] == 0 and counts["conflicts"] == 0, counts  # nothing drove robots past the radio
+    assert counts["radio"]["dropped"] > 0, counts["radio"]  # the medium did lose frames
     assert counts["contacts"] == 0 and counts["closest_m"] >= 0.25 and math.isfinite(counts["closest_m"]), counts
