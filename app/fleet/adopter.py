@@ -127,8 +127,9 @@ class Adopter:
         lost = set(truth.get("lost", ())) - alive  # joined, and gone (as the arena and this leader both see it)
         # a robot this leader already took is no orphan, whatever an older truth still says of it:
         # claiming it again would be granted (it is ours) and seat it twice
-        orphans = [r for r, o in enumerate(owners) if (o is None or o in lost) and r not in self.team.owned
-                   and r not in self._wanted]
+        # (an emptied leader's last robot is not its own: it may be an orphan again, and the plan's to give)
+        orphans = [r for r, o in enumerate(owners) if (o is None or o in lost) and r not in self._wanted
+                   and (r not in self.team.owned or self.team.emptied)]
         if not orphans or set(truth.get("alive", ())) - alive:
             return  # nobody to adopt, or the arena knows of leaders this one has not heard of yet
         leaders = {lid: (float(pose[0]), float(pose[1]), sum(1 for o in owners if o == lid))

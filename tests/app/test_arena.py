@@ -407,3 +407,52 @@ def test_the_arena_is_the_worlds_physics_and_ignores_drives_from_old_truths():
     finally:
         arena.close()
         session.close()
+
+
+def test_a_leader_left_with_no_robot_waits_and_takes_an_orphan_the_plan_gives_it():
+    """A leader whose robots all went to others lets every one go (its state an empty team);
+    when the leader holding its last one dies, that robot is an orphan like any other, and the
+    plan may give it back. A real arena, a real Zenoh session in-process."""
+    from app.fleet.arena import Arena
+    from app.backends.arena import ArenaTeam
+    from app.fleet.adopter import Adopter
+    from app.fleet.bridge import open_session
+    from app.params import ParamsStore
+
+    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
+    session = open_session([], [])
+    arena = Arena(scenario, session)
+    tokens = {lid: session.liveliness().declare_token(f"omniformation/{FLEET}/alive/{lid}") for lid in ("L1", "L2", "L3")}
+    stop = threading.Event()
+    stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
+    stepper.start()
+    team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
+    store = ParamsStore(fixed_followers=len(team.owned))
+    adopter = Adopter(session, FLEET, "L1", team, store)
+    try:
+        wait_for(lambda: arena.alive == {"L1", "L2", "L3"} and adopter.alive >= {"L1", "L2", "L3"}, 10, "three alive")
+        # the operator's handovers: R1, R2 to L3, R3 to L2, and L2's own to L3 (full: 8), so that R3 is L2's only
+        moves = ((0, "L3"), (1, "L3"), (2, "L2"), (3, "L3"), (4, "L3"), (5, "L3"))
+        with arena._lock:
+            assert [arena._hand_over(r, to) for r, to in moves] == [""] * len(moves)
+        wait_for(lambda: team.emptied and team.owned == [2], 10, "L1 letting go of every robot")
+        team.resize(store.get().n_followers)  # as its loop does when the team changes
+        assert team.active == [2] and team.answering().tolist() == [False]  # its last place: another's robot
+        tokens.pop("L2").undeclare()  # L2 dies: R3 is an orphan once its lease lapses; L3 has no room
+        truth = arena.truth()
+        leaders = {lid: (pose[0], pose[1], truth["owners"].count(lid)) for lid, pose in truth["leaders"].items()
+                   if lid != "L2"}
+        assert adoption_plan([2], np.asarray(truth["robots"])[:, :2], leaders, 8) == {2: "L1"}
+        wait_for(lambda: arena.owners[2] == "L1", 20, "R3 claimed by L1")
+        wait_for(lambda: not team.emptied and team.owned == [2], 10, "L1's team: R3 again")
+        team.resize(store.get().n_followers)
+        assert store.get().n_followers == 1 and team.answering().tolist() == [True]
+    finally:
+        adopter.close()
+        team.close()
+        stop.set()
+        stepper.join(5)
+        for tok in tokens.values():
+            tok.undeclare()
+        arena.close()
+        session.close()
