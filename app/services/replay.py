@@ -113,7 +113,7 @@ class ReplayService:
             if event.client_id is None:  # our own update while playing
                 return
             with self._lock:
-                self.seek(self._index_at(float(self.timeline.value)))
+                self.seek(self._index_at(float(self.timeline.value)), move_timeline=False)
 
         @self.event_list.on_update
         def _(event: viser.GuiEvent[Any]) -> None:
@@ -172,9 +172,11 @@ class ReplayService:
                 frame = cv2.imdecode(np.frombuffer(self.rec.frames[j][1], np.uint8), cv2.IMREAD_COLOR)
         return tick_from_payload(self.rec.ticks[k], frame)
 
-    def seek(self, k: int) -> None:
+    def seek(self, k: int, move_timeline: bool = True) -> None:
         """Show tick k; the plots get the 60 s before it again. ``index`` changes only once
-        the state of tick k is published."""
+        the state of tick k is published. ``move_timeline``: False when a viewer set the time
+        themselves: the slider keeps what they gave (tick k is the last at or before it), and no
+        echo arrives after the drawing to overwrite the next time they are typing."""
         plots = self.dashboard.plots
         plots.reset()
         t_now = float(self.t[k])
@@ -184,10 +186,10 @@ class ReplayService:
                 plots.add(self.state_at(j, with_frame=False))
             except (KeyError, TypeError, ValueError, IndexError, AttributeError):
                 self.unreadable += 1
-        self._publish(k)
+        self._publish(k, move_timeline)
         self.index = k
 
-    def _publish(self, k: int) -> None:
+    def _publish(self, k: int, move_timeline: bool = True) -> None:
         try:
             state = self.state_at(k)
         except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:  # a tick the file spoiled
@@ -201,7 +203,8 @@ class ReplayService:
                 self._params_shown = j
                 self.store.load(params_from_payload(self.rec.params[j][1]), "replay")
             self.dashboard.publish(state)
-            self.timeline.value = round(float(self.t[k]), 3)  # type: ignore[misc]  # viser's stubs: read-only on the base handle
+            if move_timeline:
+                self.timeline.value = round(float(self.t[k]), 3)  # type: ignore[misc]  # viser's stubs: read-only on the base handle
 
         if on_page_thread(self.dashboard.server, draw):
             self.published += 1
