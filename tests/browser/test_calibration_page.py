@@ -19,7 +19,7 @@ from core.camera.config import WorkingArea, parse_camera
 from core.camera.guide import find_marker
 from core.camera.model import bearing_range_to_xy
 
-from tests.helpers import ARTIFACTS, chromium_browser, main_cli, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, main_cli, new_page, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 
@@ -45,7 +45,7 @@ def test_from_an_empty_table_to_a_saved_calibration_in_the_browser(service, rig)
     cam, source = rig
     panel = service.panel
     with chromium_browser() as browser:
-        page = browser.new_page(viewport={"width": 1400, "height": 1300})
+        page = new_page(browser, 1400, 1300)
         page.goto(service.url)
         page.get_by_role("button", name="Capture", exact=True).wait_for(timeout=30_000)
         settle(page)

@@ -11,7 +11,7 @@ import pytest
 from app.tick import TickState
 from app.services.live import Service
 
-from tests.helpers import ARTIFACTS
+from tests.helpers import ARTIFACTS, new_page
 from tests.helpers import chromium_browser, control_id, keep_ticks, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
@@ -35,7 +35,7 @@ def service():
 @pytest.fixture(scope="module")
 def page(service):
     with chromium_browser() as browser:
-        pg = browser.new_page(viewport={"width": 1500, "height": 950})
+        pg = new_page(browser, 1500, 950)
         pg.goto(service.url)
         pg.wait_for_selector('canvas[data-engine^="three.js"]', timeout=30_000)
         pg.wait_for_selector(".uplot canvas", timeout=30_000)

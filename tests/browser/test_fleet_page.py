@@ -21,7 +21,7 @@ from app.fleet.recorder import FleetRecorder
 from app.live.loop import ServiceLoop
 from app.params import Params, ParamsStore, default_slots
 
-from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, new_page, settle, wait_for
 
 pytest.importorskip("playwright.sync_api")
 pytest.importorskip("zenoh")
@@ -69,7 +69,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
         view = FleetView(server, page_session, "three_teams", recorder)
         l1, l2 = leaders
         with chromium_browser() as browser:
-            page = browser.new_page(viewport={"width": 1500, "height": 1200})
+            page = new_page(browser, 1500, 1200)
             page.goto(gate.url)
             page.get_by_text("Leader L1", exact=True).first.wait_for(timeout=60_000)
             page.get_by_text("Leader L2", exact=True).first.wait_for(timeout=60_000)

@@ -12,7 +12,7 @@ import pytest
 from app.recording.reader import read_recording
 from app.services.replay import ReplayService
 from core.geometry import leader_to_world
-from tests.helpers import ARTIFACTS, chromium_browser, control_id, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, new_page, settle, wait_for
 
 from tests.helpers import ROOT
 SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
@@ -31,7 +31,7 @@ def browser():
 
 def _replay_page(browser, svc: ReplayService):
     """A 1400 x 900 page on the replay, its charts drawn."""
-    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page = new_page(browser, 1400, 900)
     page.goto(svc.url)
     page.wait_for_selector(".uplot canvas", timeout=PAGE_MS)
     settle(page)
@@ -98,7 +98,7 @@ def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
     svc = Service(port=0, n_followers=2)  # truth feedback: light, this test is about the panel
     svc.start()
     try:
-        page = browser.new_page(viewport={"width": 1400, "height": 900})
+        page = new_page(browser, 1400, 900)
         page.goto(svc.url)
         page.wait_for_selector(".uplot", state="attached", timeout=PAGE_MS)
         settle(page)

@@ -13,7 +13,7 @@ from app.backends.serial_link import SerialLink
 from app.params import MAX_FOLLOWERS
 from app.services.live import Service
 from app.live.config import DEFAULT_CONFIG, load_service_config
-from tests.helpers import start_emulator_process, wait_for
+from tests.helpers import new_page, start_emulator_process, wait_for
 from tests.helpers import chromium_browser
 
 
@@ -47,7 +47,7 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
         assert sum(st.answered for st in link.stats) > 0.95 * sent and sum(st.crc_errors for st in link.stats) == 0
 
         with chromium_browser() as browser:
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page = new_page(browser, 1400, 900)
             page.goto(svc.url)
             page.get_by_text(f"link: serial {link_path}: ok").first.wait_for(timeout=30_000)
             page.get_by_text("link detail: F1 rtt").first.wait_for(timeout=10_000)

@@ -11,7 +11,7 @@ import pytest
 from app.services.live import Service
 from app.recording.reader import read_recording
 from tests.app.test_access import as_a_browser, ws_connect
-from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, new_page, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 PAGE_MS = 30_000
@@ -36,7 +36,7 @@ def service(tmp_path):
 
 
 def open_page(browser, url: str, width: int = 1280, height: int = 720):
-    page = browser.new_page(viewport={"width": width, "height": height})
+    page = new_page(browser, width, height)
     page.goto(url)
     page.wait_for_selector('canvas[data-engine^="three.js"]', timeout=PAGE_MS)
     page.get_by_role("button", name="STOP", exact=True).wait_for(timeout=PAGE_MS)

@@ -9,7 +9,7 @@ import pytest
 
 from app.services.live import Service
 
-from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, new_page, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 
@@ -27,7 +27,7 @@ def service():
 @pytest.fixture(scope="module")
 def page(service):
     with chromium_browser() as browser:
-        pg = browser.new_page(viewport={"width": 1500, "height": 1400})
+        pg = new_page(browser, 1500, 1400)
         pg.goto(service.url)
         pg.wait_for_selector(".uplot canvas", timeout=30_000)
         settle(pg)
