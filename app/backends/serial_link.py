@@ -278,12 +278,6 @@ class SerialLink:
             s = self._by_addr.get(address)
             return s is not None and s.owned
 
-    def owner_of(self, address: int) -> int:
-        """Who holds robot ``address`` as it last said (0: nobody, or not heard)."""
-        with self._lock:
-            s = self._by_addr.get(address)
-            return s.owner if s is not None else 0
-
     def measured(self) -> tuple[FloatArray, FloatArray]:
         """(v, w) per follower from the encoders; zero where the odometry is stale."""
         now = self._clock()

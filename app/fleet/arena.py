@@ -45,6 +45,7 @@ from core.bounds import LEADER_SPEED, LEADER_TURN
 from core.control.safety import SafetySettings
 from core.fleet import MAX_TEAM, ArenaState, FleetScenario, closest_distance, initial_arena, step_arena
 from core.link import protocol as p
+from core.link.follower import FollowerState
 from core.link.protocol import WATCHDOG_S
 from core.types import FloatArray
 
@@ -207,6 +208,7 @@ class Arena:
                 v = min(max(v, -dyn.speed_max_mps), dyn.speed_max_mps)  # a robot's body within its limits
                 w = min(max(w, -dyn.turn_max_rps), dyn.turn_max_rps)
                 self._drive(r, i + 1, age_ms, v, w)
+            self._refresh()  # once for the whole message: what the robots now hold
 
     # -- the robots' own word (under the lock) ---------------------------------------------
     def _ask(self, frame: p.Frame) -> p.Frame | None:
@@ -234,7 +236,6 @@ class Arena:
                 self.counts.robot_stale += 1
             else:
                 self.counts.conflicts += 1
-        self._refresh()
 
     def _hand_over(self, r: int, to: str) -> str:
         """The operator's word, as robot ``r`` takes it: a HANDOVER to ``to`` from its owner (a
@@ -248,9 +249,10 @@ class Arena:
             return ""
         return f"{robot_name(r)} refused it ({'no answer' if reply is None else p.decode_ownership(reply)})"
 
-    def robot_commands(self) -> FloatArray:
-        """(R, 2) what each robot's wheels are set to, as body velocity (v m/s, w rad/s)."""
-        snap = self.robots.snapshot()
+    def robot_commands(self, snap: dict[int, FollowerState] | None = None) -> FloatArray:
+        """(R, 2) what each robot's wheels are set to, as body velocity (v m/s, w rad/s); from
+        ``snap`` (the robots' states) when the caller has them already."""
+        snap = snap if snap is not None else self.robots.snapshot()
         targets = np.array([(snap[r + 1].target_l_mps, snap[r + 1].target_r_mps) for r in range(len(self.owners))])
         return np.column_stack([targets.sum(axis=1) / 2, (targets[:, 1] - targets[:, 0]) / self.robots.hw.wheel_base_m])
 
@@ -395,7 +397,7 @@ class Arena:
         with self._lock:
             snap = self.robots.snapshot()
             ages = np.array([snap[r + 1].command_age_s for r in range(len(self.owners))])
-            commands = self.robot_commands()  # the arena's bodies move as their wheels are set
+            commands = self.robot_commands(snap)  # the arena's bodies move as their wheels are set
             # a command that passes the watchdog's age during this step is zero for the whole step (the
             # robot's own watchdog would zero it within it; a robot never moves on one older than 0.5 s)
             stale = ages + self.dt > WATCHDOG_S + 1e-9
