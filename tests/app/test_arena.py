@@ -7,6 +7,7 @@ the clock together."""
 from __future__ import annotations
 
 import bisect
+import contextlib
 import json
 import math
 import signal
@@ -312,10 +313,10 @@ def test_an_adopted_robot_joins_on_the_side_it_comes_from():
     assert np.array_equal(slot_for_newcomer(slots, np.array([3.0, 0.0])), slot_for_newcomer(slots, np.array([3.0, 0.0])))
 
 
-def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned():
-    """The adopter acts on the newest truth it holds, which may be older than its own grant: a
-    robot it took already is no orphan (claimed again it would be granted -- it is the
-    claimant's -- and seated in a second slot). A real arena, a real Zenoh session in-process."""
+@contextlib.contextmanager
+def _l1_in_an_arena():
+    """A real arena stepping in-process on a real Zenoh session, the three leaders' tokens (the
+    test's to undeclare), and L1's team and adopter: (arena, tokens, team, store, adopter)."""
     from app.fleet.arena import Arena
     from app.backends.arena import ArenaTeam
     from app.fleet.adopter import Adopter
@@ -334,6 +335,23 @@ def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned()
     adopter = Adopter(session, FLEET, "L1", team, store)
     try:
         wait_for(lambda: arena.alive == {"L1", "L2", "L3"} and adopter.alive >= {"L1", "L2", "L3"}, 10, "three alive")
+        yield arena, tokens, team, store, adopter
+    finally:
+        adopter.close()
+        team.close()
+        stop.set()
+        stepper.join(5)
+        for tok in tokens.values():
+            tok.undeclare()
+        arena.close()
+        session.close()
+
+
+def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned():
+    """The adopter acts on the newest truth it holds, which may be older than its own grant: a
+    robot it took already is no orphan (claimed again it would be granted -- it is the
+    claimant's -- and seated in a second slot). A real arena, a real Zenoh session in-process."""
+    with _l1_in_an_arena() as (arena, tokens, team, store, adopter):
         # nobody drives L2's robots: their power-up lease lapses, and the robots grant a claim
         wait_for(lambda: all(arena.leases[r] == 0 for r, o in enumerate(arena.owners) if o == "L2"), 10, "leases lapsed")
         tokens.pop("L2").undeclare()
@@ -355,15 +373,6 @@ def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned()
             assert arena._hand_over(given, "L3") == ""
         wait_for(lambda: team.latest_truth()["owners"][given] == "L3", 10, "the truth of the handover")
         assert list(team.answering()) == [r != given for r in team.active]
-    finally:
-        adopter.close()
-        team.close()
-        stop.set()
-        stepper.join(5)
-        for tok in tokens.values():
-            tok.undeclare()
-        arena.close()
-        session.close()
 
 
 def test_the_arena_is_the_worlds_physics_and_ignores_drives_from_old_truths():
@@ -413,24 +422,7 @@ def test_a_leader_left_with_no_robot_waits_and_takes_an_orphan_the_plan_gives_it
     """A leader whose robots all went to others lets every one go (its state an empty team);
     when the leader holding its last one dies, that robot is an orphan like any other, and the
     plan may give it back. A real arena, a real Zenoh session in-process."""
-    from app.fleet.arena import Arena
-    from app.backends.arena import ArenaTeam
-    from app.fleet.adopter import Adopter
-    from app.fleet.bridge import open_session
-    from app.params import ParamsStore
-
-    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
-    session = open_session([], [])
-    arena = Arena(scenario, session)
-    tokens = {lid: session.liveliness().declare_token(f"omniformation/{FLEET}/alive/{lid}") for lid in ("L1", "L2", "L3")}
-    stop = threading.Event()
-    stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
-    stepper.start()
-    team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
-    store = ParamsStore(fixed_followers=len(team.owned))
-    adopter = Adopter(session, FLEET, "L1", team, store)
-    try:
-        wait_for(lambda: arena.alive == {"L1", "L2", "L3"} and adopter.alive >= {"L1", "L2", "L3"}, 10, "three alive")
+    with _l1_in_an_arena() as (arena, tokens, team, store, adopter):
         # the operator's handovers: R1, R2 to L3, R3 to L2, and L2's own to L3 (full: 8), so that R3 is L2's only
         moves = ((0, "L3"), (1, "L3"), (2, "L2"), (3, "L3"), (4, "L3"), (5, "L3"))
         with arena._lock:
@@ -447,12 +439,3 @@ def test_a_leader_left_with_no_robot_waits_and_takes_an_orphan_the_plan_gives_it
         wait_for(lambda: not team.emptied and team.owned == [2], 10, "L1's team: R3 again")
         team.resize(store.get().n_followers)
         assert store.get().n_followers == 1 and team.answering().tolist() == [True]
-    finally:
-        adopter.close()
-        team.close()
-        stop.set()
-        stepper.join(5)
-        for tok in tokens.values():
-            tok.undeclare()
-        arena.close()
-        session.close()
