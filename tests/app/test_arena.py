@@ -439,3 +439,65 @@ def test_a_leader_left_with_no_robot_waits_and_takes_an_orphan_the_plan_gives_it
         wait_for(lambda: not team.emptied and team.owned == [2], 10, "L1's team: R3 again")
         team.resize(store.get().n_followers)
         assert store.get().n_followers == 1 and team.answering().tolist() == [True]
+
+
+def test_an_arena_on_a_radio_takes_robot_commands_from_the_radio_alone_and_its_robots_judge_strangers():
+    """``arena --radio``, in-process: robot commands and claims on the bus move and give nothing
+    (counted, refused with the reason); on a leader's radio, garbage bytes are dropped, a
+    stranger's DRIVE is refused and a stranger's CLAIM waits for the lease like anyone's (the
+    radio has no authentication: the truth names it ``radio 7``, never a leader of the fleet)."""
+    import serial
+
+    from app.fleet.arena import Arena
+    from app.fleet.bridge import open_session
+    from core.link import protocol as p
+
+    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
+    session = open_session([], [])
+    arena = Arena(scenario, session, radio=True)
+    assert arena.radio is not None
+    stop = threading.Event()
+    threads = [threading.Thread(target=arena.run, args=(stop,), daemon=True),
+               threading.Thread(target=arena.radio.run, args=(stop,), daemon=True)]
+    for t in threads:
+        t.start()
+    token = session.liveliness().declare_token(f"omniformation/{FLEET}/alive/L1")
+    port = serial.Serial(arena.radio.paths[0], 115200, timeout=0.05)
+    parser = p.FrameParser()
+    heard: list[p.Frame] = []
+
+    def say(frame: p.Frame) -> p.Frame:  # one frame from radio id 7 on L1's radio; the robot's answer to 7
+        port.write(p.encode_frame(frame))
+
+        def answered() -> bool:
+            heard.extend(parser.feed(port.read(256)))
+            return any(f.seq == frame.seq and p.answers(f) == 7 for f in heard)
+
+        wait_for(answered, 10, f"the answer to {frame.msg_type:#x}")
+        return next(f for f in heard if f.seq == frame.seq and p.answers(f) == 7)
+
+    try:
+        wait_for(lambda: "L1" in arena.alive, 10, "L1 alive")
+        session.put(f"omniformation/{FLEET}/arena/drive/L1",
+                    json.dumps({"tick": 1, "truth_tick": arena.counts.steps, "twist": [0.0, 0.0],
+                                "commands": {"R1": [0.3, 0.0], "R2": [0.3, 0.0]}}))
+        wait_for(lambda: arena.counts.radio_commands == 2, 10, "the bus's robot commands counted")
+        replies = [json.loads(r.ok.payload.to_bytes()) for r in session.get(
+            f"omniformation/{FLEET}/arena/claim/L1", payload=json.dumps({"robot": "R4"}), timeout=5.0)]
+        assert replies and not replies[0]["granted"] and "over the radio" in replies[0]["why"], replies
+        port.write(b"\xa5\x5a\xff\x00garbage\x00\xa5")  # dropped by every robot's parser
+        refused = say(p.claim(1, 11, 7, 1000))  # R1's power-up lease still lives
+        assert refused.msg_type == p.MSG_NACK and p.decode_ownership(refused).owner == 1
+        assert say(p.drive(2, 12, 7, 10, 0.3, 0.0)).msg_type == p.MSG_NACK  # not its owner
+        wait_for(lambda: arena.leases[0] == 0, 10, "R1's lease lapsed (nobody drives it)")
+        assert say(p.claim(1, 13, 7, 1000)).msg_type == p.MSG_OWNER
+        wait_for(lambda: arena.truth()["owners"][0] == "radio 7", 10, "the truth naming the stranger")
+        assert np.all(arena.robot_commands()[:, 0] == 0.0) and arena.two_owners == 0  # nothing moved
+    finally:
+        port.close()
+        token.undeclare()
+        stop.set()
+        for t in threads:
+            t.join(5)
+        arena.close()
+        session.close()
