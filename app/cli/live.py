@@ -80,6 +80,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--fleet", metavar="NAME", help="join this fleet on the Zenoh bus (docs/fleet-protocol.md)")
     run.add_argument("--leader-id", metavar="ID", help="this leader's name in the fleet (with --fleet)")
     from app.cli.fleet import add_bus_args
+    from app.cli.foxglove_args import add_foxglove_args
 
     add_bus_args(run, prefix="--fleet: ")
     run.add_argument("--fleet-control", action="store_true",
@@ -87,6 +88,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--realtime", action="store_true",
                      help="the loop's and the camera's threads on real-time scheduling (SCHED_FIFO; needs root,"
                           " CAP_SYS_NICE or an rtprio limit): fewer latency spikes on a busy machine")
+    add_foxglove_args(run)
     run.set_defaults(func=cmd_run)
 
 
@@ -124,7 +126,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     first (it zeroes the robots)."""
     import signal
 
+    from app.cli.foxglove_args import attach_to_service, check_foxglove_args
+
     plan = _plan_run(args)
+    check_foxglove_args(args)
     with contextlib.ExitStack() as stack:
         handed = stack.enter_context(contextlib.ExitStack())  # closed here until the service owns them
         frames = _open_camera(args, plan, handed)
@@ -137,6 +142,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if recorder is not None:
             stack.callback(lambda: print(f"omniformation: {recorder.closing_line()}", flush=True))
             stack.callback(recorder.close)
+        attach_to_service(args, service, recorder, stack)
         bridge = _on_the_bus(args, fleet, service, stack) if fleet is not None else None
         # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
         # (even before the first tick ends), and the loop's own exit is what zeroes the robots.

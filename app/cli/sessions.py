@@ -31,15 +31,28 @@ def load_recording(path: Path) -> "Recording":
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from app.cli.args import serve_page
+    from app.cli.foxglove_args import check_foxglove_args, serve_replay
     from app.services.replay import ReplayService
 
+    check_foxglove_args(args)
     rec = load_recording(args.file)
     t = rec.t
-    return serve_page(lambda: ReplayService(rec, host=args.host, port=args.port, token=args.token), args.host,
-                      args.port, "see the recording",
-                      lambda svc: f"omniformation: replaying {display_path(args.file)} ({len(rec.ticks)} ticks,"
-                                  f" {t[-1] - t[0]:.1f} s, {len(rec.frames)} frames, {len(rec.events)} events) at"
-                                  f" {svc.url}  (Ctrl-C to stop)")
+    fox = serve_replay(args, rec)
+
+    def make() -> ReplayService:
+        svc = ReplayService(rec, host=args.host, port=args.port, token=args.token)
+        if fox is not None:
+            svc.listeners.append(fox.on_tick)
+        return svc
+
+    try:
+        return serve_page(make, args.host, args.port, "see the recording",
+                          lambda svc: f"omniformation: replaying {display_path(args.file)} ({len(rec.ticks)} ticks,"
+                                      f" {t[-1] - t[0]:.1f} s, {len(rec.frames)} frames, {len(rec.events)} events) at"
+                                      f" {svc.url}  (Ctrl-C to stop)")
+    finally:
+        if fox is not None:
+            fox.close()
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -72,6 +85,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     rp.add_argument("--token", type=token_arg, help="the token browsers must present on a non-loopback --host"
                                                      " (default: a new one, printed in the URL)")
     rp.add_argument("--port", type=port, default=8080, help="port (default 8080)")
+    from app.cli.foxglove_args import add_foxglove_args
+
+    add_foxglove_args(rp)
     rp.set_defaults(func=cmd_replay)
 
     rep = sub.add_parser("report", help="turn a recording into the paper's figures and a summary",

@@ -65,6 +65,7 @@ TRIAL_TOPIC = "/omniformation/trials"
 SCAN_HZ = 10.0  # free-space scans recorded per second (each is 360 ranges)
 
 _NUM_ARRAY = {"type": "array", "items": {"type": ["number", "null"]}}
+_NUM_ARRAY_OR_NULL = {"type": ["array", "null"], "items": {"type": ["number", "null"]}}  # None when not measured
 _TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
 _VEC3 = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
 _QUAT = {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}}
@@ -77,15 +78,15 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "properties": {
             "tick": {"type": "integer"}, "t": {"type": "number"},
             "leader": _NUM_ARRAY, "leader_twist": _NUM_ARRAY,
-            "p_est": {"type": "array"}, "a_est": _NUM_ARRAY, "a_raw": _NUM_ARRAY, "tracked": {"type": "array"},
+            "p_est": {"type": "array"}, "a_est": _NUM_ARRAY, "a_raw": _NUM_ARRAY_OR_NULL, "tracked": {"type": "array"},
             "p_true": {"type": "array"}, "a_true": _NUM_ARRAY, "followers_world": {"type": "array"},
             "p_d": {"type": "array"}, "slot_targets": {"type": "array"}, "assignment": {"type": "array"},
             "commands": {"type": "array"}, "a_err": _NUM_ARRAY, "v_lyap": _NUM_ARRAY,
             "gains": {"type": "object"}, "params_version": {"type": "integer"},
             "stopped": {"type": "boolean"}, "paused": {"type": "boolean"}, "link_state": {"type": "string"},
             "rate_hz": {"type": "number"}, "stage_ms": {"type": "object"}, "phase": {"type": "string"},
-            "probing": {"type": "integer"}, "windows": {"type": "array"}, "hues_deg": _NUM_ARRAY,
-            "safety": {"type": "string"}, "safety_changed": _NUM_ARRAY, "min_distance_m": {"type": ["number", "null"]},
+            "probing": {"type": "integer"}, "windows": {"type": ["array", "null"]}, "hues_deg": _NUM_ARRAY_OR_NULL,
+            "safety": {"type": "string"}, "safety_changed": _NUM_ARRAY_OR_NULL, "min_distance_m": {"type": ["number", "null"]},
             "safety_active": {"type": ["array", "null"]},
             "obstacles": {"type": ["array", "null"], "description": "obstacle points the leader knows, leader frame, m"},
             "goal": {"type": ["array", "null"]}, "heading": {"type": ["number", "null"]},

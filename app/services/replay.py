@@ -10,6 +10,7 @@ from __future__ import annotations
 import bisect
 import threading
 import time
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -76,6 +77,7 @@ class ReplayService:
                 gui.add_markdown(f"**{as_text(rec.loss_note())}**")
         self._wire()
         self._thread: threading.Thread | None = None
+        self.listeners: list[Callable[[TickState], None]] = []  # each tick shown, also to these (Foxglove live)
 
     def _events_summary(self) -> str:
         if not self.rec.events:
@@ -197,6 +199,8 @@ class ReplayService:
             self.event_text.content = f"**tick {k} could not be shown** ({type(exc).__name__}); playback goes on"
             return
         j = params_index(self._param_t, float(self.t[k]))
+        for fn in self.listeners:
+            fn(state)
 
         def draw() -> None:
             if j != self._params_shown and self.rec.params:  # the settings in force at this moment, not at the start

@@ -1,0 +1,311 @@
+"""Foxglove live: a session served to Foxglove by Foxglove's own SDK (``foxglove-sdk``: its
+WebSocket server, no hand-written protocol), view-only (docs/foxglove.md).
+
+An adapter at the edge: it is handed what the loop already publishes (each TickState, as the
+recorder is; each parameter set, as the recorder is) and never reaches into the loop. The loop
+only puts the state in a bounded queue (a full queue drops the state and counts it); a thread of
+its own turns it into messages:
+
+* the recording's channels, with the recording's encoders and schemas (app.recording.schema,
+  app.recording.foxglove): /omniformation/tick, /tf, /camera/image, /scan, /omniformation/events,
+  /omniformation/params, /omniformation/trials;
+* ``/omniformation/scene``, a ``foxglove.SceneUpdate`` per tick: the leader, each follower in its
+  page colour with its heading, the slots and the formation, the obstacles as the leader knows
+  them and the safety rings (a red ring on a follower the safety filter holds back), in the
+  leader frame that /tf places in the world.
+
+Every message carries the session's time (app.tick.SessionClock, as the recording). Work a
+message needs (JSON, JPEG, the scene) is skipped while no client subscribes to its channel.
+The server advertises no capability: a client can neither publish nor set a parameter.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import re
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import cv2
+import foxglove
+import numpy as np
+from foxglove.channels import SceneUpdateChannel
+from foxglove.messages import (ArrowPrimitive, Color, CubePrimitive, LinePrimitive, LinePrimitiveLineType, Point3,
+                               Pose, Quaternion, SceneEntity, SceneEntityDeletion, SceneUpdate, SpherePrimitive,
+                               TextPrimitive, Timestamp, Vector3)
+
+from app.dashboard.gate import is_loopback
+from app.params import Params
+from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
+from app.recording.schema import (EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS, TF_TOPIC,
+                                  TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable, params_payload,
+                                  scan_payload, tick_payload, transforms_payload)
+from app.recording.writer import params_events, tick_events
+from app.tick import SessionClock, TickState
+from core.camera.render.looks import follower_rgb
+
+SCENE_TOPIC = "/omniformation/scene"
+DEFAULT_PORT = 8765  # Foxglove's own default
+MAX_WAITING = 300  # states queued for the server's thread (10 s at 30 Hz); beyond, the newest is dropped
+BACKLOG = 4096  # messages the SDK buffers per client before it drops the oldest
+WORKING_RING_M = (0.3, 1.5)  # as the page draws them (app.dashboard.scene)
+SLOT_Z_M = 0.16
+FOLLOWER_RADIUS_M = 0.11  # half the diagonal of the follower's footprint drawn (0.25 x 0.15 m): the safety ring's
+
+log = logging.getLogger(__name__)
+
+
+class FoxgloveRefused(ValueError):
+    """The server cannot start (a host without TLS, a port in use, bad certificate): one line."""
+
+
+def _rgba(rgb: tuple[int, int, int], a: float = 1.0) -> Color:
+    return Color(r=rgb[0] / 255, g=rgb[1] / 255, b=rgb[2] / 255, a=a)
+
+
+def _pose(x: float, y: float, z: float, yaw: float = 0.0) -> Pose:
+    return Pose(position=Vector3(x=x, y=y, z=z),
+                orientation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
+
+
+def _circle(cx: float, cy: float, r: float, z: float, segments: int = 36) -> list[Point3]:
+    ang = np.linspace(0.0, 2 * math.pi, segments, endpoint=False)
+    return [Point3(x=cx + r * math.cos(a), y=cy + r * math.sin(a), z=z) for a in ang]
+
+
+LEADER_BLUE, SLOT_RED, RING_BLUE, KNOWN_ORANGE, SAFETY_RED = ((40, 70, 140), (200, 40, 40), (120, 160, 220),
+                                                              (240, 140, 0), (220, 30, 30))
+
+
+def scene_update(s: TickState, ns: int) -> SceneUpdate:
+    """What the page's 3D view shows (app.dashboard.scene), as one foxglove.SceneUpdate in the
+    leader frame (x right, y forward): entities ``leader``, ``follower<i>`` (deleted while its
+    pose is unknown), ``slots``, ``formation``, ``obstacles`` (as known) and ``safety``."""
+    stamp = Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+
+    def entity(eid: str, **parts: Any) -> SceneEntity:
+        return SceneEntity(timestamp=stamp, frame_id="leader", id=eid, **parts)
+
+    rings = [LinePrimitive(type=LinePrimitiveLineType.LineLoop, thickness=0.01, points=_circle(0.0, 0.0, r, 0.01),
+                           color=_rgba(RING_BLUE)) for r in WORKING_RING_M]
+    entities = [entity("leader", cubes=[CubePrimitive(pose=_pose(0.0, 0.0, 0.11), size=Vector3(x=0.40, y=0.45, z=0.22),
+                                                      color=_rgba(LEADER_BLUE))],
+                       arrows=[ArrowPrimitive(pose=_pose(0.0, 0.1, 0.25, math.pi / 2), shaft_length=0.27,
+                                              shaft_diameter=0.03, head_length=0.08, head_diameter=0.08,
+                                              color=_rgba(LEADER_BLUE))],
+                       lines=rings)]
+    deletions = []
+    known = np.all(np.isfinite(s.p_est), axis=1) & np.isfinite(s.a_est)
+    for i in range(s.n):
+        eid = f"follower{i + 1}"
+        if not (known[i] and bool(s.tracked[i])):
+            deletions.append(SceneEntityDeletion(timestamp=stamp, id=eid))
+            continue
+        x, y, a = float(s.p_est[i, 0]), float(s.p_est[i, 1]), float(s.a_est[i])
+        rgb = follower_rgb(i)
+        entities.append(entity(
+            eid, cubes=[CubePrimitive(pose=_pose(x, y, 0.05, a), size=Vector3(x=0.25, y=0.15, z=0.10),
+                                      color=_rgba((45, 45, 45))),
+                        CubePrimitive(pose=_pose(x, y, 0.105, a), size=Vector3(x=0.12, y=0.08, z=0.01), color=_rgba(rgb))],
+            arrows=[ArrowPrimitive(pose=_pose(x + 0.1 * math.cos(a), y + 0.1 * math.sin(a), 0.12, a), shaft_length=0.19,
+                                   shaft_diameter=0.02, head_length=0.06, head_diameter=0.06, color=_rgba(rgb))],
+            texts=[TextPrimitive(pose=_pose(x, y, 0.3), billboard=True, font_size=14.0, scale_invariant=True,
+                                 color=_rgba(rgb), text=f"F{i + 1}")]))
+    slots = np.asarray(s.slot_targets, dtype=np.float64).reshape(-1, 2)
+    entities.append(entity("slots", spheres=[SpherePrimitive(pose=_pose(float(x), float(y), SLOT_Z_M),
+                                                             size=Vector3(x=0.08, y=0.08, z=0.08), color=_rgba(SLOT_RED))
+                                             for x, y in slots if math.isfinite(x) and math.isfinite(y)]))
+    used = slots[np.asarray(s.assignment, dtype=np.intp)] if len(slots) else np.zeros((0, 2))
+    order = np.argsort(np.arctan2(used[:, 1], used[:, 0]))
+    polygon = np.vstack([[0.0, 0.0], used[order], [0.0, 0.0]])
+    entities.append(entity("formation", lines=[LinePrimitive(
+        type=LinePrimitiveLineType.LineStrip, thickness=0.012, color=_rgba(SLOT_RED),
+        points=[Point3(x=float(x), y=float(y), z=0.015) for x, y in polygon if math.isfinite(x) and math.isfinite(y)])]))
+    pts = np.asarray(s.obstacles, dtype=np.float64).reshape(-1, 2) if s.obstacles is not None else np.zeros((0, 2))
+    entities.append(entity("obstacles", cubes=[CubePrimitive(pose=_pose(float(x), float(y), 0.03),
+                                                             size=Vector3(x=0.03, y=0.03, z=0.03), color=_rgba(KNOWN_ORANGE))
+                                               for x, y in pts]))
+    active = s.safety_active if s.safety_active is not None else np.zeros(s.n, dtype=bool)
+    entities.append(entity("safety", lines=[
+        LinePrimitive(type=LinePrimitiveLineType.LineLoop, thickness=0.02, color=_rgba(SAFETY_RED),
+                      points=_circle(float(s.p_est[i, 0]), float(s.p_est[i, 1]), FOLLOWER_RADIUS_M * 2, 0.01))
+        for i in range(s.n) if bool(active[i]) and known[i]]))
+    return SceneUpdate(deletions=deletions, entities=entities)
+
+
+def _bind_line(host: str, port: int, exc: Exception) -> str:
+    """The SDK's error (``... (os error 98)``) as one line for people."""
+    text = str(exc)
+    m = re.search(r"os error (\d+)", text)
+    if m and int(m.group(1)) == 98:
+        why = "the port is in use (another program serves there: stop it or give another port)"
+    elif m and int(m.group(1)) == 99:
+        why = "this machine has no such address (give one of its own, or 127.0.0.1)"
+    elif "TLS" in text or "tls" in text:
+        why = f"the TLS certificate or key is not usable ({text.split(':', 1)[-1].strip()})"
+    else:
+        why = text.removeprefix("FoxgloveError: ")
+    return f"--foxglove {host}:{port}: cannot serve: {why}"
+
+
+class FoxgloveLive:
+    """A Foxglove WebSocket server for one session: subscribe ``on_tick`` to the loop,
+    ``on_params`` to the parameter store and ``on_trial`` to the step tests (see the module
+    docstring). ``tls``: (certificate, key), PEM; required off loopback."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, tls: tuple[bytes, bytes] | None = None,
+                 frame_rate_hz: float = 10.0, start_ns: int | None = None, name: str = "omniformation",
+                 params: Params | None = None, time_of: Callable[[TickState], float] | None = None) -> None:
+        """``start_ns``: the session's start (a recording's, so both carry the same times);
+        ``time_of``: a tick's session time (a replay's, from its recording) instead of the clock."""
+        if tls is None and not is_loopback(host):
+            raise FoxgloveRefused(f"--foxglove {host}:{port}: serving off this machine needs TLS: give"
+                                  " --foxglove-tls-cert CERT.pem and --foxglove-tls-key KEY.pem (or serve on 127.0.0.1)")
+        self.frame_rate_hz = frame_rate_hz
+        self.start_ns = time.time_ns() if start_ns is None else start_ns
+        self.context = foxglove.Context()
+        self.channels: dict[str, foxglove.Channel] = {}
+        for topic, schema in TOPIC_SCHEMA.items():
+            if topic in PROTOBUF_TOPICS:  # Foxglove's own schema, from its package, as the recording
+                sch = foxglove.Schema(name=schema, encoding="protobuf", data=schema_data(PROTOBUF_TOPICS[topic]))
+                self.channels[topic] = foxglove.Channel(topic, schema=sch, message_encoding="protobuf",
+                                                        context=self.context)
+            else:
+                sch = foxglove.Schema(name=schema, encoding="jsonschema", data=json.dumps(SCHEMAS[schema]).encode())
+                self.channels[topic] = foxglove.Channel(topic, schema=sch, message_encoding="json", context=self.context)
+        self.scene = SceneUpdateChannel(SCENE_TOPIC, context=self.context)
+        try:
+            self.server = foxglove.start_server(
+                name=name, host=host, port=port, capabilities=[], supported_encodings=[], context=self.context,
+                message_backlog_size=BACKLOG, tls_cert=tls[0] if tls else None, tls_key=tls[1] if tls else None)
+        except RuntimeError as exc:
+            raise FoxgloveRefused(_bind_line(host, port, exc)) from None
+        self.host = host
+        self.port = int(self.server.port)
+        self.scheme = "wss" if tls else "ws"
+        self._queue: queue.Queue[tuple[str, Any] | None] = queue.Queue(maxsize=MAX_WAITING)
+        self._clock = SessionClock()
+        self.time_of = time_of
+        self._prev: TickState | None = None
+        self._params = params
+        self._last_frame_t = -math.inf
+        self._last_scan_t = -math.inf
+        self._handed = 0  # items queued
+        self._served = 0  # items the thread is done with
+        self.ticks = 0  # states served
+        self.dropped = 0  # states the queue had no room for
+        self.logged: dict[str, int] = {t: 0 for t in (*self.channels, SCENE_TOPIC)}  # messages per topic
+        self._thread = threading.Thread(target=self._run, name="omniformation-foxglove", daemon=True)
+        self._thread.start()
+        if params is not None:
+            self._put("params0", params)
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{self.scheme}://{host}:{self.port}"
+
+    # -- what the loop, the store and the step tests hand over (never waits) ---------------
+    def _put(self, kind: str, item: Any) -> None:
+        try:
+            self._queue.put_nowait((kind, item))
+            self._handed += 1
+        except queue.Full:
+            self.dropped += 1
+
+    def on_tick(self, s: TickState) -> None:
+        self._put("tick", s)
+
+    def on_params(self, p: Params, source: str, notices: tuple[Any, ...]) -> None:
+        self._put("params", (p, source))
+
+    def on_trial(self, trial: Any) -> None:
+        self._put("trial", trial.payload())
+
+    # -- the server's thread ---------------------------------------------------------------
+    def _ns(self, t: float) -> int:
+        return self.start_ns + max(0, int(round(t * 1e9)))
+
+    def _log(self, topic: str, data: bytes, ns: int) -> None:
+        self.channels[topic].log(data, log_time=ns)
+        self.logged[topic] += 1
+
+    def _json(self, topic: str, payload: Any, ns: int) -> None:
+        if self.channels[topic].has_sinks():
+            self._log(topic, json.dumps(payload, separators=(",", ":")).encode(), ns)
+
+    def _event(self, t: float, kind: str, detail: str) -> None:
+        self._json(EVENT_TOPIC, {"t": t, "kind": kind, "detail": detail}, self._ns(t))
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            kind, value = item
+            try:
+                if kind == "tick":
+                    self._serve_tick(value)
+                elif kind == "params0":
+                    self._json(PARAMS_TOPIC, params_payload(value), self._ns(0.0))
+                elif kind == "params":
+                    p, source = value
+                    if self._params is not None:
+                        for what, detail in params_events(self._params, p, source):
+                            self._event(self._clock.last, what, detail)
+                    self._params = p
+                    self._json(PARAMS_TOPIC, params_payload(p), self._ns(self._clock.last))
+                elif kind == "trial":
+                    t = self._clock.last
+                    self._json(TRIAL_TOPIC, jsonable(value), self._ns(t))
+                    self._event(t, "trial", f"trial {value['number']}: {value['label']}, {value['status']}")
+            except Exception:  # a view must never take the session down
+                log.exception("Foxglove live: a %s could not be served", kind)
+            self._served += 1
+
+    def _serve_tick(self, s: TickState) -> None:
+        t = self._clock(s.t) if self.time_of is None else self.time_of(s)
+        ns = self._ns(t)
+        self._json(TICK_TOPIC, tick_payload(s), ns)
+        if self.channels[TF_TOPIC].has_sinks():
+            self._log(TF_TOPIC, encode(TF_TOPIC, transforms_payload(s, ns)), ns)
+        for kind, detail in tick_events(self._prev, s):
+            self._event(t, kind, detail)
+        self._prev = s
+        if s.scan is not None and t - self._last_scan_t >= 1.0 / SCAN_HZ - 1e-9:
+            self._last_scan_t = t
+            if self.channels[SCAN_TOPIC].has_sinks():
+                self._log(SCAN_TOPIC, encode(SCAN_TOPIC, scan_payload(s.scan, ns)), ns)
+        if s.frame is not None and self.frame_rate_hz > 0 and t - self._last_frame_t >= 1.0 / self.frame_rate_hz - 1e-9:
+            self._last_frame_t = t
+            if self.channels[IMAGE_TOPIC].has_sinks():
+                ok, buf = cv2.imencode(".jpg", np.asarray(s.frame), [cv2.IMWRITE_JPEG_QUALITY, 80])
+                if ok:
+                    self._log(IMAGE_TOPIC, encode(IMAGE_TOPIC, image_payload(ns, buf.tobytes())), ns)
+        if self.scene.has_sinks():
+            self.scene.log(scene_update(s, ns), log_time=ns)
+            self.logged[SCENE_TOPIC] += 1
+        self.ticks += 1
+
+    def drain(self, timeout: float = 10.0) -> bool:
+        """Wait until every state handed over so far is served (tests, the bench); whether it was."""
+        deadline = time.monotonic() + timeout
+        while self._served < self._handed:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.002)
+        return True
+
+    def close(self) -> None:
+        """Serve what is queued (at most a few seconds), then stop the server."""
+        try:
+            self._queue.put(None, timeout=2.0)
+        except queue.Full:
+            pass
+        self._thread.join(5.0)
+        self.server.stop()
