@@ -83,6 +83,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                       help="the token of a view-only URL (it may press STOP, nothing else; default: made up, printed)")
     page.add_argument("--record", type=Path, metavar="FILE.mcap",
                       help="record the whole fleet (a channel per leader) into this new file")
+    from app.cli.foxglove_args import add_foxglove_args
+
+    add_foxglove_args(page)
     page.set_defaults(func=cmd_fleet)
 
     keys = sub.add_parser(
@@ -223,11 +226,13 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     from app.realtime import SWITCH_INTERVAL_S
     from app.services.fleet_page import FleetView
     from app.fleet.recorder import FleetRecorder
+    from app.cli.foxglove_args import check_foxglove_args, serve_fleet
 
     try:
         check_name(args.fleet, "--fleet")
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    check_foxglove_args(args)
     if args.record is not None:
         check_new_file(args.record, "recording", ".mcap")
         if args.record.exists():
@@ -251,7 +256,16 @@ def cmd_fleet(args: argparse.Namespace) -> int:
             session.close()
             raise UserError(f"{args.record}: cannot record: {exc.strerror or exc}") from None
     sys.setswitchinterval(SWITCH_INTERVAL_S)  # states reach the page's callbacks sooner (app.services.fleet_page)
-    view = FleetView(server, session, args.fleet, recorder, allow_viewer=gate.filter.allow_viewer)
+    try:
+        sink, fox = serve_fleet(args, recorder)
+    except UserError:
+        if recorder is not None:
+            recorder.close()
+        gate.close()
+        quietly(server.stop)
+        session.close()
+        raise
+    view = FleetView(server, session, args.fleet, sink, allow_viewer=gate.filter.allow_viewer)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -266,6 +280,8 @@ def cmd_fleet(args: argparse.Namespace) -> int:
         stop.wait()
     finally:
         view.close()
+        if fox is not None:
+            fox.close()
         if recorder is not None:
             recorder.close()
             print(f"omniformation: fleet recording finished: {display_path(recorder.path)} ({recorder.written}"

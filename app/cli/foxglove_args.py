@@ -121,3 +121,33 @@ def serve_replay(args: argparse.Namespace, rec: Any) -> FoxgloveLive | None:
 
         params = params_from_recording(rec)
     return serve_foxglove(args, start_ns=start_ns, params=params, time_of=time_of)
+
+
+class _Both:
+    """The fleet page's sink for bus messages: the fleet recording and Foxglove live, either or both."""
+
+    def __init__(self, *sinks: Any) -> None:
+        self.sinks = [s for s in sinks if s is not None]
+
+    def write(self, topic: str, msg: dict[str, Any]) -> None:
+        for s in self.sinks:
+            s.write(topic, msg)
+
+    def status(self) -> str:
+        return "; ".join(s.status() for s in self.sinks)
+
+
+def serve_fleet(args: argparse.Namespace, recorder: Any) -> tuple[Any, Any]:
+    """`fleet --foxglove`: (the sink the fleet page writes to, the Foxglove server or None)."""
+    if getattr(args, "foxglove", None) is None:
+        return recorder, None
+    check_foxglove_args(args)
+    from app.services.foxglove_live import FoxgloveFleet, FoxgloveRefused
+
+    host, port = args.foxglove
+    try:
+        live = FoxgloveFleet(host, port, _tls(args))
+    except FoxgloveRefused as exc:
+        raise UserError(str(exc)) from None
+    print(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)", flush=True)
+    return _Both(recorder, live), live

@@ -21,7 +21,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import viser
@@ -31,7 +31,6 @@ from core.geometry import leader_to_world
 from app.dashboard.scene import yaw_wxyz
 from app.dashboard.widgets import assign, on_page_thread
 from app.keys import root
-from app.fleet.recorder import FleetRecorder
 
 REFRESH_S = 0.1
 # a state arriving while the page redraws waited up to the GIL's 5 ms switch interval for its callback
@@ -131,11 +130,20 @@ class LeaderPanel:
             self._synced = True
 
 
+class FleetSink(Protocol):
+    """Where the page also hands every bus message: the fleet recording (FleetRecorder),
+    Foxglove live, or both."""
+
+    def write(self, topic: str, msg: dict[str, Any]) -> None: ...
+
+    def status(self) -> str: ...
+
+
 class FleetView:
     """The fleet page on one viser server, fed from the bus."""
 
     def __init__(self, server: viser.ViserServer, session: Any, fleet: str,
-                 recorder: FleetRecorder | None = None, allow_viewer: Callable[..., None] | None = None) -> None:
+                 recorder: FleetSink | None = None, allow_viewer: Callable[..., None] | None = None) -> None:
         """``allow_viewer``: marks the controls a view-only client may press (the STOPs; the gate's)."""
         import zenoh
 

@@ -309,3 +309,147 @@ class FoxgloveLive:
             pass
         self._thread.join(5.0)
         self.server.stop()
+
+
+FLEET_SCENE_TOPIC = "/fleet/scene"
+FLEET_SCHEMA = {"type": "object", "description": "as in docs/fleet-protocol.md"}
+
+
+def _hue_rgb(hue_deg: float) -> tuple[int, int, int]:
+    import colorsys
+
+    r, g, b = colorsys.hsv_to_rgb((hue_deg % 360.0) / 360.0, 0.85, 0.95)
+    return int(r * 255), int(g * 255), int(b * 255)
+
+
+def _xy_list(rows: Any) -> list[tuple[float, float]]:
+    out = []
+    for p in rows if isinstance(rows, list) else []:
+        try:
+            x, y = float(p[0]), float(p[1])
+        except (TypeError, ValueError, IndexError):
+            continue
+        if math.isfinite(x) and math.isfinite(y):
+            out.append((x, y))
+    return out
+
+
+def fleet_scene(topic: str, msg: dict[str, Any], ns: int) -> SceneUpdate | None:
+    """The fleet page's 3D view as a SceneUpdate in the world frame: the arena's robots (in their
+    markers' hues) and leaders from its truth; each leader's estimates (blue) and slots (red),
+    placed through its pose. None for a message that draws nothing."""
+    stamp = Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+    if topic == "arena/truth":
+        robots: list[Any] = msg["robots"] if isinstance(msg.get("robots"), list) else []
+        hues: list[Any] = msg["hues_deg"] if isinstance(msg.get("hues_deg"), list) else []
+        cubes, texts = [], []
+        for r, pose in enumerate(robots):
+            try:
+                x, y, th = (float(v) for v in pose[:3])
+            except (TypeError, ValueError):
+                continue
+            rgb = _hue_rgb(float(hues[r])) if r < len(hues) and isinstance(hues[r], (int, float)) else (120, 120, 120)
+            cubes.append(CubePrimitive(pose=_pose(x, y, 0.05, th), size=Vector3(x=0.25, y=0.15, z=0.10), color=_rgba(rgb)))
+            texts.append(TextPrimitive(pose=_pose(x, y, 0.25), billboard=True, font_size=14.0, scale_invariant=True,
+                                       color=_rgba(rgb), text=f"R{r + 1}"))
+        leaders: dict[str, Any] = msg["leaders"] if isinstance(msg.get("leaders"), dict) else {}
+        for lid, pose in leaders.items():
+            xy = _xy_list([pose])
+            if xy:
+                cubes.append(CubePrimitive(pose=_pose(xy[0][0], xy[0][1], 0.15), size=Vector3(x=0.34, y=0.34, z=0.3),
+                                           color=_rgba((40, 40, 40))))
+                texts.append(TextPrimitive(pose=_pose(xy[0][0], xy[0][1], 0.45), billboard=True, font_size=14.0,
+                                           scale_invariant=True, color=_rgba((40, 40, 40)), text=str(lid)))
+        return SceneUpdate(entities=[SceneEntity(timestamp=stamp, frame_id="world", id="arena", cubes=cubes, texts=texts)])
+    if topic.endswith("/state"):
+        pose = msg.get("leader")
+        try:
+            lx, ly, lth = (float(v) for v in pose[:3]) if isinstance(pose, list) else (0.0, 0.0, math.pi / 2)
+        except (TypeError, ValueError):
+            return None
+        phi = lth - math.pi / 2  # leader frame (x right, y forward) to world
+        c, s_ = math.cos(phi), math.sin(phi)
+
+        def world(points: list[tuple[float, float]], rgb: tuple[int, int, int], size: float) -> list[SpherePrimitive]:
+            return [SpherePrimitive(pose=_pose(lx + c * x - s_ * y, ly + s_ * x + c * y, 0.12),
+                                    size=Vector3(x=size, y=size, z=size), color=_rgba(rgb)) for x, y in points]
+
+        lid = topic.split("/")[0]
+        return SceneUpdate(entities=[SceneEntity(
+            timestamp=stamp, frame_id="world", id=f"team/{lid}",
+            spheres=world(_xy_list(msg.get("p_est")), (30, 90, 220), 0.1) + world(_xy_list(msg.get("p_d")), SLOT_RED, 0.08))])
+    return None
+
+
+class FoxgloveFleet:
+    """`fleet --foxglove`: what the fleet page hears on the bus, served to Foxglove as the fleet
+    recording holds it (a JSON channel per leader and kind, ``/fleet/<id>/state``, ...,
+    ``/fleet/arena/truth``) plus ``/fleet/scene``. Called as the fleet recorder is (``write``),
+    from the bus's threads: messages are queued (full: dropped and counted) and served by a
+    thread of its own."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
+                 tls: tuple[bytes, bytes] | None = None) -> None:
+        if tls is None and not is_loopback(host):
+            raise FoxgloveRefused(f"--foxglove {host}:{port}: serving off this machine needs TLS: give"
+                                  " --foxglove-tls-cert CERT.pem and --foxglove-tls-key KEY.pem (or serve on 127.0.0.1)")
+        self.context = foxglove.Context()
+        self.schema = foxglove.Schema(name="omniformation.FleetMessage", encoding="jsonschema",
+                                      data=json.dumps(FLEET_SCHEMA).encode())
+        self.channels: dict[str, foxglove.Channel] = {}
+        self.scene = SceneUpdateChannel(FLEET_SCENE_TOPIC, context=self.context)
+        try:
+            self.server = foxglove.start_server(
+                name="omniformation fleet", host=host, port=port, capabilities=[], supported_encodings=[],
+                context=self.context, message_backlog_size=BACKLOG, tls_cert=tls[0] if tls else None,
+                tls_key=tls[1] if tls else None)
+        except RuntimeError as exc:
+            raise FoxgloveRefused(_bind_line(host, port, exc)) from None
+        self.host, self.port, self.scheme = host, int(self.server.port), "wss" if tls else "ws"
+        self._queue: queue.Queue[tuple[str, int, dict[str, Any]] | None] = queue.Queue(maxsize=4096)
+        self.served = 0
+        self.dropped = 0
+        self._thread = threading.Thread(target=self._run, name="omniformation-foxglove-fleet", daemon=True)
+        self._thread.start()
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{self.scheme}://{host}:{self.port}"
+
+    def write(self, topic: str, msg: dict[str, Any]) -> None:
+        try:
+            self._queue.put_nowait((topic, time.time_ns(), msg))
+        except queue.Full:
+            self.dropped += 1
+
+    def status(self) -> str:
+        lost = f", {self.dropped} dropped" if self.dropped else ""
+        return f"Foxglove live at {self.url}: {self.served} messages{lost}"
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            topic, ns, msg = item
+            try:
+                channel = self.channels.get(topic)
+                if channel is None:
+                    channel = self.channels[topic] = foxglove.Channel(f"/fleet/{topic}", schema=self.schema,
+                                                                      message_encoding="json", context=self.context)
+                channel.log(json.dumps(msg, separators=(",", ":")).encode(), log_time=ns)
+                scene = fleet_scene(topic, msg, ns) if self.scene.has_sinks() else None
+                if scene is not None:
+                    self.scene.log(scene, log_time=ns)
+                self.served += 1
+            except Exception:  # a message the bus let through must not end the view
+                log.exception("Foxglove fleet: a %s message could not be served", topic)
+
+    def close(self) -> None:
+        try:
+            self._queue.put(None, timeout=2.0)
+        except queue.Full:
+            pass
+        self._thread.join(5.0)
+        self.server.stop()

@@ -367,3 +367,42 @@ def test_the_scene_shows_known_obstacles_and_safety_rings():
     assert len(entities["safety"].lines) == 1  # the held-back follower, known; not the lost one
     assert "follower1" in entities and [d.id for d in msg.deletions] == ["follower2"]
     assert entities["leader"].timestamp.nanos == 123
+
+
+def test_fleet_messages_and_the_arena_scene_reach_a_spec_client():
+    """`fleet --foxglove`: each bus message on the fleet recording's channel, and the arena's
+    truth and each leader's view as a foxglove.SceneUpdate in the world frame."""
+    from app.services.foxglove_live import FoxgloveFleet
+
+    truth = {"t": 1.0, "leaders": {"L1": [0.0, 0.0, 1.57]}, "robots": [[0.5, -0.5, 1.5], [-0.5, -0.5, 1.6]],
+             "velocities": [[0, 0], [0, 0]], "hues_deg": [0.0, 120.0], "owners": ["L1", "L1"]}
+    state = {"t": 1.0, "leader": [0.0, 0.0, 1.57], "p_est": [[0.5, -0.5], [None, None]], "p_d": [[0.5, -0.5], [-0.5, -0.5]],
+             "tracked": [True, False]}
+    live = FoxgloveFleet("127.0.0.1", 0)
+    client = SpecClient(live.url)
+    try:
+        live.write("arena/truth", truth)
+        live.write("L1/state", state)
+        wait_for(lambda: {"/fleet/arena/truth", "/fleet/L1/state", "/fleet/scene"}
+                 <= {c["topic"] for c in client.channels.values()}, what="the fleet's channels")
+        client.subscribe_all()
+
+        def served() -> bool:
+            live.write("arena/truth", truth)
+            live.write("L1/state", state)
+            got = client.by_topic()
+            return all(got.get(t) for t in ("/fleet/arena/truth", "/fleet/L1/state")) and len(got["/fleet/scene"]) >= 2
+
+        wait_for(served, what="fleet messages and scenes")
+        by_topic = {c["topic"]: c for c in client.channels.values()}
+        got = client.by_topic()
+        decoded = {t: [decode(by_topic[t], p) for _, p in msgs] for t, msgs in got.items()}
+        assert decoded["/fleet/arena/truth"][-1]["robots"] == truth["robots"]
+        entities = {e.id: e for m in decoded["/fleet/scene"] for e in m.entities}
+        assert len(entities["arena"].cubes) == 3 and entities["arena"].frame_id == "world"  # 2 robots, 1 leader
+        assert len(entities["team/L1"].spheres) == 3  # one estimate known, two slots
+    finally:
+        client.close()
+        live.close()
+    r = main_cli("fleet", "--fleet", "f1", "--port", "0", "--foxglove", "0.0.0.0:0")
+    assert r.returncode == 2 and "needs TLS" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
