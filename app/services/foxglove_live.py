@@ -12,7 +12,9 @@ its own turns it into messages:
 * ``/omniformation/scene``, a ``foxglove.SceneUpdate`` per tick: the leader, each follower in its
   page colour with its heading, the slots and the formation, the obstacles as the leader knows
   them and the safety rings (a red ring on a follower the safety filter holds back), in the
-  leader frame that /tf places in the world.
+  leader frame that /tf places in the world;
+* ``/omniformation/log``: each event again as a ``foxglove.Log`` (STOP, a follower lost, the
+  link and the safety filter as warnings), for Foxglove's Log panel.
 
 Every message carries the session's time (app.tick.SessionClock, as the recording). Work a
 message needs (JSON, JPEG, the scene) is skipped while no client subscribes to its channel.
@@ -34,8 +36,8 @@ from typing import Any
 import cv2
 import foxglove
 import numpy as np
-from foxglove.channels import SceneUpdateChannel
-from foxglove.messages import (ArrowPrimitive, Color, CubePrimitive, LinePrimitive, LinePrimitiveLineType, Point3,
+from foxglove.channels import LogChannel, SceneUpdateChannel
+from foxglove.messages import (ArrowPrimitive, Color, CubePrimitive, LinePrimitive, LinePrimitiveLineType, Log, LogLevel, Point3,
                                Pose, Quaternion, SceneEntity, SceneEntityDeletion, SceneUpdate, SpherePrimitive,
                                TextPrimitive, Timestamp, Vector3)
 
@@ -50,6 +52,8 @@ from app.tick import SessionClock, TickState
 from core.camera.render.looks import follower_rgb
 
 SCENE_TOPIC = "/omniformation/scene"
+LOG_TOPIC = "/omniformation/log"  # the events again, as foxglove.Log: Foxglove's Log panel is the event log
+WARNING_KINDS = {"stop", "lost", "safety", "link", "fault"}
 DEFAULT_PORT = 8765  # Foxglove's own default
 MAX_WAITING = 300  # states queued for the server's thread (10 s at 30 Hz); beyond, the newest is dropped
 BACKLOG = 4096  # messages the SDK buffers per client before it drops the oldest
@@ -179,6 +183,7 @@ class FoxgloveLive:
                 sch = foxglove.Schema(name=schema, encoding="jsonschema", data=json.dumps(SCHEMAS[schema]).encode())
                 self.channels[topic] = foxglove.Channel(topic, schema=sch, message_encoding="json", context=self.context)
         self.scene = SceneUpdateChannel(SCENE_TOPIC, context=self.context)
+        self.log = LogChannel(LOG_TOPIC, context=self.context)
         try:
             self.server = foxglove.start_server(
                 name=name, host=host, port=port, capabilities=[], supported_encodings=[], context=self.context,
@@ -199,7 +204,7 @@ class FoxgloveLive:
         self._served = 0  # items the thread is done with
         self.ticks = 0  # states served
         self.dropped = 0  # states the queue had no room for
-        self.logged: dict[str, int] = {t: 0 for t in (*self.channels, SCENE_TOPIC)}  # messages per topic
+        self.logged: dict[str, int] = {t: 0 for t in (*self.channels, SCENE_TOPIC, LOG_TOPIC)}  # messages per topic
         self._thread = threading.Thread(target=self._run, name="omniformation-foxglove", daemon=True)
         self._thread.start()
         if params is not None:
@@ -240,7 +245,13 @@ class FoxgloveLive:
             self._log(topic, json.dumps(payload, separators=(",", ":")).encode(), ns)
 
     def _event(self, t: float, kind: str, detail: str) -> None:
-        self._json(EVENT_TOPIC, {"t": t, "kind": kind, "detail": detail}, self._ns(t))
+        ns = self._ns(t)
+        self._json(EVENT_TOPIC, {"t": t, "kind": kind, "detail": detail}, ns)
+        if self.log.has_sinks():
+            level = LogLevel.Warning if kind in WARNING_KINDS and detail != "STOP released" else LogLevel.Info
+            self.log.log(Log(timestamp=Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000), level=level,
+                             message=f"{kind}: {detail}", name="omniformation"), log_time=ns)
+            self.logged[LOG_TOPIC] += 1
 
     def _run(self) -> None:
         while True:

@@ -150,7 +150,7 @@ def test_a_client_from_the_spec_decodes_every_channel_and_gets_a_scene_per_tick(
     try:
         client.subscribe_all()
         topics = {c["topic"] for c in client.channels.values()}
-        assert topics == RECORDING_TOPICS | {"/omniformation/scene"}
+        assert topics == RECORDING_TOPICS | {"/omniformation/scene", "/omniformation/log"}
         # the subscription is in place once the tick channel delivers: only then count
         for _ in range(200):
             loop.tick()
@@ -183,6 +183,8 @@ def test_a_client_from_the_spec_decodes_every_channel_and_gets_a_scene_per_tick(
         assert [d["tick"] for d in decoded["/omniformation/tick"][start:]] == \
                list(range(decoded["/omniformation/tick"][start]["tick"], decoded["/omniformation/tick"][start]["tick"] + 45))
         assert any(e["kind"] == "gain" and "k_f1 0.1 -> 0.12" in e["detail"] for e in decoded["/omniformation/events"])
+        assert [m.message for m in decoded["/omniformation/log"]] == \
+               [f"{e['kind']}: {e['detail']}" for e in decoded["/omniformation/events"]]  # the event log, for Foxglove
         assert decoded["/omniformation/params"][-1]["gains"]["k_f1"] == pytest.approx(0.12)
         jpeg = decoded["/camera/image"]
         assert len(jpeg) >= 10 and all(m.format == "jpeg" and m.data[:2] == b"\xff\xd8" for m in jpeg)
@@ -324,7 +326,7 @@ def test_replay_serves_the_recordings_ticks_at_their_recorded_times(tmp_path):
     client = SpecClient(live.url)
     try:
         client.subscribe_all()
-        wait_for(lambda: len(client.channels) == 8, what="advertise")
+        wait_for(lambda: len(client.channels) == 9, what="advertise")
         for _ in range(100):
             svc.seek(0)
             live.drain()
