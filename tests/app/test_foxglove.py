@@ -229,6 +229,7 @@ def test_a_client_can_neither_publish_nor_set_parameters(loop_and_live):
         wait_for(lambda: client.by_topic()["/omniformation/tick"], what="ticks still served")
         after = store.get()
         assert after.version == before.version and after.gains == before.gains and not after.stop
+        wait_for(lambda: len([m for m in client.status if m["level"] == 2]) >= 2, what="refusals said")
     finally:
         client.close()
 
@@ -408,3 +409,33 @@ def test_fleet_messages_and_the_arena_scene_reach_a_spec_client():
         live.close()
     r = main_cli("fleet", "--fleet", "f1", "--port", "0", "--foxglove", "0.0.0.0:0")
     assert r.returncode == 2 and "needs TLS" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_the_layout_reads_only_what_the_server_offers():
+    """docs/foxglove-layout.json: every topic its panels and its user script read is one Foxglove
+    live advertises (or the script's own output), and its panels are the 3D, image, plot and log."""
+    from app.services.foxglove_live import LOG_TOPIC, SCENE_TOPIC
+    from tests.helpers import ROOT
+
+    layout = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
+    offered = RECORDING_TOPICS | {SCENE_TOPIC, LOG_TOPIC}
+    scripts = layout["userNodes"].values()
+    outputs = {line.split('"')[1] for s in scripts for line in s["sourceCode"].splitlines()
+               if line.startswith("export const output")}
+    for s in scripts:
+        inputs = next(line for line in s["sourceCode"].splitlines() if line.startswith("export const inputs"))
+        assert set(json.loads(inputs.split("=", 1)[1].strip().rstrip(";"))) <= offered
+    read = set()
+    for config in layout["configById"].values():
+        read |= set(config.get("topics", {}))
+        read |= {config["imageMode"]["imageTopic"]} if config.get("imageMode", {}).get("imageTopic") else set()
+        read |= {p["value"].split(".")[0] for p in config.get("paths", [])}
+        read |= {config["topicToRender"]} if "topicToRender" in config else set()
+    assert read and read <= offered | outputs, read - offered - outputs
+    kinds = {pid.split("!")[0] for pid in layout["configById"]}
+    assert kinds == {"3D", "Image", "Plot", "RosOut"}
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
+    assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
