@@ -55,6 +55,7 @@ SCENE_TOPIC = "/omniformation/scene"
 LOG_TOPIC = "/omniformation/log"  # the events again, as foxglove.Log: Foxglove's Log panel is the event log
 WARNING_KINDS = {"stop", "lost", "safety", "link", "fault"}
 DEFAULT_PORT = 8765  # Foxglove's own default
+PARAMS_EVERY_S = 1.0  # the parameter set again, for a client that joins later (a live stream keeps nothing)
 MAX_WAITING = 300  # states queued for the server's thread (10 s at 30 Hz); beyond, the newest is dropped
 BACKLOG = 4096  # messages the SDK buffers per client before it drops the oldest
 WORKING_RING_M = (0.3, 1.5)  # as the page draws them (app.dashboard.scene)
@@ -200,6 +201,7 @@ class FoxgloveLive:
         self._params = params
         self._last_frame_t = -math.inf
         self._last_scan_t = -math.inf
+        self._last_params_t = 0.0  # the set at the start goes out at once (params0)
         self._handed = 0  # items queued
         self._served = 0  # items the thread is done with
         self.ticks = 0  # states served
@@ -270,6 +272,7 @@ class FoxgloveLive:
                         for what, detail in params_events(self._params, p, source):
                             self._event(self._clock.last, what, detail)
                     self._params = p
+                    self._last_params_t = self._clock.last
                     self._json(PARAMS_TOPIC, params_payload(p), self._ns(self._clock.last))
                 elif kind == "trial":
                     t = self._clock.last
@@ -288,11 +291,15 @@ class FoxgloveLive:
         for kind, detail in tick_events(self._prev, s):
             self._event(t, kind, detail)
         self._prev = s
-        if s.scan is not None and t - self._last_scan_t >= 1.0 / SCAN_HZ - 1e-9:
+        if self._params is not None and not 0.0 <= t - self._last_params_t < PARAMS_EVERY_S:  # for clients that join later
+            self._last_params_t = t
+            self._json(PARAMS_TOPIC, params_payload(self._params), ns)
+        if s.scan is not None and not 0.0 <= t - self._last_scan_t < 1.0 / SCAN_HZ - 1e-9:  # a replay may seek back
             self._last_scan_t = t
             if self.channels[SCAN_TOPIC].has_sinks():
                 self._log(SCAN_TOPIC, encode(SCAN_TOPIC, scan_payload(s.scan, ns)), ns)
-        if s.frame is not None and self.frame_rate_hz > 0 and t - self._last_frame_t >= 1.0 / self.frame_rate_hz - 1e-9:
+        if s.frame is not None and self.frame_rate_hz > 0 and \
+                not 0.0 <= t - self._last_frame_t < 1.0 / self.frame_rate_hz - 1e-9:
             self._last_frame_t = t
             if self.channels[IMAGE_TOPIC].has_sinks():
                 ok, buf = cv2.imencode(".jpg", np.asarray(s.frame), [cv2.IMWRITE_JPEG_QUALITY, 80])
