@@ -299,6 +299,8 @@ def test_bad_foxglove_arguments_are_one_line_and_exit_2(tmp_path):
             assert r.returncode == 2, (extra, r.stdout, r.stderr)
             lines = r.stderr.strip().splitlines()
             assert len(lines) == 1 and words in lines[0] and "Traceback" not in r.stderr, (extra, r.stderr)
+        r = main_cli("replay", "no-such.mcap", "--port", "0", "--foxglove", "0.0.0.0:0")  # checked before the file
+        assert r.returncode == 2 and "needs TLS" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     finally:
         taken.close()
 
