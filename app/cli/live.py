@@ -47,7 +47,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--feedback", choices=("vision", "truth"),
                      help="poses from the vision pipeline (default) or the simulator's truth plus noise")
     run.add_argument("--followers", type=int_in(1, MAX_FOLLOWERS), help="simulated followers without --scenario (default: config)")
-    run.add_argument("--rate", type=float_in(0.0, 200.0, "Hz"), help="loop rate (Hz, default: config)")
+    run.add_argument("--rate", type=float_in(1.0, 200.0, "Hz", lo_inclusive=True), help="loop rate (Hz, default: config)")
     run.add_argument("--seed", type=seed, help="random seed of the simulated team")
     run.add_argument("--link", metavar="sim|serial:PATH|none",
                      help="where commands go: the built-in simulated team (default) or followers on a serial port,"
@@ -364,12 +364,9 @@ def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None,
     from app.dashboard.gate import is_loopback
     from app.services.live import Service
 
-    if not is_loopback(args.host):
-        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
-              " token) may see and command the robots", file=sys.stderr)
     config = plan.config
     try:
-        return Service(host=args.host, port=args.port, scenario=plan.scenario,
+        service = Service(host=args.host, port=args.port, scenario=plan.scenario,
                        n_followers=plan.n_followers, rate_hz=args.rate or config.rate_hz,
                        seed=config.seed if args.seed is None else args.seed, camera=plan.camera,
                        dynamics=config.dynamics, noise=config.measurement,
@@ -379,6 +376,10 @@ def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None,
                        realtime=args.realtime)
     except OSError as exc:
         raise UserError(bind_error(args.host, args.port, exc)) from None
+    if not is_loopback(args.host):  # after the bind: an address not here is one line, no warning first
+        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
+              " token) may see and command the robots", file=sys.stderr)
+    return service
 
 
 def _start_recorder(args: argparse.Namespace, plan: _RunPlan, service: Service) -> Recorder | None:
