@@ -51,7 +51,6 @@ if TYPE_CHECKING:
 
 NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
 ENDPOINT = re.compile(r"(tcp|udp|tls)/(?P<host>[A-Za-z0-9_.-]+|\[[0-9a-fA-F:]+\]):(?P<port>\d{1,5})")
-LOOPBACK_HOSTS = ("localhost", "[::1]")
 SETTABLE = ("k_f1", "k_f2", "a", "k_w1", "k_w2", "slots", "leader_mode", "leader_speed_mps", "leader_turn_deg_s",
             "stop", "safety", "safety_distance_m", "goal", "min_scale")
 
@@ -64,9 +63,10 @@ def check_name(value: str, what: str) -> str:
 
 
 def check_endpoint(value: str, keys: FleetKeys | None = None) -> str:
-    """An endpoint this process may use: with fleet keys ``tls/HOST:PORT`` (mutual TLS), without
-    them a loopback ``tcp/`` or ``udp/`` one only (an open bus is for one machine); else
-    ValueError (one line)."""
+    """An endpoint this process may use, as it is to be used: with fleet keys ``tls/HOST:PORT``
+    (mutual TLS), without them a ``tcp/`` or ``udp/`` one whose host is loopback by every
+    address it resolves to, returned with the address checked in place of the name (an open
+    bus is for one machine); else ValueError (one line)."""
     m = ENDPOINT.fullmatch(value)
     if m is None or not 0 < int(m["port"]) < 65536:
         raise ValueError(f"endpoint {value!r}: must be tls/HOST:PORT with --keys, or tcp/HOST:PORT or udp/HOST:PORT"
@@ -78,12 +78,37 @@ def check_endpoint(value: str, keys: FleetKeys | None = None) -> str:
         if value.startswith("tls/"):
             raise ValueError(f"endpoint {value!r}: tls/ needs the fleet's keys (--keys DIR, made by"
                              " `omniformation fleet-keys`)")
-        host = m["host"]
-        if not (host in LOOPBACK_HOSTS or host.startswith("127.")):
-            raise ValueError(f"endpoint {value!r}: without --keys the bus stays on this machine (127.0.0.1,"
-                             " localhost, [::1]); anyone on a network could drive the robots: make keys with"
-                             " `omniformation fleet-keys` and use tls/ endpoints with --keys")
+        address = _loopback_address(value, m["host"], int(m["port"]))
+        return f"{value[:3]}/{address}:{m['port']}"
     return value
+
+
+def _loopback_address(value: str, host: str, port: int) -> str:
+    """The address an open endpoint's host names, if every address it resolves to is loopback
+    (a name is judged by what it names: ``127.lan`` may be 192.0.2.2), as Zenoh writes it;
+    else ValueError (one line naming the address)."""
+    import ipaddress
+    import socket
+
+    open_bus = ("without --keys the bus stays on this machine (127.0.0.1, localhost, [::1]); anyone on a network"
+                " could drive the robots: make keys with `omniformation fleet-keys` and use tls/ endpoints with"
+                " --keys")
+    name = host[1:-1] if host.startswith("[") else host
+    try:
+        found = [ipaddress.ip_address(name)]
+    except ValueError:
+        try:
+            infos = socket.getaddrinfo(name, port, type=socket.SOCK_STREAM)
+        except (OSError, UnicodeError) as exc:
+            raise ValueError(f"endpoint {value!r}: {name!r} does not resolve ({exc}); {open_bus}") from None
+        found = [ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in infos]
+    for address in found:
+        if not address.is_loopback:
+            raise ValueError(f"endpoint {value!r}: {name} is {address}, not loopback; {open_bus}")
+    if not found:
+        raise ValueError(f"endpoint {value!r}: {name!r} resolves to no address; {open_bus}")
+    first = found[0]
+    return f"[{first}]" if first.version == 6 else str(first)
 
 
 def loopback_endpoint() -> str:
