@@ -299,7 +299,7 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
             fleet.arena_team = ArenaTeam(fleet.session, args.fleet, args.leader_id,
                                          config.measurement.position_noise_m, config.measurement.heading_noise_rad,
                                          config.seed if args.seed is None else args.seed,
-                                         hues_deg=fleet_scenario.hues_deg)
+                                         hues_deg=fleet_scenario.hues_deg, rate_hz=fleet_scenario.rate_hz)
         except NoArena as exc:
             raise UserError(f"--arena {args.arena}: {exc}") from None
         handed.callback(fleet.arena_team.close)
@@ -425,6 +425,7 @@ def _on_the_bus(args: argparse.Namespace, fleet: _Fleet, service: Service,
                           event=bridge.event)
         team = fleet.arena_team
         bridge.empty = lambda: team.emptied
+        bridge.truths_refused = lambda: team.truths_refused
         stack.callback(adopter.close)
     print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"
           f" ({'taking commands' if args.fleet_control else 'STOP only'} from it)", flush=True)

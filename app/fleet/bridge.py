@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from app import wire
 from app.dashboard import LatestStatePublisher
 from app.keys import root
 from app.params import Params, ParamsStore
@@ -223,7 +224,7 @@ def waiting_payload(leader_id: str, t: float, takes: str, tick: int = 0,
             "leader_twist": [0.0, 0.0], "p_est": [], "a_est": [], "tracked": [], "p_d": [], "error_m": [],
             "p_true": [], "commands": [], "gains": Gains().as_dict(), "stopped": True, "phase": "waiting",
             "link_state": "waiting for a robot (the operator hands one over)", "rate_hz": None,
-            "takes": takes, "refused": refused or {"commands": 0, "states": 0}}
+            "takes": takes, "refused": refused or {"commands": 0, "states": 0, "truths": 0}}
 
 
 @dataclass(frozen=True)
@@ -315,6 +316,7 @@ class FleetBridge:
         store.subscribe(self._on_params)
         self._publisher = LatestStatePublisher(self._publish_state)
         self.empty: Callable[[], bool] = lambda: False  # set by an arena leader: it owns no robot now
+        self.truths_refused: Callable[[], int] = lambda: 0  # set by an arena leader: truths it did not take
 
     @property
     def instance(self) -> str:
@@ -356,7 +358,7 @@ class FleetBridge:
         self._publisher(dataclasses.replace(s, t=self._t))
 
     def _publish_state(self, s: TickState) -> None:
-        refused = {"commands": self.commands_refused, "states": self.states_refused}
+        refused = {"commands": self.commands_refused, "states": self.states_refused, "truths": self.truths_refused()}
         if self.empty():  # every robot it had is another's now: its loop holds none of them
             payload = waiting_payload(self.leader_id, s.t, takes(self.allow_control), s.tick, refused)
         else:
@@ -383,8 +385,8 @@ class FleetBridge:
         "One leader per id"). Of two twins the one that started later stands down; both
         compare the same (started, instance) pairs, so exactly one of them does."""
         try:
-            msg = json.loads(sample.payload.to_bytes())
-        except (ValueError, UnicodeDecodeError):
+            msg = wire.decode(sample.payload.to_bytes())
+        except wire.BadMessage:
             msg = None
         other, started = (msg.get("instance"), msg.get("started")) if isinstance(msg, dict) else (None, None)
         if other == self.instance:
@@ -414,17 +416,21 @@ class FleetBridge:
             self.event("twin", f"a second {self.leader_id} ({other}) appeared; it started later and stands down")
 
     def _changes(self, sample: Any) -> tuple[dict[str, Any], str]:
+        """A command's changes, each value of its setting's exact type (app.wire), and who sent
+        it; or no changes and why not."""
         try:
-            msg = json.loads(sample.payload.to_bytes())
-        except (ValueError, UnicodeDecodeError):
-            return {}, "not JSON"
-        if not isinstance(msg, dict) or not isinstance(msg.get("set"), dict):
-            return {}, 'must be {"set": {NAME: VALUE, ...}}'
-        unknown = [k for k in msg["set"] if k not in SETTABLE]
-        if unknown:
-            return {}, f"{unknown[0]!r} cannot be set over the bus (allowed: {', '.join(SETTABLE)})"
-        sender = str(msg.get("from", "?"))[:40]
-        return dict(msg["set"]), sender
+            msg = wire.obj(wire.decode(sample.payload.to_bytes()), "a command", ("set",), ("from",))
+            if not isinstance(msg["set"], dict):
+                raise wire.BadMessage('must be {"set": {NAME: VALUE, ...}}')
+            unknown = [k for k in msg["set"] if k not in SETTABLE]
+            if unknown:
+                raise wire.BadMessage(f"{str(unknown[0])[:40]!r} cannot be set over the bus (allowed:"
+                                      f" {', '.join(SETTABLE)})")
+            changes = {k: wire.setting(k, v) for k, v in msg["set"].items()}
+            sender = wire.text(msg.get("from", "?"), "from")
+        except wire.BadMessage as exc:
+            return {}, str(exc)
+        return changes, sender[:40]
 
     def _apply(self, changes: dict[str, Any], sender: str) -> None:
         try:

@@ -30,6 +30,8 @@ from core.geometry import leader_to_world
 
 from app.dashboard.scene import yaw_wxyz
 from app.dashboard.widgets import assign, on_page_thread
+from app import wire
+from app.backends.arena import read_truth
 from app.keys import root
 from app.fleet.recorder import FleetRecorder
 
@@ -185,8 +187,8 @@ class FleetView:
     # -- in ------------------------------------------------------------------------------------
     def _decode(self, sample: Any) -> dict[str, Any] | None:
         try:
-            msg = json.loads(sample.payload.to_bytes())
-        except (ValueError, UnicodeDecodeError):
+            msg = wire.decode(sample.payload.to_bytes())
+        except wire.BadMessage:
             msg = None
         if not isinstance(msg, dict):
             with self._lock:
@@ -196,7 +198,13 @@ class FleetView:
 
     def _on_truth(self, sample: Any) -> None:
         msg = self._decode(sample)
-        if msg is None or not isinstance(msg.get("robots"), list) or not isinstance(msg.get("leaders"), dict):
+        try:
+            msg = read_truth(msg) if msg is not None else None
+        except wire.BadMessage:
+            with self._lock:
+                self.malformed += 1
+            msg = None
+        if msg is None:
             return
         with self._lock:
             self.truth = msg
