@@ -148,6 +148,8 @@ class FleetView:
         self._zenoh = zenoh
         self._lock = threading.Lock()
         self.truth: dict[str, Any] | None = None
+        # the page's own token (with the fleet's keys the page writes this, commands and handovers only)
+        self._token = session.liveliness().declare_token(f"{root(fleet)}/page/alive")
         self.states: dict[str, tuple[float, dict[str, Any]]] = {}  # id -> (monotonic time received, state)
         self.alive: set[str] = set()
         self.events: deque[str] = deque(maxlen=12)
@@ -358,3 +360,4 @@ class FleetView:
         self._thread.join(5.0)
         for sub in self._subs:
             sub.undeclare()
+        self._token.undeclare()

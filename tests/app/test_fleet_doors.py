@@ -188,3 +188,130 @@ def test_payloads_built_to_break_a_parser_are_refused_counted_and_answered():
         stepper.join(5)
         arena.close()
         session.close()
+
+
+# -- J: a process reads its own bundle, and nothing more ---------------------------------------------
+def test_keys_are_one_bundle_per_identity_and_a_folder_holding_more_is_refused(tmp_path):
+    """docs/fleet-protocol.md, "Making keys": the CA's key apart, one bundle per identity; --keys
+    refuses a folder that holds the CA key or another identity's private key or that others can write."""
+    from tests.helpers import main_cli
+
+    keys = tmp_path / "keys"
+    assert main_cli("fleet-keys", str(keys), "--fleet", FLEET, "--leaders", "L1,L2,L3").returncode == 0
+    for ident in ("arena", "L1"):  # the CA's key is in no bundle, nor another identity's
+        assert not list((keys / ident).glob("ca.key")) and [p.name for p in (keys / ident).glob("*.key")] == [f"{ident}.key"]
+
+    def bundle(name: str, change=lambda d: None, mode: int = 0o700) -> Path:
+        d = tmp_path / name
+        shutil.copytree(keys / "L1", d)
+        change(d)
+        os.chmod(d, mode)
+        return d
+
+    cases = [
+        (keys, "fleet-keys' whole folder"),
+        (bundle("with_ca", lambda d: shutil.copy(keys / "ca" / "ca.key", d)), "ca.key: the fleet CA's private key"),
+        (bundle("with_l2", lambda d: shutil.copy(keys / "L2" / "L2.key", d)), "L2.key: another private key"),
+        (bundle("renamed", lambda d: shutil.copy(keys / "arena" / "arena.key", d / "spare.pem")),
+         "spare.pem: another private key"),
+        (bundle("open", mode=0o777), "others may write it (mode 0777)"),
+        (bundle("open_ca", lambda d: os.chmod(d / "ca.pem", 0o666)), "ca.pem: others may write it"),
+    ]
+    for d, words in cases:
+        r = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--keys", str(d), "--zenoh-connect",
+                     "tls/127.0.0.1:9", "--port", "0", "--no-record")
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and words in lines[0], (d.name, r.stderr)
+
+
+# -- G: the page's certificate is the operator's commands, nothing more ------------------------------
+def test_the_page_certificate_sends_commands_and_handovers_and_speaks_for_no_one(tmp_path):
+    """docs/fleet-protocol.md, "Who may do what": with the page's certificate a program may send
+    commands and handovers and hold the page's token; it cannot drive a robot, publish a truth,
+    or speak as a leader (a state, an alive/<id> token). Heard by a holder of L1's certificate,
+    as a leader would hear it, through the arena (the hub)."""
+    import threading
+    import time
+
+    import zenoh
+
+    from app.fleet.bridge import loopback_endpoint
+    from tests.helpers import fleet_session, interrupt, main_cli, wait_for
+
+    keys = tmp_path / "keys"
+    assert main_cli("fleet-keys", str(keys), "--fleet", FLEET, "--leaders", "L1,L2,L3").returncode == 0
+    ep = "tls/" + loopback_endpoint().split("/", 1)[1]
+    arena = subprocess.Popen([sys.executable, "-m", "app.cli", "arena", FLEET, "--keys", str(keys / "arena"),
+                              "--zenoh-listen", ep, "--status-every", "0"], cwd=ROOT, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    sessions = []
+    lock = threading.Lock()
+    heard: dict[str, list] = {"truth": [], "state": [], "cmd": [], "alive": []}
+
+    def on_sample(s) -> None:
+        key = str(s.key_expr)
+        kind = "truth" if key.endswith("arena/truth") else "state" if key.endswith("/state") else \
+            "cmd" if key.endswith("/cmd") else None
+        if kind is not None:
+            with lock:
+                heard[kind].append(json.loads(s.payload.to_bytes()) if kind != "state" else s.payload.to_bytes())
+
+    def on_alive(s) -> None:
+        with lock:
+            heard["alive"].append((str(s.key_expr).split(f"{BASE}/", 1)[1], s.kind == zenoh.SampleKind.PUT))
+
+    try:
+        assert arena.stdout is not None and "arena three_teams" in arena.stdout.readline()
+        l1 = fleet_session(keys / "L1", "L1", ep)  # what a leader L1 hears
+        page = fleet_session(keys / "page", "page", ep)  # the hostile holder of the page's certificate
+        sessions += [l1, page]
+        subs = [l1.declare_subscriber(f"{BASE}/**", on_sample),
+                l1.liveliness().declare_subscriber(f"{BASE}/**", on_alive, history=True)]
+        wait_for(lambda: len(heard["truth"]) > 3, 20, "the arena's truth at L1")
+        real = heard["truth"][-1]
+        r1 = real["owners"].index("L1")
+        # the attack: L1's token and a twin's state, a truth a million ticks ahead giving every robot to
+        # L3, and 2 s of drives reversing L1's robot, each naming the newest truth
+        tokens = [page.liveliness().declare_token(f"{BASE}/alive/L1"), page.liveliness().declare_token(f"{BASE}/page/alive")]
+        twin = {"leader_id": "L1", "tick": 1, "t": 0.0, "instance": "00000000", "started": 0.0, "p_est": []}
+        forged = dict(real, tick=real["tick"] + 1_000_000, owners=["L3"] * len(real["owners"]))
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end:
+            newest = heard["truth"][-1]["tick"]
+            page.put(f"{BASE}/arena/drive/L1", json.dumps({"tick": 1, "truth_tick": newest, "twist": [0.0, 0.0],
+                                                           "commands": {f"R{r1 + 1}": [-0.25, 0.0]}}))
+            page.put(f"{BASE}/leader/L1/state", json.dumps(twin))
+            page.put(f"{BASE}/arena/truth", json.dumps(forged))
+            time.sleep(1 / 30)
+        # what the page may do reaches: a command to L1, a handover (answered by the arena), its token
+        page.put(f"{BASE}/leader/L1/cmd", json.dumps({"set": {"stop": True}, "from": "test"}))
+        answers = [json.loads(r.ok.payload.to_bytes()) for r in page.get(
+            f"{BASE}/arena/handover", payload=json.dumps({"robot": "R4", "to": "L1", "from": "test"}), timeout=5.0)
+            if r.ok is not None]
+        wait_for(lambda: heard["cmd"] and ("page/alive", True) in heard["alive"], 10, "the page's command and token")
+        time.sleep(0.5)
+        with lock:
+            truths, states, alive = list(heard["truth"]), list(heard["state"]), list(heard["alive"])
+        found = {  # each what the page's certificate got through (all but the handover: none)
+            "handover answered": len(answers) == 1,
+            "handover granted": bool(answers and answers[0]["granted"]),
+            "forged truths heard": sum(t["tick"] >= real["tick"] + 10_000 or t["owners"] != real["owners"]
+                                       for t in truths),
+            "twin states heard": len(states),
+            "alive/L1 tokens heard": sum(key == "alive/L1" for key, _ in alive),
+            "truths with L1 alive": sum("L1" in t["alive"] for t in truths),
+            "steps with L1's robot moving": sum(abs(t["velocities"][r1][0]) > 0.01 for t in truths
+                                                if t["tick"] < real["tick"] + 10_000),
+        }
+        assert found == {"handover answered": True, "handover granted": False, "forged truths heard": 0,
+                         "twin states heard": 0, "alive/L1 tokens heard": 0, "truths with L1 alive": 0,
+                         "steps with L1's robot moving": 0}, (sorted(found.items()), len(truths))
+        assert "L1 is not alive" in answers[0]["why"], answers
+        for tok in tokens:
+            tok.undeclare()
+        for s in subs:
+            s.undeclare()
+    finally:
+        for s in sessions:
+            s.close()
+        interrupt(arena)
