@@ -189,6 +189,50 @@ def _num(x: Any) -> Any:
     return x
 
 
+def read_state(msg: Any) -> dict[str, Any]:
+    """A leader's state as docs/fleet-protocol.md gives it, each field a reader uses of its exact
+    type (app.wire: a state may carry more), else BadMessage."""
+    state = wire.obj(msg, "a state", ("p_est",), more=True)
+
+    def maybe(x: Any, what: str) -> None:
+        if x is not None:
+            wire.number(x, what)
+
+    for name in ("p_est", "p_d", "p_true", "commands"):
+        rows = state.get(name) or []  # p_true: null where nobody knows it
+        if not isinstance(rows, list) or not all(isinstance(r, list) and len(r) == 2 for r in rows):
+            raise wire.BadMessage(f"{name} must be a list of pairs")
+        for r in rows:
+            for v in r:
+                maybe(v, name)
+    for name in ("a_est", "error_m"):
+        values = state.get(name) or []
+        if not isinstance(values, list):
+            raise wire.BadMessage(f"{name} must be a list")
+        for v in values:
+            maybe(v, name)
+    tracked = state.get("tracked", [])
+    if not isinstance(tracked, list) or not all(isinstance(b, bool) for b in tracked):
+        raise wire.BadMessage("tracked must be a list of true/false")
+    if state.get("leader") is not None:
+        wire.numbers(state["leader"], 3, "leader")
+    wire.numbers(state.get("leader_twist", [0.0, 0.0]), 2, "leader_twist")
+    for name in ("t", "rate_hz", "sent", "started"):
+        maybe(state.get(name), name)
+    for name in ("stopped",):
+        if not isinstance(state.get(name, False), bool):
+            raise wire.BadMessage(f"{name} must be true or false")
+    for name in ("phase", "takes", "link_state", "leader_id", "instance"):
+        wire.text(state.get(name, ""), name, 1000)
+    for name in ("gains", "refused"):
+        table = state.get(name, {})
+        if not isinstance(table, dict):
+            raise wire.BadMessage(f"{name} must be an object")
+        for k, v in table.items():
+            wire.number(v, f"{name}.{k}")
+    return state
+
+
 def takes(allow_control: bool) -> str:
     """What a leader obeys from the bus, as its state says: everything (``--fleet-control``) or STOP."""
     return "all" if allow_control else "stop"

@@ -33,6 +33,7 @@ from app.dashboard.widgets import assign, on_page_thread
 from app import wire
 from app.backends.arena import read_truth
 from app.keys import root
+from app.fleet.bridge import read_state
 from app.fleet.recorder import FleetRecorder
 
 REFRESH_S = 0.1
@@ -217,7 +218,13 @@ class FleetView:
         now, arrived = time.monotonic(), time.time()
         msg = self._decode(sample)
         leader = str(sample.key_expr).split("/")[-2]
-        if msg is None or not isinstance(msg.get("p_est"), list):
+        try:
+            msg = read_state(msg) if msg is not None else None
+        except wire.BadMessage:
+            with self._lock:
+                self.malformed += 1
+            msg = None
+        if msg is None:
             return
         sent = msg.get("sent")
         with self._lock:
