@@ -108,7 +108,7 @@ def _loopback_address(value: str, host: str, port: int) -> str:
             raise ValueError(f"endpoint {value!r}: {name} is {address}, not loopback; {open_bus}")
     if not found:
         raise ValueError(f"endpoint {value!r}: {name!r} resolves to no address; {open_bus}")
-    first = found[0]
+    first = next((a for a in found if a.version == 4), found[0])  # 127.0.0.1 where a name is both
     return f"[{first}]" if first.version == 6 else str(first)
 
 
