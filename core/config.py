@@ -296,13 +296,41 @@ def parse_gains(t: Table) -> Gains:
     return Gains(**values)
 
 
-def toml_document(text: str, source: str) -> Table:
-    """A TOML document's top table, or ConfigError naming ``source``."""
+MAX_TOML_DEPTH = 64  # arrays and tables inside one another: more is no configuration of ours
+
+
+def _depth(value: Any) -> int:
+    """How deep arrays and tables nest in ``value`` (iterative: a deep document cannot overflow)."""
+    deepest, todo = 0, [(value, 0)]
+    while todo:
+        v, d = todo.pop()
+        if isinstance(v, dict):
+            v = list(v.values())
+        if isinstance(v, list):
+            deepest = max(deepest, d + 1)
+            if d + 1 <= MAX_TOML_DEPTH:
+                todo.extend((x, d + 1) for x in v)
+    return deepest
+
+
+def toml_loads(text: str, source: str) -> dict[str, Any]:
+    """A TOML document as data, or ConfigError naming ``source``: not TOML, or nested deeper
+    than MAX_TOML_DEPTH (tomllib recurses once per level: 5,000 ``[`` overflow its stack)."""
+    too_deep = ConfigError(f"{source}: arrays or tables nested deeper than {MAX_TOML_DEPTH} levels")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    return Table(data, source, "")
+    except RecursionError:
+        raise too_deep from None
+    if _depth(data) > MAX_TOML_DEPTH:
+        raise too_deep
+    return data
+
+
+def toml_document(text: str, source: str) -> Table:
+    """A TOML document's top table, or ConfigError naming ``source``."""
+    return Table(toml_loads(text, source), source, "")
 
 
 def parse_scenario(text: str, source: str) -> Scenario:
@@ -312,6 +340,8 @@ def parse_scenario(text: str, source: str) -> Scenario:
     description = top.text("description", default="")
     duration = top.number("duration_s", 0.0, 86400.0, lo_open=True, unit="s")
     rate = top.number("rate_hz", 1.0, 1000.0, unit="Hz")
+    if duration * rate < 1.0:
+        raise top.fail("duration_s", duration, f"at least one control tick (1/{rate:g} s at rate_hz = {rate:g})")
     seed = top.integer("seed", 0, 2**32 - 1, default=0)
     leader = _parse_leader(top.table("leader", optional=False))
 

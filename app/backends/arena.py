@@ -36,6 +36,41 @@ from app.keys import robot_name, root
 log = logging.getLogger(__name__)
 
 STALE_TRUTH_S = 0.3  # no truth for this long: the arena (the robots' channel) is lost
+TICK_SLACK_S = 1.0  # a truth's tick runs ahead of the arena's clock by at most this (and 25 %) since the last
+
+
+def read_truth(msg: Any) -> dict[str, Any]:
+    """A truth as docs/fleet-protocol.md gives it, every field a leader reads of its exact type
+    (app.wire), else BadMessage."""
+    from app import wire
+
+    truth = wire.obj(msg, "a truth", ("tick", "t", "leaders", "robots", "owners"), more=True)
+    wire.integer(truth["tick"], "tick")
+    wire.number(truth["t"], "t")
+    if not isinstance(truth["leaders"], dict):
+        raise wire.BadMessage("leaders must be an object {ID: [x, y, theta]}")
+    for lid, pose in truth["leaders"].items():
+        wire.numbers(pose, 3, f"leaders.{str(lid)[:32]}")
+    robots = truth["robots"]
+    if not isinstance(robots, list):
+        raise wire.BadMessage("robots must be a list of [x, y, theta]")
+    for pose in robots:
+        wire.numbers(pose, 3, "robots")
+    for name, width in (("velocities", 2), ("leases", 0)):
+        if name in truth:
+            values = truth[name]
+            if not isinstance(values, list) or len(values) != len(robots):
+                raise wire.BadMessage(f"{name} must be a list with one entry per robot")
+            for v in values:
+                wire.numbers(v, width, name) if width else wire.number(v, name)
+    owners = truth["owners"]
+    if not isinstance(owners, list) or len(owners) != len(robots) or \
+            not all(o is None or isinstance(o, str) for o in owners):
+        raise wire.BadMessage("owners must be a list of ids (or null) with one entry per robot")
+    for name in ("alive", "lost"):
+        if name in truth and not (isinstance(truth[name], list) and all(isinstance(x, str) for x in truth[name])):
+            raise wire.BadMessage(f"{name} must be a list of ids")
+    return truth
 
 
 class NoArena(RuntimeError):
@@ -46,9 +81,10 @@ class ArenaTeam:
     """This leader's robots, as the arena tells them."""
 
     def __init__(self, session: Any, fleet: str, leader_id: str, position_noise_m: float, heading_noise_rad: float,
-                 seed: int, wait_s: float = 10.0, hues_deg: tuple[float, ...] = ()) -> None:
+                 seed: int, wait_s: float = 10.0, hues_deg: tuple[float, ...] = (), rate_hz: float = 30.0) -> None:
         """``hues_deg``: every robot's marker hue, in robot order (the fleet scenario's): what
-        this leader's camera draws and the pipeline looks for."""
+        this leader's camera draws and the pipeline looks for. ``rate_hz``: the arena's step rate
+        (the fleet scenario's): a truth's tick never runs ahead of it."""
         self.session = session
         self.hues_deg = tuple(hues_deg)
         self.fleet = fleet
@@ -59,6 +95,8 @@ class ArenaTeam:
         self._lock = threading.Lock()
         self._truth: dict[str, Any] | None = None
         self._truth_at = -math.inf
+        self.rate_hz = rate_hz
+        self.truths_refused = 0  # truths not of the protocol's shape, or whose tick the arena's clock cannot have reached
         self._got = threading.Event()
         self._sub = session.declare_subscriber(f"{root(fleet)}/arena/truth", self._on_truth)
         self._drive: Any = None  # declared at the first command: a leader refused at start-up never drives
@@ -98,16 +136,37 @@ class ArenaTeam:
 
     # -- truth in --------------------------------------------------------------------------
     def _on_truth(self, sample: Any) -> None:
+        """The arena's word, if it is a truth and its tick one the arena's clock can have reached
+        since the last one (ahead by at most the time gone, 25 % and TICK_SLACK_S more, at the
+        scenario's rate); anything else is counted and dropped (docs/fleet-protocol.md, "truth")."""
+        from app import wire
+
+        truth: dict[str, Any] | None
         try:
-            truth = json.loads(sample.payload.to_bytes())
-            if not isinstance(truth, dict) or "robots" not in truth or "leaders" not in truth:
-                return
-        except (ValueError, UnicodeDecodeError):
+            truth = read_truth(wire.decode(sample.payload.to_bytes()))
+        except wire.BadMessage as exc:
+            self._refuse_truth(str(exc))
             return
+        now, why = time.monotonic(), ""
         with self._lock:
-            self._truth = truth
-            self._truth_at = time.monotonic()
+            last = self._truth
+            if last is not None and truth is not None:
+                ahead = self.rate_hz * (1.25 * (now - self._truth_at) + TICK_SLACK_S)
+                if not last["tick"] < truth["tick"] <= last["tick"] + ahead:
+                    why = f"tick {truth['tick']} after {last['tick']} {now - self._truth_at:.2f} s ago"
+                    truth = None
+            if truth is not None:
+                self._truth = truth
+                self._truth_at = now
+        if truth is None:
+            self._refuse_truth(why)
+            return
         self._got.set()
+
+    def _refuse_truth(self, why: str) -> None:
+        self.truths_refused += 1
+        if self.truths_refused in (1, 10, 100, 1000):
+            log.warning("%d message(s) on the arena's truth key refused (%s)", self.truths_refused, why)
 
     def latest_truth(self) -> dict[str, Any] | None:
         with self._lock:

@@ -823,8 +823,8 @@ def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision", keyed: 
     if tmp is not None:
         make_fleet_keys(Path(tmp.name), "bench", ("L1",))
         endpoint = "tls/" + endpoint.split("/", 1)[1]
-        keys_args = ["--keys", tmp.name]
-        page_keys = load_fleet_keys(Path(tmp.name), "page", "bench")
+        keys_args = ["--keys", str(Path(tmp.name) / "L1")]  # each identity its own bundle
+        page_keys = load_fleet_keys(Path(tmp.name) / "page", "page", "bench")
     page_session = open_session([endpoint], [], page_keys)
     server, gate = serve_gated("127.0.0.1", 0)
     switch = sys.getswitchinterval()

@@ -25,8 +25,8 @@ def add_bus_args(p: argparse.ArgumentParser, prefix: str = "") -> None:
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
                    help=f"{prefix}an endpoint to connect to (repeatable); nothing is discovered by itself")
     p.add_argument("--keys", type=Path, metavar="DIR",
-                   help=f"{prefix}the fleet's keys (`omniformation fleet-keys`): mutual TLS and access control by"
-                        " identity; without them the bus stays on loopback")
+                   help=f"{prefix}this identity's bundle of the fleet's keys (`omniformation fleet-keys DIR` writes"
+                        " DIR/ID/): mutual TLS and access control by identity; without them the bus stays on loopback")
 
 
 def fleet_keys(keys_dir: Path | None, identity: str, fleet: str) -> FleetKeys | None:
@@ -91,10 +91,11 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     keys = sub.add_parser(
         "fleet-keys",
         help="make a fleet's keys: a CA and a certificate per identity (arena, page, each leader)",
-        description="Write DIR/ca.pem (the fleet's certificate authority), DIR/fleet.json (who is in the fleet) and,"
-                    " for the arena, the page and every leader, DIR/ID.pem and DIR/ID.key (the certificate's common"
-                    " name is the identity; keys mode 0600). Give each machine ca.pem, fleet.json and its own"
-                    " ID.pem/ID.key; keep DIR/ca.key off the robots (docs/fleet-protocol.md, Security).",
+        description="Write DIR/ca/ (the fleet's certificate authority: ca.key and ca.pem, for the operator's machine"
+                    " only) and, for the arena, the page and every leader, a bundle DIR/ID/ (ca.pem, fleet.json,"
+                    " ID.pem and ID.key; the certificate's common name is the identity; folders 0700, keys 0600)."
+                    " Copy DIR/ID/ to the machine that runs ID and start it with --keys pointing there"
+                    " (docs/fleet-protocol.md, Security).",
     )
     keys.add_argument("dir", type=Path, metavar="DIR", help="where to write them (made if missing)")
     keys.add_argument("--fleet", metavar="NAME", required=True, help="the fleet's name on the bus")
@@ -125,8 +126,8 @@ def cmd_fleet_keys(args: argparse.Namespace) -> int:
         raise UserError(f"{args.dir}: cannot write keys ({exc.strerror or exc})") from None
     print(f"omniformation: fleet {args.fleet}: {len(written)} files in {args.dir} (identities: arena, page,"
           f" {', '.join(leaders)}; valid {args.days} days)", flush=True)
-    print("omniformation: give each machine ca.pem, fleet.json and its own ID.pem + ID.key; keep ca.key apart",
-          flush=True)
+    print(f"omniformation: copy {args.dir}/ID/ to the machine that runs ID and give it --keys there; keep"
+          f" {args.dir}/ca/ (the CA's private key) on the operator's machine only", flush=True)
     return 0
 
 

@@ -47,7 +47,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--feedback", choices=("vision", "truth"),
                      help="poses from the vision pipeline (default) or the simulator's truth plus noise")
     run.add_argument("--followers", type=int_in(1, MAX_FOLLOWERS), help="simulated followers without --scenario (default: config)")
-    run.add_argument("--rate", type=float_in(0.0, 200.0, "Hz"), help="loop rate (Hz, default: config)")
+    run.add_argument("--rate", type=float_in(1.0, 200.0, "Hz", lo_inclusive=True), help="loop rate (Hz, default: config)")
     run.add_argument("--seed", type=seed, help="random seed of the simulated team")
     run.add_argument("--link", metavar="sim|serial:PATH|none",
                      help="where commands go: the built-in simulated team (default) or followers on a serial port,"
@@ -305,7 +305,7 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
             fleet.arena_team = ArenaTeam(fleet.session, args.fleet, args.leader_id,
                                          config.measurement.position_noise_m, config.measurement.heading_noise_rad,
                                          config.seed if args.seed is None else args.seed,
-                                         hues_deg=fleet_scenario.hues_deg)
+                                         hues_deg=fleet_scenario.hues_deg, rate_hz=fleet_scenario.rate_hz)
         except NoArena as exc:
             raise UserError(f"--arena {args.arena}: {exc}") from None
         handed.callback(fleet.arena_team.close)
@@ -370,12 +370,9 @@ def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None,
     from app.dashboard.gate import is_loopback
     from app.services.live import Service
 
-    if not is_loopback(args.host):
-        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
-              " token) may see and command the robots", file=sys.stderr)
     config = plan.config
     try:
-        return Service(host=args.host, port=args.port, scenario=plan.scenario,
+        service = Service(host=args.host, port=args.port, scenario=plan.scenario,
                        n_followers=plan.n_followers, rate_hz=args.rate or config.rate_hz,
                        seed=config.seed if args.seed is None else args.seed, camera=plan.camera,
                        dynamics=config.dynamics, noise=config.measurement,
@@ -385,6 +382,10 @@ def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None,
                        realtime=args.realtime)
     except OSError as exc:
         raise UserError(bind_error(args.host, args.port, exc)) from None
+    if not is_loopback(args.host):  # after the bind: an address not here is one line, no warning first
+        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
+              " token) may see and command the robots", file=sys.stderr)
+    return service
 
 
 def _start_recorder(args: argparse.Namespace, plan: _RunPlan, service: Service) -> Recorder | None:
@@ -430,6 +431,7 @@ def _on_the_bus(args: argparse.Namespace, fleet: _Fleet, service: Service,
                           event=bridge.event)
         team = fleet.arena_team
         bridge.empty = lambda: team.emptied
+        bridge.truths_refused = lambda: team.truths_refused
         stack.callback(adopter.close)
     print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"
           f" ({'taking commands' if args.fleet_control else 'STOP only'} from it)", flush=True)

@@ -32,7 +32,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     sim.add_argument("--out", type=Path, help="write every tick as CSV (SI units, leader frame)")
     sim.add_argument("--plot", type=Path, help="write the paper-style figure (PNG)")
     sim.add_argument("--duration", type=float_in(0.0, 86400.0, "s"), help="override the duration (s)")
-    sim.add_argument("--rate", type=float_in(0.0, 1000.0, "Hz"), help="override the control rate (Hz)")
+    sim.add_argument("--rate", type=float_in(1.0, 1000.0, "Hz", lo_inclusive=True), help="override the control rate (Hz)")
     sim.add_argument("--seed", type=seed, help="override the random seed")
     sim.add_argument("--vision", action="store_true",
                      help="feed the controller from the vision pipeline on synthetic frames (default rate 30 Hz)")
@@ -87,6 +87,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         changes["rate_hz"] = args.rate
     elif args.vision:
         changes["rate_hz"] = VISION_RATE_HZ  # one control step per camera frame
+    duration = float(changes.get("duration_s", scenario.duration_s))  # type: ignore[arg-type]
+    rate = float(changes.get("rate_hz", scenario.rate_hz))  # type: ignore[arg-type]
+    if duration * rate < 1.0:
+        raise UserError(f"--duration {duration:g} s: shorter than one control tick (1/{rate:g} s at {rate:g} Hz)")
     if args.seed is not None:
         changes["seed"] = args.seed
     if args.no_safety:

@@ -22,6 +22,7 @@ from core.fleet import MAX_TEAM, adoption_plan, slot_for_newcomer
 from core.geometry import world_to_leader
 from core.types import FloatArray
 
+from app import wire
 from app.backends.arena import ArenaTeam
 from app.keys import robot_index, robot_name, root
 from app.params import ParamsStore
@@ -154,11 +155,14 @@ class Adopter:
         payload = json.dumps({"leader": self.leader_id, "robot": robot_name(r)})
         for reply in self.session.get(f"{root(self.fleet)}/arena/claim/{self.leader_id}", payload=payload, timeout=2.0):
             try:
-                answer = json.loads(reply.ok.payload.to_bytes())
-            except (AttributeError, ValueError, TypeError):
+                answer = wire.decode(reply.ok.payload.to_bytes())
+                if not isinstance(answer, dict):
+                    raise wire.BadMessage("an answer is a JSON object")
+            except (AttributeError, wire.BadMessage):
                 continue
-            if answer.get("granted") and robot_index(answer.get("robot"), 10_000) == r:
-                return int(answer.get("tick", 0))
+            tick = answer.get("tick", 0)
+            if answer.get("granted") is True and robot_index(answer.get("robot"), 10_000) == r and wire.is_integer(tick):
+                return int(tick)
             left = answer.get("lease_left_ms")
             if isinstance(left, int) and 0 < left <= 60_000:  # the robot's lease lives: ask again when it lapses
                 self._retry_at = min(self._retry_at, time.monotonic() + left / 1000 + 0.05)

@@ -50,6 +50,7 @@ from core.link.protocol import WATCHDOG_S
 from core.types import FloatArray
 
 from app.backends.emulator import FollowerEmulator
+from app import wire
 from app.backends.radio import Radio
 from app.keys import robot_index, robot_name, root
 
@@ -157,21 +158,24 @@ class Arena:
     def _on_drive(self, sample: Any) -> None:
         leader = str(sample.key_expr).rsplit("/", 1)[-1]
         try:
-            msg = json.loads(sample.payload.to_bytes())
-            twist = [float(v) for v in msg["twist"]]
-            commands = msg["commands"]
+            msg = wire.obj(wire.decode(sample.payload.to_bytes()), "a drive", ("twist", "commands"),
+                           ("tick", "truth_tick"))
+            twist = wire.numbers(msg["twist"], 2, "twist")
             seen = msg.get("truth_tick")  # the newest truth the sender knew its robots by
-            seen_tick = int(seen) if isinstance(seen, int) and not isinstance(seen, bool) else None
-            if len(twist) != 2 or not all(math.isfinite(v) for v in twist) or not isinstance(commands, dict):
-                raise ValueError
+            seen_tick = None if seen is None else wire.integer(seen, "truth_tick")
+            if "tick" in msg:
+                wire.integer(msg["tick"], "tick")
+            commands = msg["commands"]
+            if not isinstance(commands, dict):
+                raise wire.BadMessage("commands must be an object {\"R<n>\": [v, w]}")
             parsed = []
             for name, vw in commands.items():
                 r = robot_index(name, len(self.owners))
-                v, w = (float(x) for x in vw)
-                if r is None or not (math.isfinite(v) and math.isfinite(w)):
-                    raise ValueError
+                if r is None:
+                    raise wire.BadMessage(f"commands: {str(name)[:20]!r} is no robot of this arena")
+                v, w = wire.numbers(vw, 2, f"commands.{name}")
                 parsed.append((r, v, w))
-        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+        except wire.BadMessage:
             with self._lock:
                 self.counts.malformed += 1
             return
@@ -282,15 +286,18 @@ class Arena:
         there): a payload naming another leader is refused, never granted to either."""
         leader = str(query.key_expr).rsplit("/", 1)[-1]
         try:
-            msg = json.loads(query.payload.to_bytes() if query.payload is not None else b"")
-            named, r = str(msg.get("leader", leader)), robot_index(msg["robot"], len(self.owners))
+            msg = wire.obj(wire.decode(query.payload.to_bytes() if query.payload is not None else None), "a claim",
+                           ("robot",), ("leader",))
+            named = wire.text(msg.get("leader", leader), "leader")
+            r = robot_index(wire.text(msg["robot"], "robot"), len(self.owners))
             if r is None:
-                raise ValueError
-        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+                raise wire.BadMessage(f"{msg['robot']!r} is no robot of this arena")
+        except wire.BadMessage as exc:
             with self._lock:
                 self.counts.malformed += 1
-            query.reply(query.key_expr, json.dumps({"granted": False, "why": "a claim is"
-                                                    ' {"robot": "R<n>"} on arena/claim/<your id>'}))
+            query.reply(query.key_expr, json.dumps({"granted": False, "leader": leader, "why": f"{exc}; a claim is"
+                                                    ' {"robot": "R<n>"} on arena/claim/<your id>',
+                                                    "tick": self.counts.steps, "lease_left_ms": 0}))
             return
         lease_left_ms = 0
         with self._lock:
@@ -330,16 +337,19 @@ class Arena:
         """The operator moves a robot to a leader (e.g. back to one that came back empty-handed):
         granted to a living leader with room, never leaving a living leader without a follower."""
         try:
-            msg = json.loads(query.payload.to_bytes() if query.payload is not None else b"")
-            to, r = str(msg["to"]), robot_index(msg["robot"], len(self.owners))
-            sender = str(msg.get("from", "?"))[:40]
+            msg = wire.obj(wire.decode(query.payload.to_bytes() if query.payload is not None else None),
+                           "a handover", ("robot", "to"), ("from",))
+            to = wire.text(msg["to"], "to")
+            r = robot_index(wire.text(msg["robot"], "robot"), len(self.owners))
+            sender = wire.text(msg.get("from", "?"), "from")
             if r is None:
-                raise ValueError
-        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+                raise wire.BadMessage(f"{msg['robot']!r} is no robot of this arena")
+        except wire.BadMessage as exc:
             with self._lock:
                 self.counts.malformed += 1
-            query.reply(query.key_expr, json.dumps({"granted": False, "why": "a handover is"
-                                                    ' {"robot": "R<n>", "to": ID, "from": WHO}'}))
+            query.reply(query.key_expr, json.dumps({"granted": False, "why": f"{exc}; a handover is"
+                                                    ' {"robot": "R<n>", "to": ID, "from": WHO}',
+                                                    "tick": self.counts.steps}))
             return
         with self._lock:
             owner = self.owners[r]

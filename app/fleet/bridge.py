@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from app import wire
 from app.dashboard import LatestStatePublisher
 from app.keys import root
 from app.params import Params, ParamsStore
@@ -51,7 +52,6 @@ if TYPE_CHECKING:
 
 NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
 ENDPOINT = re.compile(r"(tcp|udp|tls)/(?P<host>[A-Za-z0-9_.-]+|\[[0-9a-fA-F:]+\]):(?P<port>\d{1,5})")
-LOOPBACK_HOSTS = ("localhost", "[::1]")
 SETTABLE = ("k_f1", "k_f2", "a", "k_w1", "k_w2", "slots", "leader_mode", "leader_speed_mps", "leader_turn_deg_s",
             "stop", "safety", "safety_distance_m", "goal", "min_scale")
 
@@ -64,9 +64,10 @@ def check_name(value: str, what: str) -> str:
 
 
 def check_endpoint(value: str, keys: FleetKeys | None = None) -> str:
-    """An endpoint this process may use: with fleet keys ``tls/HOST:PORT`` (mutual TLS), without
-    them a loopback ``tcp/`` or ``udp/`` one only (an open bus is for one machine); else
-    ValueError (one line)."""
+    """An endpoint this process may use, as it is to be used: with fleet keys ``tls/HOST:PORT``
+    (mutual TLS), without them a ``tcp/`` or ``udp/`` one whose host is loopback by every
+    address it resolves to, returned with the address checked in place of the name (an open
+    bus is for one machine); else ValueError (one line)."""
     m = ENDPOINT.fullmatch(value)
     if m is None or not 0 < int(m["port"]) < 65536:
         raise ValueError(f"endpoint {value!r}: must be tls/HOST:PORT with --keys, or tcp/HOST:PORT or udp/HOST:PORT"
@@ -78,12 +79,37 @@ def check_endpoint(value: str, keys: FleetKeys | None = None) -> str:
         if value.startswith("tls/"):
             raise ValueError(f"endpoint {value!r}: tls/ needs the fleet's keys (--keys DIR, made by"
                              " `omniformation fleet-keys`)")
-        host = m["host"]
-        if not (host in LOOPBACK_HOSTS or host.startswith("127.")):
-            raise ValueError(f"endpoint {value!r}: without --keys the bus stays on this machine (127.0.0.1,"
-                             " localhost, [::1]); anyone on a network could drive the robots: make keys with"
-                             " `omniformation fleet-keys` and use tls/ endpoints with --keys")
+        address = _loopback_address(value, m["host"], int(m["port"]))
+        return f"{value[:3]}/{address}:{m['port']}"
     return value
+
+
+def _loopback_address(value: str, host: str, port: int) -> str:
+    """The address an open endpoint's host names, if every address it resolves to is loopback
+    (a name is judged by what it names: ``127.lan`` may be 192.0.2.2), as Zenoh writes it;
+    else ValueError (one line naming the address)."""
+    import ipaddress
+    import socket
+
+    open_bus = ("without --keys the bus stays on this machine (127.0.0.1, localhost, [::1]); anyone on a network"
+                " could drive the robots: make keys with `omniformation fleet-keys` and use tls/ endpoints with"
+                " --keys")
+    name = host[1:-1] if host.startswith("[") else host
+    try:
+        found = [ipaddress.ip_address(name)]
+    except ValueError:
+        try:
+            infos = socket.getaddrinfo(name, port, type=socket.SOCK_STREAM)
+        except (OSError, UnicodeError) as exc:
+            raise ValueError(f"endpoint {value!r}: {name!r} does not resolve ({exc}); {open_bus}") from None
+        found = [ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in infos]
+    for address in found:
+        if not address.is_loopback:
+            raise ValueError(f"endpoint {value!r}: {name} is {address}, not loopback; {open_bus}")
+    if not found:
+        raise ValueError(f"endpoint {value!r}: {name!r} resolves to no address; {open_bus}")
+    first = next((a for a in found if a.version == 4), found[0])  # 127.0.0.1 where a name is both
+    return f"[{first}]" if first.version == 6 else str(first)
 
 
 def loopback_endpoint() -> str:
@@ -163,6 +189,50 @@ def _num(x: Any) -> Any:
     return x
 
 
+def read_state(msg: Any) -> dict[str, Any]:
+    """A leader's state as docs/fleet-protocol.md gives it, each field a reader uses of its exact
+    type (app.wire: a state may carry more), else BadMessage."""
+    state = wire.obj(msg, "a state", ("p_est",), more=True)
+
+    def maybe(x: Any, what: str) -> None:
+        if x is not None:
+            wire.number(x, what)
+
+    for name in ("p_est", "p_d", "p_true", "commands"):
+        rows = state.get(name) or []  # p_true: null where nobody knows it
+        if not isinstance(rows, list) or not all(isinstance(r, list) and len(r) == 2 for r in rows):
+            raise wire.BadMessage(f"{name} must be a list of pairs")
+        for r in rows:
+            for v in r:
+                maybe(v, name)
+    for name in ("a_est", "error_m"):
+        values = state.get(name) or []
+        if not isinstance(values, list):
+            raise wire.BadMessage(f"{name} must be a list")
+        for v in values:
+            maybe(v, name)
+    tracked = state.get("tracked", [])
+    if not isinstance(tracked, list) or not all(isinstance(b, bool) for b in tracked):
+        raise wire.BadMessage("tracked must be a list of true/false")
+    if state.get("leader") is not None:
+        wire.numbers(state["leader"], 3, "leader")
+    wire.numbers(state.get("leader_twist", [0.0, 0.0]), 2, "leader_twist")
+    for name in ("t", "rate_hz", "sent", "started"):
+        maybe(state.get(name), name)
+    for name in ("stopped",):
+        if not isinstance(state.get(name, False), bool):
+            raise wire.BadMessage(f"{name} must be true or false")
+    for name in ("phase", "takes", "link_state", "leader_id", "instance"):
+        wire.text(state.get(name, ""), name, 1000)
+    for name in ("gains", "refused"):
+        table = state.get(name, {})
+        if not isinstance(table, dict):
+            raise wire.BadMessage(f"{name} must be an object")
+        for k, v in table.items():
+            wire.number(v, f"{name}.{k}")
+    return state
+
+
 def takes(allow_control: bool) -> str:
     """What a leader obeys from the bus, as its state says: everything (``--fleet-control``) or STOP."""
     return "all" if allow_control else "stop"
@@ -198,7 +268,7 @@ def waiting_payload(leader_id: str, t: float, takes: str, tick: int = 0,
             "leader_twist": [0.0, 0.0], "p_est": [], "a_est": [], "tracked": [], "p_d": [], "error_m": [],
             "p_true": [], "commands": [], "gains": Gains().as_dict(), "stopped": True, "phase": "waiting",
             "link_state": "waiting for a robot (the operator hands one over)", "rate_hz": None,
-            "takes": takes, "refused": refused or {"commands": 0, "states": 0}}
+            "takes": takes, "refused": refused or {"commands": 0, "states": 0, "truths": 0}}
 
 
 @dataclass(frozen=True)
@@ -290,6 +360,7 @@ class FleetBridge:
         store.subscribe(self._on_params)
         self._publisher = LatestStatePublisher(self._publish_state)
         self.empty: Callable[[], bool] = lambda: False  # set by an arena leader: it owns no robot now
+        self.truths_refused: Callable[[], int] = lambda: 0  # set by an arena leader: truths it did not take
 
     @property
     def instance(self) -> str:
@@ -331,7 +402,7 @@ class FleetBridge:
         self._publisher(dataclasses.replace(s, t=self._t))
 
     def _publish_state(self, s: TickState) -> None:
-        refused = {"commands": self.commands_refused, "states": self.states_refused}
+        refused = {"commands": self.commands_refused, "states": self.states_refused, "truths": self.truths_refused()}
         if self.empty():  # every robot it had is another's now: its loop holds none of them
             payload = waiting_payload(self.leader_id, s.t, takes(self.allow_control), s.tick, refused)
         else:
@@ -358,8 +429,8 @@ class FleetBridge:
         "One leader per id"). Of two twins the one that started later stands down; both
         compare the same (started, instance) pairs, so exactly one of them does."""
         try:
-            msg = json.loads(sample.payload.to_bytes())
-        except (ValueError, UnicodeDecodeError):
+            msg = wire.decode(sample.payload.to_bytes())
+        except wire.BadMessage:
             msg = None
         other, started = (msg.get("instance"), msg.get("started")) if isinstance(msg, dict) else (None, None)
         if other == self.instance:
@@ -389,17 +460,21 @@ class FleetBridge:
             self.event("twin", f"a second {self.leader_id} ({other}) appeared; it started later and stands down")
 
     def _changes(self, sample: Any) -> tuple[dict[str, Any], str]:
+        """A command's changes, each value of its setting's exact type (app.wire), and who sent
+        it; or no changes and why not."""
         try:
-            msg = json.loads(sample.payload.to_bytes())
-        except (ValueError, UnicodeDecodeError):
-            return {}, "not JSON"
-        if not isinstance(msg, dict) or not isinstance(msg.get("set"), dict):
-            return {}, 'must be {"set": {NAME: VALUE, ...}}'
-        unknown = [k for k in msg["set"] if k not in SETTABLE]
-        if unknown:
-            return {}, f"{unknown[0]!r} cannot be set over the bus (allowed: {', '.join(SETTABLE)})"
-        sender = str(msg.get("from", "?"))[:40]
-        return dict(msg["set"]), sender
+            msg = wire.obj(wire.decode(sample.payload.to_bytes()), "a command", ("set",), ("from",))
+            if not isinstance(msg["set"], dict):
+                raise wire.BadMessage('must be {"set": {NAME: VALUE, ...}}')
+            unknown = [k for k in msg["set"] if k not in SETTABLE]
+            if unknown:
+                raise wire.BadMessage(f"{str(unknown[0])[:40]!r} cannot be set over the bus (allowed:"
+                                      f" {', '.join(SETTABLE)})")
+            changes = {k: wire.setting(k, v) for k, v in msg["set"].items()}
+            sender = wire.text(msg.get("from", "?"), "from")
+        except wire.BadMessage as exc:
+            return {}, str(exc)
+        return changes, sender[:40]
 
     def _apply(self, changes: dict[str, Any], sender: str) -> None:
         try:

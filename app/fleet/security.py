@@ -27,15 +27,22 @@ from app.keys import root
 
 ARENA = "arena"
 PAGE = "page"
-HUBS = (ARENA, PAGE)  # the identities that may listen and so forward the others' messages
+HUBS = (ARENA, PAGE)  # the identities that may listen; of them only the arena writes what it forwards
 ROSTER = "fleet.json"
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"  # only fleet-keys needs it (a new identity): keep it off the robots
+CA_DIR = "ca"  # DIR/ca/: the CA's key and certificate, for the operator's machine only
+# files fleet-keys may add to an identity's bundle beside its own key (e.g. a key the radio
+# shares): the only other secrets `--keys` lets lie in a bundle
+BUNDLE_EXTRAS: tuple[str, ...] = ()
 DEFAULT_DAYS = 365
 MAX_DAYS = 3650
 
 # what a leader may write (its token and its claims apart); everyone may read the fleet's keys
 LEADER_WRITES = ("leader/{id}/state", "leader/{id}/events", "arena/drive/{id}")
+# what the page may write: the operator's commands and its own token; its handovers are queries
+PAGE_WRITES = ("leader/*/cmd", "all/cmd")
+PAGE_TOKEN = "page/alive"
 READS = ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query")
 EVERY_MESSAGE = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token",
                  "declare_liveliness_subscriber", "liveliness_query")
@@ -95,23 +102,33 @@ def parse_leaders(text: str) -> tuple[str, ...]:
 
 
 # -- making keys ---------------------------------------------------------------------------------
+def bundle_files(identity: str) -> tuple[str, ...]:
+    """What DIR/<identity>/ holds: all that identity's process needs, nothing of another's."""
+    return (CA_CERT, ROSTER, f"{identity}.pem", f"{identity}.key")
+
+
 def make_fleet_keys(directory: Path, fleet: str, leaders: tuple[str, ...], *, overwrite: bool = False,
                     days: int = DEFAULT_DAYS, now: dt.datetime | None = None) -> list[Path]:
-    """Writes DIR/ca.pem, DIR/ca.key, DIR/fleet.json and DIR/<identity>.pem/.key for ``arena``,
-    ``page`` and every leader; keys mode 0600. Refuses (FileExistsError naming the first file)
-    to write over any of them unless ``overwrite``. Returns the files written."""
+    """Writes DIR/ca/ (ca.key and ca.pem: the operator's, never given to a process) and one
+    bundle per identity, DIR/<identity>/ (ca.pem, fleet.json, <identity>.pem and .key: what
+    ``--keys DIR/<identity>`` reads) for ``arena``, ``page`` and every leader; folders mode
+    0700, keys 0600. Refuses (FileExistsError naming the first file) to write over any of them
+    unless ``overwrite``. Returns the files written."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
     roster = Roster(fleet, leaders)
-    names = [CA_CERT, CA_KEY, ROSTER] + [f"{i}{ext}" for i in roster.identities for ext in (".pem", ".key")]
+    names = [f"{CA_DIR}/{CA_KEY}", f"{CA_DIR}/{CA_CERT}"] + [f"{i}/{n}" for i in roster.identities
+                                                             for n in bundle_files(i)]
     if not overwrite:
         for n in names:
             if (directory / n).exists():
                 raise FileExistsError(f"{directory / n}: exists; fleet-keys writes over keys only with --overwrite")
-    directory.mkdir(parents=True, exist_ok=True)
+    for sub_dir in (CA_DIR, *roster.identities):
+        (directory / sub_dir).mkdir(parents=True, exist_ok=True)
+        os.chmod(directory / sub_dir, 0o700)  # a bundle nobody else may read or change
     now = now or dt.datetime.now(dt.UTC)
     start, end = now - dt.timedelta(minutes=5), now + dt.timedelta(days=days)
     org = x509.NameAttribute(NameOID.ORGANIZATION_NAME, organization(fleet))
@@ -139,8 +156,10 @@ def make_fleet_keys(directory: Path, fleet: str, leaders: tuple[str, ...], *, ov
         return bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                        serialization.NoEncryption()))
 
-    write(CA_CERT, ca.public_bytes(serialization.Encoding.PEM))
-    write(CA_KEY, pem_key(ca_key), secret=True)
+    ca_pem = ca.public_bytes(serialization.Encoding.PEM)
+    roster_json = (json.dumps({"fleet": fleet, "leaders": list(leaders)}, indent=1) + "\n").encode()
+    write(f"{CA_DIR}/{CA_KEY}", pem_key(ca_key), secret=True)
+    write(f"{CA_DIR}/{CA_CERT}", ca_pem)
     for identity in roster.identities:
         key = ec.generate_private_key(ec.SECP256R1())
         cert = (x509.CertificateBuilder()
@@ -156,9 +175,10 @@ def make_fleet_keys(directory: Path, fleet: str, leaders: tuple[str, ...], *, ov
                 .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()),
                                critical=False)
                 .sign(ca_key, hashes.SHA256()))
-        write(f"{identity}.pem", cert.public_bytes(serialization.Encoding.PEM))
-        write(f"{identity}.key", pem_key(key), secret=True)
-    write(ROSTER, (json.dumps({"fleet": fleet, "leaders": list(leaders)}, indent=1) + "\n").encode())
+        write(f"{identity}/{CA_CERT}", ca_pem)
+        write(f"{identity}/{ROSTER}", roster_json)
+        write(f"{identity}/{identity}.pem", cert.public_bytes(serialization.Encoding.PEM))
+        write(f"{identity}/{identity}.key", pem_key(key), secret=True)
     return written
 
 
@@ -198,6 +218,40 @@ def _roster(directory: Path) -> Roster:
     return roster
 
 
+def _not_writable_by_others(path: Path) -> None:
+    if not path.exists():
+        return  # missing: said when it is read
+    mode = path.stat().st_mode
+    if mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise KeyFileError(f"{path}: others may write it (mode {stat.S_IMODE(mode):04o}): anyone on this machine could"
+                           f" swap the fleet's keys; `chmod go-w {path}`")
+
+
+def _check_bundle(directory: Path, identity: str) -> None:
+    """``--keys DIR`` is one identity's bundle (fleet-keys' DIR/<identity>/), nothing more: no
+    one else may write the folder, and it holds neither the CA's private key nor another
+    identity's (whoever can read such a folder can be anyone)."""
+    _not_writable_by_others(directory)
+    own = f"{identity}.key"
+    for entry in sorted(directory.iterdir()):
+        if entry.is_dir() and (entry.name == CA_DIR or (entry / f"{entry.name}.key").exists()):
+            raise KeyFileError(f"--keys {directory}: fleet-keys' whole folder (the CA's key and every identity's"
+                               f" bundle): give this process its own bundle only, --keys {directory / identity}")
+        if entry.name == CA_KEY:
+            raise KeyFileError(f"{entry}: the fleet CA's private key beside {identity}'s: whoever reads this folder can"
+                               " make any identity; keep it on the operator's machine, apart")
+        if entry.name == own or entry.name in BUNDLE_EXTRAS or not entry.is_file():
+            continue
+        try:
+            with entry.open("rb") as f:
+                head = f.read(64 * 1024)
+        except OSError:
+            continue
+        if entry.suffix == ".key" or b"PRIVATE KEY-----" in head:
+            raise KeyFileError(f"{entry}: another private key beside {identity}'s ({own}): each machine holds its"
+                               " own identity's key only; move it away")
+
+
 def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datetime | None = None) -> FleetKeys:
     """The files ``identity`` joins ``fleet`` with, checked: present and readable, the key not
     readable by others, the certificate this fleet CA's, named ``identity``, in date and made
@@ -209,6 +263,7 @@ def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datet
 
     if not directory.is_dir():
         raise KeyFileError(f"--keys {directory}: not a directory (`omniformation fleet-keys {directory} ...` makes one)")
+    _check_bundle(directory, identity)
     roster = _roster(directory)
     if roster.fleet != fleet:
         raise KeyFileError(f"{directory / ROSTER}: keys of fleet {roster.fleet!r}, not of {fleet!r}")
@@ -221,6 +276,8 @@ def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datet
                 "not a PEM certificate")
     cert = _parse(cert_path, _read(cert_path, f"{identity}'s certificate"), x509.load_pem_x509_certificate,
                   "not a PEM certificate")
+    for path in (ca_path, cert_path, directory / ROSTER):
+        _not_writable_by_others(path)
     mode = key_path.stat().st_mode if key_path.exists() else 0
     if mode & (stat.S_IRWXG | stat.S_IRWXO):
         raise KeyFileError(f"{key_path}: readable by others (mode {stat.S_IMODE(mode):04o}); `chmod 600 {key_path}`")
@@ -276,9 +333,14 @@ def access_control(roster: Roster) -> dict[str, Any]:
     - a leader its ``leader/<id>/state|events``, ``arena/drive/<id>``, its ``alive/<id>`` token
       and claims on ``arena/claim/<id>`` -- nothing else: not another leader's keys, not the
       commands, not a handover, not the arena's truth;
-    - the hubs (the arena and the page, the only ones that listen) forward the others' messages,
-      which they checked as they came in, so they may write every key of the fleet: the
-      commands and handovers (the page), the truth and the answers to claims (the arena)."""
+    - the page the operator's commands (``leader/*/cmd``, ``all/cmd``), handovers (queries on
+      ``arena/handover``) and its token ``page/alive`` -- nothing else: no truth, no leader's
+      state, token, drive or claim. Its certificate drives nothing and speaks for no one;
+    - the arena, the hub every other connects to, forwards the others' messages, which it
+      checked as they came in (by this same control), so it may write every key of the fleet:
+      the truth, the answers to claims and handovers, and what it forwards. A truth is
+      therefore taken only from the arena, a leader's state only from that leader or through
+      the arena, which took it only from that leader."""
     base = root(roster.fleet)
     rules: list[dict[str, Any]] = [
         {"id": "read", "permission": "allow", "flows": ["ingress"], "messages": list(READS),
@@ -289,7 +351,17 @@ def access_control(roster: Roster) -> dict[str, Any]:
          "key_exprs": [f"{base}/**"]},
     ]
     subjects = [{"id": i, "cert_common_names": [i]} for i in roster.identities]
-    policies = [{"id": "hubs", "rules": ["read", "hear", "relay"], "subjects": list(HUBS)}]
+    rules += [
+        {"id": "page-writes", "permission": "allow", "flows": ["ingress"], "messages": ["put"],
+         "key_exprs": [f"{base}/{k}" for k in PAGE_WRITES]},
+        {"id": "page-alive", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
+         "key_exprs": [f"{base}/{PAGE_TOKEN}"]},
+        {"id": "page-handovers", "permission": "allow", "flows": ["ingress"], "messages": ["query"],
+         "key_exprs": [f"{base}/arena/handover"]},
+    ]
+    policies = [{"id": "arena", "rules": ["read", "hear", "relay"], "subjects": [ARENA]},
+                {"id": "page", "rules": ["read", "hear", "page-writes", "page-alive", "page-handovers"],
+                 "subjects": [PAGE]}]
     for lid in roster.leaders:
         rules += [
             {"id": f"{lid}-writes", "permission": "allow", "flows": ["ingress"], "messages": ["put"],

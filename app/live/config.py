@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from core.config import ConfigError, MeasurementNoise, Table, parse_dynamics, parse_measurement
+from core.config import ConfigError, MeasurementNoise, Table, parse_dynamics, parse_measurement, toml_loads
 from core.sim.team import FollowerDynamics
 
 from app.backends.serial_link import parse_link_spec
@@ -45,11 +44,11 @@ def load_service_config(path: Path, max_followers: int) -> ServiceConfig:
         raise UserError(f"{path}: no such config file")
     source = display_path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = toml_loads(path.read_text(encoding="utf-8"), source)
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"{source}: cannot read: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"{source}: not valid TOML: {exc}") from None
+    except ConfigError as exc:
+        raise UserError(str(exc)) from None
     try:
         top = Table(data, source, "")
         svc = top.table("service")

@@ -30,7 +30,10 @@ from core.geometry import leader_to_world
 
 from app.dashboard.scene import yaw_wxyz
 from app.dashboard.widgets import assign, on_page_thread
+from app import wire
+from app.backends.arena import read_truth
 from app.keys import root
+from app.fleet.bridge import read_state
 
 REFRESH_S = 0.1
 # a state arriving while the page redraws waited up to the GIL's 5 ms switch interval for its callback
@@ -154,6 +157,8 @@ class FleetView:
         self._zenoh = zenoh
         self._lock = threading.Lock()
         self.truth: dict[str, Any] | None = None
+        # the page's own token (with the fleet's keys the page writes this, commands and handovers only)
+        self._token = session.liveliness().declare_token(f"{root(fleet)}/page/alive")
         self.states: dict[str, tuple[float, dict[str, Any]]] = {}  # id -> (monotonic time received, state)
         self.alive: set[str] = set()
         self.events: deque[str] = deque(maxlen=12)
@@ -193,8 +198,8 @@ class FleetView:
     # -- in ------------------------------------------------------------------------------------
     def _decode(self, sample: Any) -> dict[str, Any] | None:
         try:
-            msg = json.loads(sample.payload.to_bytes())
-        except (ValueError, UnicodeDecodeError):
+            msg = wire.decode(sample.payload.to_bytes())
+        except wire.BadMessage:
             msg = None
         if not isinstance(msg, dict):
             with self._lock:
@@ -204,7 +209,13 @@ class FleetView:
 
     def _on_truth(self, sample: Any) -> None:
         msg = self._decode(sample)
-        if msg is None or not isinstance(msg.get("robots"), list) or not isinstance(msg.get("leaders"), dict):
+        try:
+            msg = read_truth(msg) if msg is not None else None
+        except wire.BadMessage:
+            with self._lock:
+                self.malformed += 1
+            msg = None
+        if msg is None:
             return
         with self._lock:
             self.truth = msg
@@ -215,7 +226,13 @@ class FleetView:
         now, arrived = time.monotonic(), time.time()
         msg = self._decode(sample)
         leader = str(sample.key_expr).split("/")[-2]
-        if msg is None or not isinstance(msg.get("p_est"), list):
+        try:
+            msg = read_state(msg) if msg is not None else None
+        except wire.BadMessage:
+            with self._lock:
+                self.malformed += 1
+            msg = None
+        if msg is None:
             return
         sent = msg.get("sent")
         with self._lock:
@@ -358,3 +375,4 @@ class FleetView:
         self._thread.join(5.0)
         for sub in self._subs:
             sub.undeclare()
+        self._token.undeclare()

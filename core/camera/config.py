@@ -13,7 +13,6 @@ One file describes one rig. Sections (all optional except ``working_area``):
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +20,7 @@ import numpy as np
 from core.camera.gamma import Gamma
 from core.camera.model import CameraModel
 from core.camera.render import BoxLook, RenderSettings
-from core.config import ConfigError, Table
+from core.config import ConfigError, Table, toml_loads
 from core.types import FloatArray
 
 
@@ -243,11 +242,7 @@ def _parse_gamma(t: Table) -> Gamma:
 
 
 def parse_camera(text: str, source: str) -> CameraConfig:
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    top = Table(data, source, "")
+    top = Table(toml_loads(text, source), source, "")
     model = _parse_model(top.table("model", optional=False)) if top.has("model") else None
     top.used.add("model")
     render = _parse_render(top.table("render"))

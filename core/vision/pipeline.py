@@ -523,15 +523,9 @@ PIPELINE_BOUNDS: dict[str, tuple[float, float, str]] = {
 
 def parse_pipeline_settings(text: str, source: str, base: PipelineSettings = PipelineSettings()) -> PipelineSettings:
     """A ``[pipeline]`` TOML table over ``base``; ConfigError (one line) for anything else."""
-    import tomllib
+    from core.config import Table, toml_loads
 
-    from core.config import ConfigError, Table
-
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    top = Table(data, source, "")
+    top = Table(toml_loads(text, source), source, "")
     table = top.table("pipeline", optional=False)
     changes: dict[str, float | int] = {}
     for name, (lo, hi, unit) in PIPELINE_BOUNDS.items():

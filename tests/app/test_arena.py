@@ -36,7 +36,8 @@ class Watcher:
 
     def __init__(self, endpoint: str, keys: Path | None = None) -> None:
         # with the fleet's keys, the operator's identity (it may hand over); else a plain session
-        self.session = fleet_session(keys, "page" if keys is not None else None, endpoint)
+        self.session = fleet_session(keys / "page" if keys is not None else None, "page" if keys is not None else None,
+                                     endpoint)
         self.lock = threading.Lock()
         self.truths: list[dict] = []
         self.states: dict[str, list[tuple[float, dict]]] = {}  # leader -> (arena t when received, state)
@@ -94,7 +95,7 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
     assert main_cli("fleet-keys", str(keys), "--fleet", FLEET, "--leaders", "L1,L2,L3").returncode == 0
     endpoint = "tls/" + loopback_endpoint().split("/", 1)[1]
     summary = tmp_path / "arena.json"
-    arena = _spawn("arena", FLEET, "--keys", str(keys), "--zenoh-listen", endpoint, "--status-every", "0",
+    arena = _spawn("arena", FLEET, "--keys", str(keys / "arena"), "--zenoh-listen", endpoint, "--status-every", "0",
                    "--summary", str(summary))
     procs: dict[str, subprocess.Popen] = {}
     watcher = None
@@ -103,7 +104,7 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         assert "arena three_teams: 3 leaders, 9 robots" in arena.stdout.readline()
         watcher = Watcher(endpoint, keys)
         for leader in ("L1", "L2", "L3"):
-            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys), "--zenoh-connect", endpoint,
+            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys / leader), "--zenoh-connect", endpoint,
                                    "--port", "0", "--no-record")
         w = watcher
         wait_for(lambda: sorted(w.last_truth()["alive"]) == ["L1", "L2", "L3"] if w.truths else False, 60,
@@ -118,7 +119,7 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         rms = {ld: team_rms_m(w.recent(ld, 4.0)) for ld in ("L1", "L2", "L3")}
         assert all(v <= 0.02 for v in rms.values()), rms
         # a second leader with an id on the bus already refuses to start, saying so
-        twin = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--keys", str(keys), "--zenoh-connect", endpoint, "--port", "0",
+        twin = main_cli("run", "--arena", FLEET, "--leader-id", "L1", "--keys", str(keys / "L1"), "--zenoh-connect", endpoint, "--port", "0",
                         "--no-record")
         assert twin.returncode == 2 and "a leader with this id is alive on fleet three_teams" in twin.stderr, twin.stderr
         assert len(twin.stderr.strip().splitlines()) == 1
@@ -176,7 +177,7 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         assert w.last_truth()["conflicts"] == 0 and w.last_truth()["contacts"] == 0
 
         # L2 comes back empty-handed and waits; the operator hands it R5 back; its adopter lets go
-        procs["L2"] = _spawn("run", "--arena", FLEET, "--leader-id", "L2", "--keys", str(keys), "--zenoh-connect", endpoint, "--port", "0",
+        procs["L2"] = _spawn("run", "--arena", FLEET, "--leader-id", "L2", "--keys", str(keys / "L2"), "--zenoh-connect", endpoint, "--port", "0",
                              "--no-record")
         assert procs["L2"].stdout is not None
         assert "L2 owns no robot in the arena now" in procs["L2"].stdout.readline()

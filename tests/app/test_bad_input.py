@@ -46,6 +46,7 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     (d / "nine.toml").write_text(
         'name = "nine"\nduration_s = 5\nrate_hz = 30\n[leader]\nprofile = "constant"\nspeed_mps = 0.05\n'
         f"{many}\n[formation]\nslots = [{slots}]\n")
+    (d / "deep.toml").write_text("name = 'deep'\nx = " + "[" * 5000 + "]" * 5000 + "\n")
     _mcap_with_ticks(d / "empty_tick.mcap", {})
     _mcap_with_ticks(d / "wrong_types.mcap", {"tick": 0, "t": 0.0, "p_est": "abc", "a_est": 5})
     return {p.name: p for p in d.iterdir()} | {"dir": d}
@@ -75,6 +76,12 @@ CASES = [
     ("calibrate --synthetic static_config/camera/synthetic.toml --out {dir}/c.toml --bearing-offset nan",
      "nan is outside [-360, 360] deg"),
     ("simulate {identical.toml} --duration 1", "points at least 5 cm apart (slots 1 and 2 are not"),
+    # odd numbers and addresses (README: a bad argument is one line and exit code 2)
+    ("run --rate 1e-300 --port 0 --no-record", "argument --rate: 1e-300 is outside [1, 200] Hz"),
+    ("simulate experiment1 --rate 1e-300", "argument --rate: 1e-300 is outside [1, 1000] Hz"),
+    ("simulate experiment1 --duration 1e-300", "--duration 1e-300 s: shorter than one control tick"),
+    ("run --host 8.8.8.8 --port 0 --no-record", "cannot serve on 8.8.8.8:0"),
+    ("run --scenario {deep.toml} --port 0 --no-record", "deep.toml: arrays or tables nested deeper than 64 levels"),
     ("run --camera {random.mp4} --calibration static_config/camera/synthetic_calibrated.toml --port 0 --no-record",
      "OpenCV cannot read a frame from this file"),
 ]

@@ -41,35 +41,41 @@ def test_fleet_keys_makes_a_ca_and_one_certificate_per_identity(tmp_path):
     from cryptography.x509.oid import NameOID
 
     keys = make_keys(tmp_path / "keys")
-    names = sorted(p.name for p in keys.iterdir())
-    assert names == sorted(["ca.pem", "ca.key", "fleet.json"] + [f"{i}.{e}" for i in ("arena", "page", "L1", "L2", "L3")
-                                                                  for e in ("pem", "key")])
-    for p in keys.glob("*.key"):
+    idents = ("arena", "page", "L1", "L2", "L3")
+    assert sorted(p.name for p in keys.iterdir()) == sorted(["ca", *idents])
+    assert sorted(p.name for p in (keys / "ca").iterdir()) == ["ca.key", "ca.pem"]
+    for ident in idents:  # one bundle per identity, to copy whole: nothing of another's in it
+        assert sorted(p.name for p in (keys / ident).iterdir()) == sorted(["ca.pem", "fleet.json", f"{ident}.pem",
+                                                                           f"{ident}.key"])
+    for p in keys.rglob("*.key"):
         assert (p.stat().st_mode & 0o777) == 0o600, p
-    for ident in ("arena", "page", "L1", "L2", "L3"):
-        cert = x509.load_pem_x509_certificate((keys / f"{ident}.pem").read_bytes())
+    for d in keys.iterdir():
+        assert (d.stat().st_mode & 0o777) == 0o700, d
+    for ident in idents:
+        cert = x509.load_pem_x509_certificate((keys / ident / f"{ident}.pem").read_bytes())
         assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == ident
-        assert load_fleet_keys(keys, ident, FLEET).identity == ident
-    before = (keys / "L1.pem").read_bytes()
+        assert load_fleet_keys(keys / ident, ident, FLEET).identity == ident
+    before = (keys / "L1" / "L1.pem").read_bytes()
     again = main_cli("fleet-keys", str(keys), "--fleet", FLEET, "--leaders", "L1,L2,L3")
     assert again.returncode == 2 and "exists; fleet-keys writes over keys only with --overwrite" in again.stderr
-    assert len(again.stderr.strip().splitlines()) == 1 and (keys / "L1.pem").read_bytes() == before
+    assert len(again.stderr.strip().splitlines()) == 1 and (keys / "L1" / "L1.pem").read_bytes() == before
     assert main_cli("fleet-keys", str(keys), "--fleet", FLEET, "--leaders", "L1,L2", "--overwrite").returncode == 0
-    assert (keys / "L1.pem").read_bytes() != before
+    assert (keys / "L1" / "L1.pem").read_bytes() != before
     for args, words in ((["--leaders", "L1,L1"], "'L1' twice"), (["--leaders", "arena"], "taken by the arena"),
                         (["--leaders", "L 1"], "1 to 32 characters"), (["--leaders", "L1", "--days", "0"], "--days")):
         r = main_cli("fleet-keys", str(tmp_path / "other"), "--fleet", FLEET, *args)
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
 
 
-def _expired_certificate(keys: Path, identity: str) -> None:
-    """Re-issue ``identity``'s certificate from the fleet's CA, valid until yesterday."""
+def _expired_certificate(keys: Path, identity: str, ca_dir: Path) -> None:
+    """Re-issue ``identity``'s certificate (in its bundle ``keys``) from the fleet's CA (the
+    operator's ``ca_dir``), valid until yesterday."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.x509.oid import NameOID
 
-    ca = x509.load_pem_x509_certificate((keys / "ca.pem").read_bytes())
-    ca_key = serialization.load_pem_private_key((keys / "ca.key").read_bytes(), password=None)
+    ca = x509.load_pem_x509_certificate((ca_dir / "ca.pem").read_bytes())
+    ca_key = serialization.load_pem_private_key((ca_dir / "ca.key").read_bytes(), password=None)
     key = serialization.load_pem_private_key((keys / f"{identity}.key").read_bytes(), password=None)
     now = dt.datetime.now(dt.UTC)
     cert = (x509.CertificateBuilder().subject_name(x509.Name([
@@ -92,8 +98,8 @@ def test_bad_keys_and_open_endpoints_are_refused_in_one_line(tmp_path):
 
     def broken(name: str, change) -> Path:
         d = tmp_path / name
-        d.mkdir()
-        for p in keys.iterdir():
+        d.mkdir(mode=0o700)
+        for p in (keys / "arena").iterdir():
             (d / p.name).write_bytes(p.read_bytes())
             os.chmod(d / p.name, p.stat().st_mode & 0o777)
         change(d)
@@ -103,28 +109,28 @@ def test_bad_keys_and_open_endpoints_are_refused_in_one_line(tmp_path):
         (broken("missing", lambda d: (d / "arena.key").unlink()), "arena.key: missing"),
         (broken("readable", lambda d: os.chmod(d / "arena.key", 0o644)), "arena.key: readable by others (mode 0644)"),
         (broken("garbled", lambda d: (d / "arena.pem").write_text("not a certificate")), "arena.pem: not a PEM certificate"),
-        (broken("foreign", lambda d: (d / "arena.pem").write_bytes((other / "page.pem").read_bytes())),
+        (broken("foreign", lambda d: (d / "arena.pem").write_bytes((other / "page" / "page.pem").read_bytes())),
          "arena.pem: not signed by this fleet's CA"),
-        (broken("swapped", lambda d: (d / "arena.pem").write_bytes((d / "page.pem").read_bytes())),
+        (broken("swapped", lambda d: (d / "arena.pem").write_bytes((keys / "page" / "page.pem").read_bytes())),
          "arena.pem: made for 'page', not for 'arena'"),
-        (broken("wrongkey", lambda d: (d / "arena.key").write_bytes((d / "page.key").read_bytes())),
+        (broken("wrongkey", lambda d: (d / "arena.key").write_bytes((keys / "page" / "page.key").read_bytes())),
          "arena.key: not the key of"),
-        (broken("expired", lambda d: _expired_certificate(d, "arena")), "arena.pem: expired on"),
-        (other, "fleet.json: keys of fleet 'elsewhere', not of 'three_teams'"),
+        (broken("expired", lambda d: _expired_certificate(d, "arena", keys / "ca")), "arena.pem: expired on"),
+        (other / "arena", "fleet.json: keys of fleet 'elsewhere', not of 'three_teams'"),
         (tmp_path / "nowhere", "not a directory"),
     ]
     for d, words in cases:
         rc, err = arena(d)
         assert rc == 2 and words in err and len(err.strip().splitlines()) == 1, (d.name, err)
     # endpoints: with keys tls/ only; without keys loopback only; with keys a leader does not listen
-    for args, words in ((["arena", FLEET, "--keys", str(keys), "--zenoh-listen", "tcp/127.0.0.1:7447"],
+    for args, words in ((["arena", FLEET, "--keys", str(keys / "arena"), "--zenoh-listen", "tcp/127.0.0.1:7447"],
                          "with --keys every endpoint is tls/HOST:PORT"),
                         (["arena", FLEET, "--zenoh-listen", "tcp/192.168.1.5:7447"], "without --keys the bus stays on"),
                         (["fleet", "--fleet", FLEET, "--zenoh-connect", "tcp/10.0.0.2:7447"], "without --keys"),
                         (["arena", FLEET, "--zenoh-listen", ep], "tls/ needs the fleet's keys"),
-                        (["run", "--arena", FLEET, "--leader-id", "L1", "--keys", str(keys), "--zenoh-listen", ep,
+                        (["run", "--arena", FLEET, "--leader-id", "L1", "--keys", str(keys / "L1"), "--zenoh-listen", ep,
                           "--no-record", "--port", "0"], "with --keys only the fleet's hubs"),
-                        (["run", "--arena", FLEET, "--leader-id", "L1", "--keys", str(other), "--zenoh-connect", ep,
+                        (["run", "--arena", FLEET, "--leader-id", "L1", "--keys", str(other / "L1"), "--zenoh-connect", ep,
                           "--no-record", "--port", "0"], "keys of fleet 'elsewhere'")):
         r = main_cli(*args)
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
@@ -185,17 +191,17 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
     keys = make_keys(tmp_path / "keys")
     ep = tls_endpoint()
     summary = tmp_path / "arena.json"
-    arena = _spawn("arena", FLEET, "--keys", str(keys), "--zenoh-listen", ep, "--status-every", "0",
+    arena = _spawn("arena", FLEET, "--keys", str(keys / "arena"), "--zenoh-listen", ep, "--status-every", "0",
                    "--summary", str(summary))
     procs: dict[str, subprocess.Popen] = {}
     sessions: list[zenoh.Session] = []
     try:
         assert arena.stdout is not None and "arena three_teams" in arena.stdout.readline()
-        page = fleet_session(keys, "page", ep)  # the operator's side: hears everything, may STOP
+        page = fleet_session(keys / "page", "page", ep)  # the operator's side: hears everything, may STOP
         sessions.append(page)
         heard = Heard(page)
         for leader in ("L1", "L2"):
-            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys),
+            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys / leader),
                                    "--zenoh-connect", ep, "--port", "0", "--no-record", "--feedback", "truth")
         wait_for(lambda: heard.truth is not None and heard.truth["alive"] == ["L1", "L2"]
                  and {"L1", "L2"} <= set(heard.states), 60, "L1 and L2 alive, their states heard")
@@ -228,15 +234,15 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
         assert main_cli("fleet-keys", str(other), "--fleet", FLEET, "--leaders", "L1,L2,L3").returncode == 0
         stale = tmp_path / "stale"
         stale.mkdir()
-        for f in keys.iterdir():
+        for f in (keys / "L1").iterdir():
             (stale / f.name).write_bytes(f.read_bytes())
-        _expired_certificate(stale, "L1")
-        for d in (other, stale):
+        _expired_certificate(stale, "L1", keys / "ca")
+        for d in (other / "L1", stale):
             with pytest.raises(zenoh.ZError):
                 sessions.append(fleet_session(d, "L1", ep))
 
         # 2. with L2's certificate, a third party written from the document
-        mallory = fleet_session(keys, "L2", ep)
+        mallory = fleet_session(keys / "L2", "L2", ep)
         sessions.append(mallory)
         mallory_heard = Heard(mallory)  # a member hears the fleet (reading is every member's)
         wait_for(lambda: mallory_heard.truth is not None, 20, "the truth reaching a member")
@@ -284,7 +290,7 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
 
         # the operator's identity may: a STOP from the fleet page (its own process, the page's certificate)
         # stops L1, and the page hears and records every leader
-        fleet_page = _spawn("fleet", "--fleet", FLEET, "--keys", str(keys), "--zenoh-connect", ep, "--port", "0",
+        fleet_page = _spawn("fleet", "--fleet", FLEET, "--keys", str(keys / "page"), "--zenoh-connect", ep, "--port", "0",
                             "--record", str(tmp_path / "fleet.mcap"))
         procs["page"] = fleet_page
         assert fleet_page.stdout is not None and "fleet three_teams at http" in fleet_page.stdout.readline()

@@ -50,7 +50,7 @@ def test_the_loop_builds_no_backend_itself():
 
 
 def test_the_modules_beside_the_contracts_import_no_folder():
-    for name in ("contracts", "params", "tick", "keys", "files", "memory"):
+    for name in ("contracts", "params", "tick", "keys", "files", "memory", "wire"):
         imported = _app_imports(ROOT / "app" / f"{name}.py")
         assert imported <= {"contracts", "params", "tick", "keys", "files", "memory"}, (name, imported)
 
