@@ -103,6 +103,15 @@ class Ros2Publisher:
         self._token = node.session.liveliness().declare_token(self.token_key)
         self.sent = 0
 
+    @property
+    def wanted(self) -> bool:
+        """A subscriber anywhere matches (Zenoh's matching status): else nothing need be made or sent."""
+        try:
+            status = self._pub.matching_status  # a MatchingStatus (its stub says bool)
+            return bool(getattr(status, "matching", status))
+        except Exception:  # noqa: BLE001 - a closed session: nothing to send to
+            return False
+
     def put(self, message: Any) -> None:
         """Serialise (CDR) and publish with rmw_zenoh's attachment."""
         self.put_cdr(bytes(typestore().serialize_cdr(message, self.ros_type)))

@@ -109,27 +109,34 @@ class Ros2Bridge:
                 pass
 
     def publish(self, s: TickState) -> None:
+        """Every topic a subscriber wants (a topic nobody subscribes to costs nothing)."""
         ns = time.time_ns()
-        self.pubs["/tf"].put(tf_message(s, ns))
-        self.pubs["/omniformation/followers"].put(pose_array(s.p_est, s.a_est, ns))
-        self.pubs["/omniformation/slots"].put(pose_array(s.p_d, None, ns))
-        err = np.linalg.norm(s.p_d - s.p_est, axis=1) if s.n else np.zeros(0)
-        dim = msg("std_msgs/msg/MultiArrayDimension", label="follower", size=s.n, stride=s.n)
-        self.pubs["/omniformation/formation_error"].put(msg(
-            "std_msgs/msg/Float64MultiArray", layout=msg("std_msgs/msg/MultiArrayLayout", dim=[dim], data_offset=0),
-            data=np.nan_to_num(err, nan=-1.0).astype(np.float64)))
+        pubs = {topic: pub for topic, pub in self.pubs.items() if pub.wanted}
+        if "/tf" in pubs:
+            pubs["/tf"].put(tf_message(s, ns))
+        if "/omniformation/followers" in pubs:
+            pubs["/omniformation/followers"].put(pose_array(s.p_est, s.a_est, ns))
+        if "/omniformation/slots" in pubs:
+            pubs["/omniformation/slots"].put(pose_array(s.p_d, None, ns))
+        if "/omniformation/formation_error" in pubs:
+            err = np.linalg.norm(s.p_d - s.p_est, axis=1) if s.n else np.zeros(0)
+            dim = msg("std_msgs/msg/MultiArrayDimension", label="follower", size=s.n, stride=s.n)
+            pubs["/omniformation/formation_error"].put(msg(
+                "std_msgs/msg/Float64MultiArray", layout=msg("std_msgs/msg/MultiArrayLayout", dim=[dim], data_offset=0),
+                data=np.nan_to_num(err, nan=-1.0).astype(np.float64)))
         now = time.monotonic()
-        if s.frame is not None and now - self._last_frame >= self.frames_dt:
+        if "/omniformation/camera/compressed" in pubs and s.frame is not None and now - self._last_frame >= self.frames_dt:
             import cv2
 
             ok, jpeg = cv2.imencode(".jpg", np.asarray(s.frame), [cv2.IMWRITE_JPEG_QUALITY, 80])
             if ok:
                 self._last_frame = now
-                self.pubs["/omniformation/camera/compressed"].put(msg(
+                pubs["/omniformation/camera/compressed"].put(msg(
                     "sensor_msgs/msg/CompressedImage", header=header("camera", ns), format="jpeg",
                     data=np.frombuffer(jpeg.tobytes(), dtype=np.uint8)))
-        base = "" if self.base_state is None else str(self.base_state())
-        self.pubs["/omniformation/status"].put(msg("std_msgs/msg/String", data=status_text(s, base)))
+        if "/omniformation/status" in pubs:
+            base = "" if self.base_state is None else str(self.base_state())
+            pubs["/omniformation/status"].put(msg("std_msgs/msg/String", data=status_text(s, base)))
         self.published += 1
 
     # -- in (--ros2-control) -----------------------------------------------------------

@@ -5,6 +5,7 @@ attachment's bytes; CDR decoded by rosbags."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import struct
@@ -97,6 +98,8 @@ def rig():
     ros = RosSide(_session("client", endpoint))
     ros.listen("/tf", "tf2_msgs/msg/TFMessage")
     ros.listen("/cmd_vel", "geometry_msgs/msg/Twist")
+    ros.listen("/omniformation/status", "std_msgs/msg/String")
+    ros.listen("/omniformation/camera/compressed", "sensor_msgs/msg/CompressedImage")
     base_node = Ros2Node(open_ros2_session([endpoint]), "base")
     base = EmulatedBase(base_node)
     base.start()
@@ -149,6 +152,20 @@ def test_a_ros_subscriber_from_the_design_decodes_tf_and_cmd_vel(rig):
         ("MS", "/odom", "nav_msgs::msg::dds_::Odometry_"), ("MP", "/omniformation/status", "std_msgs::msg::dds_::String_"),
         ("MS", "/omniformation/stop", "std_msgs::msg::dds_::Bool_")}
     assert all(p[11].startswith("RIHS01_") and len(p[11]) == 71 for p in mine)
+
+
+def test_the_camera_goes_out_as_a_jpeg_compressed_image(rig):
+    import cv2
+
+    frame = np.zeros((48, 64, 3), np.uint8)
+    frame[:, :32] = (0, 0, 255)  # BGR: the left half red
+    rig["bridge"].publish(dataclasses.replace(rig["loop"].last, frame=frame))
+    got = rig["ros"].got["/omniformation/camera/compressed"]
+    wait_for(lambda: got, 10, "a camera image")
+    m = got[-1][0]
+    img = cv2.imdecode(np.asarray(m.data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    assert m.format == "jpeg" and m.header.frame_id == "camera" and img.shape == frame.shape
+    assert img[:, :28, 2].mean() > 200 and img[:, 36:, 2].mean() < 50
 
 
 def test_the_leader_on_an_emulated_ros_base_keeps_the_formation(rig):
@@ -216,6 +233,8 @@ def test_no_odometry_for_half_a_second_stops_the_leader_and_says_so(rig):
     states, base = rig["states"], rig["base"]
     base.close()  # the base is gone: no more odometry
     wait_for(lambda: "no odometry for 0.5 s" in states[-1].link_state, 10, "the link state saying so")
+    status = rig["ros"].got["/omniformation/status"]
+    wait_for(lambda: "no odometry" in json.loads(status[-1][0].data)["leader_base"], 10, "the status saying so")
     k = len(states)
     wait_for(lambda: len(states) >= k + 10, 30, "ten more ticks")
     leader = np.array([s.leader[:2] for s in states[k:]])
@@ -240,3 +259,36 @@ def test_bad_ros2_input_is_one_line_and_exit_2(args, words):
     assert out.returncode == 2, out
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and words in lines[0], out.stderr
+
+
+def test_run_ros2_with_a_ros_base_as_the_leader_from_the_command_line():
+    """`run --ros2 --leader ros2:/cmd_vel` beside an emulated base: the node is on the graph,
+    the base is driven, and when the service ends the last command it sent is zero."""
+    from app.backends.ros2 import Ros2Node
+    from app.ros2.base import EmulatedBase
+    from app.ros2.session import open_ros2_session
+    from tests.helpers import serve_then_signal
+
+    endpoint = _free_endpoint()
+    router = _session("router", endpoint)
+    ros = RosSide(_session("client", endpoint))
+    ros.listen("/omniformation/followers", "geometry_msgs/msg/PoseArray")
+    node = Ros2Node(open_ros2_session([endpoint]), "base")
+    base = EmulatedBase(node)
+    base.start()
+    try:
+        run = serve_then_signal("--feedback", "truth", "--followers", "2", "--port", "0", "--no-record", "--ros2",
+                                "--zenoh-connect", endpoint, "--leader", "ros2:/cmd_vel",
+                                until=lambda: len(ros.got["/omniformation/followers"]) >= 10
+                                and any(v > 0 for v, _ in base.commands))
+        assert run.returncode == 0, run.stderr
+        assert "ROS 2 node /omniformation on domain 0" in run.startup + run.stdout
+        wait_for(lambda: base.commands and base.commands[-1] == (0.0, 0.0), 10, "the last command zero")
+        poses = ros.got["/omniformation/followers"][-1][0]
+        assert poses.header.frame_id == "leader" and len(poses.poses) == 2
+    finally:
+        base.close()
+        node.close()
+        node.session.close()
+        ros.session.close()
+        router.close()
