@@ -188,6 +188,20 @@ class Ros2Node:
             pass
 
 
+def publishers_of(session: zenoh.Session, domain: int, topic: str, timeout_s: float = 1.0) -> list[str]:
+    """The nodes (``namespace/name``) with a publisher on ``topic`` in ``domain`` now, from the
+    graph's liveliness tokens (rmw_zenoh's ``MP`` tokens: kind at part 5, node at 8, topic at 9)."""
+    from core.rmw_zenoh import ADMIN_SPACE, mangle
+
+    found = []
+    for reply in session.liveliness().get(f"{ADMIN_SPACE}/{domain}/**", timeout=timeout_s):
+        ok = getattr(reply, "ok", None)
+        parts = str(ok.key_expr).split("/") if ok is not None else []
+        if len(parts) >= 10 and parts[5] == PUBLISHER and parts[9] == mangle(topic):
+            found.append(f"{parts[7].replace('%', '/').rstrip('/')}/{parts[8]}")
+    return found
+
+
 def finite_twist(t: Any) -> tuple[float, float]:
     """(v, w) of a Twist, else ValueError (non-finite numbers are a malformed message)."""
     v, w = float(t.linear.x), float(t.angular.z)

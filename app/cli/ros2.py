@@ -130,9 +130,13 @@ def leader_base(args: argparse.Namespace, node: Ros2Node | None) -> Ros2Base | N
     """``--leader ros2:TOPIC``: the leader's base on ROS 2 (its odometry on /odom)."""
     if node is None or args.ros2_leader is None:
         return None
-    from app.backends.ros2 import Ros2Base
+    from app.backends.ros2 import Ros2Base, publishers_of
 
     topic, stamped = args.ros2_leader
+    others = publishers_of(node.session, args.ros2_domain, topic)
+    if others:  # a robot is never commanded by two programs
+        raise UserError(f"--leader {topic}: {', '.join(sorted(set(others)))} publish(es) on {topic} already (domain"
+                        f" {args.ros2_domain}); stop it first, a base takes commands from one program")
     return Ros2Base(node, topic, stamped)
 
 

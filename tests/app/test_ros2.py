@@ -292,3 +292,42 @@ def test_run_ros2_with_a_ros_base_as_the_leader_from_the_command_line():
         node.session.close()
         ros.session.close()
         router.close()
+
+
+def test_a_base_another_node_commands_already_is_refused():
+    """A robot is never commanded by two programs: a publisher on the base's topic on the graph
+    (its MP token, as rmw_zenoh declares it) makes `run --leader ros2:` refuse in one line."""
+    from app.backends.ros2 import type_hash
+
+    endpoint = _free_endpoint()
+    router = _session("router", endpoint)
+    stranger = _session("client", endpoint)
+    h = type_hash("geometry_msgs/msg/Twist")
+    token = stranger.liveliness().declare_token(
+        f"@ros2_lv/0/{stranger.info.zid()}/0/10/MP/%/%/teleop/%cmd_vel/geometry_msgs::msg::dds_::Twist_/{h}/::,10:,:,:,,")
+    try:
+        out = main_cli("run", "--feedback", "truth", "--port", "0", "--no-record", "--ros2", "--zenoh-connect", endpoint,
+                       "--leader", "ros2:/cmd_vel")
+        assert out.returncode == 2, out
+        lines = out.stderr.strip().splitlines()
+        assert len(lines) == 1 and "/teleop publish(es) on /cmd_vel already" in lines[0], out.stderr
+    finally:
+        token.undeclare()
+        stranger.close()
+        router.close()
+
+
+def test_a_stamped_base_gets_twist_stamped(rig):
+    from app.backends.ros2 import Ros2Base
+    from core.types import Commands
+
+    ros = rig["ros"]
+    ros.listen("/stamped_cmd", "geometry_msgs/msg/TwistStamped")
+    base = Ros2Base(rig["node"], "/stamped_cmd", stamped=True, odom_topic="/stamped_odom")
+    wait_for(lambda: base._cmd.wanted, 10, "the subscriber matched")
+    base.send(Commands(np.array([0.25]), np.array([-0.5])))
+    got = ros.got["/stamped_cmd"]
+    wait_for(lambda: got, 10, "a TwistStamped")
+    m = got[-1][0]
+    assert (m.twist.linear.x, m.twist.angular.z, m.header.frame_id) == (0.25, -0.5, "base_link")
+    assert base.lost and "no odometry yet" in base.link_state
