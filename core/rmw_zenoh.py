@@ -11,10 +11,11 @@ type descriptions and checks them against published ones.
 
 from __future__ import annotations
 
-import hashlib
 import re
 import struct
 from dataclasses import dataclass
+
+from core.xxh3 import xxh3_128
 
 ADMIN_SPACE = "@ros2_lv"  # liveliness_utils.cpp: ADMIN_SPACE
 NODE, PUBLISHER, SUBSCRIPTION = "NN", "MP", "MS"  # the entity kinds this node declares
@@ -106,11 +107,10 @@ class NodeName:
 
 
 def entity_gid(token: str) -> bytes:
-    """A 16-byte publisher GID derived from its liveliness token. rmw_zenoh hashes the token with
-    XXH3-128 (``Entity::Entity``); a subscriber only reads the GID back as an opaque id
-    (``rmw_message_info_t.publisher_gid``), so any stable, per-entity 16 bytes serve: here the
-    first 16 bytes of the token's SHA-256 (no extra dependency)."""
-    return hashlib.sha256(token.encode()).digest()[:GID_SIZE]
+    """An entity's 16-byte GID as rmw_zenoh makes it (``Entity::Entity``): XXH3-128 of its
+    liveliness token, the low 64 bits then the high 64 bits, little-endian."""
+    lo, hi = xxh3_128(token.encode())
+    return lo.to_bytes(8, "little") + hi.to_bytes(8, "little")
 
 
 def encode_attachment(sequence: int, source_ns: int, gid: bytes) -> bytes:

@@ -152,6 +152,11 @@ def test_a_ros_subscriber_from_the_design_decodes_tf_and_cmd_vel(rig):
         ("MS", "/odom", "nav_msgs::msg::dds_::Odometry_"), ("MP", "/omniformation/status", "std_msgs::msg::dds_::String_"),
         ("MS", "/omniformation/stop", "std_msgs::msg::dds_::Bool_")}
     assert all(p[11].startswith("RIHS01_") and len(p[11]) == 71 for p in mine)
+    # the attachment's GID is XXH3-128 of the publisher's token (rmw_zenoh's Entity), low half first
+    from core.xxh3 import xxh3_128
+
+    tf_token = next("/".join(p) for p in mine if p[5] == "MP" and p[9] == "%tf")
+    assert gids[0] == struct.pack("<QQ", *xxh3_128(tf_token.encode()))
 
 
 def test_the_camera_goes_out_as_a_jpeg_compressed_image(rig):
