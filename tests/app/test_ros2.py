@@ -230,7 +230,20 @@ def test_malformed_messages_from_ros_are_counted_and_dropped(rig):
     dropped = node.dropped
     ros.put("/odom", "nav_msgs/msg/Odometry", None, raw=b"\x00\x01\x00\x00garbage")
     ros.put("/omniformation/stop", "std_msgs/msg/Bool", None, raw=b"\xff" * 3)
-    wait_for(lambda: node.dropped >= dropped + 2, 10, "two malformed messages counted")
+    ts = ros.ts
+    nan = ts.types["geometry_msgs/msg/Vector3"](x=math.nan, y=0.0, z=0.0)
+    odom = ts.types["nav_msgs/msg/Odometry"](
+        header=ts.types["std_msgs/msg/Header"](stamp=ts.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0),
+                                               frame_id="odom"), child_frame_id="base_link",
+        pose=ts.types["geometry_msgs/msg/PoseWithCovariance"](pose=ts.types["geometry_msgs/msg/Pose"](
+            position=ts.types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+            orientation=ts.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)), covariance=np.zeros(36)),
+        twist=ts.types["geometry_msgs/msg/TwistWithCovariance"](twist=ts.types["geometry_msgs/msg/Twist"](
+            linear=nan, angular=nan), covariance=np.zeros(36)))
+    ros.put("/odom", "nav_msgs/msg/Odometry", odom)  # it decodes, but says NaN: a lie, dropped
+    wait_for(lambda: node.dropped >= dropped + 3, 10, "three malformed messages counted")
+    v, w = leader.measured()
+    assert np.isfinite(v).all() and np.isfinite(w).all()
     assert not rig["store"].get().stop and not leader.lost
 
 
