@@ -40,6 +40,7 @@ class SimTeam:
         self.state: TeamState = make_team_state(p0, a0)
         self.link = link
         self.leader = leader
+        self._leader_sent = False  # the leader base was sent a twist since the last send()
         self.dynamics = dynamics if link is None else FollowerDynamics()
         self.position_noise_m = position_noise_m
         self.heading_noise_rad = heading_noise_rad
@@ -71,6 +72,9 @@ class SimTeam:
 
     def send(self, commands: Commands) -> None:
         self.commands = commands
+        if self.leader is not None and not self._leader_sent:  # a tick that does not move the world (paused,
+            self.leader.send(Commands.zeros(1))  # a fault): the base is told to stand, every tick
+        self._leader_sent = False
         if self.link is not None:
             self.link.send(commands)
 
@@ -84,6 +88,7 @@ class SimTeam:
         moved = self.commands if self.link is None else Commands(*self.link.measured())
         if self.leader is not None:  # a real base: commanded, and the simulated leader moves as it measured
             self.leader.send(Commands(np.array([leader_twist[0]]), np.array([leader_twist[1]])))
+            self._leader_sent = True
             v, w = self.leader.measured()
             leader_twist = (float(v[0]), float(w[0]))
         self.state = step_team(self.state, moved, leader_twist, dt, t, self.rng, self.dynamics)

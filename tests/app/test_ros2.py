@@ -200,6 +200,19 @@ def test_stop_brings_the_bases_command_to_zero_within_two_ticks(rig):
     wait_for(lambda: base.commands[-1][0] > 0, 30, "driving again")
 
 
+def test_a_paused_loop_tells_the_base_to_stand_every_tick(rig):
+    store, base = rig["store"], rig["base"]
+    wait_for(lambda: base.commands and base.commands[-1][0] > 0, 30, "the base driven")
+    n0 = len(base.commands)
+    store.update("test", paused=True)
+    wait_for(lambda: len(base.commands) >= n0 + 10, 30, "ten more commands")
+    after = base.commands[n0:]
+    first_zero = next(i for i, c in enumerate(after) if c == (0.0, 0.0))
+    assert first_zero <= 2 and all(c == (0.0, 0.0) for c in after[first_zero:])
+    store.update("test", paused=False)
+    wait_for(lambda: base.commands[-1][0] > 0, 30, "driving again")
+
+
 def test_stop_and_goals_from_ros_take_the_pages_checks(rig):
     ros, store, bridge = rig["ros"], rig["store"], rig["bridge"]
     ts = ros.ts
