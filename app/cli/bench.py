@@ -782,6 +782,8 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     except ImportError:
         print_fn("fleet: skipped (needs eclipse-zenoh: make test installs it)")
         return results
+    from app.cli.bench_ros2 import bench_ros2  # the ROS 2 line (--ros2's rate and CPU per tick)
+    results.update(bench_ros2(print_fn))
     for keyed in (False, True):
         p50, p99, samples = bench_fleet_latency(keyed=keyed)
         results["fleet_state_latency_p99_ms" + ("_keys" if keyed else "")] = p99

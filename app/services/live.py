@@ -85,7 +85,8 @@ class Service:
                  link: FollowerLink | None = None, frames: FrameSource | None = None,
                  hardware: HardwareTeam | None = None, recordings: Path | None = None,
                  token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None,
-                 viewer_token: str | None = None, realtime: bool = False) -> None:
+                 viewer_token: str | None = None, realtime: bool = False,
+                 leader_base: FollowerLink | None = None) -> None:
         """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
         ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host.
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
@@ -107,7 +108,7 @@ class Service:
                                 position_noise_m=noise.position_noise_m, heading_noise_rad=noise.heading_noise_rad,
                                 initial_poses=initial_poses, obstacles=obstacles,
                                 switches=scenario.switches if scenario is not None else (), arena=arena,
-                                realtime=realtime)
+                                realtime=realtime, leader_base=leader_base)
         if obstacles:
             self.store.goal_check = goal_check_for(obstacles)
         self.server, self.gate = serve_gated(host, port, token, viewer_token)
