@@ -339,11 +339,29 @@ def small_recording(tmp_path_factory) -> Path:
     return path
 
 
+def _top_level_records(data: bytes) -> list[tuple[int, int]]:
+    """(offset, length) of every record outside the chunks, header to footer."""
+    out, pos = [], 8
+    while pos + 9 <= len(data) - 8:
+        length = int.from_bytes(data[pos + 1:pos + 9], "little")
+        out.append((pos, length))
+        pos += 9 + length
+    return out
+
+
+def _summary_start(data: bytes) -> int:
+    """Where the summary section starts, from the footer (with its data end record before it)."""
+    return int.from_bytes(data[-28:-20], "little") - 13
+
+
 def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small_recording, tmp_path):
-    """Hypothesis damages a real recording (flipped bytes anywhere, a zeroed stretch, a cut) and
-    reads it: nothing but a one-line RecordingError (only when no tick is left) is raised, every
-    tick read is the tick written, and the loss said is the loss: all of it when the file's summary
-    is intact, else every tick missing up to the last one read."""
+    """Hypothesis damages a real recording (flipped bytes anywhere or in a chunk, a record's
+    opcode turned into another one, the footer's 0x02 above all, flips in the summary, a zeroed
+    stretch, a cut) and reads it: nothing but a one-line RecordingError (only when no tick is
+    left) is raised, every tick read is the tick written, and the loss said is the loss: all of
+    it whenever the summary and the file's end are untouched (a damaged record never ends the
+    reading), else every tick missing up to the last one read, with the note saying the summary
+    is damaged or the file cut off."""
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
@@ -353,24 +371,38 @@ def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small
     data = small_recording.read_bytes()
     by_number = {int(n): k for k, n in enumerate(whole.tick_numbers)}
     bad = tmp_path / "bad.mcap"
+    summary_at = _summary_start(data)
+    records = _top_level_records(data)
 
     places = _scan(small_recording).places  # (offset, length) of each chunk: small tick chunks are as likely hit
     inside = st.tuples(st.integers(0, len(places) - 1), st.floats(0, 1, exclude_max=True)).map(
         lambda c: (places[c[0]][0] + int(c[1] * (places[c[0]][1] + 9))) / len(data))
+    in_summary = st.floats(0, 1, exclude_max=True).map(lambda u: (summary_at + u * (len(data) - summary_at)) / len(data))
+    opcode = st.one_of(st.just(0x02), st.integers(0x00, 0x11), st.just(0xFF))
     damage = st.one_of(
         st.tuples(st.just("flip"), st.lists(st.tuples(st.floats(0, 1, exclude_max=True) | inside, st.integers(1, 255)),
                                             min_size=1, max_size=30)),
+        st.tuples(st.just("opcode"), st.lists(st.tuples(st.integers(0, len(records) - 1), opcode), min_size=1,
+                                              max_size=4)),
+        st.tuples(st.just("summary"), st.lists(st.tuples(in_summary, st.integers(1, 255)), min_size=1, max_size=5),
+                  st.lists(st.tuples(inside, st.integers(1, 255)), max_size=5)),
         st.tuples(st.just("zero"), st.tuples(st.floats(0, 1, exclude_max=True), st.integers(1, 200_000))),
         st.tuples(st.just("cut"), st.floats(0, 1, exclude_max=True)),
     )
 
-    @settings(max_examples=80, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+    @settings(max_examples=120, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
     @given(damage)
     def check(d):
         buf = bytearray(data)
         if d[0] == "flip":
             for at, x in d[1]:
                 buf[int(at * len(buf))] ^= x
+        elif d[0] == "opcode":
+            for k, op in d[1]:
+                buf[records[k][0]] = op
+        elif d[0] == "summary":
+            for at, x in d[1] + d[2]:
+                buf[min(int(at * len(buf)), len(buf) - 1)] ^= x
         elif d[0] == "zero":
             start = int(d[1][0] * len(buf))
             buf[start:start + d[1][1]] = bytes(len(buf[start:start + d[1][1]]))
@@ -387,18 +419,68 @@ def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small
         for k in (0, len(numbers) - 1):  # what is read is what was written
             assert rec.ticks[k] == whole.ticks[by_number[numbers[k]]]
         missing = set(by_number) - set(numbers)
+        end_untouched = len(buf) == len(data) and buf[summary_at:] == data[summary_at:]
+        if end_untouched:  # the summary and the footer are as written: the whole loss is known and said
+            assert rec.complete and rec.ticks_written == len(whole.ticks)
         if rec.ticks_written is not None:
             assert rec.ticks_written == len(whole.ticks)
-        else:  # cut off: what came after the last tick read is not known to have been written
+        else:  # no summary to trust: what came after the last tick read is not known to have been written
+            assert not end_untouched
             missing = {n for n in missing if n < numbers[-1]}
+            assert "summary is damaged" in rec.loss_note() or "cut off" in rec.loss_note() or not rec.complete
         said: set[int] = set()
         for g in rec.gaps():
             said |= set(range(g.after_tick + 1, g.before_tick))
         assert said == missing and rec.lost_ticks == len(missing)  # how many, and which
-        rec.loss_note()
         rec.close()
 
     check()
+
+
+@pytest.mark.parametrize("sample", SAMPLE_FILES, ids=lambda p: p.stem)
+def test_a_chunk_opcode_turned_into_the_footers_or_any_other_never_ends_the_reading(tmp_path, sample):
+    """The first chunk's opcode (0x06) turned into the footer's (0x02), the data end's, a
+    message's, a schema's, the header's, an unknown one: the chunk is lost and nothing else; the
+    reader and `report` say exactly that loss, and the file is not called cut off."""
+    from app.recording.report import summarise
+
+    whole = read_recording(sample)
+    first = _scan(sample).places[0][0]
+    data = bytearray(sample.read_bytes())
+    assert data[first] == 0x06
+    for op in (0x02, 0x0F, 0x05, 0x03, 0x01, 0x0E, 0x00, 0x11):
+        data[first] = op
+        bad = tmp_path / f"op{op:02x}.mcap"
+        bad.write_bytes(bytes(data))
+        rec = read_recording(bad)
+        lost = _true_loss(whole, rec)
+        assert rec.complete and rec.ticks_written == len(whole.ticks) and rec.ticks[-1] == whole.ticks[-1]
+        assert rec.lost_ticks == lost <= _one_chunk_of_ticks(sample) and len(rec.ticks) + lost == len(whole.ticks)
+        assert len(rec.damage) == 1 and "cut off" not in rec.loss_note()
+        if op == 0x02:
+            summary = summarise(rec)
+            assert summary["lost_ticks"] == lost and summary["lost_s"] == pytest.approx(lost * whole.tick_dt(), abs=1e-3)
+        rec.close()
+
+
+def test_report_on_a_file_whose_first_chunk_says_footer_counts_the_loss_and_exits_0(small_recording, tmp_path):
+    """`report` on a fresh recording whose first chunk's opcode reads 0x02: every later tick is
+    read, the loss said is the first chunk's, and the note does not call the file cut off."""
+    whole = read_recording(small_recording)
+    first = _scan(small_recording).places[0][0]
+    data = bytearray(small_recording.read_bytes())
+    data[first] = 0x02
+    bad = tmp_path / "footer.mcap"
+    bad.write_bytes(bytes(data))
+    res = main_cli("report", str(bad), "--out", str(tmp_path / "rep"))
+    assert res.returncode == 0, res.stderr
+    import json
+
+    summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
+    rec = read_recording(bad)
+    lost = _true_loss(whole, rec)
+    assert 0 < lost and summary["lost_ticks"] == lost and summary["ticks_read"] + lost == len(whole.ticks)
+    assert "cut off" not in res.stderr
 
 
 def test_the_benchs_damage_table_counts_what_it_flipped_and_replay_opens_the_files(small_recording, tmp_path):
