@@ -613,37 +613,46 @@ class _Scan:
         return None
 
 
-def is_session(path: Path) -> bool:
-    """The file is a session this program recorded: an MCAP file whose header names omniformation
-    as its writer and whose first records include our metadata record (app.recording.writer
-    writes it before the first chunk). Retention deletes nothing else."""
+def session_record(path: Path) -> dict[str, str] | None:
+    """The metadata record of a session this program recorded (an MCAP file whose header names
+    omniformation as its writer and whose first records include our metadata record, which
+    app.recording.writer writes before the first chunk); None for any other file. The first
+    copy whose CRC checks out; a file whose copies both fail is not taken for a session."""
     try:
         with open(path, "rb") as f:
             if f.read(8) != MAGIC:
-                return False
+                return None
             for k in range(8):  # the header, then our metadata (twice) before any chunk
                 head = f.read(9)
                 if len(head) < 9:
-                    return False
+                    return None
                 op, length = head[0], int.from_bytes(head[1:9], "little")
-                if length > MAX_RECORD:
-                    return False
-                if op == OP_CHUNK:
-                    return False
+                if length > MAX_RECORD or op == OP_CHUNK:
+                    return None
                 body = f.read(length)
                 if k == 0:
                     if op != OP_HEADER:
-                        return False
+                        return None
                     profile_len = int.from_bytes(body[:4], "little")
                     library = body[8 + profile_len:8 + profile_len + int.from_bytes(body[4 + profile_len:8 + profile_len],
                                                                                   "little")]
                     if library != b"omniformation":
-                        return False
+                        return None
                 elif op == OP_METADATA:
-                    return bool(Metadata.read(ReadDataStream(io.BytesIO(body))).name == METADATA_NAME)
+                    md = Metadata.read(ReadDataStream(io.BytesIO(body)))
+                    if md.name != METADATA_NAME:
+                        return None
+                    if metadata_checks_out(md.metadata):
+                        return dict(md.metadata)
     except (OSError, ValueError, struct.error, UnicodeDecodeError):
-        return False
-    return False
+        return None
+    return None
+
+
+def is_session(path: Path) -> bool:
+    """The file is a session this program recorded (see :func:`session_record`). Retention
+    deletes nothing else."""
+    return session_record(path) is not None
 
 
 def read_recording(path: Path) -> Recording:

@@ -22,7 +22,7 @@ from app.live.loop import ServiceLoop
 from app.params import ParamsStore
 from app.recording.reader import read_recording
 from app.recording.writer import Recorder, RecordingRefused, apply_retention
-from tests.helpers import ROOT, main_cli, wait_for
+from tests.helpers import ROOT, main_cli, serve_then_signal, wait_for
 
 
 @contextlib.contextmanager
@@ -136,9 +136,14 @@ def test_run_on_a_full_disk_keeps_serving_says_so_and_exits_0_on_sigterm(tmp_pat
         assert rec.tick_numbers[0] == 0 and rec.lost_ticks == 0  # what the file holds, it holds whole
 
 
+SERVICE = {"retention": "service"}  # what the live service marks its sessions with (docs: README, retention)
+
+
 def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the_samples(tmp_path):
     """Sessions are known by what the writer put in them (its header and metadata), not by name:
-    another program's MCAP files, a file named like a session and the samples are never deleted."""
+    another program's MCAP files, a file named like a session, the samples and what another
+    command recorded (simulate --record) are never deleted; a session being written (locked)
+    counts but is never deleted."""
     from mcap.writer import Writer
 
     from app.params import Params
@@ -150,7 +155,7 @@ def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the
     names = []
     for k in range(5):
         p = folder / f"2026010{k}T000000Z_sim.mcap"
-        Recorder(p, {"k": str(k)}, Params()).close()
+        Recorder(p, {"k": str(k), **SERVICE}, Params()).close()
         os.utime(p, (1_000_000 + k, 1_000_000 + k))
         names.append(p)
     size = names[0].stat().st_size
@@ -162,14 +167,74 @@ def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the
         w.finish()
     lookalike = folder / "20250101T000001Z_sim.mcap"
     lookalike.write_bytes(b"x" * (10 * size))
-    for p in (foreign, lookalike):
+    simulated = folder / "20250101T000002Z_simulated.mcap"
+    assert main_cli("simulate", "experiment1", "--duration", "0.5", "--record", str(simulated)).returncode == 0
+    for p in (foreign, lookalike, simulated):
         os.utime(p, (1_000, 1_000))
-    deleted = apply_retention(folder, int(2.5 * size), keep=(names[0],))  # counts the sessions only
-    assert deleted == names[1:4]  # oldest first, the one being written is kept
-    assert sorted(p for p in folder.glob("*.mcap")) == sorted([names[0], names[4], foreign, lookalike])
+    sim_size = simulated.stat().st_size
+    deleted = apply_retention(folder, int(2.5 * size) + sim_size, keep=(names[0],))  # counts the sessions only
+    assert deleted == names[1:4]  # oldest first, the one kept is kept, the simulated one is not the service's
+    assert sorted(p for p in folder.glob("*.mcap")) == sorted([names[0], names[4], foreign, lookalike, simulated])
     assert sample.exists()
-    assert apply_retention(folder, 0, keep=(names[0],)) == [names[4]]
-    assert foreign.exists() and lookalike.exists() and sample.exists()
+    live = folder / "20260109T000000Z_live.mcap"
+    writing = Recorder(live, dict(SERVICE), Params())  # being written: locked
+    try:
+        os.utime(live, (1_000, 1_000))  # the oldest session of all
+        assert apply_retention(folder, 0, keep=(names[0],)) == [names[4]]
+        assert live.exists()
+    finally:
+        writing.close()
+    assert apply_retention(folder, 0) == [names[0], live]  # finished: now it may go
+    assert foreign.exists() and lookalike.exists() and sample.exists() and simulated.exists()
+
+
+def test_two_services_on_one_folder_never_delete_each_others_live_session(tmp_path):
+    """Two `run` services record into one folder with a 10 MB budget. The folder holds an older
+    recording of `simulate --record`; while the first service records, an 11 MB session of a
+    service, newer than anything, is added: the first's live file is the oldest session. When the second starts, its retention
+    deletes the 11 MB session only: the live file is locked, the simulated one is not the
+    service's. The first's closing line counts the ticks its file holds."""
+    from app.params import Params
+
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    simulated = folder / "simulated.mcap"
+    assert main_cli("simulate", "experiment1", "--duration", "0.5", "--record", str(simulated)).returncode == 0
+    os.utime(simulated, (1_000, 1_000))
+    big = folder / "big.mcap"
+    camera = ROOT / "static_config" / "camera"
+    config = tmp_path / "small-budget.toml"
+    config.write_text(f'[camera]\nrig = "{camera / "synthetic.toml"}"\ncalibration = "{camera / "synthetic_calibrated.toml"}"\n'
+                      "[recording]\nmax_total_gb = 0.01\nfree_space_floor_mb = 0\n")
+    first, second = folder / "first.mcap", folder / "second.mcap"
+    runs = {}
+
+    def start_the_second() -> bool:
+        rec = Recorder(big, dict(SERVICE), Params(), frame_rate_hz=30.0, lossless=True)  # made while the first runs
+        for s in noisy_ticks(300, seed=2):
+            rec.on_tick(s)
+            if rec.ticks % 30 == 0 and big.stat().st_size > 11 * 10**6:
+                break
+        rec.close()
+        assert big.stat().st_size > 10**7
+        future = time.time() + 86_400
+        os.utime(big, (future, future))
+        runs["second"] = serve_then_signal("--port", "0", "--feedback", "truth", "--config", str(config),
+                                           "--record", str(second), hold_s=1.0)
+        return True
+
+    runs["first"] = serve_then_signal("--port", "0", "--feedback", "truth", "--config", str(config),
+                                      "--record", str(first),
+                                      until=lambda: first.exists() and first.stat().st_size > 5_000 and start_the_second())
+    a, b = runs["first"], runs["second"]
+    assert a.returncode == 0 and b.returncode == 0, a.stderr + b.stderr
+    assert "deleted the oldest" in b.stderr and "big.mcap" in b.stderr and "first.mcap" not in b.stderr
+    assert not big.exists() and simulated.exists() and first.exists() and second.exists()
+    said = re.search(r"recording finished: first\.mcap \((\d+) ticks\)", a.stdout)
+    assert said, a.stdout
+    back = read_recording(first)
+    assert back.complete and len(back.ticks) == int(said.group(1)) and back.lost_ticks == 0
+    assert len(read_recording(second).ticks) > 0
 
 
 SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
