@@ -158,6 +158,11 @@ class SessionWriter:
         for cid in chunk.channels:
             self.messages_written[cid] = self._counts[cid]  # every message so far on this channel is in a closed chunk
 
+    @property
+    def message_counts(self) -> dict[int, int]:
+        """Messages added so far, per channel id."""
+        return dict(self._counts)
+
     def flush(self) -> None:
         """Close every open chunk now (the writer's queue ran dry, or the session ends)."""
         for group in list(self._open):

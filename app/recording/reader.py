@@ -15,8 +15,9 @@ that cannot stand where it is (a footer or summary record in the data section, a
 MCAP does not know, a length past the data section) is damage like a bad chunk. A file cut
 off mid-chunk (a killed writer, power loss) is read up to its last complete chunk. What
 could not be read is said in ticks and seconds: the tick counter of the loop runs without
-gaps, so a gap is a loss. How many ticks were written comes only from a summary whose CRC
-checks out; a damaged summary is said, and its counts are not used.
+gaps, so a gap is a loss. How many ticks were written comes only from a record whose CRC
+checks out: the summary, or else the writer's count after its last chunk (a metadata record
+of its own); a damaged summary is said, and its counts are not used.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ from mcap.records import Channel, Chunk, Metadata, Schema, Statistics
 from mcap.data_stream import ReadDataStream
 
 from app.params import Params
-from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC,
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, COUNTS_KEY, COUNTS_NAME, EVENT_TOPIC,
+                                  IMAGE_TOPIC,
                                   METADATA_CRC_KEY, METADATA_NAME, PARAMS_TOPIC,
                                   TICK_TOPIC, TRIAL_TOPIC)
 
@@ -242,10 +244,14 @@ class Recording:
             size = sum(d.end_byte - d.start_byte for d in damaged)
             parts.append(f"{len(damaged)} damaged stretch{'es' if len(damaged) > 1 else ''} of the file"
                          f" ({size / 1024:.0f} KiB) skipped")
-        if self.summary_damaged:
+        if self.summary_damaged and self.ticks_written is None:
             last = float(self.t[-1]) if len(self.t) else 0.0
-            parts.append(f"its summary is damaged (its CRC fails), so how many ticks were written is not known:"
-                         f" a loss after the last tick read (t = {last:.2f} s) cannot be counted")
+            parts.append(f"its summary is damaged (its CRC fails) and so is the writer's count after its last chunk,"
+                         f" so how many ticks were written is not known: a loss after the last tick read"
+                         f" (t = {last:.2f} s) cannot be counted")
+        elif self.summary_damaged:
+            parts.append("its summary is damaged (its CRC fails): the ticks written are the writer's count after its"
+                         " last chunk")
         if not self.complete:
             last = float(self.t[-1]) if len(self.t) else 0.0
             tail = self.bytes_total - max((d.start_byte for d in self.damage if d.why.startswith("cut off")),
@@ -338,6 +344,7 @@ class _Scan:
         self.data_end = size  # where the data section ends (the summary's start, when that checks out)
         self.trusted_summary: tuple[int, int] | None = None  # (start, footer offset) of a summary that checks out
         self.summary_damaged = False  # the file ends with its footer, but the summary's CRC fails
+        self.counted: dict[int, int] | None = None  # the writer's counts record (after the last chunk), CRC checked
         self._resumed = 0
 
     def run(self) -> None:
@@ -345,6 +352,8 @@ class _Scan:
         self._walk()
         if self.trusted_summary is not None:
             self._read_summary(*self.trusted_summary)
+        elif self.counted is not None:  # no summary to trust: the counts the writer wrote after its last chunk
+            self.written = dict(self.counted)
         if not self.later:
             return
         # chunks whose channels were announced only in a damaged chunk: the summary section (a
@@ -508,8 +517,10 @@ class _Scan:
             self._take_chunk(body)
         elif op == OP_METADATA:
             md = Metadata.read(ReadDataStream(io.BytesIO(body)))
-            if md.name == METADATA_NAME and not metadata_checks_out(md.metadata):
+            if md.name in (METADATA_NAME, COUNTS_NAME) and not metadata_checks_out(md.metadata):
                 raise _DamagedCopy("a damaged copy of the metadata")
+            if md.name == COUNTS_NAME and METADATA_CRC_KEY in md.metadata:  # the writer's counts, CRC checked
+                self.counted = {int(c): int(n) for c, n in json.loads(md.metadata[COUNTS_KEY]).items()}
             if md.name == METADATA_NAME and not self.metadata:  # the first intact copy
                 self.metadata = dict(md.metadata)
                 self.metadata.pop(METADATA_CRC_KEY, None)
@@ -589,14 +600,14 @@ class _Scan:
         self.places.append((self.f.tell() - len(body) - 9, len(body)))
 
     def _resync(self, start: int) -> int | None:
-        """The offset of the next chunk record at or after ``start`` (within the data section)
-        whose framing and CRC check out."""
+        """The offset of the next chunk record (or metadata record of ours) at or after ``start``
+        (within the data section) whose framing and CRC check out."""
         block = 1 << 20
         pos = start
         while pos < self.data_end:
             self.f.seek(pos)
             data = self.f.read(block + 9)
-            k = data.find(bytes([OP_CHUNK]))
+            k = _next_candidate(data, 0)
             while k != -1 and k < block:
                 cand = pos + k
                 if k + 9 <= len(data):
@@ -604,11 +615,17 @@ class _Scan:
                     if 32 <= length <= MAX_RECORD and cand + 9 + length <= self.data_end:
                         self.f.seek(cand + 9)
                         try:
-                            _chunk_contents(self.f.read(length))
-                            return cand
-                        except Exception:  # noqa: BLE001 - not a chunk after all
+                            body = self.f.read(length)
+                            if data[k] == OP_CHUNK:
+                                _chunk_contents(body)
+                                return cand
+                            md = Metadata.read(ReadDataStream(io.BytesIO(body)))
+                            if (md.name in (METADATA_NAME, COUNTS_NAME) and METADATA_CRC_KEY in md.metadata
+                                    and metadata_checks_out(md.metadata)):
+                                return cand
+                        except Exception:  # noqa: BLE001 - not a record after all
                             pass
-                k = data.find(bytes([OP_CHUNK]), k + 1)
+                k = _next_candidate(data, k + 1)
             pos += block
         return None
 
@@ -647,6 +664,12 @@ def session_record(path: Path) -> dict[str, str] | None:
     except (OSError, ValueError, struct.error, UnicodeDecodeError):
         return None
     return None
+
+
+def _next_candidate(data: bytes, start: int) -> int:
+    """Where the next chunk or metadata opcode is in ``data`` from ``start`` (-1: none)."""
+    hits = [k for k in (data.find(bytes([OP_CHUNK]), start), data.find(bytes([OP_METADATA]), start)) if k != -1]
+    return min(hits) if hits else -1
 
 
 def is_session(path: Path) -> bool:

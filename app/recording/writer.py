@@ -46,7 +46,8 @@ from app.tick import SessionClock, TickState
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
 from app.recording.mcap_out import SessionWriter
 from app.recording.reader import metadata_crc
-from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC,
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, COUNTS_KEY, COUNTS_NAME, EVENT_TOPIC,
+                                  IMAGE_TOPIC,
                                   METADATA_COPIES, METADATA_CRC_KEY, METADATA_NAME, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC,
                                   SCHEMAS, TF_TOPIC, TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
                                   params_payload, scan_payload, tick_payload, transforms_payload)
@@ -372,6 +373,12 @@ class Recorder:
         """Summary and index if the disk takes them; the file is closed either way (a file
         without its summary is still read up to its last complete chunk)."""
         try:
+            # the counts again, with a CRC, after the last chunk: a damaged summary leaves them known
+            self._writer.flush()
+            counts = {COUNTS_KEY: json.dumps({str(c): n for c, n in self._writer.message_counts.items() if n},
+                                             separators=(",", ":"))}
+            counts[METADATA_CRC_KEY] = metadata_crc(counts)
+            self._writer.add_metadata(COUNTS_NAME, counts)
             self._writer.finish()
         except (OSError, ValueError):
             pass

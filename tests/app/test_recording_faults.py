@@ -424,9 +424,9 @@ def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small
     opcode turned into another one, the footer's 0x02 above all, flips in the summary, a zeroed
     stretch, a cut) and reads it: nothing but a one-line RecordingError (only when no tick is
     left) is raised, every tick read is the tick written, and the loss said is the loss: all of
-    it whenever the summary and the file's end are untouched (a damaged record never ends the
-    reading), else every tick missing up to the last one read, with the note saying the summary
-    is damaged or the file cut off."""
+    it whenever the summary or the writer's count after its last chunk is untouched (a damaged
+    record never ends the reading), else every tick missing up to the last one read, with the
+    note saying that a loss after it cannot be counted or that the file was cut off."""
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
@@ -438,6 +438,8 @@ def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small
     bad = tmp_path / "bad.mcap"
     summary_at = _summary_start(data)
     records = _top_level_records(data)
+    counts_at, counts_len = next((pos, n) for pos, n in records if data[pos] == 0x0C and b"omniformation.counts"
+                                 in data[pos:pos + 9 + n])  # the writer's count after its last chunk
 
     places = _scan(small_recording).places  # (offset, length) of each chunk: small tick chunks are as likely hit
     inside = st.tuples(st.integers(0, len(places) - 1), st.floats(0, 1, exclude_max=True)).map(
@@ -485,14 +487,18 @@ def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small
             assert rec.ticks[k] == whole.ticks[by_number[numbers[k]]]
         missing = set(by_number) - set(numbers)
         end_untouched = len(buf) == len(data) and buf[summary_at:] == data[summary_at:]
+        counts_untouched = len(buf) >= counts_at + 9 + counts_len and (buf[counts_at:counts_at + 9 + counts_len]
+                                                                      == data[counts_at:counts_at + 9 + counts_len])
         if end_untouched:  # the summary and the footer are as written: the whole loss is known and said
             assert rec.complete and rec.ticks_written == len(whole.ticks)
+        if end_untouched or counts_untouched:  # either count left whole: the whole loss is known and said
+            assert rec.ticks_written == len(whole.ticks), rec.loss_note()
         if rec.ticks_written is not None:
             assert rec.ticks_written == len(whole.ticks)
-        else:  # no summary to trust: what came after the last tick read is not known to have been written
-            assert not end_untouched
+        else:  # no count to trust: what came after the last tick read is not known to have been written
+            assert not end_untouched and not counts_untouched
             missing = {n for n in missing if n < numbers[-1]}
-            assert "summary is damaged" in rec.loss_note() or "cut off" in rec.loss_note() or not rec.complete
+            assert "cannot be counted" in rec.loss_note() or (not rec.complete and "cut off" in rec.loss_note())
         said: set[int] = set()
         for g in rec.gaps():
             said |= set(range(g.after_tick + 1, g.before_tick))
