@@ -556,8 +556,9 @@ def test_report_on_a_file_whose_first_chunk_says_footer_counts_the_loss_and_exit
 
 def test_the_benchs_damage_table_counts_what_it_flipped_and_replay_opens_the_files(small_recording, tmp_path):
     """bench --long-recording's damage table on a short recording: the reader's count is the
-    true count, within a second per damaged chunk, and replay (a fresh process) opens the file."""
-    from app.cli.bench import damage_table
+    true count, within a second per damaged chunk, and replay (a fresh process) opens the file;
+    its loss cases (opcodes, the summary) say the true loss and leave the file as it was."""
+    from app.cli.bench import damage_table, loss_cases
 
     copy = tmp_path / "long.mcap"
     shutil.copyfile(small_recording, copy)
@@ -567,3 +568,8 @@ def test_the_benchs_damage_table_counts_what_it_flipped_and_replay_opens_the_fil
     (row,) = rows
     assert row["said_ticks"] == row["lost_ticks"] and row["replay_opens"]
     assert row["lost_s"] <= row["damaged_chunks"] * 1.0 + 1e-6
+    before = copy.read_bytes()
+    cases = loss_cases(copy, lines.append, trials=4)  # its cases of damage that used to end the reading or
+    assert [c["trials"] for c in cases] == [1, 1, 4]  # take the count from a damaged summary
+    assert all(c["short"] == 0 and c["said_s"] == pytest.approx(c["true_s"]) for c in cases), lines
+    assert cases[0]["true_s"] > 0 and copy.read_bytes() == before  # each damage undone
