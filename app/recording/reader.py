@@ -50,7 +50,6 @@ from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, COUN
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 OP_MESSAGE_INDEX, OP_STATISTICS, OP_METADATA, OP_DATA_END = 0x07, 0x0B, 0x0C, 0x0F
-KNOWN_OPCODES = set(range(0x01, 0x10))
 MAX_RECORD = 64 * 1024 * 1024  # no record this program writes comes near (chunks are ~256 KiB)
 CHUNKS_KEPT = 4  # decoded chunks kept for the sequences (a few MB)
 _TICK_HEAD = re.compile(rb'^\{"tick":(-?\d+),"t":')
@@ -521,6 +520,8 @@ class _Scan:
                 raise _DamagedCopy("a damaged copy of the metadata")
             if md.name == COUNTS_NAME and METADATA_CRC_KEY in md.metadata:  # the writer's counts, CRC checked
                 self.counted = {int(c): int(n) for c, n in json.loads(md.metadata[COUNTS_KEY]).items()}
+            if md.name not in (METADATA_NAME, COUNTS_NAME):  # this program writes no other: a damaged record
+                raise ValueError("a metadata record this program does not write")
             if md.name == METADATA_NAME and not self.metadata:  # the first intact copy
                 self.metadata = dict(md.metadata)
                 self.metadata.pop(METADATA_CRC_KEY, None)
