@@ -474,8 +474,8 @@ def damage_table(path: Any, minutes: float, print_fn: Callable[[str], None] = pr
 
 def loss_cases(path: Any, print_fn: Callable[[str], None] = print, trials: int = 40, seed: int = 11) -> list[dict[str, Any]]:
     """The loss said against the true loss (ticks of the whole file not read) where a damaged
-    record could end the reading or a damaged summary give the count: the first chunk's opcode
-    turned into the footer's (0x02); one chunk in ten with its opcode turned into another; and
+    record could end the reading or a damaged summary give the count: the first or the second
+    chunk's opcode turned into the footer's (0x02); one chunk in ten with its opcode turned into another; and
     ``trials`` times 100 random flips, one to five of them in the summary. Each damage is made in
     place and undone after the file is read. A row says how often the loss said fell short, and
     how often it did without the reader saying that a loss after the last tick read cannot be
@@ -526,6 +526,7 @@ def loss_cases(path: Any, print_fn: Callable[[str], None] = print, trials: int =
     other_ops = [op for op in range(0x12) if op != 0x06]
     cases: list[tuple[str, list[dict[int, int]]]] = [
         ("first chunk's opcode 0x06 -> 0x02", [{scan.places[0][0]: 0x06 ^ 0x02}]),
+        ("second chunk's opcode 0x06 -> 0x02", [{scan.places[1][0]: 0x06 ^ 0x02}]),
         ("one chunk in ten: opcode 0x06 -> another", [{pos: 0x06 ^ int(rng.choice(other_ops))
                                                         for pos, _ in scan.places[::10]}]),
         (f"100 random flips, 1-5 in the summary ({trials} trials)", [
