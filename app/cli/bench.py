@@ -391,6 +391,7 @@ def bench_long_recording(minutes: float, print_fn: Callable[[str], None] = print
     size = path.stat().st_size
     print_fn(f"  {ticks} ticks, {size / 1e6:.0f} MB in {took:.0f} s")
     damage_table(path, minutes, print_fn)
+    loss_cases(path, print_fn)
     t0 = _time.monotonic()
     proc = subprocess.run([sys.executable, "-m", "app.cli", "report", str(path), "--out", str(folder / "report")],
                           capture_output=True, text=True)
@@ -468,6 +469,86 @@ def damage_table(path: Any, minutes: float, print_fn: Callable[[str], None] = pr
         rec.close()
         bad.unlink()
     whole.close()
+    return rows
+
+
+def loss_cases(path: Any, print_fn: Callable[[str], None] = print, trials: int = 40, seed: int = 11) -> list[dict[str, Any]]:
+    """The loss said against the true loss (ticks of the whole file not read) where a damaged
+    record could end the reading or a damaged summary give the count: the first or the second
+    chunk's opcode turned into the footer's (0x02); one chunk in ten with its opcode turned into another; and
+    ``trials`` times 100 random flips, one to five of them in the summary. Each damage is made in
+    place and undone after the file is read. A row says how often the loss said fell short, and
+    how often it did without the reader saying that a loss after the last tick read cannot be
+    counted."""
+    from pathlib import Path
+
+    from app.recording.reader import RecordingError, _Scan, read_recording
+
+    path = Path(path)
+    whole = read_recording(path)
+    all_ticks, dt = set(whole.tick_numbers.tolist()), whole.tick_dt()
+    whole.close()
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        f.read(8)
+        scan = _Scan(f, size)
+        scan.run()
+        f.seek(size - 28)
+        summary_at = int.from_bytes(f.read(8), "little")
+    rng = np.random.default_rng(seed)
+
+    def read_damaged(flips: dict[int, int]) -> tuple[int, int, str]:
+        """(ticks lost truly, ticks lost said, the note) with each byte at an offset xored with its mask."""
+        with open(path, "r+b") as f:
+            for at, mask in flips.items():
+                f.seek(at)
+                byte = f.read(1)[0]
+                f.seek(at)
+                f.write(bytes([byte ^ mask]))
+        try:
+            rec = read_recording(path)
+            true, said, note = len(all_ticks - set(rec.tick_numbers.tolist())), rec.lost_ticks, rec.loss_note()
+            rec.close()
+        except RecordingError as exc:
+            true, said, note = len(all_ticks), 0, str(exc)
+        finally:
+            read_damaged_undo(flips)
+        return true, said, note
+
+    def read_damaged_undo(flips: dict[int, int]) -> None:
+        with open(path, "r+b") as f:
+            for at, mask in flips.items():
+                f.seek(at)
+                byte = f.read(1)[0]
+                f.seek(at)
+                f.write(bytes([byte ^ mask]))
+
+    other_ops = [op for op in range(0x12) if op != 0x06]
+    cases: list[tuple[str, list[dict[int, int]]]] = [
+        ("first chunk's opcode 0x06 -> 0x02", [{scan.places[0][0]: 0x06 ^ 0x02}]),
+        ("second chunk's opcode 0x06 -> 0x02", [{scan.places[1][0]: 0x06 ^ 0x02}]),
+        ("one chunk in ten: opcode 0x06 -> another", [{pos: 0x06 ^ int(rng.choice(other_ops))
+                                                        for pos, _ in scan.places[::10]}]),
+        (f"100 random flips, 1-5 in the summary ({trials} trials)", [
+            {int(at): int(rng.integers(1, 256)) for at in np.concatenate(
+                [rng.integers(8, size, 100 - k), rng.integers(summary_at, size, k)])}
+            for k in rng.integers(1, 6, trials)]),
+    ]
+    rows: list[dict[str, Any]] = []
+    for name, damages in cases:
+        short = silent = 0
+        said_s = true_s = 0.0
+        for flips in damages:
+            true, said, note = read_damaged(flips)
+            said_s, true_s = said_s + said * dt, true_s + true * dt
+            if said < true:
+                short += 1
+                silent += "cannot be counted" not in note  # the file is whole in length: never "cut off"
+        n = len(damages)
+        rows.append({"case": name, "trials": n, "said_s": said_s / n, "true_s": true_s / n, "short": short,
+                     "short_silently": silent})
+        print_fn(f"loss: {name}: said {said_s / n:.2f} s, true {true_s / n:.2f} s (mean); said < true in {short} of {n}"
+                 f" ({silent} without saying that a loss after the last tick read cannot be counted)")
     return rows
 
 
