@@ -124,7 +124,25 @@ def cmd_fleet_keys(args: argparse.Namespace) -> int:
           f" {', '.join(leaders)}; valid {args.days} days)", flush=True)
     print("omniformation: give each machine ca.pem, fleet.json and its own ID.pem + ID.key; keep ca.key apart",
           flush=True)
+    write_fleet_radio_keys(args.dir, leaders, args.overwrite)
     return 0
+
+
+def write_fleet_radio_keys(directory: Path, leaders: tuple[str, ...], overwrite: bool) -> None:
+    """The fleet's radio key beside its certificates: DIR/radio/robots.json and DIR/radio/ID.radio
+    (app.backends.radio_keys; docs/follower-protocol.md, "Keys and provisioning")."""
+    from app.backends.radio_keys import write_radio_keys
+
+    radio = directory / "radio"
+    try:
+        write_radio_keys(radio, leaders, overwrite=overwrite)
+    except (FileExistsError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    except OSError as exc:
+        raise UserError(f"{radio}: cannot write the radio key ({exc.strerror or exc})") from None
+    ids = ", ".join(f"{name} {k + 1}" for k, name in enumerate(leaders))
+    print(f"omniformation: radio key in {radio} (radio ids: {ids}); give each leader its own ID.radio, and"
+          f" the robots robots.json through `omniformation radio-provision`", flush=True)
 
 
 def open_bus(listen: list[str], connect: list[str], who: str, keys: FleetKeys | None = None) -> zenoh.Session:

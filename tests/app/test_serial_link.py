@@ -14,7 +14,7 @@ from app.backends.emulator import PtyEndpoint
 from core.link import protocol as p
 from core.types import Commands
 
-from tests.helpers import EmulatorThread, wait_for
+from tests.helpers import EmulatorThread, plain, sealed, wait_for
 
 
 def test_link_spec_is_checked_in_one_line():
@@ -124,7 +124,7 @@ def test_a_follower_stops_by_itself_when_commands_stop_coming(emulated):
     """The watchdog, through the real pty: one command, then silence (a hung service)."""
     port = serial.Serial(emulated.path, 115200, timeout=0.1)
     try:
-        port.write(p.encode_frame(p.set_velocity(1, 1, 0.2, 0.0)))
+        port.write(sealed(p.set_velocity(1, 1, 0.2, 0.0), counter=1))  # docs: the open key, no key given
         t_cmd = time.monotonic()
         hw = emulated.emulator.hw
         wait_for(lambda: emulated.emulator.snapshot()[1].measured(hw)[0] > 0.1, 1, "the follower to move")
@@ -217,13 +217,14 @@ def test_the_host_numbers_frames_per_line_and_tick_and_broadcasts_only_stop():
             time.sleep(1 / 30)
         def four_ticks() -> bool:
             frames.extend(parser.feed(end.read(0.05)))
-            return len([f for f in frames if f.msg_type == p.MSG_SET_VELOCITY]) >= 12
+            return len([f for f in plain(frames) if f.msg_type == p.MSG_SET_VELOCITY]) >= 12
 
         wait_for(four_ticks, 5, "4 ticks of frames")
     finally:
         link.close()
     frames += parser.feed(end.read(0.3))
     end.close()
+    frames = plain(frames)  # every frame authenticated (the open key): what a robot reads inside
     velocity = [f for f in frames if f.msg_type == p.MSG_SET_VELOCITY]
     ticks: dict[int, list[int]] = {}
     for f in velocity:
