@@ -4,6 +4,7 @@ their owner, over real pseudo-terminals with a lossy, delayed medium and a cut l
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 import threading
@@ -169,24 +170,40 @@ def test_the_radio_command_prints_a_link_per_leader_and_its_summary(tmp_path):
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
     for args, words in ((["--radio-id", "0"], "--radio-id"), (["--radio-id", "251"], "--radio-id"),
                         (["--radio-id", "3"], "--radio-id goes with --link serial:PATH"),
-                        (["--radio-id", "3", "--link", "serial:/dev/a,/dev/b", "--followers", "2"],
-                         "a radio is one port")):
+                        (["--radio-id", "3", "--link", "serial:/dev/a,/dev/b", "--followers", "2",
+                          "--allow-unauthenticated-radio"], "a radio is one port"),
+                        (["--radio-id", "3", "--link", "serial:/dev/a"], "a shared radio needs the fleet's radio key"),
+                        (["--radio-key", "/nonexistent/L1.radio", "--link", "serial:/dev/a"], "cannot read"),
+                        (["--radio-key", "/nonexistent/L1.radio"], "--radio-key goes with --link"),
+                        (["--radio-counter", "/tmp/c", "--link", "serial:/dev/a"], "--radio-counter goes with")):
         r = main_cli("run", "--port", "0", "--no-record", *args)
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
 
 
-def _leader(path: str, radio_id: int) -> subprocess.Popen:
+def _leader(path: str, radio_id: int, keys: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--link", f"serial:{path}", "--radio-id",
-                             str(radio_id), "--followers", str(len(ROBOTS)), "--feedback", "truth", "--port", "0",
+                             str(radio_id), "--radio-key", str(keys / f"L{radio_id}.radio"),
+                             "--followers", str(len(ROBOTS)), "--feedback", "truth", "--port", "0",
                              "--no-record"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
-def test_two_leader_processes_on_one_radio_a_standby_takes_over_when_the_first_dies():
+@pytest.fixture
+def radio_keys(tmp_path) -> Path:
+    """The fleet's radio key for leaders L1 and L2 (radio ids 1 and 2), as fleet-keys writes it."""
+    from app.backends.radio_keys import write_radio_keys
+
+    write_radio_keys(tmp_path / "radio", ("L1", "L2"))
+    return tmp_path / "radio"
+
+
+def test_two_leader_processes_on_one_radio_a_standby_takes_over_when_the_first_dies(radio_keys):
     """`run --link serial:PTY --radio-id N`: the leader claims its robots and drives them with
     DRIVE; a second leader on the same radio is refused and drives nothing; SIGKILL the first and
     the robots stop by their watchdog, and the second takes them once their lease lapses; the
     first, back, takes none of them. The robots count every overlap of two owners: none."""
-    radio = Radio(2, len(ROBOTS), drop=0.02, delay_s=0.005, seed=5)
+    from app.backends.radio_keys import load_robot_auth
+
+    radio = Radio(2, len(ROBOTS), drop=0.02, delay_s=0.005, seed=5, auth=load_robot_auth(radio_keys / "robots.json"))
     stop = threading.Event()
     medium = threading.Thread(target=radio.run, args=(stop,), daemon=True)
     medium.start()
@@ -199,11 +216,11 @@ def test_two_leader_processes_on_one_radio_a_standby_takes_over_when_the_first_d
         return {s.driven_by for s in radio.robots.snapshot().values()}
 
     try:
-        procs.append(_leader(radio.paths[0], 1))
+        procs.append(_leader(radio.paths[0], 1, radio_keys))
         wait_for(lambda: owners() == [1, 1, 1], 60, "leader 1 owning the robots")
         wait_for(lambda: all(s.driven_age_s < 0.2 for s in radio.robots.snapshot().values()), 30,
                  "leader 1 driving them")
-        procs.append(_leader(radio.paths[1], 2))
+        procs.append(_leader(radio.paths[1], 2, radio_keys))
         # leader 2 runs, claims every 0.5 s, and is refused every time
         wait_for(lambda: sum(s.nacks for s in radio.robots.snapshot().values()) >= 6, 60, "leader 2 refused")
         assert owners() == [1, 1, 1] and driven_by() == {1}
@@ -217,7 +234,7 @@ def test_two_leader_processes_on_one_radio_a_standby_takes_over_when_the_first_d
         assert 1.0 - 0.1 <= took <= 1.0 + 2.0, took  # after the 1 s lease lapsed, within 2 s of it
         print(f"radio: leader 2 owned every robot {took:.2f} s after leader 1's SIGKILL (lease 1 s)")
         before = sum(s.nacks for s in radio.robots.snapshot().values())
-        procs[0] = _leader(radio.paths[0], 1)  # back: refused, it drives nothing
+        procs[0] = _leader(radio.paths[0], 1, radio_keys)  # back: refused, it drives nothing
         wait_for(lambda: sum(s.nacks for s in radio.robots.snapshot().values()) >= before + 3, 60,
                  "leader 1 back and refused")
         time.sleep(1.0)
@@ -281,7 +298,9 @@ def test_a_radio_link_takes_in_and_lets_go_of_robots_and_commands_each_by_its_ad
     from app.backends.serial_link import SerialLink
     from core.types import Commands
 
-    radio = Radio(1, 2)
+    from core.link.follower import RadioAuth
+
+    radio = Radio(1, 2, auth=RadioAuth())  # protocol 3 robots holding the open key, as the link without one
     stop = threading.Event()
     carrier = threading.Thread(target=radio.run, args=(stop,), daemon=True)
     carrier.start()
