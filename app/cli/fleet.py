@@ -64,6 +64,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                        help="with --radio: the share of frames the radio loses (default 0)")
     arena.add_argument("--radio-delay-ms", type=float_in(0.0, 2000.0, "ms", lo_inclusive=True), default=0.0,
                        metavar="D", help="with --radio: how late the radio delivers a frame (default 0)")
+    arena.add_argument("--radio-key", type=Path, metavar="ROBOTS.json",
+                       help="with --radio: the fleet's radio keys the robots hold (fleet-keys writes"
+                            " DIR/radio/robots.json; default: the open key)")
     arena.add_argument("--summary", type=Path, metavar="FILE.json",
                        help="write the arena's counts and the robots' owners here when it stops")
     arena.set_defaults(func=cmd_arena)
@@ -174,6 +177,11 @@ def cmd_arena(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     if not args.radio and (args.radio_drop or args.radio_delay_ms):
         raise UserError("--radio-drop and --radio-delay-ms go with --radio")
+    if args.radio_key is not None and not args.radio:
+        raise UserError("--radio-key goes with --radio")
+    from app.backends.emulator import robot_auth
+
+    radio_auth = robot_auth(args.radio_key) if args.radio_key is not None else None
     keys = fleet_keys(args.keys, "arena", fleet)
     session = open_bus(args.zenoh_listen, args.zenoh_connect, f"arena {fleet}", keys)
     replies = session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)
@@ -181,7 +189,7 @@ def cmd_arena(args: argparse.Namespace) -> int:
         session.close()
         raise UserError(f"fleet {fleet}: an arena runs on this bus already; one world per fleet")
     arena = Arena(scenario, session, fleet, radio=args.radio, radio_drop=args.radio_drop,
-                  radio_delay_s=args.radio_delay_ms / 1000.0)
+                  radio_delay_s=args.radio_delay_ms / 1000.0, radio_auth=radio_auth)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
