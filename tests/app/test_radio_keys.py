@@ -6,7 +6,6 @@ fleet driving, and an older robot is named and not driven unless the operator al
 
 from __future__ import annotations
 
-import json
 import shutil
 import stat
 import subprocess
@@ -18,7 +17,6 @@ import pytest
 from app.backends.radio import Radio
 from app.backends.radio_keys import load_leader_key, load_robot_auth
 from app.backends.serial_link import ALLOWED_NOTE, UNAUTHENTICATED, SerialLink
-from core.link import protocol as p
 from core.link.follower import RadioAuth
 from core.types import Commands
 from tests.app.test_firmware import FIRMWARE, Firmware
