@@ -173,6 +173,12 @@ def test_bad_link_arguments_exit_2():
     assert len(out.stderr.strip().splitlines()) == 1
     out = main_cli("emulate-follower", "--port", "/nonexistent/tty")
     assert out.returncode == 2 and "cannot open serial port /nonexistent/tty" in out.stderr
+    out = main_cli("emulate-follower", "--protocol", "2", "--radio-key", "/nonexistent/robots.json")
+    assert out.returncode == 2 and "--protocol 2 robots know no key" in out.stderr
+    out = main_cli("radio", "--older-robots", "0,2")
+    assert out.returncode == 2 and "robot addresses 1..250" in out.stderr
+    out = main_cli("radio-provision", "/nonexistent/robots.json")
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1
     out = main_cli("emulate-follower", "--drop", "1.5")
     assert out.returncode == 2 and "--drop" in out.stderr
 
