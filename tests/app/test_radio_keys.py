@@ -17,6 +17,7 @@ import pytest
 from app.backends.radio import Radio
 from app.backends.radio_keys import load_leader_key, load_robot_auth
 from app.backends.serial_link import ALLOWED_NOTE, UNAUTHENTICATED, SerialLink
+from core.link import protocol as p
 from core.link.follower import RadioAuth
 from core.types import Commands
 from tests.app.test_firmware import FIRMWARE, Firmware
@@ -170,3 +171,61 @@ def test_an_older_robot_is_named_and_not_driven_unless_the_operator_allows_it():
         stop.set()
         carrier.join(5)
         radio.close()
+
+
+def test_a_leader_never_believes_a_strangers_reply(keys):
+    """On the fleet's radio a stranger answers for the robots: plain NACKs and OWNERs naming
+    leader 1, and authenticated ones with the open key and leader 1's id. Leader 1 keeps owning
+    and driving its robots; the forgeries are counted, never taken."""
+    import threading
+
+    auth = load_robot_auth(keys / "robots.json")
+    radio = Radio(2, 2, auth=auth)
+    stop = threading.Event()
+    carrier = threading.Thread(target=radio.run, args=(stop,), daemon=True)
+    carrier.start()
+    link = SerialLink(radio.paths[0], 2, radio_id=1, radio_key=auth.keys[0])
+    import serial
+
+    stranger = serial.Serial(radio.paths[1], 115200, timeout=0.01)
+    try:
+        wait_for(lambda: (_drive(link, 0.1), link.owns(1) and link.owns(2))[1], 10, "leader 1 owning R1, R2")
+        counter = int((time.time() - 1_704_067_200) * 1000) * 256  # where the document says counters start
+        for k in range(60):
+            for a in (1, 2):
+                no = p.Ownership(9, 5000, p.NACK_OWNED, 1)
+                for seq in range(0, 256, 32):
+                    stranger.write(p.encode_frame(p.nack(a, seq, no)))
+                    stranger.write(p.encode_frame(p.seal(p.nack(a, seq, no), p.OPEN_KEY, 1, counter + k * 64 + seq)))
+            _drive(link, 1 / 30)
+        assert link.owns(1) and link.owns(2) and link.answering().all()
+        robots = radio.robots.snapshot()
+        assert robots[1].moving and robots[2].moving and robots[1].owner == robots[2].owner == 1
+        assert sum(s.unmatched for s in link.stats) > 100  # counted, never taken
+    finally:
+        stranger.close()
+        link.close()
+        stop.set()
+        carrier.join(5)
+        radio.close()
+
+
+def test_the_status_and_the_recording_say_unauthenticated_radio_allowed_on_every_tick(tmp_path):
+    """`run --allow-unauthenticated-radio` on older robots: driven, and every tick's link state, on
+    the page and in the recording, says the radio is unauthenticated by the operator's choice."""
+    from app.recording.reader import read_recording
+    from tests.helpers import serve_then_signal, start_emulator_process
+
+    emulator = start_emulator_process(tmp_path / "old", "--protocol", "2")
+    record = tmp_path / "s.mcap"
+    try:
+        run = serve_then_signal("--port", "0", "--feedback", "truth", "--record", str(record), "--link",
+                                f"serial:{tmp_path / 'old'}", "--allow-unauthenticated-radio", hold_s=4.0)
+        assert run.returncode == 0, run.stderr
+    finally:
+        emulator.send_signal(2)
+        emulator.wait(10)
+    rec = read_recording(record)
+    states = [t["link_state"] for t in rec.ticks]
+    assert len(states) > 30 and all(s.endswith(ALLOWED_NOTE) for s in states), states[:3]
+    assert any(": ok" in s for s in states)  # the older robots were driven, as allowed
