@@ -14,6 +14,11 @@ MSP430 the paper's followers carry is little-endian), the CRC included.
     6       L     payload
     6+L     2     CRC-16/CCITT-FALSE over bytes 2 .. 5+L (address .. end of payload)
 
+Protocol 3 wraps any of these in an authenticated frame (type | AUTH; :func:`seal`,
+:func:`open_sealed`): the sender's id, a 48-bit counter and a SipHash-2-4 tag after the payload,
+a reply's tag bound to the tag of the request it answers (docs/follower-protocol.md,
+"Authenticated frames").
+
 The parser (:class:`FrameParser`) never raises on any input: it resynchronises on the
 sync bytes and counts what it rejects (bad CRC, impossible length, unknown type, a
 payload whose length does not fit its type).
