@@ -5,7 +5,8 @@ medium; it does not know the fleet's key. It tries what issue 42 found working: 
 a captured DRIVE replayed, a forged HANDOVER, the claim race after leader 1's death, keeping a
 dead leader's lease alive, and STOP. Every frame is refused and counted by the robots (their own
 counts, in the radio's summary), none is answered; STOP is obeyed as the documented policy says
-(fail-safe), and never answered; the standby leader takes the robots as it should."""
+(fail-safe), and never answered; the standby leader, refused while leader 1 lives, takes the
+robots once leader 1's lease lapses, and no robot ever obeys two owners."""
 
 from __future__ import annotations
 
@@ -154,7 +155,9 @@ def test_a_stranger_on_the_radio_is_refused_everything_and_counted(tmp_path):
             time.sleep(0.03)
         took = {r: min(t for t, f in stranger.frames() if t >= killed and f.address == r
                        and f.msg_type == p.MSG_DRIVEN | p.AUTH and p.trailer(f)[0] == 2) - killed for r in ROBOTS}
-        assert max(took.values()) < 5.0, took  # lease 1 s, then the standby's next claim (0.5 s)
+        # the dead leader's lease (1 s) held against the stranger's keep-alives, then the standby's next
+        # claim (every 0.5 s) was granted
+        assert 0.9 <= min(took.values()) and max(took.values()) < 5.0, took
         answered = stranger.answered()
     finally:
         for proc in procs:

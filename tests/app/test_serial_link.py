@@ -149,15 +149,23 @@ def test_a_missing_port_never_blocks_the_loop():
         link.close()
 
 
-def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
+def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated, tmp_path):
+    """SIGTERM stops every robot on the wire, an older one (protocol 2, driven as the operator
+    allowed) too; every recorded tick's link state says the radio was unauthenticated by choice."""
+    from app.backends.serial_link import ALLOWED_NOTE
+    from app.recording.reader import read_recording
     from tests.helpers import serve_then_signal
 
+    emulated.emulator.older = frozenset({2})  # R2 speaks protocol 2 only
     hw = emulated.emulator.hw
-    moving = lambda: any(r.moving for r in emulated.emulator.snapshot().values())
-    run = serve_then_signal("--port", "0", "--feedback", "truth", "--no-record", "--link", f"serial:{emulated.path}",
-                            until=moving)
+    moving = lambda: all(r.moving for r in emulated.emulator.snapshot().values())
+    record = tmp_path / "s.mcap"
+    run = serve_then_signal("--port", "0", "--feedback", "truth", "--record", str(record), "--link",
+                            f"serial:{emulated.path}", "--allow-unauthenticated-radio", until=moving)
     assert run.returncode == 0, run.stderr
     assert "all followers commanded to zero" in run.stdout
+    states = [t["link_state"] for t in read_recording(record).ticks]
+    assert states and all(st.endswith(ALLOWED_NOTE) for st in states), states[:3]
     # the service wrote STOP before it ended; the emulator (a thread here) takes it when it gets the CPU
     wait_for(lambda: all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps
                          for r in emulated.emulator.snapshot().values()), 30, "every robot to take the STOP")
