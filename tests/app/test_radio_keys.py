@@ -209,3 +209,22 @@ def test_a_leader_never_believes_a_strangers_reply(keys):
         carrier.join(5)
         radio.close()
 
+
+
+def test_a_leaders_counter_only_grows_across_restarts_even_with_its_clock_set_back(tmp_path):
+    """docs/follower-protocol.md, "Counters that only grow": from the wall clock (256 per ms and a
+    random start), and with --radio-counter above the high-water mark written before it is used."""
+    from app.backends.serial_link import FrameCounter
+
+    now = [1_800_000_000.0]
+    first = FrameCounter(lambda: now[0])
+    a = [first.next() for _ in range(1000)]
+    assert a == sorted(set(a)) and a[0] >= int((now[0] - FrameCounter.EPOCH_S) * 1000) * 256
+    now[0] += 0.5  # a restart half a second later starts above every counter used
+    assert FrameCounter(lambda: now[0]).next() > a[-1]
+    mark = tmp_path / "counter"
+    kept = FrameCounter(lambda: now[0], mark)
+    used = [kept.next() for _ in range(10)]
+    assert int(mark.read_text()) > used[-1]  # reserved before it was used
+    now[0] -= 3600.0  # the clock set back an hour: the file keeps the counter above
+    assert FrameCounter(lambda: now[0], mark).next() > used[-1]
