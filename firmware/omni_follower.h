@@ -1,13 +1,16 @@
 /*
  * omniformation reference follower firmware: the follower protocol of
  * docs/follower-protocol.md (protocol 2: ownership by one leader at a time, with a
- * lease), the watchdog and differential-drive odometry, in portable C99 for a small
- * microcontroller.
+ * lease; protocol 3: every frame authenticated with SipHash-2-4 under the fleet's radio
+ * key, fresh by a per-sender counter, replies bound to the request they answer), the
+ * watchdog and differential-drive odometry, in portable C99 for a small microcontroller.
  *
  * One `of_follower` is one robot. The firmware calls:
  *   of_init()     once, with the robot's address and its hardware numbers;
  *   of_receive()  with every byte (or run of bytes) the UART received;
  *   of_tick()     often (every 1-10 ms) from the main loop.
+ *   of_set_auth() after of_init(), with the provisioned key(s) and leaders (the header
+ *                 `omniformation radio-provision --header` writes); without it: protocol 2.
  * and provides the functions under "HAL" below (hardware access); nothing else
  * touches the hardware. No dynamic memory, no floating-point printf, no OS.
  */
