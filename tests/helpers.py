@@ -351,3 +351,19 @@ class PtyRelay:
         self._near.close()
         with contextlib.suppress(OSError):
             os.close(self._far)
+
+
+def plain(frames: list[Any], key: bytes | None = None) -> list[Any]:
+    """Frames as a robot reads them: an authenticated frame that ``key`` (default: the open key)
+    verifies becomes the frame inside it; anything else is left as it came."""
+    from core.link import protocol as p
+
+    keys = (key if key is not None else p.OPEN_KEY,)
+    return [o.frame if (o := p.open_sealed(f, keys)) is not None else f for f in frames]
+
+
+def sealed(frame: Any, counter: int, sender: int = 1, key: bytes | None = None) -> bytes:
+    """One authenticated frame's bytes (default: the open key, as a leader without a key sends)."""
+    from core.link import protocol as p
+
+    return p.encode_frame(p.seal(frame, key if key is not None else p.OPEN_KEY, sender, counter))
