@@ -775,6 +775,8 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
             f" {served:.2f} Hz ({(served / alone - 1) * 100:+.1f} %, target within 5 %); 3 browsers rendering"
             f" software WebGL on this same machine {watched:.2f} Hz ({(watched / alone - 1) * 100:+.1f} %)"
         )
+    from app.cli.bench_floods import bench_floods  # the page under floods (docs/page-access.md)
+    results.update(bench_floods(print_fn))
     try:
         import zenoh  # noqa: F401
     except ImportError:
