@@ -226,8 +226,9 @@ CONN_HEADER = "X-Omniformation-Connection"  # which gate connection an upstream 
 ROLE_HEADER = "X-Omniformation-Role"
 LOG_EVERY_S = 1.0  # an address's refused messages (and refused requests of one kind) are logged this often at most
 NOTICE_EVERY_S = 1.0  # a client is told of refused updates this often at most (and sent a control's value back)
-RATE = 60.0  # messages a second a connection may send (a browser dragging a slider or the view: ~60)
-BURST = 240  # and at once
+RATE = 100.0  # messages a second a connection may send (viser's page sends its camera at most 50 a second, a
+# control's value at most 20, a click or a drag at most 50 and 20: a person uses one or two at once)
+BURST = 300  # and at once
 STRIKES = 3  # messages dropped in this many consecutive seconds: the connection is closed
 BAN_S = 30.0  # and its address refused this long
 PER_ADDRESS = 16  # open websockets from one address
@@ -399,7 +400,7 @@ class Gate:
 
     @property
     def open_connections(self) -> int:
-        return sum(self._open.values())
+        return sum(list(self._open.values()))  # read from other threads: a copy
 
     def role_of(self, client_id: int) -> str:
         return self.roles.get(client_id, VIEWER)  # unknown: the least a client may do
