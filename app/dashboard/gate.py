@@ -32,7 +32,8 @@ buys no line), in one line, and refused requests likewise at most once a second 
 
 How much (docs/page-access.md): each connection has a budget (:class:`Budget`: ``RATE`` messages a
 second, ``BURST`` at once); what is over it is dropped before it is decoded, a connection that stays
-over it is closed and its address refused for ``BAN_S``; at most ``PER_ADDRESS`` websockets per
+over it is closed and its address refused for ``BAN_S``; all of an address's connections together
+have ``ADDRESS_RATE`` of messages forwarded (STOP always passes); at most ``PER_ADDRESS`` websockets per
 address and ``MAX_CONNECTIONS`` in all, the last ``OPERATOR_RESERVE`` of them for operators.
 
 viser's own loopback port would let a local page around the gate, so the gate marks its
@@ -231,6 +232,8 @@ RATE = 100.0  # messages a second a connection may send (viser's page sends its 
 BURST = 300  # and at once
 STRIKES = 3  # messages dropped in this many consecutive seconds: the connection is closed
 BAN_S = 30.0  # and its address refused this long
+ADDRESS_RATE = 200.0  # messages a second all connections from one address may have forwarded to viser (STOP always)
+ADDRESS_BURST = 600
 PER_ADDRESS = 16  # open websockets from one address
 MAX_CONNECTIONS = 64  # open websockets in all
 OPERATOR_RESERVE = 8  # of which the last few only for operators
@@ -284,6 +287,7 @@ class GateCounts:
     cut: int = 0  # connections closed for staying over their budget
     banned: int = 0  # requests from an address refused for a while
     full: int = 0  # websockets refused: too many from the address, or in all
+    address: int = 0  # messages dropped over their address's budget (all its connections together)
 
 
 class Budget:
@@ -363,6 +367,7 @@ class Gate:
         self._notice_throttle = Throttle(NOTICE_EVERY_S)
         self._banned: dict[str, float] = {}  # address -> refused until (monotonic)
         self._open: dict[str, int] = {}  # address -> open websockets
+        self._address_budget: dict[str, Budget] = {}  # address -> what all its connections together may forward
         self._secret = secrets.token_hex(16)
         self._upstream = server.get_port()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -630,6 +635,7 @@ class Gate:
                     """The client's messages: within its budget (else dropped undecoded), each judged by
                     the input filter before viser sees it."""
                     budget = Budget(time.monotonic())
+                    greeted = False  # its first camera: viser takes its clicks (STOP) only from then on
                     try:
                         async for message in src:
                             if not budget.take(time.monotonic()):
@@ -639,6 +645,16 @@ class Gate:
                                     return
                                 continue
                             verdict = self.filter.judge(message, role)
+                            first = verdict.kind == "ViewerCameraMessage" and not greeted
+                            greeted = greeted or first
+                            if verdict.forward and not first and not self._address_allows(address, verdict):
+                                self.refused.address += 1
+                                held = self._log_throttle.due(("address", address))
+                                if held >= 0:
+                                    log.warning("dashboard: %s's connections together send more than %g messages a"
+                                                " second: dropped%s", address, ADDRESS_RATE,
+                                                f" ({held} more since the last line)" if held else "")
+                                continue
                             if verdict.forward:
                                 await dst.send(message)
                             elif not verdict.quiet:
@@ -654,6 +670,20 @@ class Gate:
                     task.exception()  # retrieved: never an "exception was never retrieved" on stderr
         except (websockets.exceptions.ConnectionClosed, OSError):
             pass
+
+    def _address_allows(self, address: str, verdict: Verdict) -> bool:
+        """Whether all of ``address``'s connections together may have one more message forwarded:
+        sixteen tabs each within its own budget are not sixteen budgets. STOP always passes (and a
+        connection's first camera, without which viser would not take its STOP)."""
+        if verdict.uuid and self.filter.viewer_may(verdict.uuid):
+            return True
+        now = time.monotonic()
+        budget = self._address_budget.get(address)
+        if budget is None:
+            if len(self._address_budget) > 4096:  # addresses come and go: forget the full ones
+                self._address_budget = {a: b for a, b in self._address_budget.items() if now - b.at < 60.0}
+            budget = self._address_budget[address] = Budget(now, ADDRESS_RATE, ADDRESS_BURST)
+        return budget.take(now)
 
     def _flooded(self, address: str, role: str, budget: Budget) -> None:
         """A message over a connection's budget: counted, logged briefly per address; a connection

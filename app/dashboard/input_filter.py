@@ -62,12 +62,14 @@ VIEWER = "viewer"
 @dataclass(frozen=True)
 class Verdict:
     """What to do with one message: forward it, or refuse it (``why``, one line) and answer the
-    client with the value in force of control ``uuid`` (when the message named one)."""
+    client with the value in force of control ``uuid`` (when the message named one; a forwarded
+    control update names its control too)."""
 
     forward: bool
     why: str = ""
     uuid: str = ""
     quiet: bool = False  # refused without a word (a browser's own chatter the page does not use)
+    kind: str = ""  # a forwarded scene message's type
 
 
 PASS = Verdict(True)
@@ -192,7 +194,7 @@ class InputFilter:
             if not _finite(body):
                 return Verdict(False, f"{kind}: a number that is not finite")
             why = scene_fault(body)
-            return Verdict(False, f"{kind}: {why}") if why else PASS
+            return Verdict(False, f"{kind}: {why}") if why else Verdict(True, kind=kind)
         if kind in QUIET:
             return Verdict(False, f"{kind}: not used here", quiet=True)
         return Verdict(False, f"message type {kind[:60]!r} is not one a client may send")
@@ -214,7 +216,7 @@ class InputFilter:
         if disabled or not visible:
             return Verdict(False, f"{name}: {'disabled' if disabled else 'hidden'} now", uuid)
         why = _value_fault(handle, updates["value"])
-        return Verdict(False, f"{name} = {_short(updates['value'])}: {why}", uuid) if why else PASS
+        return Verdict(False, f"{name} = {_short(updates['value'])}: {why}", uuid) if why else Verdict(True, uuid=uuid)
 
 
 def _value_fault(handle: Any, value: Any) -> str:

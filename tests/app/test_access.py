@@ -734,3 +734,35 @@ def test_connections_are_capped_per_address_and_in_all_operators_first(guarded):
     finally:
         for conn in opened:
             conn.close()
+
+
+def test_an_addresss_connections_share_one_budget_and_stop_always_passes(service):
+    """D: eight connections from one address, each within its own budget (250 camera messages at
+    once, under its burst): together at most the address's budget is taken (200 a second after a
+    burst of 600), the rest dropped; a tab opened on that address meanwhile stops the team with STOP."""
+    import msgspec
+
+    ADDRESS_RATE, ADDRESS_BURST = 200, 600  # docs/page-access.md
+    port = service.gate.port
+    conns = [ws_from(port, "127.0.0.81") for _ in range(8)]
+    moved = msgspec.msgpack.encode(camera(position=[0.5, -3.0, 2.0]))
+    dropped = service.gate.refused.address
+    start = time.monotonic()
+    try:
+        for conn in conns[:8]:
+            for _ in range(250):
+                conn.send(moved)
+        conns.append(as_a_browser(ws_from(port, "127.0.0.81")))  # a tab opened now, on the flooded address
+        press(conns[8], service.dashboard.controls.stop_button)
+        wait_for(lambda: service.store.get().stop, 10, "STOP from the flooding address")
+        allowed = ADDRESS_BURST + 8 + 1  # and each connection's first camera passes
+        wait_for(lambda: service.gate.refused.address - dropped >= 2000 - allowed
+                 - ADDRESS_RATE * (time.monotonic() - start), 10, "the address's drops")
+        elapsed = time.monotonic() - start
+        dropped = service.gate.refused.address - dropped
+        print(f"\n8 x 250 camera messages from one address in {elapsed:.1f} s: {dropped} dropped over its budget")
+        assert dropped >= 2000 - allowed - ADDRESS_RATE * elapsed
+    finally:
+        for conn in conns:
+            conn.close()
+        service.store.update("test", stop=False, leader_hold=False)
