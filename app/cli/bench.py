@@ -858,6 +858,8 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
         )
     from app.cli.bench_foxglove import bench_foxglove  # Foxglove live's cost: a module of its own
     results.update(bench_foxglove(print_fn))
+    from app.cli.bench_floods import bench_floods  # the page under floods (docs/page-access.md)
+    results.update(bench_floods(print_fn))
     try:
         import zenoh  # noqa: F401
     except ImportError:
