@@ -262,7 +262,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     from app.fleet.bridge import check_name
     from app.realtime import SWITCH_INTERVAL_S
     from app.services.fleet_page import FleetView
-    from app.fleet.recorder import FleetRecorder
+    from app.recording.fleet import FleetRecorder
     from app.cli.foxglove_args import check_foxglove_args, serve_fleet
 
     try:

@@ -404,17 +404,16 @@ def params_from_payload(d: dict[str, Any]) -> Params:
     """A recorded parameter set as ``Params``: what the file holds, within today's bounds (a value
     an older version allowed is clamped, as the page would; a missing or damaged field keeps
     its default)."""
-    from app.params import ParamsStore
-    from core.types import GAIN_BOUNDS
+    from app.params import PARAMETERS, ParamsStore
 
     store = ParamsStore()
     if not isinstance(d, dict):  # a damaged record: the defaults
         return store.get()
-    keys = ("leader_mode", "leader_speed_mps", "leader_turn_deg_s", "slots", "n_followers", "safety",
-            "safety_distance_m", "goal", "min_scale", "stop", "paused")
-    changes = {key: d[key] for key in keys if key in d}
+    recorded = [row for row in PARAMETERS.values() if row.recorded]  # the parameter table's (core.bounds)
+    changes = {row.name: d[row.name] for row in recorded if row.kind != "gain" and row.name in d}
     gains = d.get("gains")
-    changes.update({k: v for k, v in gains.items() if k in GAIN_BOUNDS} if isinstance(gains, dict) else {})
+    gain_names = {row.name for row in recorded if row.kind == "gain"}
+    changes.update({k: v for k, v in gains.items() if k in gain_names} if isinstance(gains, dict) else {})
     for key, value in changes.items():  # one at a time: a spoiled field is skipped, not the whole set
         try:
             store.update("recording", **{key: value})

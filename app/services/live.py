@@ -37,7 +37,7 @@ from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
 from app.memory import bound_native_heap, bound_python_heap
-from app.recording.reader import Recording
+from app.recording.reader import check_ticks, read_recording
 
 
 
@@ -140,9 +140,12 @@ class Service:
             self.calibration = CalibrationPanel(self.server, frames, rig.detect, Path("camera.toml"),
                                                 centre=(gamma.cx, gamma.cy), area=rig.working_area)
             self.dashboard.extra.append(self.calibration.refresh)
-        def replay(rec: Recording) -> ReplayService:
+        def replay(path: Path) -> ReplayService:
             """A replay with credentials of its own: the live page's token never goes into a link
-            (the panel shows each client the link for its role; docs/page-access.md)."""
+            (the panel shows each client the link for its role; docs/page-access.md). A file that
+            is no recording raises RecordingError (a ValueError), which the panel shows."""
+            rec = read_recording(path)
+            check_ticks(rec)
             return ReplayService(rec, host=host, port=0, token=new_token() if self.gate.token else None,
                                  viewer_token=new_token())
 
