@@ -264,10 +264,12 @@ def _check_bundle(directory: Path, identity: str) -> None:
                                " own identity's key only; move it away")
 
 
-def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datetime | None = None) -> FleetKeys:
+def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datetime | None = None,
+                    ros2: bool = False) -> FleetKeys:
     """The files ``identity`` joins ``fleet`` with, checked: present and readable, the key not
     readable by others, the certificate this fleet CA's, named ``identity``, in date and made
-    for this key. KeyFileError (a ValueError) names the file and the reason."""
+    for this key. KeyFileError (a ValueError) names the file and the reason. ``ros2``: for a ROS 2
+    session, where the ``ros2`` bundle serves too (on the fleet's bus it is nobody)."""
     from cryptography import x509
     from cryptography.exceptions import InvalidSignature
     from cryptography.hazmat.primitives import serialization
@@ -279,9 +281,10 @@ def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datet
     roster = _roster(directory)
     if roster.fleet != fleet:
         raise KeyFileError(f"{directory / ROSTER}: keys of fleet {roster.fleet!r}, not of {fleet!r}")
-    if identity not in roster.bundles:
+    members = roster.bundles if ros2 else roster.identities
+    if identity not in members:
         raise KeyFileError(f"{directory / ROSTER}: {identity!r} is not in fleet {fleet} (its identities:"
-                        f" {', '.join(roster.bundles)}; fleet-keys makes the keys of a new one)")
+                        f" {', '.join(members)}; fleet-keys makes the keys of a new one)")
     now = now or dt.datetime.now(dt.UTC)
     ca_path, cert_path, key_path = directory / CA_CERT, directory / f"{identity}.pem", directory / f"{identity}.key"
     ca = _parse(ca_path, _read(ca_path, "the fleet's CA certificate"), x509.load_pem_x509_certificate,

@@ -33,7 +33,7 @@ def ros2_keys(directory: Path) -> FleetKeys:
     except (OSError, ValueError, KeyError, TypeError):
         fleet = ""  # load_fleet_keys names what is wrong with the roster
     # a whole fleet-keys folder, a CA key or a second key beside: load_fleet_keys' bundle checks refuse it
-    return load_fleet_keys(directory, keys[0] if keys else ROS2, fleet if isinstance(fleet, str) else "")
+    return load_fleet_keys(directory, keys[0] if keys else ROS2, fleet if isinstance(fleet, str) else "", ros2=True)
 
 
 def session_config(connect: list[str], keys: FleetKeys | None = None) -> Any:

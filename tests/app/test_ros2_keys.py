@@ -107,3 +107,11 @@ def test_bad_keys_for_ros2_are_one_line_and_exit_2(keys, args, words):
     assert out.returncode == 2, out
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and words in lines[0], out.stderr
+
+
+def test_the_ros2_bundle_is_nobody_on_the_fleets_bus(keys):
+    from app.fleet.security import KeyFileError, load_fleet_keys
+
+    with pytest.raises(KeyFileError, match="'ros2' is not in fleet f"):
+        load_fleet_keys(keys / "ros2", "ros2", "f")
+    assert load_fleet_keys(keys / "ros2", "ros2", "f", ros2=True).identity == "ros2"
