@@ -69,6 +69,15 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                      help="with --link serial:PATH on a radio other leaders share: this leader's number (1..250);"
                           " it claims its robots and drives only those it owns (docs/follower-protocol.md,"
                           " Ownership)")
+    run.add_argument("--radio-key", type=Path, metavar="LEADER.radio",
+                     help="with --link serial:PATH: this leader's radio key (`fleet-keys` writes DIR/radio/<id>.radio);"
+                          " every frame is authenticated with it and only the fleet's robots' replies count")
+    run.add_argument("--radio-counter", type=Path, metavar="FILE",
+                     help="with --radio-key: keep the frame counter's high-water mark here too (the counter starts"
+                          " at the wall clock in ms otherwise; docs/follower-protocol.md)")
+    run.add_argument("--allow-unauthenticated-radio", action="store_true",
+                     help="drive robots that speak only protocol 1/2, and use a shared radio without --radio-key;"
+                          " the status and the recording say so on every tick")
     run.add_argument("--no-record", action="store_true", help="do not record the session (default: recordings/<UTC>_<name>.mcap)")
     run.add_argument("--recordings", type=Path, metavar="DIR",
                      help="where sessions are recorded and listed for replay (default: recordings/ in the working folder)")
@@ -211,6 +220,7 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
         raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
     if args.radio_id is not None and not link_port and not getattr(args, "arena_radio", ""):
         raise UserError("--radio-id goes with --link serial:PATH (the radio this leader shares with others)")
+    _check_radio_key(args, bool(link_port or getattr(args, "arena_radio", "")))
     camera: Rig | None
     if real:
         from app.files import load_calibration
@@ -220,6 +230,27 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
         camera = config.camera() if (args.feedback or config.feedback) == "vision" else None
     n_followers = scenario.n if scenario is not None else args.followers or config.followers
     return _RunPlan(config, scenario, fleet_scenario, real, link_port, leader_port, camera, n_followers)
+
+
+def _check_radio_key(args: argparse.Namespace, has_link: bool) -> None:
+    """--radio-key, --radio-counter and --allow-unauthenticated-radio against the link; sets
+    ``args.radio_key_bytes`` and ``args.radio_sender`` (one line on any mistake)."""
+    args.radio_key_bytes, args.radio_sender = None, None
+    if args.radio_key is None:
+        if args.radio_counter is not None:
+            raise UserError("--radio-counter goes with --radio-key")
+        if args.radio_id is not None and not args.allow_unauthenticated_radio:
+            raise UserError(f"--radio-id {args.radio_id}: a shared radio needs the fleet's radio key (--radio-key"
+                            " DIR/radio/LEADER.radio, written by fleet-keys), or --allow-unauthenticated-radio")
+        return
+    if not has_link:
+        raise UserError("--radio-key goes with --link serial:PATH (the robots' radio or cable)")
+    from app.backends.radio_keys import load_leader_key
+
+    key = load_leader_key(args.radio_key)
+    if args.radio_id is not None and args.radio_id != key.radio_id:
+        raise UserError(f"--radio-id {args.radio_id}: {args.radio_key} is radio id {key.radio_id}'s key")
+    args.radio_key_bytes, args.radio_sender = key.key, key.radio_id
 
 
 def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
@@ -320,7 +351,7 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
             raise UserError(f"--arena {args.arena}: {exc}") from None
         handed.callback(fleet.arena_team.close)
         if args.arena_radio:
-            fleet.arena_team.use_radio(args.arena_radio, args.radio_id, args.baud)
+            fleet.arena_team.use_radio(args.arena_radio, args.radio_id, args.baud, **radio_options(args))
     if name_taken(fleet.session, args.fleet, args.leader_id):
         raise UserError(f"--leader-id {args.leader_id}: a leader with this id is alive on fleet {args.fleet}"
                         " already; every leader needs its own id")
@@ -350,6 +381,15 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
     return fleet
 
 
+def radio_options(args: argparse.Namespace) -> dict[str, Any]:
+    """What a serial link is given to authenticate its frames (checked by _check_radio_key)."""
+    from app.backends.serial_link import FrameCounter
+
+    return {"radio_key": args.radio_key_bytes, "sender_id": args.radio_sender,
+            "allow_unauthenticated": args.allow_unauthenticated_radio,
+            "counter": FrameCounter(path=args.radio_counter) if args.radio_counter is not None else None}
+
+
 def _build_rig(args: argparse.Namespace, plan: _RunPlan, handed: contextlib.ExitStack,
                base: FollowerLink | None = None) -> tuple[FollowerLink | None, HardwareTeam | None]:
     """The followers' link (serial, or the emulator) and, on a real rig, the real team."""
@@ -361,7 +401,7 @@ def _build_rig(args: argparse.Namespace, plan: _RunPlan, handed: contextlib.Exit
     if plan.link_port:
         try:
             link = make_link(plan.link_port, plan.n_followers, baud=args.baud, v_max=limits.v_max,
-                             w_max=limits.w_max, radio_id=args.radio_id)
+                             w_max=limits.w_max, radio_id=args.radio_id, **radio_options(args))
         except ValueError as exc:
             raise UserError(str(exc)) from None
         handed.callback(link.close)

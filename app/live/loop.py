@@ -278,7 +278,9 @@ class ServiceLoop:
         if not self._world.ready:
             return "the team's start-up"
         if len(lost) == 0:
-            self.store.update("loop", leader_hold=False)  # the team is whole again: the leader resumes
+            # the team is whole again: the leader resumes, unless a STOP came in since this tick read
+            # the parameters (decided on what is in force now, in one step: never half undo a STOP)
+            self.store.change("loop", lambda now: {"leader_hold": False} if now.leader_hold and not now.stop else {})
             return ""
         return "waiting for " + ", ".join(f"F{i + 1}" for i in lost) + " to be tracked"
 

@@ -29,7 +29,7 @@ from app.dashboard import Dashboard, LatestStatePublisher
 from app.dashboard.calibration_panel import CalibrationPanel
 from app.dashboard.camera_panel import Overlay
 from app.dashboard.tuning_panel import TuningPanel
-from app.dashboard.gate import quietly, serve_gated
+from app.dashboard.gate import new_token, quietly, serve_gated
 from app.dashboard.recordings_panel import RecordingsPanel
 from app.services.replay import ReplayService
 from app.live.loop import DEFAULT_NOISE, ServiceLoop
@@ -37,6 +37,7 @@ from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
 from app.memory import bound_native_heap, bound_python_heap
+from app.recording.reader import Recording
 
 
 
@@ -139,9 +140,13 @@ class Service:
             self.calibration = CalibrationPanel(self.server, frames, rig.detect, Path("camera.toml"),
                                                 centre=(gamma.cx, gamma.cy), area=rig.working_area)
             self.dashboard.extra.append(self.calibration.refresh)
-        token = self.gate.token
-        self.recordings = RecordingsPanel(self.server, lambda rec: ReplayService(rec, host=host, port=0, token=token),
-                                          recordings)
+        def replay(rec: Recording) -> ReplayService:
+            """A replay with credentials of its own: the live page's token never goes into a link
+            (the panel shows each client the link for its role; docs/page-access.md)."""
+            return ReplayService(rec, host=host, port=0, token=new_token() if self.gate.token else None,
+                                 viewer_token=new_token())
+
+        self.recordings = RecordingsPanel(self.server, replay, recordings, role_of=self.gate.role_of)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
         self._thread: threading.Thread | None = None
