@@ -777,8 +777,8 @@ def run_bench(print_fn: Callable[[str], None] = print) -> dict[str, float]:
         )
     from app.cli.bench_foxglove import bench_foxglove  # Foxglove live's cost: a module of its own
     results.update(bench_foxglove(print_fn))
-    from app.cli.bench_loop import bench_loop  # the loop against the page's clients: a module of its own
-    results.update(bench_loop(print_fn, latency=bench_latency))
+    from app.cli.bench_loop import bench_loops  # the loop against the page's clients: a module of its own
+    results.update(bench_loops(print_fn, latency=bench_latency))
     try:
         import zenoh  # noqa: F401
     except ImportError:

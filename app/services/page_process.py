@@ -63,6 +63,7 @@ class PageProcess:
         self._conn: multiprocessing.connection.Connection | None = None
         self._proc: Any = None
         self._ready = threading.Event()
+        self._send_lock = threading.Lock()  # one writer at a time on the pipe (interleaved pickles corrupt it)
         self._sent_version = -1
         self._start_page()
         threading.Thread(target=self._supervise, name="page-supervisor", daemon=True).start()
@@ -103,7 +104,8 @@ class PageProcess:
             changed = params if params.version != self._sent_version else None
             try:
                 assert conn is not None
-                conn.send(("tick", state, changed))
+                with self._send_lock:
+                    conn.send(("tick", state, changed))
                 self._sent_version = params.version
             except (OSError, ValueError, AssertionError):
                 time.sleep(0.05)  # the page is gone: the supervisor restarts it
@@ -145,7 +147,8 @@ class PageProcess:
             self._cv.notify_all()
         if self._conn is not None:
             try:
-                self._conn.send(("close",))
+                with self._send_lock:
+                    self._conn.send(("close",))
             except (OSError, ValueError):
                 pass
         if self._proc is not None:
@@ -162,11 +165,11 @@ class ForwardingStore(ParamsStore):
     def __init__(self, initial: Params, conn: multiprocessing.connection.Connection) -> None:
         super().__init__(initial)
         self._conn = conn
-        self._send_lock = threading.Lock()
+        self.send_lock = threading.Lock()  # one writer at a time on the pipe
 
     def update(self, source: str = "server", **changes: Any) -> tuple[Params, tuple[Any, ...]]:
         result = super().update(source, **changes)
-        with self._send_lock:
+        with self.send_lock:
             try:
                 self._conn.send(("update", source, changes))
             except (OSError, ValueError):
@@ -189,7 +192,8 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles)
     gate.filter.allow_viewer(dashboard.controls.stop_button)  # stopping is always safe
     publisher = LatestStatePublisher(dashboard.publish)
-    conn.send(("ready", gate.url, gate.viewer_url, gate.port, gate.token, gate.viewer_token))
+    with store.send_lock:
+        conn.send(("ready", gate.url, gate.viewer_url, gate.port, gate.token, gate.viewer_token))
     loop_version = -1
     try:
         while True:
