@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test bench samples venv clean
+.PHONY: run test bench bench-radio samples venv clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -25,8 +25,14 @@ test: $(STAMP)
 	scripts/ensure-chromium
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP)
+bench: $(STAMP) bench-radio
 	$(BIN)/omniformation bench
+
+# what authenticating the radio frames costs the reference firmware (ns per frame, the radio's load)
+bench-radio:
+	@mkdir -p $(VENV)/build
+	cc -std=c99 -Wall -Wextra -Werror -pedantic -O2 firmware/omni_follower.c firmware/mac_bench.c -o $(VENV)/build/mac_bench
+	$(VENV)/build/mac_bench
 
 # The sample recordings in recordings/samples (each under 5 MB: one camera frame a second).
 samples: $(STAMP)

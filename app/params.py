@@ -6,6 +6,11 @@ notice saying what was changed and why) and swaps in a new frozen
 :class:`Params` under a lock. The loop calls :meth:`ParamsStore.get` once per
 tick and sees either the old or the new set, never a mix.
 
+A change that depends on what is in force (the loop clearing ``leader_hold`` once the team is
+whole, Pause toggling) is one atomic read-modify-write, :meth:`ParamsStore.change`: the decision
+is made on the parameters in force under the lock, never on a copy read earlier (a STOP pressed
+between the read and the write would otherwise be half undone).
+
 One-shot requests (single step, reset) are counters rather than flags, so
 that a request made while the loop is busy is never lost and never done twice.
 """
@@ -128,8 +133,16 @@ class ParamsStore:
         so listeners can tell a person's change from the server's own echo.
         Unknown keys and values of the wrong kind are refused (ValueError).
         """
+        return self.change(source, lambda _: changes)
+
+    def change(self, source: str, decide: Callable[[Params], dict[str, Any]]) -> tuple[Params, tuple[Notice, ...]]:
+        """Atomic read-modify-write: ``decide(params in force)`` names the changes, applied as
+        :meth:`update` applies them, with no other change in between; ``{}`` changes nothing."""
         with self._lock:
             current = self._params
+            changes = decide(current)
+            if not changes:
+                return current, ()
             notices: list[Notice] = []
             new_values: dict[str, Any] = {}
             gain_changes: dict[str, float] = {}

@@ -5,6 +5,11 @@
  * drive it from the service (docs/follower-protocol.md, "The reference firmware").
  *
  *   follower_sim [--addresses 1,2,3] [--link-path PATH] [--battery-mv 7400]
+ *                [--radio-record FILE.bin | --protocol 2]
+ *
+ * The robots speak protocol 3 (authenticated frames): with --radio-record (written by
+ * `omniformation radio-provision --record`) they hold the fleet's key and leaders, as a flashed
+ * robot does; without it the open key (any leader); --protocol 2 makes them older robots.
  *
  * Prints "firmware followers 1,2,3 on /dev/pts/N", then one line per event
  * ("robot 2: moving", "robot 2: still", "robot 2: STOP", "robot 2: watchdog").
@@ -133,16 +138,50 @@ static int open_pty(char *name, size_t size, int *slave_fd) {
     return fd;
 }
 
+static of_radio_auth auth;  /* the open key unless a record is given */
+
+/* The record radio-provision writes: "OFR3", n keys, keys, n leaders, ids, STOP policy, CRC-16. */
+static int load_record(const char *path) {
+    uint8_t b[4 + 1 + OF_MAX_KEYS * OF_KEY_LEN + 1 + OF_MAX_SENDERS + 1 + 2];
+    size_t n, k = 4;
+    FILE *f = fopen(path, "rb");
+    if (f == NULL) return -1;
+    n = fread(b, 1, sizeof b, f);
+    fclose(f);
+    if (n < 4 + 1 + OF_KEY_LEN + 1 + 1 + 2 || memcmp(b, "OFR3", 4) != 0) return -1;
+    if (of_crc16(b, n - 2) != (uint16_t)(b[n - 2] | (b[n - 1] << 8))) return -1;
+    auth.n_keys = b[k++];
+    if (auth.n_keys < 1 || auth.n_keys > OF_MAX_KEYS || k + auth.n_keys * OF_KEY_LEN + 1 > n - 2) return -1;
+    memcpy(auth.keys, b + k, (size_t)auth.n_keys * OF_KEY_LEN);
+    k += (size_t)auth.n_keys * OF_KEY_LEN;
+    auth.n_leaders = b[k++];
+    if (auth.n_leaders > OF_MAX_SENDERS || k + auth.n_leaders + 1 != n - 2) return -1;
+    memcpy(auth.leaders, b + k, auth.n_leaders);
+    k += auth.n_leaders;
+    auth.stop_policy = b[k];
+    return auth.stop_policy <= OF_STOP_AUTHENTICATED ? 0 : -1;
+}
+
 int main(int argc, char **argv) {
     const char *addresses = "1,2,3", *link_path = NULL;
     unsigned battery = 7400;
+    int protocol = 3;
+    auth.n_keys = 1;  /* the open key: all zeros, any leader, STOP from anyone */
     for (int i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--addresses") == 0 && i + 1 < argc) addresses = argv[++i];
+        else if (strcmp(argv[i], "--protocol") == 0 && i + 1 < argc) protocol = atoi(argv[++i]);
+        else if (strcmp(argv[i], "--radio-record") == 0 && i + 1 < argc) {
+            if (load_record(argv[++i]) != 0) {
+                fprintf(stderr, "follower_sim: %s: not a radio record (omniformation radio-provision --record)\n",
+                        argv[i]);
+                return 2;
+            }
+        }
         else if (strcmp(argv[i], "--link-path") == 0 && i + 1 < argc) link_path = argv[++i];
         else if (strcmp(argv[i], "--battery-mv") == 0 && i + 1 < argc) battery = (unsigned)strtoul(argv[++i], NULL, 10);
         else {
             fprintf(stderr, "follower_sim: unknown argument %s (allowed: --addresses A,B,.. --link-path PATH"
-                            " --battery-mv MV)\n", argv[i]);
+                            " --battery-mv MV --radio-record FILE --protocol 2|3)\n", argv[i]);
             return 2;
         }
     }
@@ -162,6 +201,7 @@ int main(int argc, char **argv) {
         memset(r, 0, sizeof *r);
         r->battery_mv = (uint16_t)battery;
         of_init(&r->f, (uint8_t)a, &hw, r, now_ms());
+        if (protocol != 2) of_set_auth(&r->f, &auth);
     }
     char name[128];
     int slave_fd = -1;

@@ -13,6 +13,43 @@ uint16_t of_crc16(const uint8_t *data, size_t n) {
     return crc;
 }
 
+/* SipHash-2-4 (Aumasson and Bernstein): 64-bit additions, rotations and XORs only. */
+#define OF_ROTL(x, b) (uint64_t)(((x) << (b)) | ((x) >> (64 - (b))))
+#define OF_SIPROUND                                                              \
+    do {                                                                         \
+        v0 += v1; v1 = OF_ROTL(v1, 13); v1 ^= v0; v0 = OF_ROTL(v0, 32);          \
+        v2 += v3; v3 = OF_ROTL(v3, 16); v3 ^= v2;                                \
+        v0 += v3; v3 = OF_ROTL(v3, 21); v3 ^= v0;                                \
+        v2 += v1; v1 = OF_ROTL(v1, 17); v1 ^= v2; v2 = OF_ROTL(v2, 32);          \
+    } while (0)
+
+static uint64_t get_u64(const uint8_t *p, size_t n) {
+    uint64_t v = 0;
+    while (n--) v = (v << 8) | p[n];
+    return v;
+}
+
+uint64_t of_siphash24(const uint8_t key[16], const uint8_t *data, size_t n) {
+    uint64_t k0 = get_u64(key, 8), k1 = get_u64(key + 8, 8);
+    uint64_t v0 = k0 ^ 0x736f6d6570736575ULL, v1 = k1 ^ 0x646f72616e646f6dULL;
+    uint64_t v2 = k0 ^ 0x6c7967656e657261ULL, v3 = k1 ^ 0x7465646279746573ULL;
+    uint64_t m;
+    size_t i, end = n - (n % 8u);
+    for (i = 0; i < end; i += 8) {
+        m = get_u64(data + i, 8);
+        v3 ^= m;
+        OF_SIPROUND; OF_SIPROUND;
+        v0 ^= m;
+    }
+    m = get_u64(data + end, n - end) | ((uint64_t)(n & 0xFFu) << 56);
+    v3 ^= m;
+    OF_SIPROUND; OF_SIPROUND;
+    v0 ^= m;
+    v2 ^= 0xFFu;
+    OF_SIPROUND; OF_SIPROUND; OF_SIPROUND; OF_SIPROUND;
+    return v0 ^ v1 ^ v2 ^ v3;
+}
+
 static void put_u16(uint8_t *p, uint16_t v) { p[0] = (uint8_t)(v & 0xFF); p[1] = (uint8_t)(v >> 8); }
 static void put_u32(uint8_t *p, uint32_t v) {
     p[0] = (uint8_t)(v & 0xFF); p[1] = (uint8_t)((v >> 8) & 0xFF);
@@ -27,6 +64,12 @@ static int16_t to_i16(float x) {
 }
 
 static uint8_t payload_len(uint8_t type) {
+    if (type & OF_AUTH) {
+        uint8_t base = (uint8_t)(type & ~OF_AUTH);
+        uint8_t n = (base & OF_AUTH) ? 0xFFu : payload_len(base);
+        if (n == 0xFF) return 0xFF;
+        return (uint8_t)(n + OF_TRAILER_LEN + (base == OF_MSG_STATUS ? 8u : 0u));
+    }
     switch (type) {
     case OF_MSG_SET_VELOCITY: return 4;
     case OF_MSG_STOP: return 0;
@@ -43,10 +86,45 @@ static uint8_t payload_len(uint8_t type) {
     }
 }
 
+/* The request being answered, when it was authenticated: the reply is sealed with its key, its
+ * sender as the asker and its counter (so the reply proves it answers that very frame). */
+static const uint8_t *reply_key;
+static const uint8_t *request_tag;  /* the tag of the request answered: the reply's tag covers it too */
+static uint8_t reply_id;
+static uint64_t reply_counter;
+
+static void put_counts(uint8_t *p, uint32_t v) {
+    put_u16(p, (uint16_t)(v > 65535u ? 65535u : v));
+}
+
 static void send(of_follower *f, uint8_t seq, uint8_t type, const uint8_t *payload, uint8_t n) {
     uint8_t out[OF_MAX_FRAME];
+    uint8_t extra = 0;
     out[0] = OF_SYNC0; out[1] = OF_SYNC1; out[2] = f->address; out[3] = seq; out[4] = type; out[5] = n;
     memcpy(out + OF_HEADER_LEN, payload, n);
+    if (reply_key != NULL) {
+        uint8_t *t = out + OF_HEADER_LEN + n;
+        uint64_t tag;
+        int k;
+        if (type == OF_MSG_STATUS) {  /* an authenticated STATUS reports the refusals */
+            put_counts(t, f->count.bad_mac); put_counts(t + 2, f->count.unknown_sender);
+            put_counts(t + 4, f->count.replayed); put_counts(t + 6, f->count.unauthenticated);
+            t += 8; extra = 8;
+        }
+        t[0] = reply_id;
+        for (k = 0; k < 6; k++) t[1 + k] = (uint8_t)((reply_counter >> (8 * k)) & 0xFFu);
+        n = (uint8_t)(n + extra + OF_TRAILER_LEN);
+        out[4] = (uint8_t)(type | OF_AUTH);
+        out[5] = n;
+        {
+            uint8_t signed_bytes[OF_MAX_FRAME + OF_TAG_LEN];
+            size_t m = (size_t)(4 + n - OF_TAG_LEN);
+            memcpy(signed_bytes, out + 2, m);
+            memcpy(signed_bytes + m, request_tag, OF_TAG_LEN);
+            tag = of_siphash24(reply_key + 16, signed_bytes, m + OF_TAG_LEN);
+        }
+        for (k = 0; k < 8; k++) out[OF_HEADER_LEN + n - OF_TAG_LEN + k] = (uint8_t)((tag >> (8 * k)) & 0xFFu);
+    }
     put_u16(out + OF_HEADER_LEN + n, of_crc16(out + 2, (size_t)(4 + n)));
     hal_uart_write(f->ctx, out, (size_t)(OF_HEADER_LEN + n + 2));
 }
@@ -167,6 +245,12 @@ static void ownership(of_follower *f, uint8_t seq, uint8_t type, const uint8_t *
     }
 }
 
+static void stop_robot(of_follower *f) {
+    set_targets(f, 0.0f, 0.0f);
+    if (!(f->flags & OF_FLAG_STOPPED)) hal_event(f->ctx, "STOP");
+    f->flags |= OF_FLAG_STOPPED;  /* the watchdog's clock runs on: STOP does not feed it */
+}
+
 static void handle(of_follower *f, uint8_t address, uint8_t seq, uint8_t type, const uint8_t *payload) {
     if (address != f->address && address != OF_BROADCAST) return;
     if (type == OF_MSG_CLAIM || type == OF_MSG_HANDOVER || type == OF_MSG_DRIVE ||
@@ -177,9 +261,7 @@ static void handle(of_follower *f, uint8_t address, uint8_t seq, uint8_t type, c
     if (type == OF_MSG_SET_VELOCITY) {
         set_velocity(f, payload);
     } else if (type == OF_MSG_STOP) {
-        set_targets(f, 0.0f, 0.0f);
-        if (!(f->flags & OF_FLAG_STOPPED)) hal_event(f->ctx, "STOP");
-        f->flags |= OF_FLAG_STOPPED;  /* the watchdog's clock runs on: STOP does not feed it */
+        stop_robot(f);
     } else if (type != OF_MSG_PING) {
         return;  /* another robot's reply on a shared line */
     }
@@ -196,6 +278,59 @@ static void handle(of_follower *f, uint8_t address, uint8_t seq, uint8_t type, c
     } else {
         send_odometry(f, seq, 0);
     }
+}
+
+/* Protocol 3: one frame as received (buf: address, seq, type, length, payload; n the payload's length). */
+static void handle_auth(of_follower *f, const uint8_t *buf, uint8_t n) {
+    const of_radio_auth *a = f->auth;
+    uint8_t address = buf[0], seq = buf[1], type = buf[2];
+    uint8_t kind = (uint8_t)(type & ~OF_AUTH);
+    int fail_safe = kind == OF_MSG_STOP && a->stop_policy == OF_STOP_ANYONE;
+    const uint8_t *payload = buf + 4;
+    uint32_t *why = NULL;
+    uint8_t k, key = 0, ok = 0, ident, slot;
+    uint64_t counter = 0;
+    if ((address != f->address && address != OF_BROADCAST) || (type & 0x80u)) return;
+    if (!(type & OF_AUTH)) {
+        if (fail_safe) stop_robot(f);  /* obeyed, never answered */
+        else if (kind == OF_MSG_SET_VELOCITY || kind == OF_MSG_CLAIM || kind == OF_MSG_HANDOVER ||
+                 kind == OF_MSG_DRIVE || kind == OF_MSG_STOP)
+            f->count.unauthenticated++;
+        return;
+    }
+    for (k = 0; k < a->n_keys && !ok; k++) {
+        uint64_t want = of_siphash24(a->keys[k], buf, (size_t)(4 + n - OF_TAG_LEN));
+        uint64_t got = get_u64(payload + n - OF_TAG_LEN, 8);
+        if (want == got) { ok = 1; key = k; }
+    }
+    ident = payload[n - OF_TRAILER_LEN];
+    counter = get_u64(payload + n - OF_TRAILER_LEN + 1, 6);
+    for (slot = 0; slot < f->n_senders && f->sender_id[slot] != ident; slot++) {}
+    if (!ok) {
+        why = &f->count.bad_mac;
+    } else {
+        int known = 0, names_other;
+        if (a->n_leaders == 0) known = ident >= 1 && ident <= OF_MAX_LEADER;
+        for (k = 0; k < a->n_leaders; k++) known |= a->leaders[k] == ident;
+        names_other = (kind == OF_MSG_CLAIM || kind == OF_MSG_HANDOVER || kind == OF_MSG_DRIVE) && payload[0] != ident;
+        if (!known || names_other || (slot == f->n_senders && f->n_senders >= OF_MAX_SENDERS))
+            why = &f->count.unknown_sender;
+        else if (slot < f->n_senders && counter <= f->sender_counter[slot])
+            why = &f->count.replayed;
+    }
+    if (why != NULL) {
+        (*why)++;
+        if (fail_safe) stop_robot(f);
+        return;
+    }
+    if (slot == f->n_senders) { f->sender_id[slot] = ident; f->n_senders++; }
+    f->sender_counter[slot] = counter;
+    reply_key = a->keys[key];
+    request_tag = payload + n - OF_TAG_LEN;
+    reply_id = ident;
+    reply_counter = counter;
+    handle(f, address, seq, kind, payload);
+    reply_key = NULL;
 }
 
 /* Drop the first byte of the buffer (a sync byte that began no good frame) and search again. */
@@ -234,7 +369,8 @@ static void parse(of_follower *f) {
         else if (want != n) f->count.length_errors++;
         else {
             f->count.frames_ok++;
-            handle(f, f->buf[2], f->buf[3], type, f->buf + OF_HEADER_LEN);
+            if (f->auth != NULL) handle_auth(f, f->buf + 2, n);
+            else handle(f, f->buf[2], f->buf[3], type, f->buf + OF_HEADER_LEN);
         }
         memmove(f->buf, f->buf + total, f->len - total);
         f->len -= total;
@@ -250,6 +386,11 @@ void of_init(of_follower *f, uint8_t address, const of_hardware *hw, void *ctx, 
     f->last_byte_ms = now_ms;
     f->last_command_ms = now_ms;
     set_targets(f, 0.0f, 0.0f);
+}
+
+void of_set_auth(of_follower *f, const of_radio_auth *auth) {
+    f->auth = auth;
+    f->n_senders = 0;
 }
 
 void of_receive(of_follower *f, const uint8_t *data, size_t n, uint32_t now_ms) {

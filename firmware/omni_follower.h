@@ -1,13 +1,16 @@
 /*
  * omniformation reference follower firmware: the follower protocol of
  * docs/follower-protocol.md (protocol 2: ownership by one leader at a time, with a
- * lease), the watchdog and differential-drive odometry, in portable C99 for a small
- * microcontroller.
+ * lease; protocol 3: every frame authenticated with SipHash-2-4 under the fleet's radio
+ * key, fresh by a per-sender counter, replies bound to the request they answer), the
+ * watchdog and differential-drive odometry, in portable C99 for a small microcontroller.
  *
  * One `of_follower` is one robot. The firmware calls:
  *   of_init()     once, with the robot's address and its hardware numbers;
  *   of_receive()  with every byte (or run of bytes) the UART received;
  *   of_tick()     often (every 1-10 ms) from the main loop.
+ *   of_set_auth() after of_init(), with the provisioned key(s) and leaders (the header
+ *                 `omniformation radio-provision --header` writes); without it: protocol 2.
  * and provides the functions under "HAL" below (hardware access); nothing else
  * touches the hardware. No dynamic memory, no floating-point printf, no OS.
  */
@@ -50,6 +53,16 @@
 #define OF_FLAG_STOPPED 0x02u
 #define OF_FLAG_LOW_BATTERY 0x04u
 
+/* protocol 3: authenticated frames (docs/follower-protocol.md, "Authenticated frames") */
+#define OF_AUTH 0x40u            /* type bit: the payload ends with id, counter (48 bits), SipHash-2-4 tag */
+#define OF_TRAILER_LEN 15u
+#define OF_TAG_LEN 8u
+#define OF_KEY_LEN 32u           /* bytes 0..15 sign requests, 16..31 replies */
+#define OF_MAX_KEYS 2u           /* the current key, and the next one during a rotation */
+#define OF_MAX_SENDERS 16u       /* leaders the robot keeps a counter for */
+#define OF_STOP_ANYONE 0u        /* every STOP heard stops the robot (fail-safe; the default) */
+#define OF_STOP_AUTHENTICATED 1u /* only an authenticated, fresh STOP from a known leader */
+
 #define OF_WATCHDOG_MS 500u      /* no SET_VELOCITY for this long: wheels to zero, WATCHDOG */
 #define OF_PARTIAL_FRAME_MS 20u  /* a frame not complete this long after its last byte is dropped */
 
@@ -69,7 +82,20 @@ typedef struct {
     uint32_t skipped_bytes;
     uint32_t nacks;             /* protocol 2: refusals sent */
     uint32_t two_owners;        /* DRIVEs obeyed from a leader within OF_TWO_OWNERS_MS of another's */
+    uint32_t bad_mac;           /* protocol 3 refusals: no key verified the tag, */
+    uint32_t unknown_sender;    /* a sender not provisioned (or a frame naming another leader), */
+    uint32_t replayed;          /* a counter not above the last taken from that sender, */
+    uint32_t unauthenticated;   /* a plain motion, claim or handover frame */
 } of_counters;
+
+/* What a robot is provisioned with for protocol 3 (`omniformation radio-provision` writes it). */
+typedef struct {
+    uint8_t keys[OF_MAX_KEYS][OF_KEY_LEN];
+    uint8_t n_keys;             /* 1, or 2 during a rotation */
+    uint8_t leaders[OF_MAX_SENDERS];
+    uint8_t n_leaders;          /* 0: any leader 1..250 (the first OF_MAX_SENDERS heard) */
+    uint8_t stop_policy;        /* OF_STOP_ANYONE or OF_STOP_AUTHENTICATED */
+} of_radio_auth;
 
 typedef struct {
     uint8_t address;
@@ -88,6 +114,10 @@ typedef struct {
     uint32_t lease_until_ms;
     uint8_t driven_by;          /* the leader whose DRIVE was obeyed last, 0 none */
     uint32_t driven_ms;
+    const of_radio_auth *auth;  /* NULL: protocol 2 (no key); else protocol 3 */
+    uint8_t sender_id[OF_MAX_SENDERS];  /* protocol 3: the senders heard, and the last counter taken */
+    uint64_t sender_counter[OF_MAX_SENDERS];
+    uint8_t n_senders;
     of_counters count;
 } of_follower;
 
@@ -102,6 +132,9 @@ void hal_event(void *ctx, const char *what);
 
 /* ---- the firmware ---- */
 uint16_t of_crc16(const uint8_t *data, size_t n);
+uint64_t of_siphash24(const uint8_t key[16], const uint8_t *data, size_t n);
+/* protocol 3 from now on (auth must outlive the robot; NULL: back to protocol 2) */
+void of_set_auth(of_follower *f, const of_radio_auth *auth);
 void of_init(of_follower *f, uint8_t address, const of_hardware *hw, void *ctx, uint32_t now_ms);
 void of_receive(of_follower *f, const uint8_t *data, size_t n, uint32_t now_ms);
 void of_tick(of_follower *f, uint32_t now_ms);

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from app.backends.emulator import FollowerEmulator, PtyEndpoint, serve
+from app.processes import interrupt  # noqa: F401  (the tests stop their processes with the app's one helper)
 
 ROOT = Path(__file__).resolve().parents[1]
 ARTIFACTS = ROOT / "test-artifacts"
@@ -43,20 +44,6 @@ def fleet_session(keys: Path | None, identity: str | None, endpoint: str) -> Any
             "connect_private_key": str(keys / f"{identity}.key"), "connect_certificate": str(keys / f"{identity}.pem"),
             "verify_name_on_connect": False}}}
     return zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
-
-
-def interrupt(*procs: subprocess.Popen) -> None:
-    """Ctrl-C to every process still running (as a person stops them), then wait; killed only
-    if one does not end within 30 s."""
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-    for p in procs:
-        try:
-            p.wait(30)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(10)
 
 
 def wait_for(pred: Callable[[], object], timeout: float = 10.0, what: str = "condition") -> float:
@@ -351,3 +338,19 @@ class PtyRelay:
         self._near.close()
         with contextlib.suppress(OSError):
             os.close(self._far)
+
+
+def plain(frames: list[Any], key: bytes | None = None) -> list[Any]:
+    """Frames as a robot reads them: an authenticated frame that ``key`` (default: the open key)
+    verifies becomes the frame inside it; anything else is left as it came."""
+    from core.link import protocol as p
+
+    keys = (key if key is not None else p.OPEN_KEY,)
+    return [o.frame if (o := p.open_sealed(f, keys)) is not None else f for f in frames]
+
+
+def sealed(frame: Any, counter: int, sender: int = 1, key: bytes | None = None) -> bytes:
+    """One authenticated frame's bytes (default: the open key, as a leader without a key sends)."""
+    from core.link import protocol as p
+
+    return p.encode_frame(p.seal(frame, key if key is not None else p.OPEN_KEY, sender, counter))

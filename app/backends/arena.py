@@ -126,13 +126,14 @@ class ArenaTeam:
         # one's place (a team has one at least), commands it nothing, and the state is an empty team
         self.emptied: bool = False
 
-    def use_radio(self, port: str, radio_id: int, baud: int = 115200) -> None:
+    def use_radio(self, port: str, radio_id: int, baud: int = 115200, **auth: Any) -> None:
         """Command the robots over a radio (`arena --radio`): this leader's serial link with its
         radio id claims the robots it owns and drives them (protocol 2, DRIVE with the
-        observation's age); the arena's drive key carries only this leader's own twist."""
+        observation's age); the arena's drive key carries only this leader's own twist. ``auth``:
+        SerialLink's radio_key, sender_id, allow_unauthenticated and counter (protocol 3)."""
         from app.backends.serial_link import SerialLink
 
-        self.link = SerialLink(port, 0, baud, addresses=[r + 1 for r in self.owned], radio_id=radio_id)
+        self.link = SerialLink(port, 0, baud, addresses=[r + 1 for r in self.owned], radio_id=radio_id, **auth)
 
     # -- truth in --------------------------------------------------------------------------
     def _on_truth(self, sample: Any) -> None:

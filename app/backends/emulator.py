@@ -8,6 +8,13 @@ dongle). The followers are :mod:`core.link.follower` (differential drive, encode
 docs/follower-protocol.md says. ``--drop`` and ``--corrupt`` make the line lossy, to see
 the service's link statistics work.
 
+The robots speak protocol 3 (authenticated frames): with ``--radio-key ROBOTS.json`` (written by
+`omniformation radio-provision`) they obey only the fleet's leaders; without it they hold the
+open key (any leader, frames still bound to their replies); ``--protocol 2`` emulates older
+robots that know no key at all. Bytes from the wire (:meth:`FollowerEmulator.receive`) go through
+these rules; :meth:`FollowerEmulator.handle` is the arena's own in-process path (its bus has its
+own access control) and speaks protocol 2.
+
 pty notes: the emulator holds the master end and keeps its own slave fd open, so that
 reading the master does not fail with EIO while no service has the port open; the slave
 is put in raw mode so nothing alters the bytes.
@@ -31,7 +38,7 @@ from collections.abc import Callable
 import numpy as np
 
 from core.link import protocol as p
-from core.link.follower import FollowerHardware, FollowerState, handle_frame, step_follower
+from core.link.follower import FollowerHardware, FollowerState, RadioAuth, handle_frame, step_follower
 
 STEP_S = 0.005  # the emulated firmware's control period
 
@@ -48,8 +55,13 @@ class FollowerEmulator:
     """Followers at ``addresses`` answering on a byte stream (fd pair or pyserial port)."""
 
     def __init__(self, addresses: list[int], hw: FollowerHardware = FollowerHardware(),
-                 drop: float = 0.0, corrupt: float = 0.0, seed: int = 0) -> None:
+                 drop: float = 0.0, corrupt: float = 0.0, seed: int = 0, auth: RadioAuth | None = RadioAuth(),
+                 older: tuple[int, ...] = ()) -> None:
+        """``auth``: what the robots are provisioned with (None: protocol 2 robots); ``older``:
+        addresses of robots that speak only protocol 2 whatever ``auth`` says."""
         self.hw = hw
+        self.auth = auth
+        self.older = frozenset(older)
         self.followers = {a: FollowerState(a) for a in addresses}
         self.parser = p.FrameParser()
         self.stats = EmulatorStats()
@@ -62,7 +74,7 @@ class FollowerEmulator:
         out = bytearray()
         with self._lock:
             for frame in self.parser.feed(data):
-                for reply in self._handle(frame):
+                for reply in self._handle(frame, wire=True):
                     if self._rng.random() < self.drop:
                         self.stats.dropped += 1
                         continue
@@ -80,13 +92,14 @@ class FollowerEmulator:
         with self._lock:
             return self._handle(frame)
 
-    def _handle(self, frame: p.Frame) -> list[p.Frame]:
+    def _handle(self, frame: p.Frame, wire: bool = False) -> list[p.Frame]:
         self.stats.frames_in += 1
         targets = self.followers if frame.address == p.BROADCAST else (
             [frame.address] if frame.address in self.followers else [])
         replies = []
         for a in targets:
-            self.followers[a], reply = handle_frame(self.followers[a], self.hw, frame)
+            auth = self.auth if wire and a not in self.older else None
+            self.followers[a], reply = handle_frame(self.followers[a], self.hw, frame, auth)
             if reply is not None:
                 replies.append(reply)
         return replies
@@ -206,12 +219,26 @@ def _link(path: Path, target: str) -> None:
     tmp.replace(path)  # atomic: a service reopening the name sees the old or the new port
 
 
+def robot_auth(path: Path | None, protocol: int = 3) -> RadioAuth | None:
+    """What ``--radio-key ROBOTS.json`` / ``--protocol`` give the robots (one-line UserError)."""
+    from app.backends.radio_keys import load_robot_auth
+
+    if protocol == 2:
+        if path is not None:
+            from app.files import UserError
+
+            raise UserError("--protocol 2 robots know no key: leave --radio-key out")
+        return None
+    return RadioAuth() if path is None else load_robot_auth(path)
+
+
 def run_emulator(args: argparse.Namespace) -> int:
     """`omniformation emulate-follower` (arguments: app.cli.emulator)."""
     from app.files import UserError
 
     addresses = [p.LEADER_ADDRESS] if args.leader else list(range(1, args.followers + 1))
-    emulator = FollowerEmulator(addresses, drop=args.drop, corrupt=args.corrupt, seed=args.seed)
+    auth = robot_auth(args.radio_key, args.protocol)
+    emulator = FollowerEmulator(addresses, drop=args.drop, corrupt=args.corrupt, seed=args.seed, auth=auth)
     endpoint: PtyEndpoint | SerialEndpoint
     if args.port:
         try:

@@ -9,7 +9,9 @@ be cut for a while (:meth:`Radio.cut`): nothing it writes goes out, nothing reac
 The followers are :mod:`core.link.follower` (the reference firmware's rules, protocol 2
 ownership included: one owner with a lease; docs/follower-protocol.md), stepped in real time.
 Each robot counts what ownership is for: DRIVEs obeyed from two leaders within 100 ms
-(``two_owners``, never expected) and the refusals it sent.
+(``two_owners``, never expected) and the refusals it sent. The robots speak protocol 3: they
+obey only authenticated, fresh frames (``auth``: the fleet's radio key and leaders, or the open
+key), and count what they refuse without a word; ``older`` robots speak protocol 2 only.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ import numpy as np
 
 from core.link import protocol as p
 
+from core.link.follower import RadioAuth
+
 from app.backends.emulator import STEP_S, FollowerEmulator, PtyEndpoint
 
 
@@ -45,10 +49,13 @@ class Radio:
     """``leaders`` pseudo-terminals and followers at addresses 1..``followers`` on one medium."""
 
     def __init__(self, leaders: int, followers: int, drop: float = 0.0, delay_s: float = 0.0, seed: int = 0,
-                 clock: Callable[[], float] = time.monotonic, robots: FollowerEmulator | None = None) -> None:
+                 clock: Callable[[], float] = time.monotonic, robots: FollowerEmulator | None = None,
+                 auth: RadioAuth | None = None, older: tuple[int, ...] = ()) -> None:
         """``robots``: followers someone else steps (the arena's, moving in its world); by default
-        the radio's own, stepped in real time by :meth:`run`."""
-        self.robots = robots if robots is not None else FollowerEmulator(list(range(1, followers + 1)))
+        the radio's own, stepped in real time by :meth:`run`, provisioned with ``auth`` (None:
+        protocol 2 robots that know no key), the ``older`` ones speaking protocol 2 only."""
+        self.robots = robots if robots is not None else FollowerEmulator(list(range(1, followers + 1)), auth=auth,
+                                                                       older=older)
         self._steps_robots = robots is None
         self.endpoints = [PtyEndpoint() for _ in range(leaders)]
         self.paths = [e.path for e in self.endpoints]
@@ -134,7 +141,7 @@ class Radio:
         robots = self.robots.snapshot()
         return {
             "robots": {f"R{a}": {"owner": s.owner, "two_owners": s.two_owners, "nacks": s.nacks,
-                                 "moving": s.moving} for a, s in sorted(robots.items())},
+                                 "moving": s.moving, "refused": vars(s.refusals)} for a, s in sorted(robots.items())},
             "two_owners": sum(s.two_owners for s in robots.values()),
             "from_leaders": list(self.stats.from_leaders), "to_leaders": list(self.stats.to_leaders),
             "dropped": self.stats.dropped, "cut": self.stats.cut, "unread": list(self.stats.unread),
@@ -146,17 +153,21 @@ class Radio:
 
 
 def run_radio(leaders: int, followers: int, drop: float, delay_ms: float, seed: int,
-              summary_path: Path | None = None, minutes: float | None = None) -> int:
+              summary_path: Path | None = None, minutes: float | None = None, auth: RadioAuth | None = None,
+              older: tuple[int, ...] = ()) -> int:
     """`omniformation radio` (arguments: app.cli.emulator)."""
     import signal
     import sys
 
-    radio = Radio(leaders, followers, drop, delay_ms / 1000.0, seed)
+    radio = Radio(leaders, followers, drop, delay_ms / 1000.0, seed, auth=auth, older=older)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    keys = "protocol 2, no key" if auth is None else (
+        "the open key: any leader" if auth.keys == RadioAuth().keys else f"the fleet's key, leaders {list(auth.leaders)}")
     print(f"omniformation: radio with followers 1..{followers}, {leaders} leader links (drop {drop:g},"
-          f" delay {delay_ms:g} ms)", flush=True)
+          f" delay {delay_ms:g} ms; robots: {keys}" + (f"; R{', R'.join(map(str, older))} protocol 2 only" if older
+                                                       else "") + ")", flush=True)
     for i, path in enumerate(radio.paths):
         print(f"leader {i + 1}: {path}", flush=True)
     if minutes is not None:

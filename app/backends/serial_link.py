@@ -32,6 +32,16 @@ link commands zero whatever it is given (the loop does too), and a reopened port
 for every follower before anything else. A port that fails is reopened with back-off (0.25 s
 doubling to 2 s) without ever blocking the loop.
 
+Every frame is authenticated (protocol 3, docs/follower-protocol.md, "Authenticated frames"):
+it carries this leader's radio id, a counter above every one it sent before and a SipHash-2-4 tag
+under the radio key (the open key when none is given: on a cable that proves nothing about who
+sent it, but a reply still has to carry the request's counter under a valid tag, so a device that
+answers without hearing the frame, or answers an older one, never counts as answering). A reply
+counts only when its tag verifies under the key and it names this leader and the counter of a
+frame we sent. A robot that answers only protocol 1 or 2 (a plain STATUS to a plain PING, and
+nothing authenticated) is named ("F2 speaks an unauthenticated protocol") and not driven unless
+``allow_unauthenticated``, which the link state then says on every tick.
+
 Every command is clamped again here to the limits given (defence in depth: the controller
 already clamps), NaN becomes 0, and ``close`` sends STOP to every follower.
 """
@@ -71,6 +81,42 @@ MOTION = (p.MSG_SET_VELOCITY, p.MSG_DRIVE)  # the frames counted as sent (one pe
 HOST_KINDS = (*REPLIES, p.MSG_HANDOVER)  # frames a host sends, never a robot
 LEASE_MS = 1000  # with a radio id: the lease asked for; each DRIVE renews it
 CLAIM_RETRY_S = 0.5  # a robot another leader holds is asked again this often (its lease may have lapsed)
+UNAUTHENTICATED = "speaks an unauthenticated protocol"
+ALLOWED_NOTE = " · UNAUTHENTICATED RADIO ALLOWED"  # on every tick's link state while the flag is given
+
+
+class FrameCounter:
+    """This leader's frame counter: above every one it sent before, across restarts too, and not
+    guessable by a device that does not read the frames. It starts at 256 × the milliseconds since
+    2024-01-01 (UTC) plus a random 0..255, and goes up by one per frame: a leader sends far fewer
+    than 256 frames a millisecond, so a restarted one always starts above where it stopped (the
+    48 bits last until 2058). With a file it also starts above the high-water mark written there,
+    reserved in blocks, so a wrong wall clock after a restart cannot bring back a used counter."""
+
+    BLOCK = 1 << 20
+    EPOCH_S = 1_704_067_200.0  # 2024-01-01T00:00:00Z
+
+    def __init__(self, wall: Callable[[], float] = time.time, path: Any = None) -> None:
+        import secrets
+
+        self._path = path
+        self._last = int((wall() - self.EPOCH_S) * 1000) * 256 + secrets.randbelow(256)
+        self._reserved = -1
+        if path is not None:
+            try:
+                self._last = max(self._last, int(path.read_text().split()[0]) + 1)
+            except (OSError, ValueError, IndexError):
+                pass
+
+    def next(self) -> int:
+        """The next frame's counter (never above 2^48 - 1: past it a leader must rotate its key)."""
+        self._last = min(p.COUNTER_MAX, self._last + 1)
+        if self._path is not None and self._last > self._reserved:
+            self._reserved = self._last + self.BLOCK
+            tmp = self._path.with_name(self._path.name + ".new")
+            tmp.write_text(f"{self._reserved}\n")
+            tmp.replace(self._path)
+        return self._last
 
 
 @dataclass
@@ -102,6 +148,11 @@ class FollowerLinkStats:
     owner: int = 0
     next_claim: float = -math.inf
     stale: int = 0  # DRIVEs the robot refused as computed from too old an observation
+    # protocol 3
+    authenticated: int = 0  # authenticated replies taken (it speaks protocol 3 with our key)
+    legacy: bool = False  # answered a plain PING and nothing authenticated: protocol 1 or 2
+    forged: int = 0  # replies from this address whose tag did not verify under our key
+    refusals: p.RadioCounts = field(default_factory=p.RadioCounts)  # what the robot refused (its STATUS)
 
 
 def parse_link_spec(spec: str) -> str:
@@ -123,12 +174,19 @@ class SerialLink:
     def __init__(self, port: str, n: int, baud: int = 115200, v_max: float = 0.3, w_max: float = 2.0,
                  clock: Callable[[], float] = time.monotonic,
                  opener: Callable[..., Any] | None = None, addresses: list[int] | None = None,
-                 radio_id: int | None = None) -> None:
+                 radio_id: int | None = None, radio_key: bytes | None = None, sender_id: int | None = None,
+                 allow_unauthenticated: bool = False, counter: FrameCounter | None = None) -> None:
         """``addresses``: instead of 1..n, e.g. [0] for the leader base (docs/follower-protocol.md).
         ``radio_id``: this leader's number on a radio other leaders share (1..250): protocol 2,
         it claims its robots, drives only those it owns (DRIVE, with the observation's age) and
-        STOPs only those; without it, protocol 1 (one leader on the line)."""
+        STOPs only those; without it, protocol 1 (one leader on the line). ``radio_key``: the fleet's
+        32-byte radio key (None: the open key); ``sender_id``: the id its frames carry (default the
+        radio id, else 1); ``allow_unauthenticated``: drive robots that speak only protocol 1/2."""
         self.radio_id = radio_id
+        self.radio_key = radio_key if radio_key is not None else p.OPEN_KEY
+        self.sender_id = sender_id if sender_id is not None else (radio_id or 1)
+        self.allow_unauthenticated = allow_unauthenticated
+        self._counter = counter or FrameCounter()
         self.on_owned: Callable[[int], None] | None = None  # told (in the reader) of each robot granted to us
         self.port_name = port
         self.baud = baud
@@ -144,6 +202,7 @@ class SerialLink:
         self._pending: dict[tuple[int, int, int], float] = {}  # (address, sequence, request type) -> time written
         self._expired: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # given up on: a reply now is late
         self._unsent: OrderedDict[tuple[int, int, int], float] = OrderedDict()  # failed writes (maybe went out) -> when
+        self._tags: OrderedDict[int, bytes] = OrderedDict()  # counter -> tag of the request sent with it
         self._seq = 0
         self._stop_first = True  # a fresh port gets STOP for everyone before anything else
         self._next_ping = 0.0
@@ -189,7 +248,9 @@ class SerialLink:
                 age = now - s.last_reply
                 recent = list(s.recent)
                 loss = 1.0 - sum(recent) / len(recent) if recent else 0.0
-                if self.radio_id is not None and not s.owned:
+                if s.legacy and not self.allow_unauthenticated:
+                    out.append(UNAUTHENTICATED)
+                elif self.radio_id is not None and not s.owned and not s.legacy:
                     out.append(f"owned by leader {s.owner}" if s.owner and s.owner != self.radio_id else "not claimed yet")
                 elif not _alive(s, now, SILENT_S):
                     out.append("never answered" if not math.isfinite(age) else f"silent {age:.1f} s")
@@ -201,6 +262,10 @@ class SerialLink:
 
     @property
     def link_state(self) -> str:
+        state = self._link_state()
+        return state + ALLOWED_NOTE if self.allow_unauthenticated else state
+
+    def _link_state(self) -> str:
         if self.radio_id is not None and self._port is not None and not any(s.owned for s in self.stats):
             heard = self._clock() - max((s.last_reply for s in self.stats), default=-math.inf) < 4 * CLAIM_RETRY_S
             if heard:  # the robots answer, and another leader holds every one: this one waits
@@ -232,7 +297,11 @@ class SerialLink:
                 parts.append(f"{_name(s.address)} rtt {s.rtt_mean_ms:.1f} ms, answered {s.answered}/{s.sent},"
                              f" late {s.late}, lost {s.lost}, crc {s.crc_errors}, "
                              f"{s.battery_mv / 1000:.2f} V" + (f", {flags.strip()}" if flags else "")
-                             + (f", silent {age:.1f} s" if age > SILENT_S and math.isfinite(age) else ""))
+                             + (f", silent {age:.1f} s" if age > SILENT_S and math.isfinite(age) else "")
+                             + (f", forged replies {s.forged}" if s.forged else "")
+                             + (", refused " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in
+                                                         vars(s.refusals).items() if v) if any(vars(s.refusals).values())
+                                else ""))
         return "; ".join(parts)
 
     def answering(self) -> np.ndarray:
@@ -251,6 +320,8 @@ class SerialLink:
                             dtype=bool)
 
     def _answering(self, s: FollowerLinkStats, now: float) -> bool:
+        if s.legacy and not self.allow_unauthenticated:
+            return False
         return _alive(s, now, REPLY_TIMEOUT_S) and (self.radio_id is None or s.owned)
 
     # -- robots taken in and let go (a fleet on a radio: app.backends.arena) -----------------
@@ -309,26 +380,27 @@ class SerialLink:
                 self._stop_first = False
                 out += self._stop_frames()
             seq = self._next_seq()
-            keys = []
+            keys: list[tuple[int, int, int]] = []
             for s in self.stats:
                 # a robot that does not answer gets zero until it does
                 vi, wi = given.get(s.address, (0.0, 0.0)) if self._answering(s, now) else (0.0, 0.0)
+                if s.legacy and not self.allow_unauthenticated:
+                    continue  # never driven; only the PINGs below go to it
                 if self.radio_id is None:
-                    out += p.encode_frame(p.set_velocity(s.address, seq, vi, wi))
-                    keys.append((s.address, seq, p.MSG_SET_VELOCITY))
+                    self._put(out, keys, s, p.set_velocity(s.address, seq, vi, wi))
                 elif s.owned:
                     age_ms = _age_ms(commands.observed_at, now, vi, wi)
-                    out += p.encode_frame(p.drive(s.address, seq, self.radio_id, age_ms, vi, wi))
-                    keys.append((s.address, seq, p.MSG_DRIVE))
+                    self._put(out, keys, s, p.drive(s.address, seq, self.radio_id, age_ms, vi, wi))
                 elif now >= s.next_claim:  # not ours (yet): ask; granted once nobody's lease lives
                     s.next_claim = now + CLAIM_RETRY_S
-                    out += p.encode_frame(p.claim(s.address, seq, self.radio_id, LEASE_MS))
-                    keys.append((s.address, seq, p.MSG_CLAIM))
+                    self._put(out, keys, s, p.claim(s.address, seq, self.radio_id, LEASE_MS))
             if now >= self._next_ping and self.stats:
                 s = self.stats[self._ping_index % len(self.stats)]
                 self._ping_index += 1
-                out += p.encode_frame(p.ping(s.address, seq))
-                keys.append((s.address, seq, p.MSG_PING))
+                self._put(out, keys, s, p.ping(s.address, seq))
+                if not s.authenticated and not s.legacy:  # an older robot answers only a plain PING
+                    out += p.encode_frame(p.ping(s.address, seq))
+                    keys.append((s.address, seq, p.MSG_PING))
                 self._next_ping = now + PING_PERIOD_S / len(self.stats)
             for key in keys:  # registered before the write: a reply can beat the write's return
                 self._pending[key] = now
@@ -347,6 +419,21 @@ class SerialLink:
                 while len(self._unsent) > EXPIRED_KEPT:
                     self._unsent.popitem(last=False)
 
+    def _put(self, out: bytearray, keys: list[tuple[int, int, int]], s: FollowerLinkStats, frame: p.Frame) -> None:
+        """Append one request for robot ``s``, authenticated (plain only to a robot known to speak
+        protocol 1/2 while that is allowed), and the key its answer will be matched by."""
+        if s.legacy:
+            out += p.encode_frame(frame)
+            keys.append((s.address, frame.seq, frame.msg_type))
+            return
+        counter = self._counter.next()
+        sealed = p.seal(frame, self.radio_key, self.sender_id, counter)
+        out += p.encode_frame(sealed)
+        keys.append((s.address, counter, frame.msg_type))
+        self._tags[counter] = p.tag_of(sealed)  # its answer's tag covers it
+        while len(self._tags) > 2 * EXPIRED_KEPT:
+            self._tags.popitem(last=False)
+
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFF
         return self._seq
@@ -357,11 +444,17 @@ class SerialLink:
         other leaders' to stop."""
         seq = self._next_seq()
         now = self._clock()
-        mine = [s.address for s in self.stats if self.radio_id is None or s.owned]
-        for a in mine:
-            self._pending[(a, seq, p.MSG_STOP)] = now  # its ACK is an answer, not a stranger
-        data = b"".join(p.encode_frame(p.stop(a, seq)) for a in mine)
-        return data + (p.encode_frame(p.stop(p.BROADCAST, seq)) if self.radio_id is None else b"")
+        mine = [s for s in self.stats if self.radio_id is None or s.owned]
+        out = bytearray()
+        keys: list[tuple[int, int, int]] = []
+        for s in mine:
+            self._put(out, keys, s, p.stop(s.address, seq))
+        for key in keys:
+            self._pending[key] = now  # its ACK is an answer, not a stranger
+        if self.radio_id is None:  # robots we do not know: authenticated, and plain for older ones
+            out += p.encode_frame(p.seal(p.stop(p.BROADCAST, seq), self.radio_key, self.sender_id, self._counter.next()))
+            out += p.encode_frame(p.stop(p.BROADCAST, seq))
+        return bytes(out)
 
     def stop_all(self) -> None:
         """STOP to every follower now."""
@@ -473,14 +566,30 @@ class SerialLink:
                 s = self._by_addr.get(f.address)
                 if s is None:
                     continue
-                if f.msg_type in HOST_KINDS:
+                if f.msg_type & ~p.AUTH in HOST_KINDS and f.msg_type < 0x80:
                     # on a shared radio another leader's frames are heard too: only ours coming back is an echo
-                    s.echoes += self.radio_id is None or p.sender(f) == self.radio_id
+                    ident = p.trailer(f)[0] if p.is_sealed(f) else p.sender(f)
+                    s.echoes += (self.radio_id is None and not p.is_sealed(f)) or \
+                        ident == (self.sender_id if p.is_sealed(f) else self.radio_id)
                     continue
-                asker = p.answers(f)
-                if asker is not None and asker != self.radio_id:
-                    continue  # a protocol 2 reply to another leader on the same radio: not ours
-                asked = [(f.address, f.seq, t) for t, rs in REPLIES.items() if f.msg_type in rs]
+                if p.is_sealed(f):
+                    if p.trailer(f)[0] != self.sender_id:
+                        continue  # a reply to another leader on the same radio: not ours (nor checkable)
+                    request_tag = self._tags.get(p.trailer(f)[1])
+                    if request_tag is None:
+                        s.unmatched += 1  # names a counter we never used: it answers nothing we sent
+                        continue
+                    opened = p.open_sealed(f, (self.radio_key,), request_tag)
+                    if opened is None:
+                        s.forged += 1  # not signed with our key: a stranger's, or a broken robot's
+                        continue
+                    f, match, sealed = opened.frame, opened.counter, True
+                else:
+                    asker = p.answers(f)
+                    if asker is not None and asker != self.radio_id:
+                        continue  # a protocol 2 reply to another leader on the same radio: not ours
+                    match, sealed = f.seq, False
+                asked = [(f.address, match, t) for t, rs in REPLIES.items() if f.msg_type in rs]
                 request = next((key for key in asked if key in self._pending), None)
                 if request is None:
                     maybe = next((key for key in asked if key in self._unsent), None)
@@ -503,6 +612,11 @@ class SerialLink:
                         s.late += 1
                         s.recent.append(False)
                     continue
+                if sealed:
+                    s.authenticated += 1
+                    s.legacy = False
+                elif s.legacy and not self.allow_unauthenticated:
+                    continue  # an older robot answers, but it is not driven: not alive for the loop
                 s.prev_reply, s.last_reply = s.last_reply, now
                 if request[2] in MOTION:
                     s.answered += 1
@@ -515,7 +629,11 @@ class SerialLink:
                     s.v_meas, s.w_meas, s.flags = a.v_mps, a.w_rps, a.flags
                     s.left_ticks, s.right_ticks = a.left_ticks, a.right_ticks
                 elif f.msg_type == p.MSG_STATUS:
-                    st = p.decode_status(f)
+                    if not sealed:  # a plain STATUS to our plain PING: protocol 1 or 2
+                        s.legacy = s.authenticated == 0
+                        st = p.decode_status(f)
+                    else:
+                        st, s.refusals = p.decode_status_counts(f)
                     s.battery_mv, s.flags = st.battery_mv, st.flags
                 else:  # OWNER or NACK: who holds the robot, as it says
                     o = p.decode_ownership(f)
@@ -562,9 +680,12 @@ class PortPerFollowerLink:
     """One serial port per follower: follower i on ``ports[i]``, at address i + 1. The same
     FollowerLink as :class:`SerialLink`; each port has its own reader, back-off and stats."""
 
-    def __init__(self, ports: list[str], baud: int = 115200, v_max: float = 0.3, w_max: float = 2.0) -> None:
+    def __init__(self, ports: list[str], baud: int = 115200, v_max: float = 0.3, w_max: float = 2.0,
+                 **auth: Any) -> None:
+        """``auth``: SerialLink's radio_key, sender_id, allow_unauthenticated and counter (shared)."""
         self.port_name = ",".join(ports)
-        self.links = [SerialLink(port, 1, baud, v_max, w_max, addresses=[i + 1]) for i, port in enumerate(ports)]
+        self.links = [SerialLink(port, 1, baud, v_max, w_max, addresses=[i + 1], **auth)
+                      for i, port in enumerate(ports)]
 
     @property
     def n(self) -> int:
@@ -605,7 +726,9 @@ class PortPerFollowerLink:
 
 
 def make_link(port_spec: str, n: int, baud: int = 115200, v_max: float = 0.3,
-              w_max: float = 2.0, radio_id: int | None = None) -> SerialLink | PortPerFollowerLink:
+              w_max: float = 2.0, radio_id: int | None = None, radio_key: bytes | None = None,
+              sender_id: int | None = None, allow_unauthenticated: bool = False,
+              counter: FrameCounter | None = None) -> SerialLink | PortPerFollowerLink:
     """One port for the whole team, or a comma-separated list: one port per follower.
     ``radio_id``: this leader's number on a shared radio (protocol 2; one port only).
 
@@ -616,8 +739,11 @@ def make_link(port_spec: str, n: int, baud: int = 115200, v_max: float = 0.3,
     if radio_id is not None and len(ports) != 1:
         raise ValueError("--radio-id: a radio is one port that every leader shares; give one (serial:PATH)")
     if len(ports) == 1:
-        return SerialLink(ports[0], n, baud, v_max, w_max, radio_id=radio_id)
+        return SerialLink(ports[0], n, baud, v_max, w_max, radio_id=radio_id, radio_key=radio_key,
+                          sender_id=sender_id, allow_unauthenticated=allow_unauthenticated, counter=counter)
     if len(ports) != n:
         raise ValueError(f"--link serial:{port_spec}: {len(ports)} ports for {n} followers; give one port for the"
                          " whole team or one per follower")
-    return PortPerFollowerLink(ports, baud, v_max, w_max)
+    counter = counter or FrameCounter()  # one sender, one counter across its ports
+    return PortPerFollowerLink(ports, baud, v_max, w_max, radio_key=radio_key, sender_id=sender_id,
+                               allow_unauthenticated=allow_unauthenticated, counter=counter)

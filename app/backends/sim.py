@@ -33,9 +33,14 @@ class SimTeam:
         heading_noise_rad: float,
         seed: int,
         link: FollowerLink | None = None,
+        leader: FollowerLink | None = None,
     ) -> None:
+        """``leader``: a real leader base (e.g. a ROS 2 robot, app.backends.ros2): it is sent the
+        leader's twist each tick and the simulated leader moves by what it measured."""
         self.state: TeamState = make_team_state(p0, a0)
         self.link = link
+        self.leader = leader
+        self._leader_sent = False  # the leader base was sent a twist since the last send()
         self.dynamics = dynamics if link is None else FollowerDynamics()
         self.position_noise_m = position_noise_m
         self.heading_noise_rad = heading_noise_rad
@@ -44,7 +49,8 @@ class SimTeam:
 
     @property
     def link_state(self) -> str:
-        return "simulated" if self.link is None else self.link.link_state
+        state = "simulated" if self.link is None else self.link.link_state
+        return state if self.leader is None else f"{state} · leader base: {self.leader.link_state}"
 
     @property
     def link_lost(self) -> bool:
@@ -55,7 +61,7 @@ class SimTeam:
         return np.ones(n, dtype=bool) if self.link is None else np.asarray(self.link.answering(), dtype=bool)[:n]
 
     def link_detail(self) -> str:
-        return "" if self.link is None else self.link.detail()
+        return "; ".join(x.detail() for x in (self.link, self.leader) if x is not None)
 
     def observe(self) -> tuple[FloatArray, FloatArray, BoolArray]:
         p, a = measure_followers(self.state, self.rng, self.position_noise_m, self.heading_noise_rad)
@@ -66,16 +72,25 @@ class SimTeam:
 
     def send(self, commands: Commands) -> None:
         self.commands = commands
+        if self.leader is not None and not self._leader_sent:  # a tick that does not move the world (paused,
+            self.leader.send(Commands.zeros(1))  # a fault): the base is told to stand, every tick
+        self._leader_sent = False
         if self.link is not None:
             self.link.send(commands)
 
     def close(self) -> None:
         self.commands = Commands.zeros(self.state.n)
-        if self.link is not None:
-            self.link.close()
+        for x in (self.link, self.leader):
+            if x is not None:
+                x.close()
 
     def advance(self, leader_twist: tuple[float, float], dt: float, t: float) -> None:
         moved = self.commands if self.link is None else Commands(*self.link.measured())
+        if self.leader is not None:  # a real base: commanded, and the simulated leader moves as it measured
+            self.leader.send(Commands(np.array([leader_twist[0]]), np.array([leader_twist[1]])))
+            self._leader_sent = True
+            v, w = self.leader.measured()
+            leader_twist = (float(v[0]), float(w[0]))
         self.state = step_team(self.state, moved, leader_twist, dt, t, self.rng, self.dynamics)
 
 

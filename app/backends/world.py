@@ -50,6 +50,7 @@ class Backends:
     pipeline_settings: PipelineSettings = field(default_factory=PipelineSettings)
     obstacles: tuple[Obstacle, ...] = ()
     arena: ArenaTeam | None = None
+    leader: FollowerLink | None = None  # the simulated team's leader base, when it is a real one (ROS 2)
 
     def __post_init__(self) -> None:
         if self.frames is not None and (self.hardware is None or self.camera is None):
@@ -78,7 +79,7 @@ class Backends:
         else:
             p0, a0 = spread_start(n, np.random.default_rng(self.seed + resets))
         team = SimTeam(p0, a0, self.dynamics, self.position_noise_m, self.heading_noise_rad,
-                       self.seed + 1000 + resets, link=self.link)
+                       self.seed + 1000 + resets, link=self.link, leader=self.leader)
         if self.camera is not None:
             feedback = VisionFeedback(team, self.camera[0], self.camera[1], vision_seed,
                                       settings=self.pipeline_settings, obstacles=self.obstacles)

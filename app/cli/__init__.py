@@ -14,11 +14,11 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
-from app.cli import bench, camera, emulator, export, fleet, live, sessions, simulate
+from app.cli import bench, camera, emulator, export, fleet, live, ros2, sessions, simulate
 from app.cli.args import EXIT_USAGE, Parser
 from app.files import UserError
 
-FAMILIES = (simulate, live, fleet, camera, emulator, sessions, export, bench)
+FAMILIES = (simulate, live, fleet, camera, emulator, ros2, sessions, export, bench)
 
 
 def build_parser() -> Parser:

@@ -28,6 +28,11 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     em.add_argument("--drop", type=probability, default=0.0, help="probability of dropping a reply (default 0)")
     em.add_argument("--corrupt", type=probability, default=0.0, help="probability of flipping a bit in a reply (default 0)")
     em.add_argument("--seed", type=seed, default=0, help="seed of --drop / --corrupt")
+    em.add_argument("--radio-key", type=Path, metavar="ROBOTS.json",
+                    help="the fleet's radio keys for the robots (fleet-keys writes DIR/radio/robots.json): they obey"
+                         " only the fleet's leaders; default: the open key (any leader)")
+    em.add_argument("--protocol", type=int, choices=(2, 3), default=3,
+                    help="3 (default): authenticated frames; 2: older robots that know no key")
     em.set_defaults(func=cmd_emulate)
 
     radio = sub.add_parser(
@@ -46,16 +51,86 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     radio.add_argument("--minutes", type=float_in(0.0, 7 * 24 * 60.0, "min"), help="stop after this long")
     radio.add_argument("--summary", type=Path, metavar="FILE.json",
                        help="write each robot's owner and counts here when it stops")
+    radio.add_argument("--radio-key", type=Path, metavar="ROBOTS.json",
+                       help="the fleet's radio keys for the robots (fleet-keys writes DIR/radio/robots.json); default:"
+                            " the open key (any leader)")
+    radio.add_argument("--older-robots", type=addresses, default=(), metavar="A,B",
+                       help="these robots speak protocol 2 only (no key), as older firmware does")
     radio.set_defaults(func=cmd_radio)
+
+    prov = sub.add_parser(
+        "radio-provision", help="what the robots' firmware needs: the fleet's radio key as a C header or a record",
+        description="Turn DIR/radio/robots.json (written by fleet-keys) into what the robots are flashed with: a C"
+                    " header defining OF_RADIO_AUTH for firmware/omni_follower.h (--header) and/or a binary record"
+                    " (--record, read by firmware/host_sim.c --radio-record); --stop sets the robots' STOP policy"
+                    " (docs/safety.md). Every file is written mode 0600.")
+    prov.add_argument("robots", type=Path, metavar="ROBOTS.json", help="the robots' radio keys (DIR/radio/robots.json)")
+    prov.add_argument("--header", type=Path, metavar="FILE.h", help="write the C header here")
+    prov.add_argument("--record", type=Path, metavar="FILE.bin", help="write the binary record here")
+    prov.add_argument("--stop", choices=("anyone", "authenticated"),
+                      help="which STOP a robot obeys: anyone's (fail-safe, the default) or only an authenticated one")
+    prov.set_defaults(func=cmd_provision)
+
+    rot = sub.add_parser(
+        "radio-rotate", help="rotate the fleet's radio key in two steps (robots accept both keys meanwhile)",
+        description="--begin: a new key; the robots' record lists the current and the new key, the leaders' new"
+                    " files are written to DIR/radio/next/. --finish: the robots accept only the new key and the"
+                    " leaders' files are replaced (docs/follower-protocol.md, Rotating the key).")
+    rot.add_argument("dir", type=Path, metavar="DIR/radio", help="the fleet's radio folder")
+    step = rot.add_mutually_exclusive_group(required=True)
+    step.add_argument("--begin", action="store_true")
+    step.add_argument("--finish", action="store_true")
+    rot.set_defaults(func=cmd_rotate)
+
+
+def addresses(text: str) -> tuple[int, ...]:
+    try:
+        out = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: robot addresses 1..{MAX_FOLLOWER_ADDRESS}, comma-separated") \
+            from None
+    if not all(1 <= a <= MAX_FOLLOWER_ADDRESS for a in out):
+        raise argparse.ArgumentTypeError(f"{text!r}: robot addresses 1..{MAX_FOLLOWER_ADDRESS}, comma-separated")
+    return out
 
 
 def cmd_radio(args: argparse.Namespace) -> int:
+    from app.backends.emulator import robot_auth
     from app.backends.radio import run_radio
 
-    return run_radio(args.leaders, args.followers, args.drop, args.delay_ms, args.seed, args.summary, args.minutes)
+    return run_radio(args.leaders, args.followers, args.drop, args.delay_ms, args.seed, args.summary, args.minutes,
+                     robot_auth(args.radio_key), args.older_robots)
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
     from app.backends.emulator import run_emulator
 
     return run_emulator(args)
+
+
+def cmd_provision(args: argparse.Namespace) -> int:
+    from app.backends.radio_keys import load_robot_auth, set_stop_policy, write_provision
+    from app.files import UserError
+
+    if args.stop is not None:
+        load_robot_auth(args.robots)
+        set_stop_policy(args.robots, args.stop)
+    auth = load_robot_auth(args.robots)
+    try:
+        written = write_provision(auth, args.header, args.record)
+    except OSError as exc:
+        raise UserError(f"cannot write the robots' provisioning ({exc.strerror or exc})") from None
+    print(f"omniformation: robots provisioned: {len(auth.keys)} key(s), leaders {list(auth.leaders)}, STOP from"
+          f" {auth.stop}" + "".join(f"; {w}" for w in written), flush=True)
+    return 0
+
+
+def cmd_rotate(args: argparse.Namespace) -> int:
+    from app.backends.radio_keys import rotate
+
+    written = rotate(args.dir, finish=args.finish)
+    step = ("finished: provision the robots again (only the new key now); the leaders already sign with it"
+            if args.finish else "begun: provision the robots (they accept both keys), then give each leader"
+                                " its file from next/ and restart it, then --finish")
+    print(f"omniformation: rotation {step} ({len(written)} files)", flush=True)
+    return 0

@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -64,6 +65,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                        help="with --radio: the share of frames the radio loses (default 0)")
     arena.add_argument("--radio-delay-ms", type=float_in(0.0, 2000.0, "ms", lo_inclusive=True), default=0.0,
                        metavar="D", help="with --radio: how late the radio delivers a frame (default 0)")
+    arena.add_argument("--radio-key", type=Path, metavar="ROBOTS.json",
+                       help="with --radio: the fleet's radio keys the robots hold (fleet-keys writes"
+                            " DIR/radio/robots.json; default: the open key)")
     arena.add_argument("--summary", type=Path, metavar="FILE.json",
                        help="write the arena's counts and the robots' owners here when it stops")
     arena.set_defaults(func=cmd_arena)
@@ -128,7 +132,34 @@ def cmd_fleet_keys(args: argparse.Namespace) -> int:
           f" {', '.join(leaders)}; valid {args.days} days)", flush=True)
     print(f"omniformation: copy {args.dir}/ID/ to the machine that runs ID and give it --keys there; keep"
           f" {args.dir}/ca/ (the CA's private key) on the operator's machine only", flush=True)
+    write_fleet_radio_keys(args.dir, leaders, args.overwrite)
     return 0
+
+
+def write_fleet_radio_keys(directory: Path, leaders: tuple[str, ...], overwrite: bool) -> None:
+    """The fleet's radio key beside its certificates: DIR/radio/robots.json and DIR/radio/ID.radio
+    (app.backends.radio_keys; docs/follower-protocol.md, "Keys and provisioning")."""
+    from app.backends.radio_keys import write_radio_keys
+
+    radio = directory / "radio"
+    try:
+        written = write_radio_keys(radio, leaders, overwrite=overwrite)
+        for f in written[1:]:  # each leader's own ID.radio also in its bundle (the folder copied to its machine)
+            bundle = directory / f.stem
+            if bundle.is_dir():
+                copy = bundle / f.name
+                copy.unlink(missing_ok=True)
+                fd = os.open(copy, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+                with os.fdopen(fd, "wb") as out:
+                    out.write(f.read_bytes())
+    except (FileExistsError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    except OSError as exc:
+        raise UserError(f"{radio}: cannot write the radio key ({exc.strerror or exc})") from None
+    ids = ", ".join(f"{name} {k + 1}" for k, name in enumerate(leaders))
+    print(f"omniformation: radio key in {radio} (radio ids: {ids}); each leader's ID.radio is in its bundle too"
+          f" (--radio-key DIR/ID/ID.radio); the robots get robots.json through `omniformation radio-provision`",
+          flush=True)
 
 
 def open_bus(listen: list[str], connect: list[str], who: str, keys: FleetKeys | None = None) -> zenoh.Session:
@@ -160,6 +191,11 @@ def cmd_arena(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     if not args.radio and (args.radio_drop or args.radio_delay_ms):
         raise UserError("--radio-drop and --radio-delay-ms go with --radio")
+    if args.radio_key is not None and not args.radio:
+        raise UserError("--radio-key goes with --radio")
+    from app.backends.emulator import robot_auth
+
+    radio_auth = robot_auth(args.radio_key) if args.radio_key is not None else None
     keys = fleet_keys(args.keys, "arena", fleet)
     session = open_bus(args.zenoh_listen, args.zenoh_connect, f"arena {fleet}", keys)
     replies = session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)
@@ -167,7 +203,7 @@ def cmd_arena(args: argparse.Namespace) -> int:
         session.close()
         raise UserError(f"fleet {fleet}: an arena runs on this bus already; one world per fleet")
     arena = Arena(scenario, session, fleet, radio=args.radio, radio_drop=args.radio_drop,
-                  radio_delay_s=args.radio_delay_ms / 1000.0)
+                  radio_delay_s=args.radio_delay_ms / 1000.0, radio_auth=radio_auth)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

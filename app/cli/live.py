@@ -60,14 +60,24 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                      help="with --camera: the rig's calibration from `omniformation calibrate` (default: config's)")
     run.add_argument("--camera-fps", type=float_in(0.0, 240.0, "Hz"),
                      help="with --camera: play a video file or folder at this rate (default: the file's, or 30)")
-    run.add_argument("--leader", metavar="serial:PATH",
+    run.add_argument("--leader", metavar="serial:PATH|ros2:/TOPIC",
                      help="with --camera: the leader base's port (its wheel odometry, for eq. 38); without it the"
-                          " leader is taken to stand still")
+                          " leader is taken to stand still. ros2:/cmd_vel (ros2:/cmd_vel:stamped for TwistStamped),"
+                          " with --ros2: a ROS 2 base, its odometry from /odom (also with the simulated team)")
     run.add_argument("--baud", type=int_in(1200, 4_000_000), default=115200, help="serial baud rate (default 115200)")
     run.add_argument("--radio-id", type=int_in(1, 250), metavar="N",
                      help="with --link serial:PATH on a radio other leaders share: this leader's number (1..250);"
                           " it claims its robots and drives only those it owns (docs/follower-protocol.md,"
                           " Ownership)")
+    run.add_argument("--radio-key", type=Path, metavar="LEADER.radio",
+                     help="with --link serial:PATH: this leader's radio key (`fleet-keys` writes DIR/radio/<id>.radio);"
+                          " every frame is authenticated with it and only the fleet's robots' replies count")
+    run.add_argument("--radio-counter", type=Path, metavar="FILE",
+                     help="with --radio-key: keep the frame counter's high-water mark here too (the counter starts"
+                          " at the wall clock in ms otherwise; docs/follower-protocol.md)")
+    run.add_argument("--allow-unauthenticated-radio", action="store_true",
+                     help="drive robots that speak only protocol 1/2, and use a shared radio without --radio-key;"
+                          " the status and the recording say so on every tick")
     run.add_argument("--no-record", action="store_true", help="do not record the session (default: recordings/<UTC>_<name>.mcap)")
     run.add_argument("--recordings", type=Path, metavar="DIR",
                      help="where sessions are recorded and listed for replay (default: recordings/ in the working folder)")
@@ -85,6 +95,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     add_bus_args(run, prefix="--fleet: ")
     run.add_argument("--fleet-control", action="store_true",
                      help="--fleet: take gains, formation and motion changes from the bus (STOP is always taken)")
+    from app.cli import ros2
+
+    ros2.add_run_args(run)
     run.add_argument("--realtime", action="store_true",
                      help="the loop's and the camera's threads on real-time scheduling (SCHED_FIFO; needs root,"
                           " CAP_SYS_NICE or an rtprio limit): fewer latency spikes on a busy machine")
@@ -129,6 +142,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     first (it zeroes the robots)."""
     import signal
 
+    from app.cli import ros2
     from app.cli.foxglove_args import attach_to_service, check_foxglove_args
 
     plan = _plan_run(args)
@@ -137,8 +151,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         handed = stack.enter_context(contextlib.ExitStack())  # closed here until the service owns them
         frames = _open_camera(args, plan, handed)
         fleet = _join_fleet(args, plan, stack, handed)
-        link, hardware = _build_rig(args, plan, handed)
-        service = _serve(args, plan, frames, link, hardware, fleet)
+        node = ros2.open_run_node(args, stack)
+        base = ros2.leader_base(args, node)
+        link, hardware = _build_rig(args, plan, handed, base)
+        service = _serve(args, plan, frames, link, hardware, fleet, base)
         handed.pop_all()  # the service closes the team, its link and the camera now
         stack.callback(service.close)
         recorder = _start_recorder(args, plan, service)
@@ -147,6 +163,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             stack.callback(recorder.close)
         attach_to_service(args, service, recorder, stack)
         bridge = _on_the_bus(args, fleet, service, stack) if fleet is not None else None
+        ros2.start_bridge(args, node, service, base, stack)
         # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
         # (even before the first tick ends), and the loop's own exit is what zeroes the robots.
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -166,11 +183,13 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _plan_run(args: argparse.Namespace) -> _RunPlan:
     """Every check of the command line against the config, before anything is opened."""
+    from app.cli.ros2 import check_run_args
     from app.files import load_scenario
     from app.live.config import load_service_config
 
     if getattr(args, "loop_process", False) and (args.fleet or args.arena or args.camera):
         raise UserError("--loop-process: not yet with --fleet, --arena or --camera (run without it)")
+    check_run_args(args)  # takes a ros2: leader out of --leader
     if args.viewer_token is not None and args.viewer_token == args.token:
         raise UserError("--viewer-token: must differ from --token (a viewer may not command the robots)")
     config = load_service_config(args.config, MAX_FOLLOWERS)
@@ -206,6 +225,7 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
         raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
     if args.radio_id is not None and not link_port and not getattr(args, "arena_radio", ""):
         raise UserError("--radio-id goes with --link serial:PATH (the radio this leader shares with others)")
+    _check_radio_key(args, bool(link_port or getattr(args, "arena_radio", "")))
     camera: Rig | None
     if real:
         from app.files import load_calibration
@@ -215,6 +235,27 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
         camera = config.camera() if (args.feedback or config.feedback) == "vision" else None
     n_followers = scenario.n if scenario is not None else args.followers or config.followers
     return _RunPlan(config, scenario, fleet_scenario, real, link_port, leader_port, camera, n_followers)
+
+
+def _check_radio_key(args: argparse.Namespace, has_link: bool) -> None:
+    """--radio-key, --radio-counter and --allow-unauthenticated-radio against the link; sets
+    ``args.radio_key_bytes`` and ``args.radio_sender`` (one line on any mistake)."""
+    args.radio_key_bytes, args.radio_sender = None, None
+    if args.radio_key is None:
+        if args.radio_counter is not None:
+            raise UserError("--radio-counter goes with --radio-key")
+        if args.radio_id is not None and not args.allow_unauthenticated_radio:
+            raise UserError(f"--radio-id {args.radio_id}: a shared radio needs the fleet's radio key (--radio-key"
+                            " DIR/radio/LEADER.radio, written by fleet-keys), or --allow-unauthenticated-radio")
+        return
+    if not has_link:
+        raise UserError("--radio-key goes with --link serial:PATH (the robots' radio or cable)")
+    from app.backends.radio_keys import load_leader_key
+
+    key = load_leader_key(args.radio_key)
+    if args.radio_id is not None and args.radio_id != key.radio_id:
+        raise UserError(f"--radio-id {args.radio_id}: {args.radio_key} is radio id {key.radio_id}'s key")
+    args.radio_key_bytes, args.radio_sender = key.key, key.radio_id
 
 
 def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
@@ -233,7 +274,7 @@ def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
                             + (f" (got {args.leader_id!r})" if args.leader_id else ""))
         args.fleet = args.fleet or fleet_scenario.name
         args.arena_radio = _arena_radio(args, ids.index(args.leader_id) + 1)
-    fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect, args.fleet_control, args.keys)
+    fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect and not args.ros2, args.fleet_control, args.keys)
     if args.fleet is None and any(fleet_args):
         raise UserError("--leader-id, --zenoh-listen, --zenoh-connect, --keys and --fleet-control go with --fleet NAME")
     if args.fleet is not None:
@@ -315,7 +356,7 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
             raise UserError(f"--arena {args.arena}: {exc}") from None
         handed.callback(fleet.arena_team.close)
         if args.arena_radio:
-            fleet.arena_team.use_radio(args.arena_radio, args.radio_id, args.baud)
+            fleet.arena_team.use_radio(args.arena_radio, args.radio_id, args.baud, **radio_options(args))
     if name_taken(fleet.session, args.fleet, args.leader_id):
         raise UserError(f"--leader-id {args.leader_id}: a leader with this id is alive on fleet {args.fleet}"
                         " already; every leader needs its own id")
@@ -345,8 +386,17 @@ def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.Exit
     return fleet
 
 
-def _build_rig(args: argparse.Namespace, plan: _RunPlan,
-               handed: contextlib.ExitStack) -> tuple[FollowerLink | None, HardwareTeam | None]:
+def radio_options(args: argparse.Namespace) -> dict[str, Any]:
+    """What a serial link is given to authenticate its frames (checked by _check_radio_key)."""
+    from app.backends.serial_link import FrameCounter
+
+    return {"radio_key": args.radio_key_bytes, "sender_id": args.radio_sender,
+            "allow_unauthenticated": args.allow_unauthenticated_radio,
+            "counter": FrameCounter(path=args.radio_counter) if args.radio_counter is not None else None}
+
+
+def _build_rig(args: argparse.Namespace, plan: _RunPlan, handed: contextlib.ExitStack,
+               base: FollowerLink | None = None) -> tuple[FollowerLink | None, HardwareTeam | None]:
     """The followers' link (serial, or the emulator) and, on a real rig, the real team."""
     from app.backends.serial_link import SerialLink, make_link
     from core.types import Gains
@@ -356,7 +406,7 @@ def _build_rig(args: argparse.Namespace, plan: _RunPlan,
     if plan.link_port:
         try:
             link = make_link(plan.link_port, plan.n_followers, baud=args.baud, v_max=limits.v_max,
-                             w_max=limits.w_max, radio_id=args.radio_id)
+                             w_max=limits.w_max, radio_id=args.radio_id, **radio_options(args))
         except ValueError as exc:
             raise UserError(str(exc)) from None
         handed.callback(link.close)
@@ -364,14 +414,14 @@ def _build_rig(args: argparse.Namespace, plan: _RunPlan,
     if plan.real:
         from app.backends.hardware import HardwareTeam
 
-        leader = SerialLink(plan.leader_port, 1, baud=args.baud, addresses=[0]) if plan.leader_port else None
+        leader = SerialLink(plan.leader_port, 1, baud=args.baud, addresses=[0]) if plan.leader_port else base
         hardware = HardwareTeam(plan.n_followers, link, leader)
         handed.callback(hardware.close)
     return link, hardware
 
 
 def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None, link: FollowerLink | None,
-           hardware: HardwareTeam | None, fleet: _Fleet | None) -> Service:
+           hardware: HardwareTeam | None, fleet: _Fleet | None, base: FollowerLink | None = None) -> Service:
     from app.dashboard.gate import is_loopback
     from app.services.live import Service
 
@@ -384,7 +434,8 @@ def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None,
                        link=None if plan.real else link, frames=frames, hardware=hardware,
                        recordings=args.recordings, token=args.token, viewer_token=args.viewer_token,
                        arena=fleet.arena_team if fleet else None, params=fleet.params if fleet else None,
-                       realtime=args.realtime, page_process=getattr(args, "loop_process", False))
+                       realtime=args.realtime, leader_base=None if plan.real else base,
+                       page_process=getattr(args, "loop_process", False))
     except OSError as exc:
         raise UserError(bind_error(args.host, args.port, exc)) from None
     if not is_loopback(args.host):  # after the bind: an address not here is one line, no warning first

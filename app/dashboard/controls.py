@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import time
 from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 import viser
@@ -151,12 +152,18 @@ class Controls:
                 y_in.on_update(make_cb(j))
                 self.slot_inputs.append((x_in, y_in))
 
-    def _update(self, event: viser.GuiEvent[Any], what: str = "", **changes: Any) -> None:
-        """Write to the store; ``what`` names the action in the source (e.g. a preset), for the record."""
+    def _update(self, event: viser.GuiEvent[Any], what: str = "",
+                decide: Callable[[Params], dict[str, Any]] | None = None, **changes: Any) -> None:
+        """Write to the store; ``what`` names the action in the source (e.g. a preset), for the record;
+        ``decide``: changes that depend on what is in force, made in one step (ParamsStore.change)."""
         if self.replay:
             return
+        source = f"browser:{event.client_id}" + (f" {what}" if what else "")
         try:
-            _, notices = self.store.update(f"browser:{event.client_id}" + (f" {what}" if what else ""), **changes)
+            if decide is not None:
+                _, notices = self.store.change(source, decide)
+            else:
+                _, notices = self.store.update(source, **changes)
         except (ValueError, TypeError, OverflowError) as exc:
             notices = (Notice("input", str(exc)),)
             self._on_params(self.store.get(), "server", ())  # the page shows what is in force, not what was refused
@@ -210,7 +217,7 @@ class Controls:
 
         @self.pause_button.on_click
         def _(event: viser.GuiEvent[Any]) -> None:
-            self._update(event, paused=not self.store.get().paused)
+            self._update(event, decide=lambda now: {"paused": not now.paused})
 
         def on_value(handle: Any, key: str) -> None:
             def _(event: viser.GuiEvent[Any]) -> None:

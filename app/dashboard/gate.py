@@ -17,7 +17,8 @@ What it lets in:
   (any other web page open in the operator's browser is refused);
 * on any address other than loopback a token is required, generated unless given, handed
   out as ``?token=…`` in the printed URL (as notebook servers do) and then kept by the
-  browser as an HttpOnly, SameSite=Strict cookie.
+  browser as an HttpOnly, SameSite=Strict cookie named for the port (a browser sends a host's
+  cookies to every port of it: a replay on another port must not overwrite the live page's).
 
 Two roles: a client that presents the token (or any client on loopback) is the **operator**; a
 client that presents the viewer token (``viewer_token``, a second printed URL) is a **viewer**: it
@@ -25,9 +26,15 @@ sees everything and may press STOP, nothing else (the input filter refuses the r
 
 Every message a client sends goes through :class:`app.dashboard.input_filter.InputFilter` before
 viser sees it: only a value for a known control, of the right type and within its bounds, passes.
-A refused update is answered (to that client alone) with the value in force and a notice; the log
-says so at most once a second per client, in one line, and refused requests likewise at most once
-a second per reason.
+A refused update is answered (to that client alone) with the value in force (at most once a second
+per control) and a notice; the log says so at most once a second per remote address (reconnecting
+buys no line), in one line, and refused requests likewise at most once a second per reason.
+
+How much (docs/page-access.md): each connection has a budget (:class:`Budget`: ``RATE`` messages a
+second, ``BURST`` at once); what is over it is dropped before it is decoded, a connection that stays
+over it is closed and its address refused for ``BAN_S``; all of an address's connections together
+have ``ADDRESS_RATE`` of messages forwarded (STOP always passes); at most ``PER_ADDRESS`` websockets per
+address and ``MAX_CONNECTIONS`` in all, the last ``OPERATOR_RESERVE`` of them for operators.
 
 viser's own loopback port would let a local page around the gate, so the gate marks its
 upstream connections with a per-process secret header and refuses, before viser's own
@@ -218,10 +225,21 @@ MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit (what the page is sent)
 MAX_CLIENT_MESSAGE = 1024 * 1024  # what a client may send in one message (the page's largest is a few hundred bytes)
 CONN_HEADER = "X-Omniformation-Connection"  # which gate connection an upstream websocket serves
 ROLE_HEADER = "X-Omniformation-Role"
-LOG_EVERY_S = 1.0  # a client's refused messages (and refused requests of one kind) are logged this often at most
-NOTICE_EVERY_S = 1.0  # a client is told of refused updates this often at most
+LOG_EVERY_S = 1.0  # an address's refused messages (and refused requests of one kind) are logged this often at most
+NOTICE_EVERY_S = 1.0  # a client is told of refused updates this often at most (and sent a control's value back)
+RATE = 100.0  # messages a second a connection may send (viser's page sends its camera at most 50 a second, a
+# control's value at most 20, a click or a drag at most 50 and 20: a person uses one or two at once)
+BURST = 300  # and at once
+STRIKES = 3  # messages dropped in this many consecutive seconds: the connection is closed
+BAN_S = 30.0  # and its address refused this long
+ADDRESS_RATE = 200.0  # messages a second all connections from one address may have forwarded to viser (STOP always)
+ADDRESS_BURST = 600
+PER_ADDRESS = 16  # open websockets from one address
+MAX_CONNECTIONS = 64  # open websockets in all
+OPERATOR_RESERVE = 8  # of which the last few only for operators
 VIEWER_GREY_S = 1.5  # a viewer's controls are greyed out this long after it connects (the page is there by then)
 _BIND_TIMEOUT_S = 30.0
+CLOSE_TIMEOUT_S = 1.0  # a client that does not answer a close (a flooder still sending) is cut off after this
 
 
 class NotThroughTheGate(ConnectionError):
@@ -265,6 +283,38 @@ class GateCounts:
     token: int = 0
     bypass: int = 0
     messages: int = 0  # messages from let-in clients that the input filter refused
+    flood: int = 0  # messages dropped over a connection's budget (never decoded)
+    cut: int = 0  # connections closed for staying over their budget
+    banned: int = 0  # requests from an address refused for a while
+    full: int = 0  # websockets refused: too many from the address, or in all
+    address: int = 0  # messages dropped over their address's budget (all its connections together)
+
+
+class Budget:
+    """One connection's allowance (a token bucket: ``rate`` a second, ``burst`` at once), and
+    whether it stays over it: messages dropped in ``strikes`` consecutive seconds."""
+
+    def __init__(self, now: float, rate: float = RATE, burst: int = BURST, strikes: int = STRIKES) -> None:
+        self.rate, self.burst, self.strikes = rate, float(burst), strikes
+        self.tokens, self.at, self.start = float(burst), now, now
+        self._second, self._streak = -2, 0
+
+    def take(self, now: float) -> bool:
+        """Whether one more message fits now (if not, it counts towards staying over)."""
+        self.tokens = min(self.burst, self.tokens + max(0.0, now - self.at) * self.rate)
+        self.at = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        second = int(now - self.start)
+        if second != self._second:
+            self._streak = self._streak + 1 if second == self._second + 1 else 1
+            self._second = second
+        return False
+
+    @property
+    def over(self) -> bool:
+        return self._streak >= self.strikes
 
 
 class Throttle:
@@ -315,6 +365,9 @@ class Gate:
         self._client_of: dict[str, int] = {}  # gate connection key -> viser client id
         self._log_throttle = Throttle()
         self._notice_throttle = Throttle(NOTICE_EVERY_S)
+        self._banned: dict[str, float] = {}  # address -> refused until (monotonic)
+        self._open: dict[str, int] = {}  # address -> open websockets
+        self._address_budget: dict[str, Budget] = {}  # address -> what all its connections together may forward
         self._secret = secrets.token_hex(16)
         self._upstream = server.get_port()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -344,6 +397,15 @@ class Gate:
     def viewer_url(self) -> str:
         """The URL for someone who may watch (and press STOP), nothing more."""
         return self.url.split("?")[0] + f"?token={self.viewer_token}"
+
+    @property
+    def cookie(self) -> str:
+        """The cookie that keeps this page's token (one per port: see the module's docstring)."""
+        return f"{COOKIE}_{self.port}"
+
+    @property
+    def open_connections(self) -> int:
+        return sum(list(self._open.values()))  # read from other threads: a copy
 
     def role_of(self, client_id: int) -> str:
         return self.roles.get(client_id, VIEWER)  # unknown: the least a client may do
@@ -429,7 +491,7 @@ class Gate:
         for header in request.headers.get_all("Cookie"):
             with contextlib.suppress(Exception):
                 cookie.load(header)
-        morsel = cookie.get(COOKIE)
+        morsel = cookie.get(self.cookie)
         return (morsel.value if morsel is not None else ""), False
 
     def refusal(self, request: Request) -> str:
@@ -461,21 +523,60 @@ class Gate:
 
     # -- serving ---------------------------------------------------------------------------
 
+    def _is_banned(self, address: str) -> bool:
+        until = self._banned.get(address)
+        if until is None:
+            return False
+        if time.monotonic() < until:
+            return True
+        del self._banned[address]
+        return False
+
+    def _ban(self, address: str) -> None:
+        if len(self._banned) > 4096:  # addresses come and go: forget the ones whose time is up
+            now = time.monotonic()
+            self._banned = {a: t for a, t in self._banned.items() if t > now}
+        self._banned[address] = time.monotonic() + BAN_S
+
+    def _full(self, address: str, role: str | None) -> str:
+        """Why one more websocket from ``address`` may not open now ('' if it may)."""
+        total = self.open_connections
+        if self._open.get(address, 0) >= PER_ADDRESS:
+            return f"{PER_ADDRESS} connections from one address are open already"
+        if total >= MAX_CONNECTIONS:
+            return f"{MAX_CONNECTIONS} connections are open already"
+        if role != OPERATOR and total >= MAX_CONNECTIONS - OPERATOR_RESERVE:
+            return f"{total} connections are open already; the rest are kept for the operator"
+        return ""
+
+    def _refuse(self, connection: websockets.asyncio.server.ServerConnection, status: http.HTTPStatus,
+                kind: str, why: str) -> Response:
+        held = self._log_throttle.due(("request", kind))
+        if held >= 0:
+            log.warning("dashboard: refused %s: %s%s", connection.remote_address, one_line(why),
+                        f" (and {held} more like it not logged)" if held else "")
+        return connection.respond(status, f"omniformation: refused: {why}\n")
+
     async def _process_request(self, connection: websockets.asyncio.server.ServerConnection,
                                request: Request) -> Response | None:
+        address = _address(connection.remote_address)
+        if self._is_banned(address):
+            self.refused.banned += 1
+            return self._refuse(connection, http.HTTPStatus.TOO_MANY_REQUESTS, "banned",
+                                f"{address} sent more than its budget; try again later")
         why = self.refusal(request)
         if why:
-            held = self._log_throttle.due(("request", why.split(" ")[0]))
-            if held >= 0:
-                log.warning("dashboard: refused %s: %s%s", connection.remote_address, one_line(why),
-                            f" (and {held} more like it not logged)" if held else "")
-            return connection.respond(http.HTTPStatus.FORBIDDEN, f"omniformation: refused: {why}\n")
+            return self._refuse(connection, http.HTTPStatus.FORBIDDEN, why.split(" ")[0], why)
         if _is_upgrade(request):
+            full = self._full(address, self.role(request))
+            if full:
+                self.refused.full += 1
+                return self._refuse(connection, http.HTTPStatus.SERVICE_UNAVAILABLE, "full", full)
             return None
         response = await asyncio.to_thread(self._fetch, request)
         given, from_query = self._token_from(request)
         if from_query and given and self.role(request) is not None:  # the operator's or the viewer's
-            response.headers["Set-Cookie"] = f"{COOKIE}={given}; HttpOnly; SameSite=Strict; Path=/"
+            response.headers["Set-Cookie"] = f"{self.cookie}={given}; HttpOnly; SameSite=Strict; Path=/"
         return response
 
     def _fetch(self, request: Request) -> Response:
@@ -501,11 +602,27 @@ class Gate:
     async def _handler(self, client: websockets.asyncio.server.ServerConnection) -> None:
         sub = [client.subprotocol] if client.subprotocol else None
         role = (self.role(client.request) if client.request is not None else None) or VIEWER
+        address = _address(client.remote_address)
+        if self._full(address, role):  # two handshakes at once: the count is exact here (no await since)
+            self.refused.full += 1
+            await client.close(1013, "too many connections")
+            return
+        self._open[address] = self._open.get(address, 0) + 1
+        try:
+            await self._serve(client, sub, role, address)
+        finally:
+            self._open[address] -= 1
+            if not self._open[address]:
+                del self._open[address]
+
+    async def _serve(self, client: websockets.asyncio.server.ServerConnection, sub: list[Subprotocol] | None,
+                     role: str, address: str) -> None:
         key = secrets.token_hex(8)
         try:
             async with websockets.asyncio.client.connect(
                 f"ws://127.0.0.1:{self._upstream}/", subprotocols=sub, max_size=MAX_MESSAGE, compression=None,
                 additional_headers={GATE_HEADER: self._secret, CONN_HEADER: key, ROLE_HEADER: role}, open_timeout=30,
+                close_timeout=CLOSE_TIMEOUT_S,  # its queue unread once the client left: viser's close waits behind it
             ) as upstream:
                 async def pump(src: Any, dst: Any) -> None:
                     try:
@@ -515,14 +632,33 @@ class Gate:
                         pass  # one side went away (a browser tab closed): the other is closed below
 
                 async def checked(src: Any, dst: Any) -> None:
-                    """The client's messages, each judged by the input filter before viser sees it."""
+                    """The client's messages: within its budget (else dropped undecoded), each judged by
+                    the input filter before viser sees it."""
+                    budget = Budget(time.monotonic())
+                    greeted = False  # its first camera: viser takes its clicks (STOP) only from then on
                     try:
                         async for message in src:
+                            if not budget.take(time.monotonic()):
+                                self._flooded(address, role, budget)
+                                if budget.over:
+                                    await src.close(1008, f"over the message budget; refused for {BAN_S:g} s")
+                                    return
+                                continue
                             verdict = self.filter.judge(message, role)
+                            first = verdict.kind == "ViewerCameraMessage" and not greeted
+                            greeted = greeted or first
+                            if verdict.forward and not first and not self._address_allows(address, verdict):
+                                self.refused.address += 1
+                                held = self._log_throttle.due(("address", address))
+                                if held >= 0:
+                                    log.warning("dashboard: %s's connections together send more than %g messages a"
+                                                " second: dropped%s", address, ADDRESS_RATE,
+                                                f" ({held} more since the last line)" if held else "")
+                                continue
                             if verdict.forward:
                                 await dst.send(message)
                             elif not verdict.quiet:
-                                self._refused_message(key, role, client.remote_address, verdict)
+                                self._refused_message(key, role, address, verdict)
                     except websockets.exceptions.ConnectionClosed:
                         pass
 
@@ -535,19 +671,47 @@ class Gate:
         except (websockets.exceptions.ConnectionClosed, OSError):
             pass
 
-    def _refused_message(self, key: str, role: str, remote: Any, verdict: Verdict) -> None:
-        """Count it, log it (briefly), and tell that client alone what is in force."""
+    def _address_allows(self, address: str, verdict: Verdict) -> bool:
+        """Whether all of ``address``'s connections together may have one more message forwarded:
+        sixteen tabs each within its own budget are not sixteen budgets. STOP always passes (and a
+        connection's first camera, without which viser would not take its STOP)."""
+        if verdict.uuid and self.filter.viewer_may(verdict.uuid):
+            return True
+        now = time.monotonic()
+        budget = self._address_budget.get(address)
+        if budget is None:
+            if len(self._address_budget) > 4096:  # addresses come and go: forget the full ones
+                self._address_budget = {a: b for a, b in self._address_budget.items() if now - b.at < 60.0}
+            budget = self._address_budget[address] = Budget(now, ADDRESS_RATE, ADDRESS_BURST)
+        return budget.take(now)
+
+    def _flooded(self, address: str, role: str, budget: Budget) -> None:
+        """A message over a connection's budget: counted, logged briefly per address; a connection
+        that stays over it costs its address ``BAN_S`` of refusals."""
+        self.refused.flood += 1
+        if budget.over:
+            self.refused.cut += 1
+            self._ban(address)
+        held = self._log_throttle.due(("flood", address))
+        if held >= 0 or budget.over:
+            what = f"closed, address refused for {BAN_S:g} s" if budget.over else "dropped"
+            log.warning("dashboard: %s (%s) sends more than %g messages a second: %s%s", address, role, RATE, what,
+                        f" ({max(held, 0)} more dropped since the last line)" if held > 0 else "")
+
+    def _refused_message(self, key: str, role: str, address: str, verdict: Verdict) -> None:
+        """Count it, log it (briefly, per address), and tell that client alone what is in force."""
         self.refused.messages += 1
-        held = self._log_throttle.due(("client", key))
+        held = self._log_throttle.due(("client", address))
         if held >= 0:
-            log.warning("dashboard: refused from %s (%s): %s%s", remote, role, one_line(verdict.why),
+            log.warning("dashboard: refused from %s (%s): %s%s", address, role, one_line(verdict.why),
                         f" (and {held} more refused since the last line)" if held else "")
         client = self.server.get_clients().get(self._client_of.get(key, -1))
         if client is None:
             return
         handle = self.filter.handle(verdict.uuid) if verdict.uuid else None
         connection = getattr(client, "_websock_connection", None)
-        if handle is not None and connection is not None:  # the browser shows the value it sent: put it back
+        if handle is not None and connection is not None and self._notice_throttle.due(("value", key, verdict.uuid)) >= 0:
+            # the browser shows the value it sent: put it back (once a second per control is enough)
             connection.queue_message(GuiUpdateMessage(verdict.uuid, {"value": handle.value}))
         if self._notice_throttle.due(("notice", key)) >= 0:
             client.add_notification("Refused", one_line(verdict.why, 300), auto_close_seconds=6.0, color="yellow")
@@ -562,6 +726,7 @@ class Gate:
                 server = await websockets.asyncio.server.serve(
                     self._handler, self.host, port, process_request=self._process_request,
                     max_size=MAX_CLIENT_MESSAGE, compression=None,
+                    close_timeout=CLOSE_TIMEOUT_S,
                     select_subprotocol=lambda _, offered: next(
                         (Subprotocol(p) for p in offered if p.startswith("viser-v")), None),
                 )
@@ -588,6 +753,13 @@ class Gate:
             with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(stop.set)
         self._thread.join(10.0)
+
+
+def _address(remote: Any) -> str:
+    """The host part of a peer's address (its port changes with every connection)."""
+    if isinstance(remote, (tuple, list)) and remote:
+        return str(remote[0])
+    return str(remote)
 
 
 def quietly(fn: Callable[[], T]) -> T:

@@ -19,8 +19,12 @@ What passes:
   a checkbox's is a boolean; a dropdown's or a button group's is one of its options; a text box's
   is a string of at most ``TEXT_MAX`` characters. Fractional steps are not enforced: the number box
   beside a slider takes what a person types (0.123 in a 0.01-step box), and the value is in range.
-* the 3D view's own messages (the camera, clicks, drags of a handle) when they decode as viser's
-  message type with finite numbers; a viewer may only move its own camera.
+* the 3D view's own messages (the camera, clicks, drags of a handle) when they have exactly the
+  fields of viser's message type (``msgspec.convert`` ignores unknown fields, and viser then raises
+  on them and drops the client), decode as that type, with finite numbers that mean something (a
+  unit quaternion, a non-zero up and ray direction, 0 < fov < pi, 0 < near < far, image sizes
+  1..16384: a zero "up" makes every later placement of that client's camera raise, on the page's
+  thread, for every client); a viewer may only move its own camera. The contract: docs/page-access.md.
 * nothing else: other message types (file uploads, share links, commands, form events) are
   dropped; the project uses none of them.
 
@@ -33,6 +37,7 @@ the gate can answer the client (and only that client) and log it, briefly.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -57,12 +62,14 @@ VIEWER = "viewer"
 @dataclass(frozen=True)
 class Verdict:
     """What to do with one message: forward it, or refuse it (``why``, one line) and answer the
-    client with the value in force of control ``uuid`` (when the message named one)."""
+    client with the value in force of control ``uuid`` (when the message named one; a forwarded
+    control update names its control too)."""
 
     forward: bool
     why: str = ""
     uuid: str = ""
     quiet: bool = False  # refused without a word (a browser's own chatter the page does not use)
+    kind: str = ""  # a forwarded scene message's type
 
 
 PASS = Verdict(True)
@@ -77,6 +84,52 @@ def _finite(x: Any) -> bool:
     if isinstance(x, dict):
         return all(_finite(v) for v in x.values())
     return True
+
+
+POSITION_MAX_M = 1e6  # a position, look-at point or ray origin, each coordinate (m)
+DIRECTION_MIN, DIRECTION_MAX = 1e-6, 1e6  # a direction's length: not zero, not absurd
+FAR_MAX_M = 1e9
+IMAGE_MAX_PX = 16384
+SCREEN_MAX = 10.0  # viser's screen positions are 0..1; a little outside is a pointer at the edge
+UNIT_TOLERANCE = 0.01  # how far from 1 a rotation's norm may be (a browser's float32 rounding)
+
+
+def _norm(v: Any) -> float:
+    return math.sqrt(sum(float(x) * float(x) for x in v))
+
+
+def scene_fault(body: dict[str, Any]) -> str:
+    """'' when a scene message's (decoded, finite) fields mean something, else what is allowed
+    (docs/page-access.md): each field is checked by its name, whatever message carries it."""
+    for name, value in body.items():
+        if value is None:
+            continue
+        if name == "wxyz" and abs(_norm(value) - 1.0) > UNIT_TOLERANCE:
+            return "wxyz must be a unit quaternion"
+        if name in ("position", "look_at", "ray_origin", "start_position", "end_position") \
+                and max(abs(float(x)) for x in value) > POSITION_MAX_M:
+            return f"{name} must be within {POSITION_MAX_M:g} m in each coordinate"
+        if name in ("up_direction", "ray_direction") and not DIRECTION_MIN <= _norm(value) <= DIRECTION_MAX:
+            return f"{name} must be a direction (not zero)"
+        if name == "fov" and not 0.0 < float(value) < math.pi:
+            return "fov must be in (0, pi) radians"
+        if name == "near" and not float(value) > 0.0:
+            return "near must be positive"
+        if name == "far" and not float(body.get("near", 0.0)) < float(value) <= FAR_MAX_M:
+            return f"far must be beyond near and at most {FAR_MAX_M:g}"
+        if name in ("image_width", "image_height") and (isinstance(value, bool) or not isinstance(value, int)
+                                                        or not 1 <= value <= IMAGE_MAX_PX):
+            return f"{name} must be a whole number from 1 to {IMAGE_MAX_PX}"
+        if name in ("screen_pos", "start_screen_pos", "end_screen_pos") \
+                and not all(abs(float(x)) <= SCREEN_MAX for x in _flat(value)):
+            return f"{name} must be within [-{SCREEN_MAX:g}, {SCREEN_MAX:g}]"
+    return ""
+
+
+def _flat(value: Any) -> list[Any]:
+    if isinstance(value, (list, tuple)):
+        return [x for v in value for x in _flat(v)]
+    return [value]
 
 
 def _short(value: Any) -> str:
@@ -94,6 +147,7 @@ class InputFilter:
             raise RuntimeError(f"viser {viser.__version__} does not expose its controls; the page's input filter"
                                " cannot check what clients send, so it will not serve")
         self._types = viser_messages.Message._subclass_from_type_string()
+        self._fields = {kind: {f.name for f in dataclasses.fields(self._types[kind])} for kind in SCENE_MESSAGES}
 
     def allow_viewer(self, *handles: Any) -> None:
         """Controls a viewer may press too (STOP: stopping is always safe)."""
@@ -129,13 +183,18 @@ class InputFilter:
             if role != OPERATOR and kind not in VIEWER_SCENE:
                 return Verdict(False, f"{kind}: a viewer cannot change the scene")
             body = {k: v for k, v in message.items() if k != "type"}
+            unknown = set(body) - self._fields[kind]
+            if unknown:
+                names = ", ".join(sorted(str(k)[:20] for k in unknown))[:80]
+                return Verdict(False, f"{kind}: fields it does not have ({names})")
             try:
                 msgspec.convert(body, self._types[kind])
             except (msgspec.ValidationError, TypeError, ValueError, KeyError) as exc:
                 return Verdict(False, f"{kind}: {str(exc).splitlines()[0][:120]}")
             if not _finite(body):
                 return Verdict(False, f"{kind}: a number that is not finite")
-            return PASS
+            why = scene_fault(body)
+            return Verdict(False, f"{kind}: {why}") if why else Verdict(True, kind=kind)
         if kind in QUIET:
             return Verdict(False, f"{kind}: not used here", quiet=True)
         return Verdict(False, f"message type {kind[:60]!r} is not one a client may send")
@@ -157,7 +216,7 @@ class InputFilter:
         if disabled or not visible:
             return Verdict(False, f"{name}: {'disabled' if disabled else 'hidden'} now", uuid)
         why = _value_fault(handle, updates["value"])
-        return Verdict(False, f"{name} = {_short(updates['value'])}: {why}", uuid) if why else PASS
+        return Verdict(False, f"{name} = {_short(updates['value'])}: {why}", uuid) if why else Verdict(True, uuid=uuid)
 
 
 def _value_fault(handle: Any, value: Any) -> str:

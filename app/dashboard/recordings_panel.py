@@ -5,6 +5,11 @@ of the live page: the operator keeps the live view and the STOP button while rob
 A replay is opened only by a name this panel listed: a value the browser sends that is not
 one of them (a path, ``../`` anything) is refused and opens nothing.
 At most ``MAX_OPEN`` replays are served at once; opening another closes the oldest.
+
+A replay has credentials of its own (the composition root makes them), and a link carries one: the
+panel's links are shown to each client alone (viser's per-client markdown, inside this folder), an
+operator the replay's operator link, a viewer its viewer link. What is shown to every client names the
+replays, never a link (docs/page-access.md).
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import viser
 
+from app.dashboard.input_filter import OPERATOR, VIEWER
 from app.dashboard.widgets import as_text
 
 from app.files import default_recordings, display_path
@@ -31,6 +37,9 @@ class ServedReplay(Protocol):
 
     @property
     def url(self) -> str: ...
+
+    @property
+    def viewer_url(self) -> str: ...
 
     def start(self) -> None: ...
 
@@ -49,16 +58,21 @@ def list_recordings(folder: Path) -> dict[str, Path]:
 
 class RecordingsPanel:
     def __init__(self, server: viser.ViserServer, serve: Callable[[Recording], ServedReplay],
-                 folder: Path | None = None, current: str = "") -> None:
+                 folder: Path | None = None, current: str = "",
+                 role_of: Callable[[int], str] = lambda _: VIEWER) -> None:
         """``serve``: a recording to a replay page of its own, not yet started (the composition root
-        says where and for whom: the live page's host and token)."""
+        says where, with credentials of its own); ``role_of``: a client's role (the gate's), which
+        says which of a replay's links it is shown (unknown: a viewer's)."""
         self.server, self.serve, self.folder = server, serve, folder or default_recordings()
         self.current = current  # the file this live run records to: not offered while it is written
         self._listed: dict[str, Path] = {}  # what the menu offers: the only files that can be opened
         self.replays: list[ServedReplay] = []
         self._lock = threading.Lock()
+        self.role_of = role_of
+        self._client_links: dict[int, viser.GuiMarkdownHandle] = {}  # client id -> its own links
+        self._links_lock = threading.Lock()  # a client's links are made once (its connect vs. an open)
         gui = server.gui
-        with gui.add_folder("Recordings", expand_by_default=False):
+        with gui.add_folder("Recordings", expand_by_default=False) as self.folder_handle:
             options = self._options()
             self.menu = gui.add_dropdown("Session", options=options, initial_value=options[0],
                                          hint="recorded sessions in recordings/, newest first")
@@ -68,6 +82,8 @@ class RecordingsPanel:
             self.links = gui.add_markdown("")
         self.refresh.on_click(lambda _: self.rescan())
         self.open.on_click(lambda _: self._open_clicked())
+        server.on_client_connect(lambda client: self._show_links(client))
+        server.on_client_disconnect(self._forget)
 
     def _options(self) -> list[str]:
         self._listed = {n: f for n, f in list_recordings(self.folder).items() if n != self.current}
@@ -113,10 +129,34 @@ class RecordingsPanel:
             replay = self.serve(rec)
             replay.start()
             self.replays.append(replay)
-            lines = [f"- [{as_text(r.rec.path.name)}]({r.url}) — {as_text(r.url)}" for r in self.replays]
+            names = ", ".join(as_text(r.rec.path.name) for r in self.replays)
         note = f"  \n{as_text(rec.loss_note())}" if rec.loss_note() else ""
-        self._show("Replays being served (open in a new tab):  \n" + "\n".join(lines) + note)
+        self._show(f"Replays being served (open in a new tab): {names}" + note)
+        for client in list(self.server.get_clients().values()):
+            self._show_links(client)
         return replay.url
+
+    def _forget(self, client: viser.ClientHandle) -> None:
+        with self._links_lock:
+            self._client_links.pop(client.client_id, None)
+
+    def links_for(self, role: str) -> str:
+        """The replays' links for a client of ``role``: an operator's or a viewer's, never another's."""
+        with self._lock:
+            replays = list(self.replays)
+        urls = [(r.rec.path.name, r.url if role == OPERATOR else r.viewer_url) for r in replays]
+        return "\n".join(f"- [{as_text(name)}]({url}) — {as_text(url)}" for name, url in urls)
+
+    def _show_links(self, client: viser.ClientHandle) -> None:
+        """This client's own links (made the first time there is one to show)."""
+        text = self.links_for(self.role_of(client.client_id))
+        with self._links_lock:
+            shown = self._client_links.get(client.client_id)
+            if shown is not None:
+                shown.content = text
+            elif text:
+                with self.folder_handle:  # a client's element inside the page's folder (viser allows that way)
+                    self._client_links[client.client_id] = client.gui.add_markdown(text)
 
     def _show(self, text: str) -> None:
         self.links.content = text

@@ -3,6 +3,7 @@ arrows, the desired formation polygon with draggable slot handles, trails, truth
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import deque
@@ -17,8 +18,11 @@ from core.obstacles import Obstacle
 
 from core.camera.render.looks import follower_rgb
 from app.dashboard.controls import Controls
+from app.dashboard.gate import Throttle
 from app.tick import TickState
 from app.params import ParamsStore
+
+log = logging.getLogger(__name__)
 
 WORKING_RING_M = (0.3, 1.5)
 TRAIL_SECONDS = 20.0
@@ -46,6 +50,7 @@ class Scene:
         self.server = server
         self.store = store
         self.controls = controls
+        self._camera_throttle = Throttle()  # a client whose camera cannot be placed: one line a second
         s = server.scene
         s.set_up_direction("+z")
         s.add_grid("/grid", width=30.0, height=30.0, plane="xy", cell_size=0.25, section_size=1.0)
@@ -251,10 +256,14 @@ class Scene:
             position, look_at = (lx - 0.01 * ahead[0], ly - 0.01 * ahead[1], ABOVE_M), (lx, ly, 0.0)
         else:
             position, look_at = (lx - 3.0, ly - 3.0, 3.0), (lx, ly, 0.0)
-        for client in self.server.get_clients().values():
-            with client.atomic():
-                client.camera.position = position
-                client.camera.look_at = look_at
+        for client in list(self.server.get_clients().values()):
+            try:  # one client's camera (what its browser last said of it) never stops the others' updates
+                with client.atomic():
+                    client.camera.position = position
+                    client.camera.look_at = look_at
+            except (ValueError, ArithmeticError, AttributeError) as exc:
+                if self._camera_throttle.due(client.client_id) >= 0:
+                    log.warning("dashboard: client %d's camera not placed: %s", client.client_id, str(exc)[:120])
 
     def _safety_view(self, state: TickState, est_world: np.ndarray, known: np.ndarray) -> None:
         """The obstacles the leader knows (scan and memory), the goal, the planned heading, and a

@@ -45,7 +45,7 @@ from core.bounds import LEADER_SPEED, LEADER_TURN
 from core.control.safety import SafetySettings
 from core.fleet import MAX_TEAM, ArenaState, FleetScenario, closest_distance, initial_arena, step_arena
 from core.link import protocol as p
-from core.link.follower import FollowerState
+from core.link.follower import FollowerState, RadioAuth
 from core.link.protocol import WATCHDOG_S
 from core.types import FloatArray
 
@@ -86,9 +86,11 @@ class Arena:
     """The shared world on the bus. ``step()`` is its loop's one step (the caller paces it)."""
 
     def __init__(self, scenario: FleetScenario, session: Any, fleet: str | None = None, radio: bool = False,
-                 radio_drop: float = 0.0, radio_delay_s: float = 0.0, seed: int = 0) -> None:
+                 radio_drop: float = 0.0, radio_delay_s: float = 0.0, seed: int = 0,
+                 radio_auth: RadioAuth | None = None) -> None:
         """``radio``: the robots take commands over an emulated radio (:attr:`radio`, one pty per
-        leader, leader i's radio number i + 1, robot R<n> at address n), not from the bus."""
+        leader, leader i's radio number i + 1, robot R<n> at address n), not from the bus;
+        ``radio_auth``: the fleet's radio key the robots hold there (default: the open key)."""
         self.scenario = scenario
         self.fleet = fleet or scenario.name
         self.session = session
@@ -96,7 +98,7 @@ class Arena:
         self.ids = [ld.id for ld in scenario.leaders]
         n_robots = self.state.robots.shape[0]
         # the robots themselves (the followers' rules): each its scenario leader's at power-up
-        self.robots = FollowerEmulator(list(range(1, n_robots + 1)))
+        self.robots = FollowerEmulator(list(range(1, n_robots + 1)), auth=radio_auth or RadioAuth())
         for r, i in enumerate(scenario.owners):
             a = r + 1
             self.robots.followers[a] = dataclasses.replace(self.robots.followers[a], owner=int(i) + 1,

@@ -116,20 +116,22 @@ class ServiceLoop:
         switches: tuple[tuple[float, FloatArray], ...] = (),
         arena: ArenaTeam | None = None,
         realtime: bool = False,
+        leader_base: FollowerLink | None = None,
     ) -> None:
         """``realtime``: the loop's thread (and a real camera's capture thread) ask for SCHED_FIFO
         when the loop starts (app.realtime); ``priority`` says what they got.
         The team and its feedback are made by :class:`app.backends.world.Backends` from these
         (its docstring says what each means); the loop only drives what it is handed.
         ``switches``: (time s, slots) a scenario's formation switches, applied as the operator's
-        would be (they count from the loop's start and from every reset)."""
+        would be (they count from the loop's start and from every reset). ``leader_base``: the
+        simulated team's leader is a real base (app.backends.sim)."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
         self.seed = seed
         self.backends = Backends(seed, dynamics or FollowerDynamics(), position_noise_m, heading_noise_rad,
                                  initial_poses, camera, link, frames, hardware,
-                                 pipeline_settings or PipelineSettings(), tuple(obstacles), arena)
+                                 pipeline_settings or PipelineSettings(), tuple(obstacles), arena, leader_base)
         self.realtime = realtime
         self.priority = "normal"  # how the loop's thread is scheduled, once it runs
         self.switches = tuple(switches)
@@ -260,7 +262,9 @@ class ServiceLoop:
         if not self._world.ready:
             return "the team's start-up"
         if len(lost) == 0:
-            self.store.update("loop", leader_hold=False)  # the team is whole again: the leader resumes
+            # the team is whole again: the leader resumes, unless a STOP came in since this tick read
+            # the parameters (decided on what is in force now, in one step: never half undo a STOP)
+            self.store.change("loop", lambda now: {"leader_hold": False} if now.leader_hold and not now.stop else {})
             return ""
         return "waiting for " + ", ".join(f"F{i + 1}" for i in lost) + " to be tracked"
 

@@ -19,7 +19,10 @@ different order:
   ``ChunkIndex`` records only when the summary is written.
 
 No message indexes are written: readers decompress a chunk whole (mcap, Foxglove and ours read
-files without them).
+files without them). The summary names only the channels that carried a message (and their
+schemas), so every schema and channel in it also appears in the data section, as MCAP's own
+checks (``mcap doctor``) require; a channel that never carried one is named in our metadata's
+channel table only.
 """
 
 from __future__ import annotations
@@ -155,6 +158,11 @@ class SessionWriter:
         for cid in chunk.channels:
             self.messages_written[cid] = self._counts[cid]  # every message so far on this channel is in a closed chunk
 
+    @property
+    def message_counts(self) -> dict[int, int]:
+        """Messages added so far, per channel id."""
+        return dict(self._counts)
+
     def flush(self) -> None:
         """Close every open chunk now (the writer's queue ran dry, or the session ends)."""
         for group in list(self._open):
@@ -180,13 +188,18 @@ class SessionWriter:
                 offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + start,
                                              group_length=summary.count - start))
 
-        group(Opcode.SCHEMA, self._schemas.values())
-        group(Opcode.CHANNEL, self._channels.values())
+        # the summary repeats what the data section holds, no more (MCAP's doctor: a channel or
+        # schema in the summary must appear in the data section): channels that carried a message
+        channels = {cid: c for cid, c in self._channels.items() if self._counts[cid]}
+        schemas = {c.schema_id: self._schemas[c.schema_id] for c in channels.values() if c.schema_id}
+        group(Opcode.SCHEMA, [schemas[sid] for sid in sorted(schemas)])
+        group(Opcode.CHANNEL, channels.values())
         group(Opcode.STATISTICS, [Statistics(
-            attachment_count=0, channel_count=len(self._channels), channel_message_counts=dict(self._counts),
+            attachment_count=0, channel_count=len(channels),
+            channel_message_counts={cid: self._counts[cid] for cid in channels},
             chunk_count=len(self._chunk_rows) // 6, message_count=self.message_count,
             message_end_time=self._end_ns, message_start_time=self._start_ns, metadata_count=len(self._metadata),
-            schema_count=len(self._schemas))])
+            schema_count=len(schemas))])
         group(Opcode.CHUNK_INDEX, self._chunk_indexes())
         group(Opcode.METADATA_INDEX, self._metadata)
         summary_offset_start = summary_start + summary.count

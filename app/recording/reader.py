@@ -9,9 +9,15 @@ and the index whatever the file's length, and a seek anywhere costs one chunk.
 
 Every chunk carries a CRC of its contents. A chunk whose CRC, compression or framing does
 not check out is skipped, and reading goes on at the next chunk that does (found by its
-framing if the damage hit a length field). A file cut off mid-chunk (a killed writer, power
-loss) is read up to its last complete chunk. What could not be read is said in ticks and
-seconds: the tick counter of the loop runs without gaps, so a gap is a loss.
+framing if the damage hit a length field). No damaged record ends the reading: a footer
+counts only where it must be (20 bytes, then the magic that closes the file), and a record
+that cannot stand where it is (a footer or summary record in the data section, an opcode
+MCAP does not know, a length past the data section) is damage like a bad chunk. A file cut
+off mid-chunk (a killed writer, power loss) is read up to its last complete chunk. What
+could not be read is said in ticks and seconds: the tick counter of the loop runs without
+gaps, so a gap is a loss. How many ticks were written comes only from a record whose CRC
+checks out: the summary, or else the writer's count after its last chunk (a metadata record
+of its own); a damaged summary is said, and its counts are not used.
 """
 
 from __future__ import annotations
@@ -36,14 +42,14 @@ from mcap.records import Channel, Chunk, Metadata, Schema, Statistics
 from mcap.data_stream import ReadDataStream
 
 from app.params import Params
-from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC,
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, COUNTS_KEY, COUNTS_NAME, EVENT_TOPIC,
+                                  IMAGE_TOPIC,
                                   METADATA_CRC_KEY, METADATA_NAME, PARAMS_TOPIC,
                                   TICK_TOPIC, TRIAL_TOPIC)
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
-OP_STATISTICS, OP_METADATA, OP_DATA_END = 0x0B, 0x0C, 0x0F
-KNOWN_OPCODES = set(range(0x01, 0x10))
+OP_MESSAGE_INDEX, OP_STATISTICS, OP_METADATA, OP_DATA_END = 0x07, 0x0B, 0x0C, 0x0F
 MAX_RECORD = 64 * 1024 * 1024  # no record this program writes comes near (chunks are ~256 KiB)
 CHUNKS_KEPT = 4  # decoded chunks kept for the sequences (a few MB)
 _TICK_HEAD = re.compile(rb'^\{"tick":(-?\d+),"t":')
@@ -172,7 +178,7 @@ class Recording:
     path: Path
     metadata: dict[str, str]
     channels: dict[str, str]  # topic -> schema name
-    complete: bool  # the file ends with its summary and footer
+    complete: bool  # the file ends with its footer (its writer finished it)
     bytes_total: int
     bytes_read: int  # bytes that were read as good records
     damage: list[Damage]
@@ -182,8 +188,9 @@ class Recording:
     events: list[dict[str, Any]]
     params: list[tuple[float, dict[str, Any]]]  # (t, the full parameter set) at start and on change
     trials: list[dict[str, Any]] = field(default_factory=list)  # the step tests (app.live.tuning.Trial.payload)
-    ticks_written: int | None = None  # what the file's summary says it holds (None: no intact summary)
+    ticks_written: int | None = None  # what the file's summary says it holds (None: no summary that checks out)
     frames_written: int | None = None  # likewise for camera frames
+    summary_damaged: bool = False  # finished, but its summary's CRC fails: its counts are not used
     ticks: Sequence[dict[str, Any]] = field(repr=False, default=())
     frames: Sequence[tuple[float, bytes]] = field(repr=False, default=())  # (t, JPEG)
     _chunks: _Chunks | None = field(repr=False, default=None)
@@ -236,6 +243,14 @@ class Recording:
             size = sum(d.end_byte - d.start_byte for d in damaged)
             parts.append(f"{len(damaged)} damaged stretch{'es' if len(damaged) > 1 else ''} of the file"
                          f" ({size / 1024:.0f} KiB) skipped")
+        if self.summary_damaged and self.ticks_written is None:
+            last = float(self.t[-1]) if len(self.t) else 0.0
+            parts.append(f"its summary is damaged (its CRC fails) and so is the writer's count after its last chunk,"
+                         f" so how many ticks were written is not known: a loss after the last tick read"
+                         f" (t = {last:.2f} s) cannot be counted")
+        elif self.summary_damaged:
+            parts.append("its summary is damaged (its CRC fails): the ticks written are the writer's count after its"
+                         " last chunk")
         if not self.complete:
             last = float(self.t[-1]) if len(self.t) else 0.0
             tail = self.bytes_total - max((d.start_byte for d in self.damage if d.why.startswith("cut off")),
@@ -266,6 +281,10 @@ def metadata_checks_out(record: dict[str, str]) -> bool:
 
 class _Unannounced(ValueError):
     """A chunk's message names a channel not announced so far."""
+
+
+class _DamagedCopy(ValueError):
+    """Our metadata record whose CRC does not match."""
 
 
 def _chunk_contents(body: bytes) -> bytes:
@@ -320,14 +339,24 @@ class _Scan:
         self.complete = False
         self.good_bytes = 8
         self.later: list[tuple[int, int]] = []  # (offset, length) of chunks to read once the channels are known
-        self.written: dict[int, int] = {}  # channel id -> messages written (the summary's statistics)
+        self.written: dict[int, int] = {}  # channel id -> messages written (a summary that checks out)
+        self.data_end = size  # where the data section ends (the summary's start, when that checks out)
+        self.trusted_summary: tuple[int, int] | None = None  # (start, footer offset) of a summary that checks out
+        self.summary_damaged = False  # the file ends with its footer, but the summary's CRC fails
+        self.counted: dict[int, int] | None = None  # the writer's counts record (after the last chunk), CRC checked
+        self._resumed = 0
 
     def run(self) -> None:
+        self._read_tail()
         self._walk()
+        if self.trusted_summary is not None:
+            self._read_summary(*self.trusted_summary)
+        elif self.counted is not None:  # no summary to trust: the counts the writer wrote after its last chunk
+            self.written = dict(self.counted)
         if not self.later:
             return
         # chunks whose channels were announced only in a damaged chunk: the summary section (a
-        # finished file) or the metadata's channel table named them by now
+        # finished file whose summary checks out) or the metadata's channel table named them by now
         for pos, length in self.later:
             self.f.seek(pos + 9)
             try:
@@ -349,9 +378,63 @@ class _Scan:
         self.events.sort(key=lambda e: e[0])
         self.params.sort(key=lambda e: e[0])
 
+    def _read_tail(self) -> None:
+        """The file's end, found where it must be (a footer of 20 bytes, then the magic, closing
+        the file): ``complete`` if it is there; the summary trusted only if its CRC checks out.
+        The data section then ends where the summary starts (``data_end``)."""
+        footer_at = self.size - len(MAGIC) - 9 - 20
+        if footer_at < 8:
+            return
+        self.f.seek(footer_at)
+        tail = self.f.read(9 + 20 + len(MAGIC))
+        if tail[0] != OP_FOOTER or int.from_bytes(tail[1:9], "little") != 20 or tail[29:] != MAGIC:
+            return
+        self.complete = True
+        summary_start, _, crc = struct.unpack_from("<QQI", tail, 9)
+        if not 8 < summary_start <= footer_at:
+            self.summary_damaged = summary_start != 0  # 0: a file without a summary, as MCAP allows
+            return
+        if not self._summary_checks_out(footer_at, tail[9:29]):
+            self.summary_damaged = True
+            return
+        self.trusted_summary = (summary_start, footer_at)
+        self.data_end = summary_start
+        self.f.seek(summary_start - 13)
+        if self.f.read(9) == bytes([OP_DATA_END]) + (4).to_bytes(8, "little"):
+            self.data_end = summary_start - 13  # the data end record: where the walk stops
+
+    def _read_summary(self, start: int, end: int) -> None:
+        """A summary section whose CRC checked out: its schemas, channels and message counts."""
+        self.f.seek(start)
+        data = self.f.read(end - start)
+        pos = 0
+        while pos + 9 <= len(data):
+            op, length = data[pos], int.from_bytes(data[pos + 1:pos + 9], "little")
+            body = data[pos + 9:pos + 9 + length]
+            if op in (OP_SCHEMA, OP_CHANNEL, OP_STATISTICS):
+                self._take(op, body)
+            pos += 9 + length
+        self.good_bytes += len(MAGIC) + 29 + (end - start) + (start - self.data_end)
+
+    def _fits(self, op: int, pos: int, length: int, prev: int) -> bool:
+        """The record can stand here in the data section of a file this program wrote: the
+        header first; then metadata, chunks (each followed by any message indexes) and the data
+        end record (4 bytes). A footer, a summary record or an opcode MCAP does not know cannot,
+        and neither can a record that runs past the data section."""
+        if length > MAX_RECORD or pos + 9 + length > self.data_end:
+            return False
+        if op == OP_HEADER:
+            return pos == 8
+        if op == OP_MESSAGE_INDEX:
+            return prev in (OP_CHUNK, OP_MESSAGE_INDEX)
+        if op == OP_DATA_END:
+            return length == 4
+        return op in (OP_METADATA, OP_CHUNK)
+
     def _walk(self) -> None:
-        pos = 8
-        while pos < self.size:
+        pos, prev = 8, 0
+        limit = self.data_end
+        while pos < limit:
             self.f.seek(pos)
             head = self.f.read(9)
             if len(head) < 9:
@@ -359,14 +442,10 @@ class _Scan:
                 return
             op, length = head[0], int.from_bytes(head[1:9], "little")
             end = pos + 9 + length
-            if op not in KNOWN_OPCODES or length > MAX_RECORD or end > self.size:
-                nxt = self._resync(pos + 1)
-                if nxt is None:
-                    why = "cut off: an unfinished chunk" if op == OP_CHUNK and end > self.size else "cut off: damaged to the end"
-                    self.damage.append(Damage(pos, self.size, why))
+            if not self._fits(op, pos, length, prev):
+                if not self._skip_damage(pos, "a damaged stretch", op == OP_CHUNK and end > self.size):
                     return
-                self.damage.append(Damage(pos, nxt, "a damaged stretch"))
-                pos = nxt
+                pos, prev = self._resumed, 0
                 continue
             body = self.f.read(length)
             try:
@@ -374,23 +453,50 @@ class _Scan:
             except _Unannounced:  # read again once the whole file said what its channels are
                 self.later.append((pos, length))
                 self.good_bytes += 9 + length
-                pos = end
+                pos, prev = end, op
+                continue
+            except _DamagedCopy:  # one copy of the metadata: the other (or the chunks) carry on
+                self.damage.append(Damage(pos, end, "a damaged copy of the metadata"))
+                pos, prev = end, op
                 continue
             except Exception:  # noqa: BLE001 - damaged bytes raise assorted errors: skip to the next good chunk
-                nxt = self._resync(pos + 1)
-                if nxt is None:
-                    self.damage.append(Damage(pos, self.size, "cut off: damaged to the end"))
+                if not self._skip_damage(pos, "a damaged chunk" if op == OP_CHUNK else "a damaged record", False):
                     return
-                self.damage.append(Damage(pos, nxt, "a damaged chunk"))
-                pos = nxt
+                pos, prev = self._resumed, 0
                 continue
+            if op == OP_DATA_END:
+                if self.trusted_summary is None:  # the summary follows, unless a good chunk does: then this was no end
+                    nxt = self._resync(end)
+                    if nxt is not None:
+                        self.damage.append(Damage(pos, nxt, "a damaged stretch"))
+                        pos, prev = nxt, 0
+                        continue
+                    self.good_bytes += 9 + length
+                    if self.summary_damaged:
+                        self.damage.append(Damage(end, self.size, "a damaged summary"))
+                    elif not self.complete:
+                        self.damage.append(Damage(end, self.size, "cut off: in its summary"))
+                    return
             self.good_bytes += 9 + length
-            if op == OP_FOOTER:
-                self.complete = self._ends_with_magic(end)
-                if not self._summary_checks_out(pos, body):
-                    self.written = {}  # a damaged summary's counts are no count
-                return
-            pos = end
+            pos, prev = end, op
+
+    def _skip_damage(self, pos: int, why: str, unfinished: bool) -> bool:
+        """Damage from ``pos`` to the next chunk that checks out (``_resumed``); False when none
+        follows: the damage runs to the end of the data (a cut-off file: to the file's end)."""
+        nxt = self._resync(pos + 1)
+        if nxt is not None:
+            self.damage.append(Damage(pos, nxt, why))
+            self._resumed = nxt
+            return True
+        if self.trusted_summary is not None:
+            self.damage.append(Damage(pos, self.data_end, why))
+        elif self.complete:
+            self.damage.append(Damage(pos, self.size, "damaged to the end of its data, and its summary"
+                                                      + (" is damaged" if self.summary_damaged else " is missing")))
+        else:
+            self.damage.append(Damage(pos, self.size, "cut off: an unfinished chunk" if unfinished
+                                      else "cut off: damaged to the end"))
+        return False
 
     def _summary_checks_out(self, footer_at: int, body: bytes) -> bool:
         """The summary section's CRC (in the footer) matches its bytes; a footer without one (0)
@@ -405,16 +511,18 @@ class _Scan:
         return bool(zlib.crc32(struct.pack("<BQQQ", OP_FOOTER, 20, summary_start, summary_offset_start),
                                zlib.crc32(summary)) == crc)
 
-    def _ends_with_magic(self, end: int) -> bool:
-        self.f.seek(end)
-        return self.f.read(8) == MAGIC
-
     def _take(self, op: int, body: bytes) -> None:
         if op == OP_CHUNK:
             self._take_chunk(body)
         elif op == OP_METADATA:
             md = Metadata.read(ReadDataStream(io.BytesIO(body)))
-            if md.name == METADATA_NAME and not self.metadata and metadata_checks_out(md.metadata):  # the first intact copy
+            if md.name in (METADATA_NAME, COUNTS_NAME) and not metadata_checks_out(md.metadata):
+                raise _DamagedCopy("a damaged copy of the metadata")
+            if md.name == COUNTS_NAME and METADATA_CRC_KEY in md.metadata:  # the writer's counts, CRC checked
+                self.counted = {int(c): int(n) for c, n in json.loads(md.metadata[COUNTS_KEY]).items()}
+            if md.name not in (METADATA_NAME, COUNTS_NAME):  # this program writes no other: a damaged record
+                raise ValueError("a metadata record this program does not write")
+            if md.name == METADATA_NAME and not self.metadata:  # the first intact copy
                 self.metadata = dict(md.metadata)
                 self.metadata.pop(METADATA_CRC_KEY, None)
                 self._channel_table(self.metadata.pop(CHANNELS_KEY, ""))
@@ -425,8 +533,9 @@ class _Scan:
         elif op == OP_STATISTICS:  # the summary's count of messages per channel: the ticks written
             stats = Statistics.read(ReadDataStream(io.BytesIO(body)))
             self.written = dict(stats.channel_message_counts)
-        elif op == OP_DATA_END:
-            pass  # the summary that follows repeats what the data section said
+        elif op == OP_MESSAGE_INDEX:  # not written by this program; other writers put them after a chunk
+            if len(body) < 6 or 6 + int.from_bytes(body[2:6], "little") != len(body):
+                raise ValueError("a message index that does not add up")
 
     def _channel_table(self, text: str) -> None:
         """The channel table our writer puts in its metadata (schema.CHANNELS_KEY): what a damaged
@@ -492,60 +601,82 @@ class _Scan:
         self.places.append((self.f.tell() - len(body) - 9, len(body)))
 
     def _resync(self, start: int) -> int | None:
-        """The offset of the next chunk record at or after ``start`` whose framing and CRC check out."""
+        """The offset of the next chunk record (or metadata record of ours) at or after ``start``
+        (within the data section) whose framing and CRC check out."""
         block = 1 << 20
         pos = start
-        while pos < self.size:
+        while pos < self.data_end:
             self.f.seek(pos)
             data = self.f.read(block + 9)
-            k = data.find(bytes([OP_CHUNK]))
+            k = _next_candidate(data, 0)
             while k != -1 and k < block:
                 cand = pos + k
                 if k + 9 <= len(data):
                     length = int.from_bytes(data[k + 1:k + 9], "little")
-                    if 32 <= length <= MAX_RECORD and cand + 9 + length <= self.size:
+                    if 32 <= length <= MAX_RECORD and cand + 9 + length <= self.data_end:
                         self.f.seek(cand + 9)
                         try:
-                            _chunk_contents(self.f.read(length))
-                            return cand
-                        except Exception:  # noqa: BLE001 - not a chunk after all
+                            body = self.f.read(length)
+                            if data[k] == OP_CHUNK:
+                                _chunk_contents(body)
+                                return cand
+                            md = Metadata.read(ReadDataStream(io.BytesIO(body)))
+                            if (md.name in (METADATA_NAME, COUNTS_NAME) and METADATA_CRC_KEY in md.metadata
+                                    and metadata_checks_out(md.metadata)):
+                                return cand
+                        except Exception:  # noqa: BLE001 - not a record after all
                             pass
-                k = data.find(bytes([OP_CHUNK]), k + 1)
+                k = _next_candidate(data, k + 1)
             pos += block
         return None
 
 
-def is_session(path: Path) -> bool:
-    """The file is a session this program recorded: an MCAP file whose header names omniformation
-    as its writer and whose first records include our metadata record (app.recording.writer
-    writes it before the first chunk). Retention deletes nothing else."""
+def session_record(path: Path) -> dict[str, str] | None:
+    """The metadata record of a session this program recorded (an MCAP file whose header names
+    omniformation as its writer and whose first records include our metadata record, which
+    app.recording.writer writes before the first chunk); None for any other file. The first
+    copy whose CRC checks out; a file whose copies both fail is not taken for a session."""
     try:
         with open(path, "rb") as f:
             if f.read(8) != MAGIC:
-                return False
+                return None
             for k in range(8):  # the header, then our metadata (twice) before any chunk
                 head = f.read(9)
                 if len(head) < 9:
-                    return False
+                    return None
                 op, length = head[0], int.from_bytes(head[1:9], "little")
-                if length > MAX_RECORD:
-                    return False
-                if op == OP_CHUNK:
-                    return False
+                if length > MAX_RECORD or op == OP_CHUNK:
+                    return None
                 body = f.read(length)
                 if k == 0:
                     if op != OP_HEADER:
-                        return False
+                        return None
                     profile_len = int.from_bytes(body[:4], "little")
                     library = body[8 + profile_len:8 + profile_len + int.from_bytes(body[4 + profile_len:8 + profile_len],
                                                                                   "little")]
                     if library != b"omniformation":
-                        return False
+                        return None
                 elif op == OP_METADATA:
-                    return bool(Metadata.read(ReadDataStream(io.BytesIO(body))).name == METADATA_NAME)
+                    md = Metadata.read(ReadDataStream(io.BytesIO(body)))
+                    if md.name != METADATA_NAME:
+                        return None
+                    if metadata_checks_out(md.metadata):
+                        return dict(md.metadata)
     except (OSError, ValueError, struct.error, UnicodeDecodeError):
-        return False
-    return False
+        return None
+    return None
+
+
+def _next_candidate(data: bytes, start: int) -> int:
+    """Where the next chunk or metadata opcode is in ``data`` from ``start`` (-1: none)."""
+    hits = [k for k in (data.find(bytes([OP_CHUNK]), start), data.find(bytes([OP_METADATA]), start)) if k != -1]
+    return min(hits) if hits else -1
+
+
+def is_session(path: Path) -> bool:
+    """The file is a session this program recorded (see :func:`session_record`). Retention
+    deletes nothing else."""
+    return session_record(path) is not None
 
 
 def read_recording(path: Path) -> Recording:
@@ -607,6 +738,7 @@ def read_recording(path: Path) -> Recording:
         ticks_written=next((n for cid, n in scan.written.items() if scan.topic_of.get(cid) == TICK_TOPIC), None),
         frames_written=next((n for cid, n in scan.written.items() if scan.topic_of.get(cid) == IMAGE_TOPIC),
                             None if not scan.written else 0),
+        summary_damaged=scan.summary_damaged,
         ticks=_Messages(chunks, ticks_at, tick), frames=_Messages(chunks, frames_at, frame), _chunks=chunks,
     )
 

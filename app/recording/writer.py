@@ -13,10 +13,19 @@ below the floor stops the recording cleanly: what was written stays readable, th
 kept in :attr:`Recorder.failure` and handed to ``on_stopped`` (the page and the log say it),
 and the loop and the robots carry on. Closing never waits longer than ``CLOSE_TIMEOUT_S`` on
 the disk. :func:`apply_retention` keeps a recordings folder within its budget.
+
+A session being written is locked: the recorder holds an exclusive ``flock`` on its file from
+the moment it creates it until the file is finished (closed), and other processes see it.
+Retention tries the same lock without waiting and never deletes a file it cannot take, so
+two services on one recordings folder never delete each other's live session. Retention
+deletes only the live service's sessions (metadata ``retention = "service"``, set by
+app.services.recording); what ``simulate --record``, ``rerun``, ``bench`` or an export
+write is never the service's to delete.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import math
@@ -37,7 +46,8 @@ from app.tick import SessionClock, TickState
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
 from app.recording.mcap_out import SessionWriter
 from app.recording.reader import metadata_crc
-from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, EVENT_TOPIC, IMAGE_TOPIC,
+from app.recording.schema import (CHANNELS_KEY, CHUNK_BYTES, CHUNK_SECONDS, COUNTS_KEY, COUNTS_NAME, EVENT_TOPIC,
+                                  IMAGE_TOPIC,
                                   METADATA_COPIES, METADATA_CRC_KEY, METADATA_NAME, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC,
                                   SCHEMAS, TF_TOPIC, TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable,
                                   params_payload, scan_payload, tick_payload, transforms_payload)
@@ -65,11 +75,44 @@ def free_bytes(folder: Path) -> int:
     return shutil.disk_usage(folder).free
 
 
+RETENTION_KEY = "retention"  # metadata: "service" on the live service's sessions, the only ones retention deletes
+RETENTION_SERVICE = "service"
+
+
+def _services_session(path: Path) -> bool:
+    """A session the live service recorded: its metadata says so (older recordings, made before
+    the mark: their command was ``omniformation run``)."""
+    from app.recording.reader import session_record
+
+    meta = session_record(path)
+    if meta is None:
+        return False
+    if RETENTION_KEY in meta:
+        return meta[RETENTION_KEY] == RETENTION_SERVICE
+    return meta.get("command", "").split(" ")[:2] == ["omniformation", "run"]
+
+
+def _delete_unless_locked(path: Path) -> bool:
+    """Delete ``path`` while holding its lock; False (left alone) if a recorder holds the lock."""
+    try:
+        with open(path, "rb") as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return False  # being written
+            path.unlink()
+            return True
+    except FileNotFoundError:
+        return False
+
+
 def apply_retention(folder: Path, max_total_bytes: int, keep: tuple[Path, ...] = ()) -> list[Path]:
-    """Delete the oldest sessions directly in ``folder`` (never its sub-folders: samples/ is
-    kept) until the sessions there add up to at most ``max_total_bytes``; the paths deleted.
-    A session is a file this program recorded, known by its header and metadata
-    (app.recording.reader.is_session), never by its name: other files are never touched."""
+    """Delete the oldest of the live service's sessions directly in ``folder`` (never its
+    sub-folders: samples/ is kept) until the sessions there add up to at most
+    ``max_total_bytes``; the paths deleted. A session is a file this program recorded, known by
+    its header and metadata (app.recording.reader.session_record), never by its name: other
+    files are never touched. A session being written (locked: see the module docstring) counts
+    towards the total and is never deleted; neither is one another command wrote."""
     from app.recording.reader import is_session
 
     if not folder.is_dir():
@@ -82,12 +125,12 @@ def apply_retention(folder: Path, max_total_bytes: int, keep: tuple[Path, ...] =
     for p in sessions:
         if total <= max_total_bytes:
             break
-        if p.resolve() in keep_resolved:
+        if p.resolve() in keep_resolved or not _services_session(p):
             continue
         size = p.stat().st_size
-        p.unlink()
-        total -= size
-        deleted.append(p)
+        if _delete_unless_locked(p):
+            total -= size
+            deleted.append(p)
     return deleted
 
 
@@ -168,6 +211,11 @@ class Recorder:
             self._file = open(path, "xb")  # noqa: SIM115 - open for the session's life; never over an existing file
         except FileExistsError:
             raise RecordingRefused(f"{path}: exists; a recording is never written over another") from None
+        try:  # locked before its first byte, until it is closed: retention elsewhere never deletes it
+            fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:  # a file system without locks: say so, record anyway
+            log.warning("recording %s: cannot lock it (%s); another service's retention could delete it", path,
+                        exc.strerror or exc)
         # camera frames in chunks of their own: a damaged frame costs no tick (app.recording.mcap_out)
         self._writer = SessionWriter(self._file, CHUNK_BYTES, CHUNK_SECONDS, groups=[(IMAGE_TOPIC,)])
         self._channels: dict[str, int] = {}
@@ -325,6 +373,12 @@ class Recorder:
         """Summary and index if the disk takes them; the file is closed either way (a file
         without its summary is still read up to its last complete chunk)."""
         try:
+            # the counts again, with a CRC, after the last chunk: a damaged summary leaves them known
+            self._writer.flush()
+            counts = {COUNTS_KEY: json.dumps({str(c): n for c, n in self._writer.message_counts.items() if n},
+                                             separators=(",", ":"))}
+            counts[METADATA_CRC_KEY] = metadata_crc(counts)
+            self._writer.add_metadata(COUNTS_NAME, counts)
             self._writer.finish()
         except (OSError, ValueError):
             pass

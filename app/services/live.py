@@ -29,7 +29,7 @@ from app.dashboard import Dashboard, LatestStatePublisher
 from app.dashboard.calibration_panel import CalibrationPanel
 from app.dashboard.camera_panel import Overlay
 from app.dashboard.tuning_panel import TuningPanel
-from app.dashboard.gate import quietly, serve_gated
+from app.dashboard.gate import new_token, quietly, serve_gated
 from app.dashboard.recordings_panel import RecordingsPanel
 from app.services.page_process import PageProcess
 from app.services.replay import ReplayService
@@ -38,6 +38,7 @@ from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
 from app.memory import bound_native_heap, bound_python_heap
+from app.recording.reader import Recording
 
 
 
@@ -100,7 +101,8 @@ class Service:
                  link: FollowerLink | None = None, frames: FrameSource | None = None,
                  hardware: HardwareTeam | None = None, recordings: Path | None = None,
                  token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None,
-                 viewer_token: str | None = None, realtime: bool = False, page_process: bool = False) -> None:
+                 viewer_token: str | None = None, realtime: bool = False,
+                 leader_base: FollowerLink | None = None, page_process: bool = False) -> None:
         """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
         ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host.
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
@@ -125,7 +127,7 @@ class Service:
                                 position_noise_m=noise.position_noise_m, heading_noise_rad=noise.heading_noise_rad,
                                 initial_poses=initial_poses, obstacles=obstacles,
                                 switches=scenario.switches if scenario is not None else (), arena=arena,
-                                realtime=realtime)
+                                realtime=realtime, leader_base=leader_base)
         if obstacles:
             self.store.goal_check = goal_check_for(obstacles)
         overlay = None
@@ -169,9 +171,14 @@ class Service:
             self.calibration = CalibrationPanel(self.server, frames, rig.detect, Path("camera.toml"),
                                                 centre=(gamma.cx, gamma.cy), area=rig.working_area)
             self.dashboard.extra.append(self.calibration.refresh)
-        token = self.gate.token
-        self.recordings = RecordingsPanel(self.server, lambda rec: ReplayService(rec, host=host, port=0, token=token),
-                                          recordings)
+
+        def replay(rec: Recording) -> ReplayService:
+            """A replay with credentials of its own: the live page's token never goes into a link
+            (the panel shows each client the link for its role; docs/page-access.md)."""
+            return ReplayService(rec, host=host, port=0, token=new_token() if self.gate.token else None,
+                                 viewer_token=new_token())
+
+        self.recordings = RecordingsPanel(self.server, replay, recordings, role_of=self.gate.role_of)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
 

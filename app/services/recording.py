@@ -22,13 +22,14 @@ def start_recording(service: "Service", config: "ServiceConfig", scenario: "Scen
                     scenario_arg: str | None, camera: Rig | None,
                     frames_hz: float, path: Path | None = None, folder: Path | None = None) -> "Recorder":
     """Start recording the service's session: the retention budget is applied to the folder first
-    (oldest sessions deleted, samples never); a full disk or a write error later stops the
+    (the oldest of the service's sessions deleted; never one being written, never the samples,
+    never what another command wrote); a full disk or a write error later stops the
     recording cleanly, and the page, the log and stderr say so (the robots carry on).
     RecordingRefused (one line) when it cannot start."""
-    from app.recording.writer import Recorder, apply_retention
+    from app.recording.writer import RETENTION_KEY, RETENTION_SERVICE, Recorder, apply_retention
 
     name = scenario.name if scenario is not None else "sim"
-    meta = session_metadata(name, scenario_arg, camera, config.path)
+    meta = {**session_metadata(name, scenario_arg, camera, config.path), RETENTION_KEY: RETENTION_SERVICE}
     path = path or recording_path(name, folder=folder)
     for gone in apply_retention(path.parent, config.max_total_bytes):
         print(f"omniformation: recordings over {config.max_total_bytes / 1e9:g} GB: deleted the oldest,"

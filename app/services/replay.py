@@ -37,12 +37,15 @@ MAX_LISTED = 2000  # events in the "Go to event" list
 
 
 class ReplayService:
-    def __init__(self, rec: Recording, host: str = "127.0.0.1", port: int = 8080, token: str | None = None) -> None:
+    def __init__(self, rec: Recording, host: str = "127.0.0.1", port: int = 8080, token: str | None = None,
+                 viewer_token: str | None = None) -> None:
+        """``token``, ``viewer_token``: this replay's own (app.dashboard.gate); a replay opened from the
+        live page gets new ones, never the live page's (docs/page-access.md)."""
         self.rec = rec
         self.t = rec.t
         self.frame_t = rec.frame_t
         self.event_t = sorted(float(e["t"]) for e in rec.events)
-        self.server, self.gate = serve_gated(host, port, token)
+        self.server, self.gate = serve_gated(host, port, token, viewer_token)
         self.store = ParamsStore(params_from_recording(rec))
         self._param_t = [at for at, _ in rec.params]  # when each recorded parameter set came in force
         self._params_shown = 0  # which of them the page shows
@@ -88,6 +91,10 @@ class ReplayService:
     @property
     def url(self) -> str:
         return self.gate.url
+
+    @property
+    def viewer_url(self) -> str:
+        return self.gate.viewer_url
 
     # -- controls -------------------------------------------------------------------------
     def _wire(self) -> None:

@@ -12,8 +12,9 @@ import numpy as np
 
 from core.types import FloatArray
 
-MIN_SPACING_M = 0.36  # the filter keeps 0.25 m between centres through points 5 cm ahead of each axle,
-# so two robots facing each other touch its barrier at 0.35 m: a settled team must be further apart
+MIN_SPACING_M = 0.36  # the filter keeps 0.25 m between centres through points 2.5 cm ahead of each axle
+# (SafetySettings.projection_m), so two robots facing each other touch its barrier at 0.25 + 2 x 0.025 =
+# 0.30 m: a settled team must be further apart
 
 FORMATION_PRESETS = ("paper triangle", "triangle ahead", "line abreast", "column", "V", "diamond", "ring")
 

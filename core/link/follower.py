@@ -17,6 +17,12 @@ those of docs/follower-protocol.md:
   observation older than MAX_OBSERVATION_AGE_MS stops the robot and is refused. STOP is
   obeyed from anyone (stopping is always safe). firmware/omni_follower.c does the same
   (tests/app/test_firmware.py holds the two to one script).
+* protocol 3, a radio key provisioned (:class:`RadioAuth`): only authenticated frames
+  (core.link.protocol.seal) move, claim or hand the robot over: a tag no key verifies, a sender
+  the robot does not know, a counter not above the last one taken from that sender, or a plain
+  frame of protocol 1/2 is refused without a word and counted (``refusals``, in the STATUS). The
+  replies are authenticated with the same key and carry the request's counter, so they prove
+  they answer that very frame. STOP follows the provisioned policy (docs/safety.md).
 """
 
 from __future__ import annotations
@@ -64,6 +70,9 @@ class FollowerState:
     driven_age_s: float = math.inf
     two_owners: int = 0  # DRIVEs obeyed from a leader within 100 ms of another's (never expected)
     nacks: int = 0
+    # protocol 3: the last counter taken from each sender (at most MAX_SENDERS), and what was refused
+    counters: tuple[tuple[int, int], ...] = ()
+    refusals: p.RadioCounts = p.RadioCounts()
 
     @property
     def lease_lives(self) -> bool:
@@ -176,8 +185,75 @@ def _ownership(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[
     return s, p.driven(s.address, frame.seq, _odometry(s, hw), d.leader)
 
 
-def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:
-    """Obey one frame addressed to this robot (or broadcast); return the new state and the reply."""
+STOP_ANYONE = "anyone"  # every STOP heard stops the robot, authenticated or not (fail-safe; the default)
+STOP_AUTHENTICATED = "authenticated"  # only an authenticated, fresh STOP from a known leader
+STOP_POLICIES = (STOP_ANYONE, STOP_AUTHENTICATED)
+MAX_SENDERS = 16  # leaders a robot keeps a counter for (the firmware's table)
+
+
+@dataclass(frozen=True)
+class RadioAuth:
+    """What a robot is provisioned with for protocol 3 (`omniformation radio-provision`)."""
+
+    keys: tuple[bytes, ...] = (p.OPEN_KEY,)  # the current key, then the next one during a rotation
+    leaders: tuple[int, ...] = ()  # the leaders' radio ids it obeys; empty: any 1..250 (first MAX_SENDERS seen)
+    stop: str = STOP_ANYONE
+
+
+def _refused(s: FollowerState, kind: str) -> FollowerState:
+    c = s.refusals
+    return dataclasses.replace(s, refusals=dataclasses.replace(c, **{kind: getattr(c, kind) + 1}))
+
+
+def _stopped(s: FollowerState) -> FollowerState:
+    return dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0, flags=s.flags | p.FLAG_STOPPED)
+
+
+REFUSED_PLAIN = (p.MSG_SET_VELOCITY, p.MSG_CLAIM, p.MSG_HANDOVER, p.MSG_DRIVE, p.MSG_STOP)
+
+
+def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame,
+                 auth: RadioAuth | None = None) -> tuple[FollowerState, p.Frame | None]:
+    """Obey one frame addressed to this robot (or broadcast); return the new state and the reply.
+    ``auth``: protocol 3 (authenticated frames only); None: a protocol 2 robot."""
+    if auth is None:
+        return _handle_plain(s, hw, frame)
+    if frame.address not in (s.address, p.BROADCAST) or frame.msg_type & 0x80:
+        return s, None  # another robot's business, or a reply
+    kind = frame.msg_type & ~p.AUTH
+    fail_safe = kind == p.MSG_STOP and auth.stop == STOP_ANYONE  # this STOP stops, whatever else is wrong
+    if not p.is_sealed(frame):
+        if fail_safe:
+            return _stopped(s), None  # obeyed, never answered
+        return (_refused(s, "unauthenticated") if kind in REFUSED_PLAIN else s), None
+    opened = p.open_sealed(frame, auth.keys)
+    why = ""
+    if opened is None:
+        why = "bad_mac"
+    else:
+        named = p.sender(opened.frame)
+        slots = dict(s.counters)
+        known = opened.ident in auth.leaders if auth.leaders else 1 <= opened.ident <= p.MAX_LEADER
+        if not known or (named is not None and named != opened.ident) or \
+                (opened.ident not in slots and len(slots) >= MAX_SENDERS):
+            why = "unknown_sender"
+        elif opened.counter <= slots.get(opened.ident, -1):
+            why = "replayed"
+    if why or opened is None:
+        s = _refused(s, why)
+        return (_stopped(s) if fail_safe else s), None
+    slots[opened.ident] = opened.counter
+    s = dataclasses.replace(s, counters=tuple(sorted(slots.items())))
+    s, reply = _handle_plain(s, hw, opened.frame)
+    if reply is None:
+        return s, None
+    if reply.msg_type == p.MSG_STATUS:
+        reply = p.Frame(reply.address, reply.seq, reply.msg_type, p.status_counts(reply.payload, s.refusals))
+    return s, p.seal(reply, auth.keys[opened.key_index], opened.ident, opened.counter, p.tag_of(frame))
+
+
+def _handle_plain(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:
+    """Protocols 1 and 2 (and the frame inside an authenticated one)."""
     if frame.address not in (s.address, p.BROADCAST):
         return s, None
     if frame.msg_type in p.FROM_A_LEADER or (frame.msg_type == p.MSG_SET_VELOCITY and s.lease_lives):
@@ -187,7 +263,7 @@ def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tupl
     if frame.msg_type == p.MSG_SET_VELOCITY:
         s = _obey(s, hw, *p.decode_velocity(frame))
     elif frame.msg_type == p.MSG_STOP:
-        s = dataclasses.replace(s, target_l_mps=0.0, target_r_mps=0.0, flags=s.flags | p.FLAG_STOPPED)
+        s = _stopped(s)
     elif frame.msg_type != p.MSG_PING:
         return s, None  # replies from other robots on a shared line: not for us
     if frame.address == p.BROADCAST:

@@ -14,6 +14,11 @@ MSP430 the paper's followers carry is little-endian), the CRC included.
     6       L     payload
     6+L     2     CRC-16/CCITT-FALSE over bytes 2 .. 5+L (address .. end of payload)
 
+Protocol 3 wraps any of these in an authenticated frame (type | AUTH; :func:`seal`,
+:func:`open_sealed`): the sender's id, a 48-bit counter and a SipHash-2-4 tag after the payload,
+a reply's tag bound to the tag of the request it answers (docs/follower-protocol.md,
+"Authenticated frames").
+
 The parser (:class:`FrameParser`) never raises on any input: it resynchronises on the
 sync bytes and counts what it rejects (bad CRC, impossible length, unknown type, a
 payload whose length does not fit its type).
@@ -25,6 +30,8 @@ import binascii
 import math
 import struct
 from dataclasses import dataclass, field
+
+from core.link.siphash import tag as _tag
 
 SYNC = b"\xa5\x5a"
 HEADER_LEN = 6  # sync (2), address, sequence, type, length
@@ -82,6 +89,26 @@ MESSAGE_NAMES = {MSG_SET_VELOCITY: "SET_VELOCITY", MSG_STOP: "STOP", MSG_PING: "
                  MSG_STATUS: "STATUS", MSG_CLAIM: "CLAIM", MSG_HANDOVER: "HANDOVER", MSG_DRIVE: "DRIVE",
                  MSG_OWNER: "OWNER", MSG_NACK: "NACK", MSG_DRIVEN: "DRIVEN"}
 INT16_MAX = 32767
+
+# -- protocol 3: authenticated frames (docs/follower-protocol.md, "Authenticated frames") ---------
+# Any request or reply above, with bit 0x40 set in its type, carries a 15-byte trailer after its
+# payload: uint8 id (a request's sender, a reply's asker), uint48 counter (a request's: the
+# sender's own, above every one it sent before; a reply's: the counter of the request it answers)
+# and an 8-byte SipHash-2-4 tag over bytes 2 .. 5+L-8 (address through the counter), a reply's
+# followed by the tag of the request it answers (not sent: both ends have it), so a reply proves
+# it answers that very frame. A radio key is 32 bytes: bytes 0..15 sign requests, 16..31 replies
+# (a reply can never pass for a request).
+AUTH = 0x40
+TRAILER = struct.Struct("<B6s8s")
+TRAILER_LEN = TRAILER.size  # 15
+TAG_LEN = 8
+COUNTER_MAX = (1 << 48) - 1
+RADIO_KEY_LEN = 32
+OPEN_KEY = bytes(RADIO_KEY_LEN)  # no key provisioned: the frames prove only that a reply heard its request
+_COUNTS = struct.Struct("<HHHH")  # an authenticated STATUS adds the robot's refusals (see RadioCounts)
+for _t, _n in list(PAYLOAD_LEN.items()):
+    PAYLOAD_LEN[_t | AUTH] = _n + TRAILER_LEN + (_COUNTS.size if _t == MSG_STATUS else 0)
+    MESSAGE_NAMES[_t | AUTH] = MESSAGE_NAMES[_t] + "+MAC"
 
 
 def crc16(data: bytes) -> int:
@@ -348,3 +375,86 @@ class FrameParser:
             pos = end
         del buf[:pos]
         return out
+
+
+# -- protocol 3: authenticated frames -----------------------------------------------------------
+@dataclass(frozen=True)
+class Sealed:
+    """An authenticated frame opened: the plain frame inside, who sent it (or whom a reply answers)
+    and the counter, and which of the keys tried verified it (0 the current, 1 the next)."""
+
+    frame: Frame
+    ident: int
+    counter: int
+    key_index: int = 0
+
+
+@dataclass(frozen=True)
+class RadioCounts:
+    """What an authenticated robot refused (saturating at 65535 on the wire), reported in its STATUS."""
+
+    bad_mac: int = 0  # authenticated frames whose tag no key of the robot's verified
+    unknown_sender: int = 0  # a sender the robot was not provisioned with, or a frame naming another leader
+    replayed: int = 0  # a counter not above the last one accepted from that sender
+    unauthenticated: int = 0  # plain (protocol 1/2) motion, claims and handovers
+
+
+def is_sealed(frame: Frame) -> bool:
+    return bool(frame.msg_type & AUTH)
+
+
+def _half(key: bytes, msg_type: int) -> bytes:
+    if len(key) != RADIO_KEY_LEN:
+        raise ValueError(f"a radio key is {RADIO_KEY_LEN} bytes, not {len(key)}")
+    return key[:16] if msg_type < 0x80 else key[16:]
+
+
+def seal(frame: Frame, key: bytes, ident: int, counter: int, request_tag: bytes = b"") -> Frame:
+    """The authenticated form of a plain ``frame``: type | AUTH, the payload, then id, counter, tag;
+    a reply's tag also covers ``request_tag`` (the tag of the request it answers)."""
+    if not 0 <= counter <= COUNTER_MAX or not 0 <= ident <= 0xFF:
+        raise ValueError(f"id 0..255 and counter 0..2^48-1: {ident}, {counter}")
+    msg_type = frame.msg_type | AUTH
+    head = frame.payload + bytes((ident,)) + counter.to_bytes(6, "little")
+    signed = bytes((frame.address, frame.seq, msg_type, len(head) + TAG_LEN)) + head
+    return Frame(frame.address, frame.seq, msg_type, head + _tag(_half(key, msg_type), signed + request_tag))
+
+
+def open_sealed(frame: Frame, keys: tuple[bytes, ...], request_tag: bytes = b"") -> Sealed | None:
+    """The frame inside an authenticated ``frame`` if one of ``keys`` verifies its tag (a reply's:
+    with ``request_tag``, the tag of the request it answers), else None."""
+    if not is_sealed(frame) or len(frame.payload) < TRAILER_LEN:
+        return None
+    body = bytes((frame.address, frame.seq, frame.msg_type, len(frame.payload))) + frame.payload[:-TAG_LEN]
+    got = frame.payload[-TAG_LEN:]
+    for k, key in enumerate(keys):
+        if _tag(_half(key, frame.msg_type), body + request_tag) == got:
+            ident, counter, _ = TRAILER.unpack(frame.payload[-TRAILER_LEN:])
+            inner = Frame(frame.address, frame.seq, frame.msg_type & ~AUTH, frame.payload[:-TRAILER_LEN])
+            return Sealed(inner, ident, int.from_bytes(counter, "little"), k)
+    return None
+
+
+def tag_of(frame: Frame) -> bytes:
+    """An authenticated frame's tag (its last 8 bytes)."""
+    return frame.payload[-TAG_LEN:]
+
+
+def trailer(frame: Frame) -> tuple[int, int]:
+    """(id, counter) an authenticated frame says it carries, unverified (for matching only)."""
+    ident, counter, _ = TRAILER.unpack(frame.payload[-TRAILER_LEN:])
+    return ident, int.from_bytes(counter, "little")
+
+
+def status_counts(status_payload: bytes, c: RadioCounts) -> bytes:
+    """An authenticated STATUS's payload: the STATUS's 9 bytes, then the robot's refusal counts."""
+    def u16(x: int) -> int:
+        return max(0, min(0xFFFF, x))
+
+    return status_payload + _COUNTS.pack(u16(c.bad_mac), u16(c.unknown_sender), u16(c.replayed),
+                                         u16(c.unauthenticated))
+
+
+def decode_status_counts(frame: Frame) -> tuple[Status, RadioCounts]:
+    """(STATUS, refusal counts) of an opened authenticated STATUS."""
+    return Status(*_STATUS.unpack(frame.payload[:_STATUS.size])), RadioCounts(*_COUNTS.unpack(frame.payload[_STATUS.size:]))

@@ -445,8 +445,9 @@ def test_a_leader_left_with_no_robot_waits_and_takes_an_orphan_the_plan_gives_it
 def test_an_arena_on_a_radio_takes_robot_commands_from_the_radio_alone_and_its_robots_judge_strangers():
     """``arena --radio``, in-process: robot commands and claims on the bus move and give nothing
     (counted, refused with the reason); on a leader's radio, garbage bytes are dropped, a
-    stranger's DRIVE is refused and a stranger's CLAIM waits for the lease like anyone's (the
-    radio has no authentication: the truth names it ``radio 7``, never a leader of the fleet)."""
+    stranger's DRIVE is refused and a stranger's CLAIM waits for the lease like anyone's (without
+    --radio-key the robots hold the open key, so any sender is taken: the truth names it
+    ``radio 7``, never a leader of the fleet; with the fleet's key see test_radio_stranger)."""
     import serial
 
     from app.fleet.arena import Arena
@@ -467,15 +468,28 @@ def test_an_arena_on_a_radio_takes_robot_commands_from_the_radio_alone_and_its_r
     parser = p.FrameParser()
     heard: list[p.Frame] = []
 
+    counter = [0]
+
     def say(frame: p.Frame) -> p.Frame:  # one frame from radio id 7 on L1's radio; the robot's answer to 7
-        port.write(p.encode_frame(frame))
+        counter[0] += 1  # without --radio-key the robots hold the open key: any sender, frames authenticated
+        sealed = p.seal(frame, p.OPEN_KEY, 7, counter[0])
+        port.write(p.encode_frame(sealed))
+
+        def answer() -> p.Frame | None:
+            for f in heard:
+                o = p.open_sealed(f, (p.OPEN_KEY,), p.tag_of(sealed)) if f.msg_type >= 0x80 else None
+                if o is not None and o.ident == 7 and o.counter == counter[0]:
+                    return o.frame
+            return None
 
         def answered() -> bool:
             heard.extend(parser.feed(port.read(256)))
-            return any(f.seq == frame.seq and p.answers(f) == 7 for f in heard)
+            return answer() is not None
 
         wait_for(answered, 10, f"the answer to {frame.msg_type:#x}")
-        return next(f for f in heard if f.seq == frame.seq and p.answers(f) == 7)
+        got = answer()
+        assert got is not None
+        return got
 
     try:
         wait_for(lambda: "L1" in arena.alive, 10, "L1 alive")

@@ -93,7 +93,16 @@ def _ask(port: serial.Serial, frame: p.Frame, wait_s: float = 0.3) -> list[p.Fra
     return out
 
 
-def test_the_firmware_answers_as_the_protocol_document_says(firmware):
+@pytest.fixture
+def firmware_p2(firmware_bin, tmp_path):
+    """The firmware as an older robot (protocol 2: no key), which answers protocol 1 as before."""
+    fw = Firmware(firmware_bin, tmp_path / "followers", "--protocol", "2")
+    yield fw
+    fw.close()
+
+
+def test_the_firmware_answers_as_the_protocol_document_says(firmware_p2):
+    firmware = firmware_p2
     port = serial.Serial(str(firmware.link), 115200, timeout=0.02)
     try:
         # PING before anything was commanded: STATUS with WATCHDOG, command age "never" (doc example)
@@ -232,22 +241,26 @@ def ownership_script() -> list[tuple[int, p.Frame]]:
     ]
 
 
-def test_the_firmware_and_the_python_follower_keep_ownership_alike(tmp_path):
-    """The reference firmware (built with -Werror -pedantic, driven by a script) and the Python
-    follower the emulator and the tests run answer every frame of the ownership script the
-    same: the same replies, owners, reasons and leases, the same wheel targets after each."""
-    from core.link.follower import FollowerHardware, FollowerState, handle_frame, step_follower
-
+@pytest.fixture(scope="module")
+def conformance_bin(tmp_path_factory) -> Path:
     cc = shutil.which("cc") or shutil.which("gcc")
     assert cc
-    binary = tmp_path / "conformance"
+    binary = tmp_path_factory.mktemp("conf") / "conformance"
     build = subprocess.run([cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2",
                             str(FIRMWARE / "omni_follower.c"), str(FIRMWARE / "conformance.c"), "-o", str(binary)],
                            capture_output=True, text=True)
     assert build.returncode == 0, build.stderr
-    script = ownership_script()
+    return binary
+
+
+def run_both(binary: Path, script: list[tuple[int, p.Frame]], address: int, auth=None, c_args: tuple[str, ...] = ()):
+    """The script through the firmware (``binary``) and the Python follower: every step's replies,
+    owner, lease, wheel targets, flags and counts alike. Returns the Python follower's last state
+    and the replies (Python's) per step."""
+    from core.link.follower import FollowerHardware, FollowerState, handle_frame, step_follower
+
     text = "".join(f"{t} {p.encode_frame(f).hex(' ')}\n" for t, f in script)
-    run = subprocess.run([str(binary), "4"], input=text, capture_output=True, text=True, timeout=30)
+    run = subprocess.run([str(binary), str(address), *c_args], input=text, capture_output=True, text=True, timeout=30)
     assert run.returncode == 0, run.stderr
     c_steps: list[tuple[list[p.Frame], list[int]]] = []
     replies: list[p.Frame] = []
@@ -260,16 +273,24 @@ def test_the_firmware_and_the_python_follower_keep_ownership_alike(tmp_path):
     assert len(c_steps) == len(script)
 
     hw = FollowerHardware(motor_tau_s=0.0)
-    s = FollowerState(address=4)
+    s = FollowerState(address=address)
     now = 0
+    answers: list[list[p.Frame]] = []
+    keys = auth.keys if auth is not None else ()
     for (t, frame), (c_replies, c_state) in zip(script, c_steps, strict=True):
         s = step_follower(s, hw, (t - now) / 1000)
         now = t
-        s, reply = handle_frame(s, hw, frame)
+        s, reply = handle_frame(s, hw, frame, auth)
         py_replies = [reply] if reply is not None else []
-        what = f"at {t} ms, {p.MESSAGE_NAMES[frame.msg_type]}"
+        answers.append(py_replies)
+        what = f"at {t} ms, {p.MESSAGE_NAMES.get(frame.msg_type, hex(frame.msg_type))}"
         assert [r.msg_type for r in py_replies] == [r.msg_type for r in c_replies], what
         for mine, theirs in zip(py_replies, c_replies):
+            if p.is_sealed(mine):  # both verify under the key the request used, bound to the request
+                a, b = (p.open_sealed(x, keys, p.tag_of(frame)) for x in (mine, theirs))
+                assert a is not None and b is not None, (what, mine, theirs)
+                assert (a.ident, a.counter, a.key_index) == (b.ident, b.counter, b.key_index), what
+                mine, theirs = a.frame, b.frame
             if mine.msg_type in (p.MSG_OWNER, p.MSG_NACK):
                 a, b = p.decode_ownership(mine), p.decode_ownership(theirs)
                 assert (a.owner, a.reason, a.asker) == (b.owner, b.reason, b.asker), (what, a, b)
@@ -279,11 +300,102 @@ def test_the_firmware_and_the_python_follower_keep_ownership_alike(tmp_path):
                 assert (ack_a.flags, asker_a) == (ack_b.flags, asker_b), what
             elif mine.msg_type == p.MSG_ACK:
                 assert p.decode_ack(mine).flags == p.decode_ack(theirs).flags, what
-        owner, lease_left, left_mm, right_mm, flags, nacks, two = c_state
+            elif mine.msg_type == p.MSG_STATUS and len(mine.payload) > 9:
+                assert p.decode_status_counts(mine)[1] == p.decode_status_counts(theirs)[1], what
+        owner, lease_left, left_mm, right_mm, flags, nacks, two, *refused = c_state
         lease_py = int(round(s.lease_left_s * 1000)) if s.lease_lives else 0
         assert (s.owner, s.flags, s.nacks, s.two_owners) == (owner, flags, nacks, two), (what, s, c_state)
+        assert tuple(vars(s.refusals).values()) == tuple(refused), (what, s.refusals, refused)
         assert abs(lease_py - lease_left) <= 1, (what, lease_py, lease_left)
         assert (round(s.target_l_mps * 1000), round(s.target_r_mps * 1000)) == (left_mm, right_mm), (what, s, c_state)
+    return s, answers
+
+
+def test_the_firmware_and_the_python_follower_keep_ownership_alike(conformance_bin):
+    """The reference firmware (built with -Werror -pedantic, driven by a script) and the Python
+    follower the emulator and the tests run answer every frame of the ownership script the
+    same: the same replies, owners, reasons and leases, the same wheel targets after each."""
+    s, _ = run_both(conformance_bin, ownership_script(), 4)
     # what the script was for: the robot ended with leader 3's lease lapsed, and counted one two-owner
     # overlap (the handover driven at once) and every refusal
     assert s.two_owners == 1 and s.nacks == 9 and s.owner == 3 and not s.lease_lives
+
+
+K1 = bytes(range(32))  # the fleet's key
+K2 = bytes(range(100, 132))  # the next key, during a rotation
+WRONG = bytes(range(200, 232))  # another fleet's key
+
+
+def authenticated_script() -> list[tuple[int, p.Frame]]:
+    """Protocol 3 (docs/follower-protocol.md, "Authenticated frames"), robot 4 provisioned with
+    K1 and, for a rotation, K2, obeying leaders 1 and 2: valid, forged, replayed, wrong-key and
+    rotated-key frames; the comments say what the document asks for."""
+    a = 4
+
+    def sig(frame: p.Frame, sender: int, counter: int, key: bytes = K1) -> p.Frame:
+        return p.seal(frame, key, sender, counter)
+
+    drive = sig(p.drive(a, 3, 1, 10, 0.10, 0.0), 1, 12)
+    tampered = p.Frame(drive.address, drive.seq, drive.msg_type, drive.payload[:3] + b"\x7f" + drive.payload[4:])
+    return [
+        (0, sig(p.ping(a, 1), 1, 10)),                             # STATUS+MAC, with the refusal counts (0)
+        (10, sig(p.claim(a, 2, 1, 500), 1, 11)),                  # granted to leader 1
+        (20, drive),                                              # obeyed, DRIVEN+MAC
+        (30, drive),                                              # the same bytes again: a replay, refused
+        (40, sig(p.drive(a, 4, 1, 10, -0.2, 0.0), 1, 12)),        # a new command with an old counter: refused
+        (50, sig(p.drive(a, 5, 1, 10, -0.2, 0.0), 1, 13, WRONG)),  # another fleet's key: bad MAC
+        (60, tampered),                                           # one byte changed in the air: bad MAC
+        (70, p.drive(a, 6, 1, 10, -0.2, 0.0)),                    # plain protocol 2 DRIVE: unauthenticated
+        (80, sig(p.handover(a, 7, 1, 9, 10_000), 1, 14, WRONG)),  # a forged HANDOVER "from 1": bad MAC
+        (90, sig(p.drive(a, 8, 9, 10, -0.2, 0.0), 9, 15)),        # the key, but leader 9 is not the fleet's
+        (100, sig(p.drive(a, 9, 1, 10, -0.2, 0.0), 2, 16)),       # sender 2 naming leader 1: refused
+        (110, sig(p.claim(a, 10, 2, 500), 2, 100)),               # leader 2, its own counter: NACK OWNED
+        (120, sig(p.claim(a, 11, 2, 500), 2, 50)),                # leader 2 going back: a replay
+        (130, sig(p.drive(a, 12, 1, 10, 0.15, 0.0), 1, 17, K2)),  # the next key (rotation): obeyed, reply in K2
+        (140, p.stop(a, 13)),                                     # plain STOP: the policy (fail-safe: obeyed)
+        (150, sig(p.drive(a, 14, 1, 10, 0.15, 0.0), 1, 18)),      # moving again
+        (160, sig(p.stop(a, 15), 1, 19, WRONG)),                  # a wrong-key STOP: counted, and the policy
+        (170, sig(p.drive(a, 16, 1, 10, 0.15, 0.0), 1, 20)),      # moving again
+        (180, sig(p.stop(p.BROADCAST, 17), 1, 21)),               # an authenticated broadcast STOP: unanswered
+        (190, sig(p.drive(a, 18, 1, 10, 0.15, 0.0), 1, 22)),      # moving again
+        (200, sig(p.stop(a, 19), 1, 23)),                         # an authenticated STOP: obeyed, ACK+MAC
+        (210, sig(p.handover(a, 20, 1, 2, 500), 1, 24)),          # the owner hands over: OWNER+MAC to 1
+        (220, sig(p.ping(a, 21), 2, 101)),                        # STATUS+MAC: the counts so far
+    ]
+
+
+@pytest.mark.parametrize("stop", ["anyone", "authenticated"])
+def test_the_firmware_and_the_python_follower_refuse_the_same_frames(conformance_bin, stop):
+    """One script of valid, forged, replayed, wrong-key and rotated-key frames: the firmware and
+    the Python follower send the same replies (authenticated, bound to the request they answer),
+    reach the same owners and wheel targets, and count the same refusals, under either STOP policy."""
+    from core.link.follower import RadioAuth
+
+    auth = RadioAuth((K1, K2), (1, 2), stop)
+    c_args = ("--key", K1.hex(), "--key", K2.hex(), "--leaders", "1,2") + (
+        ("--stop-authenticated",) if stop == "authenticated" else ())
+    s, answers = run_both(conformance_bin, authenticated_script(), 4, auth, c_args)
+    script = authenticated_script()
+    moved = [i for i, (_, f) in enumerate(script) if answers[i] and answers[i][0].msg_type == p.MSG_DRIVEN | p.AUTH]
+    assert [script[i][0] for i in moved] == [20, 130, 150, 170, 190]  # only the fleet's fresh DRIVEs
+    assert p.open_sealed(answers[13][0], (K2,), p.tag_of(script[13][1])) is not None  # answered in the next key
+    assert s.owner == 2  # handed over by its owner, never by the forged HANDOVER
+    plain_stop, wrong_stop = 14, 16
+    if stop == "anyone":  # fail-safe: every STOP heard stops the robot
+        assert s.refusals == p.RadioCounts(bad_mac=4, unknown_sender=2, replayed=3, unauthenticated=1)
+    else:  # only an authenticated one: the plain and the wrong-key STOP change nothing
+        assert s.refusals == p.RadioCounts(bad_mac=4, unknown_sender=2, replayed=3, unauthenticated=2)
+    assert all(not answers[i] for i in (plain_stop, wrong_stop))  # never answered either way
+    status, counts = p.decode_status_counts(p.open_sealed(answers[-1][0], (K1,), p.tag_of(script[-1][1])).frame)
+    assert counts == s.refusals  # the robot reports its refusals in its STATUS
+
+
+def test_the_firmware_siphash_gives_the_published_test_vectors(conformance_bin):
+    from core.link.siphash import siphash24
+    from tests.core.siphash_vectors import KEY, VECTORS
+
+    lines = "".join(f"{KEY.hex()} {bytes(range(n)).hex()}\n" for n in range(len(VECTORS)))
+    run = subprocess.run([str(conformance_bin), "--siphash"], input=lines, capture_output=True, text=True, timeout=30)
+    assert run.returncode == 0, run.stderr
+    assert [int(x, 16) for x in run.stdout.split()] == VECTORS
+    assert [siphash24(KEY, bytes(range(n))) for n in range(len(VECTORS))] == VECTORS

@@ -42,11 +42,12 @@ def test_fleet_keys_makes_a_ca_and_one_certificate_per_identity(tmp_path):
 
     keys = make_keys(tmp_path / "keys")
     idents = ("arena", "page", "L1", "L2", "L3")
-    assert sorted(p.name for p in keys.iterdir()) == sorted(["ca", *idents])
+    assert sorted(p.name for p in keys.iterdir()) == sorted(["ca", "radio", *idents])  # radio/: test_radio_keys
     assert sorted(p.name for p in (keys / "ca").iterdir()) == ["ca.key", "ca.pem"]
     for ident in idents:  # one bundle per identity, to copy whole: nothing of another's in it
+        radio = [f"{ident}.radio"] if ident.startswith("L") else []  # a leader's own radio key and id
         assert sorted(p.name for p in (keys / ident).iterdir()) == sorted(["ca.pem", "fleet.json", f"{ident}.pem",
-                                                                           f"{ident}.key"])
+                                                                           f"{ident}.key", *radio])
     for p in keys.rglob("*.key"):
         assert (p.stat().st_mode & 0o777) == 0o600, p
     for d in keys.iterdir():

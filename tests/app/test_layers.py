@@ -65,3 +65,13 @@ def test_no_function_is_longer_than_120_lines():
                     if n > MAX_FUNCTION_LINES:
                         long.append(f"{f.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
     assert not long, long
+
+
+MAX_MODULE_LINES = 700
+
+
+def test_no_module_is_longer_than_700_lines():
+    """A module that grows past this does more than one job: split it by job (as bench/ and report/statistics)."""
+    long = [f"{f.relative_to(ROOT)} ({n} lines)" for folder in ("app", "core") for f in sorted((ROOT / folder).rglob("*.py"))
+            if (n := len(f.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES]
+    assert not long, long

@@ -2,7 +2,9 @@
 strangers are recognised; every command written is answered, late, lost or pending; while the
 link is lost only zero goes out (and the loop commands zero); a reopened port gets STOP first.
 
-Each "line" here is a real pseudo-terminal with a small program on the robots' end."""
+Each "line" here is a real pseudo-terminal with a small program on the robots' end. The host
+authenticates every frame (protocol 3; no key given: the open key), so the programs here answer
+the frame inside and seal their replies the same way (docs/follower-protocol.md)."""
 
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ import pytest
 from app.backends.serial_link import REPLY_TIMEOUT_S, SerialLink
 from core.link import protocol as p
 from core.types import Commands
-from tests.helpers import main_cli, wait_for
+from tests.helpers import main_cli, plain, wait_for
 
 
 class Line:
@@ -48,7 +50,7 @@ class Line:
             except OSError:
                 continue
             self.chunks.append(data)
-            self.frames.extend(self.parser.feed(data))
+            self.frames.extend(plain(self.parser.feed(data)))  # what a robot reads
             out = self.behave(data)
             if out:
                 os.write(self.master, out)
@@ -69,15 +71,31 @@ def run_at_30hz(link: SerialLink, seconds: float, v: float = 0.1) -> list[str]:
     return states
 
 
+def _ack(f: p.Frame, ident: int, counter: int, tag: bytes = bytes(8)) -> bytes:
+    """An authenticated ACK (the open key) answering the request of sender ``ident`` with this
+    counter and tag."""
+    return p.encode_frame(p.seal(p.ack(f.address, f.seq, p.Ack(0, 0, 0.0, 0.0, 0)), p.OPEN_KEY, ident, counter, tag))
+
+
+def requests(parser: p.FrameParser, data: bytes) -> list[tuple[p.Frame, int, int, bytes]]:
+    """The authenticated requests in ``data``: (the frame inside, sender, counter, tag)."""
+    out = []
+    for f in parser.feed(data):
+        o = p.open_sealed(f, (p.OPEN_KEY,))
+        if o is not None and f.msg_type < 0x80:
+            out.append((o.frame, o.ident, o.counter, p.tag_of(f)))
+    return out
+
+
 def acker(delay_s: float = 0.0, answer: Callable[[p.Frame], bool] = lambda f: True) -> Callable[[bytes], bytes | None]:
     """Robots at the addresses written to that ACK every SET_VELOCITY and STOP (after ``delay_s``)."""
     parser = p.FrameParser()
 
     def behave(data: bytes) -> bytes | None:
         out = b""
-        for f in parser.feed(data):
+        for f, ident, counter, tag in requests(parser, data):
             if f.msg_type in (p.MSG_SET_VELOCITY, p.MSG_STOP) and f.address != p.BROADCAST and answer(f):
-                out += p.encode_frame(p.ack(f.address, f.seq, p.Ack(0, 0, 0.0, 0.0, 0)))
+                out += _ack(f, ident, counter, tag)
         if delay_s and out:
             time.sleep(delay_s)
         return out
@@ -239,26 +257,54 @@ def test_counts_add_up_with_a_healthy_team(n):
         line.close()
 
 
-def _acks(address: int, seq: int) -> bytes:
-    return p.encode_frame(p.ack(address, seq & 0xFF, p.Ack(0, 0, 0.0, 0.0, 0)))
-
-
 def stale_acker(behind: int) -> Callable[[bytes], bytes | None]:
-    """Robots that ACK every frame with the sequence number of one sent ``behind`` ticks earlier."""
+    """Robots that ACK every SET_VELOCITY with the sequence number and counter of the one sent to
+    them ``behind`` ticks earlier (a sound reply, to an old frame)."""
     parser = p.FrameParser()
-    return lambda data: b"".join(_acks(f.address, f.seq - behind) for f in parser.feed(data)
-                                 if f.msg_type == p.MSG_SET_VELOCITY)
+    heard: dict[int, list[tuple[int, int, int, bytes]]] = {}
+
+    def behave(data: bytes) -> bytes:
+        out = b""
+        for f, ident, counter, tag in requests(parser, data):
+            if f.msg_type == p.MSG_SET_VELOCITY:
+                mine = heard.setdefault(f.address, [])
+                mine.append((f.seq, ident, counter, tag))
+                if len(mine) > behind:
+                    seq, i, c, t = mine[-1 - behind]
+                    out += _ack(p.Frame(f.address, seq, f.msg_type), i, c, t)
+        return out
+
+    return behave
 
 
-def fixed_acker(seq: int) -> Callable[[bytes], bytes | None]:
-    """Robots stuck repeating one old sequence number: once every 255 ticks it matches by chance."""
+def fixed_acker() -> Callable[[bytes], bytes | None]:
+    """Robots stuck repeating their first answer: the sequence number comes round every 256 ticks."""
     parser = p.FrameParser()
-    return lambda data: b"".join(_acks(f.address, seq) for f in parser.feed(data) if f.msg_type == p.MSG_SET_VELOCITY)
+    first: dict[int, bytes] = {}
+
+    def behave(data: bytes) -> bytes:
+        for f, ident, counter, tag in requests(parser, data):
+            if f.msg_type == p.MSG_SET_VELOCITY:
+                first.setdefault(f.address, _ack(f, ident, counter, tag))
+        return b"".join(first.values())
+
+    return behave
+
+
+def sprayer(data: bytes) -> bytes:
+    """A device that never reads what it is sent: on every chunk (each tick, ~30 ms) it sends an ACK
+    for every sequence number to every address, plain, and authenticated with the open key for
+    counters guessed from the wall clock as the document says the host starts them."""
+    now = int((time.time() - 1_704_067_200.0) * 1000) * 256
+    out = b"".join(p.encode_frame(p.ack(a, seq, p.Ack(0, 0, 0.1, 0.0, 0))) for a in (1, 2, 3) for seq in range(256))
+    return out + b"".join(_ack(p.Frame(a, seq, p.MSG_SET_VELOCITY), 1, now - 256 * seq)
+                          for a in (1, 2, 3) for seq in range(0, 256, 4))
 
 
 @pytest.mark.parametrize("device, answering", [
     ("stale by 10 ticks", set()),
     ("stuck on one sequence number", set()),
+    ("sprays ACKs for every sequence number", set()),
     ("only F1 answers", {1}),
     ("echoing line", set()),
 ])
@@ -268,7 +314,8 @@ def test_a_robot_that_does_not_answer_in_time_is_sent_only_zero(device, answerin
     from app.live.loop import ServiceLoop
     from app.params import ParamsStore
 
-    behave = {"stale by 10 ticks": stale_acker(10), "stuck on one sequence number": fixed_acker(200),
+    behave = {"stale by 10 ticks": stale_acker(10), "stuck on one sequence number": fixed_acker(),
+              "sprays ACKs for every sequence number": sprayer,
               "only F1 answers": acker(answer=lambda f: f.address == 1),
               "echoing line": lambda data: data}[device]
     line = Line(behave)
@@ -279,7 +326,7 @@ def test_a_robot_that_does_not_answer_in_time_is_sent_only_zero(device, answerin
     try:
         wait_for(lambda: link.connects == 1, 5, "the port to open")
         states = []
-        ticks = 260 if device.startswith("stuck") else 100  # the stuck robot's number comes round at tick ~200
+        ticks = 260 if device.startswith("stuck") else 100  # the stuck robot's sequence comes round at tick 256
         for _ in range(ticks):
             states.append(loop.tick())
             time.sleep(1 / 30)
@@ -321,7 +368,8 @@ def test_on_a_shared_radio_only_our_own_frames_coming_back_are_echoes():
         s = link.stats[0]
         claims = sum(f.msg_type == p.MSG_CLAIM and f.payload[0] == 2 for f in line.frames)
         assert claims >= 2 and s.echoes >= claims - 1, (claims, s.echoes)  # each of ours came back
-        assert s.echoes <= claims and s.unmatched == 0 and not s.owned, s
+        pings = sum(f.msg_type == p.MSG_PING for f in line.frames)  # ours too (the other leader sent none)
+        assert s.echoes <= claims + pings and s.unmatched == 0 and not s.owned, s
         assert not any(f.msg_type in (p.MSG_SET_VELOCITY, p.MSG_DRIVE) for f in line.frames)  # nothing it does not own
     finally:
         link.close()

@@ -225,9 +225,11 @@ def test_an_exception_inside_a_tick_stops_every_follower_and_the_loop_lives_on()
     assert np.all(loop._world.team.commands.v == 0.0)
 
 
-def _preset_swaps(safety: bool, switches: int = 16, seed: int = 5) -> tuple[float, int, float]:
+def _preset_swaps(safety: bool, switches: int = 16, seed: int = 5, until_under: bool = False) -> tuple[float, int, float]:
     """6 followers on the live loop (truth feedback, no noise), a random preset every 12 s:
-    (smallest centre distance between any two robots, ticks under 0.25 m, mean formation error)."""
+    (smallest centre distance between any two robots, ticks under 0.25 m, mean formation error).
+    ``until_under``: stop at the first tick two robots are under 0.25 m (all the run without the
+    filter has to show)."""
     from app.params import FORMATION_PRESETS, formation_preset
     from core.control.safety import team_min_distance
 
@@ -246,15 +248,16 @@ def _preset_swaps(safety: bool, switches: int = 16, seed: int = 5) -> tuple[floa
             under += d < 0.25
             if tick >= 10 * 30:
                 errors.append(float(np.linalg.norm(s.p_true - s.p_d, axis=1).mean()))
+            if until_under and under:
+                return closest, under, float(np.mean(errors)) if errors else float("nan")
     return closest, under, float(np.mean(errors))
 
 
 def test_preset_switches_with_the_safety_filter_keep_every_robot_apart():
-    closest_off, under_off, err_off = _preset_swaps(safety=False)
+    closest_off, under_off, _ = _preset_swaps(safety=False, until_under=True)  # the same switches, up to the first
     closest_on, under_on, err_on = _preset_swaps(safety=True)
-    print(f"\npreset swaps, 6 followers: without the filter {under_off} ticks under 0.25 m (closest"
-          f" {closest_off * 100:.1f} cm, settled error {err_off * 100:.1f} cm); with it {under_on} ticks (closest"
-          f" {closest_on * 100:.1f} cm, settled error {err_on * 100:.1f} cm)")
+    print(f"\npreset swaps, 6 followers: without the filter two robots {closest_off * 100:.1f} cm apart; with it"
+          f" {under_on} ticks under 0.25 m (closest {closest_on * 100:.1f} cm, settled error {err_on * 100:.1f} cm)")
     assert under_off > 0  # the switches do bring robots together: the test can fail
     assert closest_on >= 0.25 - 0.005 and under_on == 0
 
@@ -349,3 +352,73 @@ def test_stop_stops_the_leader_in_every_mode_and_a_release_waits_for_the_team():
     loop.tick()
     store.update("browser:1", stop=False, leader_hold=False)  # release anyway
     assert loop.tick().leader_twist[0] > 0
+
+
+def test_stop_pressed_while_a_tick_clears_the_leaders_hold_keeps_the_hold():
+    """The loop clears ``leader_hold`` once every follower is tracked again. A STOP pressed between
+    the tick's read of the parameters and that clearing (forced here: the store presses it right
+    after the tick's read) stays a STOP with its hold, so a later "Release, leader waits" with F2
+    untracked keeps the leader waiting (it drove at once when the clearing used the tick's stale copy)."""
+    import dataclasses
+
+    class StopAfterRead(ParamsStore):
+        armed = False
+
+        def get(self) -> Params:
+            params = super().get()
+            if self.armed:
+                self.armed = False
+                self.update("browser:2", stop=True)  # STOP from another tab, right after the tick's read
+            return params
+
+    store = StopAfterRead(Params(n_followers=2, leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=4)
+    for _ in range(10):
+        loop.tick()
+    store.update("test", stop=True)
+    loop.tick()
+    store.update("browser:1", stop=False)  # release, the leader waits for the team (hold set, all tracked)
+    assert store.get().leader_hold and not store.get().stop
+    store.armed = True
+    loop.tick()  # sees the release and a whole team: clears the hold, while the STOP comes in
+    after = store.get()
+    print(f"\nSTOP during the clearing tick: stop={after.stop}, leader_hold={after.leader_hold}")
+    assert after.stop and after.leader_hold
+    feedback = loop._world.feedback
+    healthy = feedback.observe
+
+    def f2_lost(dt, commands, error_norm):
+        obs = healthy(dt, commands, error_norm)
+        tracked = np.array(obs.tracked, dtype=bool)
+        tracked[1] = False
+        return dataclasses.replace(obs, tracked=tracked)
+
+    feedback.observe = f2_lost
+    loop.tick()
+    store.update("browser:1", stop=False)  # "Release, leader waits" with F2 untracked
+    waiting = [loop.tick() for _ in range(5)]
+    assert all(w.leader_twist == (0.0, 0.0) and w.leader_waits == "waiting for F2 to be tracked" for w in waiting)
+
+
+def test_concurrent_toggles_are_read_modify_write_and_none_is_lost():
+    """ParamsStore.change decides on the parameters in force: 4 threads x 250 toggles of pause
+    flip it 1,000 times, each change a flip (a toggle decided on a copy read before another's write
+    sets the value it already has, and one flip is lost)."""
+    store = ParamsStore()
+    start = threading.Barrier(4)
+    seen: list[tuple[int, bool]] = []
+    store.subscribe(lambda p, source, notices: seen.append((p.version, p.paused)))
+
+    def toggle() -> None:
+        start.wait()
+        for _ in range(250):
+            store.change("browser:1", lambda now: {"paused": not now.paused})
+
+    threads = [threading.Thread(target=toggle) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    values = [paused for _, paused in sorted(seen)]
+    assert len(values) == 1000 and all(a != b for a, b in zip([False, *values], values))
+    assert not store.get().paused

@@ -66,6 +66,6 @@ def test_only_the_step_calls_the_controller_and_the_filter():
                           "--", "app", "core"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
     callers = {line.split(":", 1)[0] for line in out.splitlines()}
     allowed = {"core/control/step.py", "core/control/formation.py", "core/control/safety.py",
-               "core/control/targets.py", "core/control/assignment.py", "core/sim/run.py", "app/cli/bench.py"}
+               "core/control/targets.py", "core/control/assignment.py", "core/sim/run.py", "app/cli/bench/speed.py"}
     assert callers <= allowed, sorted(callers - allowed)
     assert "core/control/step.py" in callers

@@ -19,7 +19,7 @@ import pytest
 from app.fleet.bridge import loopback_endpoint
 
 from tests.app.test_arena import Watcher, team_rms_m
-from tests.helpers import ROOT, PtyRelay, interrupt, wait_for
+from tests.helpers import ROOT, PtyRelay, interrupt, main_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -61,7 +61,11 @@ def _cut_and_back(w: Watcher, relay: PtyRelay, seconds: float, owners: list[str]
 def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cuts(tmp_path):
     endpoint = loopback_endpoint()
     summary = tmp_path / "arena.json"
+    keys = tmp_path / "keys"  # the fleet's radio key: the robots obey only L1..L3
+    made = main_cli("fleet-keys", str(keys), "--fleet", "radio", "--leaders", "L1,L2,L3")
+    assert made.returncode == 0, made.stderr
     arena = _spawn("arena", FLEET, "--radio", "--radio-drop", "0.02", "--radio-delay-ms", "5",  # a lossy, late medium
+                   "--radio-key", str(keys / "radio" / "robots.json"),
                    "--zenoh-listen", endpoint, "--status-every", "0", "--summary", str(summary))
     procs: dict[str, subprocess.Popen] = {}
     relay = None
@@ -77,6 +81,7 @@ def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cut
         for leader in ("L1", "L2", "L3"):
             port = relay.path if leader == "L1" else ptys[leader]
             procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--link", f"serial:{port}",
+                                   "--radio-key", str(keys / "radio" / f"{leader}.radio"),
                                    "--zenoh-connect", endpoint, "--port", "0", "--no-record")
         w = watch
         wait_for(lambda: bool(w.truths) and w.last_truth()["alive"] == ["L1", "L2", "L3"], 60, "three leaders alive")

@@ -16,6 +16,7 @@ from app.recording.reader import RecordingError, read_recording
 from app.recording.schema import tick_from_payload, tick_payload
 from app.recording.writer import Recorder
 from tests.helpers import main_cli, run_cli, serve_then_signal
+from tests.mcap_doctor import doctor
 
 from pathlib import Path
 
@@ -191,6 +192,7 @@ def test_sigterm_finishes_the_file(tmp_path):
     assert "recording finished" in run.stdout
     rec = read_recording(path)
     assert rec.complete and len(rec.ticks) > 30
+    assert doctor(path) == []  # MCAP's own checks: a live service's recording (tests/mcap_doctor.py)
 
 
 @pytest.mark.parametrize("content, message", [
@@ -268,6 +270,7 @@ def test_simulate_record_then_replay_reads_back(tmp_path):
     assert out.returncode == 0, out.stderr
     rec = read_recording(path)
     assert len(rec.ticks) == 5 * 30 + 1 and rec.frames == []
+    assert doctor(path) == []  # MCAP's own checks: no scan, no trial, no frame, and still every summary record in the data
 
 
 @pytest.fixture(scope="module")
@@ -294,6 +297,7 @@ def test_rerun_the_frames_reproduces_the_recorded_estimates(vision_recording, tm
     assert back.complete and back.metadata["rerun_of"] == vision_recording.name
     assert len(back.ticks) == len(back.frames) and len(back.frames) > 200
     assert back.metadata["calibration_toml"] == rec.metadata["calibration_toml"]  # the Γ it was recorded with
+    assert doctor(vision_recording) == [] and doctor(new) == []  # MCAP's own checks: simulate --vision, rerun
 
 
 def test_rerun_with_other_pipeline_settings_changes_the_headings(vision_recording, tmp_path):
@@ -320,6 +324,7 @@ def test_rerun_with_other_gains_resimulates_from_the_same_start(tmp_path):
     old, back = read_recording(rec_path), read_recording(new)
     assert back.ticks[0]["p_true"] == old.ticks[0]["p_true"]  # the same start
     assert back.ticks[0]["gains"]["k_f1"] == 0.2 and len(back.ticks) == len(old.ticks)
+    assert doctor(new) == []  # MCAP's own checks: a re-simulated rerun
 
 
 def test_rerun_settings_are_checked_with_one_clear_line():

@@ -22,7 +22,7 @@ from app.live.loop import ServiceLoop
 from app.params import ParamsStore
 from app.recording.reader import read_recording
 from app.recording.writer import Recorder, RecordingRefused, apply_retention
-from tests.helpers import ROOT, main_cli, wait_for
+from tests.helpers import ROOT, main_cli, serve_then_signal, wait_for
 
 
 @contextlib.contextmanager
@@ -136,9 +136,14 @@ def test_run_on_a_full_disk_keeps_serving_says_so_and_exits_0_on_sigterm(tmp_pat
         assert rec.tick_numbers[0] == 0 and rec.lost_ticks == 0  # what the file holds, it holds whole
 
 
+SERVICE = {"retention": "service"}  # what the live service marks its sessions with (docs: README, retention)
+
+
 def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the_samples(tmp_path):
     """Sessions are known by what the writer put in them (its header and metadata), not by name:
-    another program's MCAP files, a file named like a session and the samples are never deleted."""
+    another program's MCAP files, a file named like a session, the samples and what another
+    command recorded (simulate --record) are never deleted; a session being written (locked)
+    counts but is never deleted."""
     from mcap.writer import Writer
 
     from app.params import Params
@@ -150,7 +155,7 @@ def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the
     names = []
     for k in range(5):
         p = folder / f"2026010{k}T000000Z_sim.mcap"
-        Recorder(p, {"k": str(k)}, Params()).close()
+        Recorder(p, {"k": str(k), **SERVICE}, Params()).close()
         os.utime(p, (1_000_000 + k, 1_000_000 + k))
         names.append(p)
     size = names[0].stat().st_size
@@ -162,14 +167,74 @@ def test_retention_deletes_only_the_services_own_sessions_oldest_first_never_the
         w.finish()
     lookalike = folder / "20250101T000001Z_sim.mcap"
     lookalike.write_bytes(b"x" * (10 * size))
-    for p in (foreign, lookalike):
+    simulated = folder / "20250101T000002Z_simulated.mcap"
+    assert main_cli("simulate", "experiment1", "--duration", "0.5", "--record", str(simulated)).returncode == 0
+    for p in (foreign, lookalike, simulated):
         os.utime(p, (1_000, 1_000))
-    deleted = apply_retention(folder, int(2.5 * size), keep=(names[0],))  # counts the sessions only
-    assert deleted == names[1:4]  # oldest first, the one being written is kept
-    assert sorted(p for p in folder.glob("*.mcap")) == sorted([names[0], names[4], foreign, lookalike])
+    sim_size = simulated.stat().st_size
+    deleted = apply_retention(folder, int(2.5 * size) + sim_size, keep=(names[0],))  # counts the sessions only
+    assert deleted == names[1:4]  # oldest first, the one kept is kept, the simulated one is not the service's
+    assert sorted(p for p in folder.glob("*.mcap")) == sorted([names[0], names[4], foreign, lookalike, simulated])
     assert sample.exists()
-    assert apply_retention(folder, 0, keep=(names[0],)) == [names[4]]
-    assert foreign.exists() and lookalike.exists() and sample.exists()
+    live = folder / "20260109T000000Z_live.mcap"
+    writing = Recorder(live, dict(SERVICE), Params())  # being written: locked
+    try:
+        os.utime(live, (1_000, 1_000))  # the oldest session of all
+        assert apply_retention(folder, 0, keep=(names[0],)) == [names[4]]
+        assert live.exists()
+    finally:
+        writing.close()
+    assert apply_retention(folder, 0) == [names[0], live]  # finished: now it may go
+    assert foreign.exists() and lookalike.exists() and sample.exists() and simulated.exists()
+
+
+def test_two_services_on_one_folder_never_delete_each_others_live_session(tmp_path):
+    """Two `run` services record into one folder with a 10 MB budget. The folder holds an older
+    recording of `simulate --record`; while the first service records, an 11 MB session of a
+    service, newer than anything, is added: the first's live file is the oldest session. When the second starts, its retention
+    deletes the 11 MB session only: the live file is locked, the simulated one is not the
+    service's. The first's closing line counts the ticks its file holds."""
+    from app.params import Params
+
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    simulated = folder / "simulated.mcap"
+    assert main_cli("simulate", "experiment1", "--duration", "0.5", "--record", str(simulated)).returncode == 0
+    os.utime(simulated, (1_000, 1_000))
+    big = folder / "big.mcap"
+    camera = ROOT / "static_config" / "camera"
+    config = tmp_path / "small-budget.toml"
+    config.write_text(f'[camera]\nrig = "{camera / "synthetic.toml"}"\ncalibration = "{camera / "synthetic_calibrated.toml"}"\n'
+                      "[recording]\nmax_total_gb = 0.01\nfree_space_floor_mb = 0\n")
+    first, second = folder / "first.mcap", folder / "second.mcap"
+    runs = {}
+
+    def start_the_second() -> bool:
+        rec = Recorder(big, dict(SERVICE), Params(), frame_rate_hz=30.0, lossless=True)  # made while the first runs
+        for s in noisy_ticks(300, seed=2):
+            rec.on_tick(s)
+            if rec.ticks % 30 == 0 and big.stat().st_size > 11 * 10**6:
+                break
+        rec.close()
+        assert big.stat().st_size > 10**7
+        future = time.time() + 86_400
+        os.utime(big, (future, future))
+        runs["second"] = serve_then_signal("--port", "0", "--feedback", "truth", "--config", str(config),
+                                           "--record", str(second), hold_s=1.0)
+        return True
+
+    runs["first"] = serve_then_signal("--port", "0", "--feedback", "truth", "--config", str(config),
+                                      "--record", str(first),
+                                      until=lambda: first.exists() and first.stat().st_size > 5_000 and start_the_second())
+    a, b = runs["first"], runs["second"]
+    assert a.returncode == 0 and b.returncode == 0, a.stderr + b.stderr
+    assert "deleted the oldest" in b.stderr and "big.mcap" in b.stderr and "first.mcap" not in b.stderr
+    assert not big.exists() and simulated.exists() and first.exists() and second.exists()
+    said = re.search(r"recording finished: first\.mcap \((\d+) ticks\)", a.stdout)
+    assert said, a.stdout
+    back = read_recording(first)
+    assert back.complete and len(back.ticks) == int(said.group(1)) and back.lost_ticks == 0
+    assert len(read_recording(second).ticks) > 0
 
 
 SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
@@ -339,11 +404,29 @@ def small_recording(tmp_path_factory) -> Path:
     return path
 
 
+def _top_level_records(data: bytes) -> list[tuple[int, int]]:
+    """(offset, length) of every record outside the chunks, header to footer."""
+    out, pos = [], 8
+    while pos + 9 <= len(data) - 8:
+        length = int.from_bytes(data[pos + 1:pos + 9], "little")
+        out.append((pos, length))
+        pos += 9 + length
+    return out
+
+
+def _summary_start(data: bytes) -> int:
+    """Where the summary section starts, from the footer (with its data end record before it)."""
+    return int.from_bytes(data[-28:-20], "little") - 13
+
+
 def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small_recording, tmp_path):
-    """Hypothesis damages a real recording (flipped bytes anywhere, a zeroed stretch, a cut) and
-    reads it: nothing but a one-line RecordingError (only when no tick is left) is raised, every
-    tick read is the tick written, and the loss said is the loss: all of it when the file's summary
-    is intact, else every tick missing up to the last one read."""
+    """Hypothesis damages a real recording (flipped bytes anywhere or in a chunk, a record's
+    opcode turned into another one, the footer's 0x02 above all, flips in the summary, a zeroed
+    stretch, a cut) and reads it: nothing but a one-line RecordingError (only when no tick is
+    left) is raised, every tick read is the tick written, and the loss said is the loss: all of
+    it whenever the summary or the writer's count after its last chunk is untouched (a damaged
+    record never ends the reading), else every tick missing up to the last one read, with the
+    note saying that a loss after it cannot be counted or that the file was cut off."""
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
@@ -353,24 +436,40 @@ def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small
     data = small_recording.read_bytes()
     by_number = {int(n): k for k, n in enumerate(whole.tick_numbers)}
     bad = tmp_path / "bad.mcap"
+    summary_at = _summary_start(data)
+    records = _top_level_records(data)
+    counts_at, counts_len = next((pos, n) for pos, n in records if data[pos] == 0x0C and b"omniformation.counts"
+                                 in data[pos:pos + 9 + n])  # the writer's count after its last chunk
 
     places = _scan(small_recording).places  # (offset, length) of each chunk: small tick chunks are as likely hit
     inside = st.tuples(st.integers(0, len(places) - 1), st.floats(0, 1, exclude_max=True)).map(
         lambda c: (places[c[0]][0] + int(c[1] * (places[c[0]][1] + 9))) / len(data))
+    in_summary = st.floats(0, 1, exclude_max=True).map(lambda u: (summary_at + u * (len(data) - summary_at)) / len(data))
+    opcode = st.one_of(st.just(0x02), st.integers(0x00, 0x11), st.just(0xFF))
     damage = st.one_of(
         st.tuples(st.just("flip"), st.lists(st.tuples(st.floats(0, 1, exclude_max=True) | inside, st.integers(1, 255)),
                                             min_size=1, max_size=30)),
+        st.tuples(st.just("opcode"), st.lists(st.tuples(st.integers(0, len(records) - 1), opcode), min_size=1,
+                                              max_size=4)),
+        st.tuples(st.just("summary"), st.lists(st.tuples(in_summary, st.integers(1, 255)), min_size=1, max_size=5),
+                  st.lists(st.tuples(inside, st.integers(1, 255)), max_size=5)),
         st.tuples(st.just("zero"), st.tuples(st.floats(0, 1, exclude_max=True), st.integers(1, 200_000))),
         st.tuples(st.just("cut"), st.floats(0, 1, exclude_max=True)),
     )
 
-    @settings(max_examples=80, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+    @settings(max_examples=120, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
     @given(damage)
     def check(d):
         buf = bytearray(data)
         if d[0] == "flip":
             for at, x in d[1]:
                 buf[int(at * len(buf))] ^= x
+        elif d[0] == "opcode":
+            for k, op in d[1]:
+                buf[records[k][0]] = op
+        elif d[0] == "summary":
+            for at, x in d[1] + d[2]:
+                buf[min(int(at * len(buf)), len(buf) - 1)] ^= x
         elif d[0] == "zero":
             start = int(d[1][0] * len(buf))
             buf[start:start + d[1][1]] = bytes(len(buf[start:start + d[1][1]]))
@@ -387,24 +486,79 @@ def test_random_damage_never_raises_and_the_reported_loss_is_the_true_loss(small
         for k in (0, len(numbers) - 1):  # what is read is what was written
             assert rec.ticks[k] == whole.ticks[by_number[numbers[k]]]
         missing = set(by_number) - set(numbers)
+        end_untouched = len(buf) == len(data) and buf[summary_at:] == data[summary_at:]
+        counts_untouched = len(buf) >= counts_at + 9 + counts_len and (buf[counts_at:counts_at + 9 + counts_len]
+                                                                      == data[counts_at:counts_at + 9 + counts_len])
+        if end_untouched:  # the summary and the footer are as written: the whole loss is known and said
+            assert rec.complete and rec.ticks_written == len(whole.ticks)
+        if end_untouched or counts_untouched:  # either count left whole: the whole loss is known and said
+            assert rec.ticks_written == len(whole.ticks), rec.loss_note()
         if rec.ticks_written is not None:
             assert rec.ticks_written == len(whole.ticks)
-        else:  # cut off: what came after the last tick read is not known to have been written
+        else:  # no count to trust: what came after the last tick read is not known to have been written
+            assert not end_untouched and not counts_untouched
             missing = {n for n in missing if n < numbers[-1]}
+            assert "cannot be counted" in rec.loss_note() or (not rec.complete and "cut off" in rec.loss_note())
         said: set[int] = set()
         for g in rec.gaps():
             said |= set(range(g.after_tick + 1, g.before_tick))
         assert said == missing and rec.lost_ticks == len(missing)  # how many, and which
-        rec.loss_note()
         rec.close()
 
     check()
 
 
+@pytest.mark.parametrize("sample", SAMPLE_FILES, ids=lambda p: p.stem)
+def test_a_chunk_opcode_turned_into_the_footers_or_any_other_never_ends_the_reading(tmp_path, sample):
+    """The first chunk's opcode (0x06) turned into the footer's (0x02), the data end's, a
+    message's, a schema's, the header's, an unknown one: the chunk is lost and nothing else; the
+    reader and `report` say exactly that loss, and the file is not called cut off."""
+    from app.recording.report import summarise
+
+    whole = read_recording(sample)
+    first = _scan(sample).places[0][0]
+    data = bytearray(sample.read_bytes())
+    assert data[first] == 0x06
+    for op in (0x02, 0x0F, 0x05, 0x03, 0x01, 0x0E, 0x00, 0x11):
+        data[first] = op
+        bad = tmp_path / f"op{op:02x}.mcap"
+        bad.write_bytes(bytes(data))
+        rec = read_recording(bad)
+        lost = _true_loss(whole, rec)
+        assert rec.complete and rec.ticks_written == len(whole.ticks) and rec.ticks[-1] == whole.ticks[-1]
+        assert rec.lost_ticks == lost <= _one_chunk_of_ticks(sample) and len(rec.ticks) + lost == len(whole.ticks)
+        assert len(rec.damage) == 1 and "cut off" not in rec.loss_note()
+        if op == 0x02:
+            summary = summarise(rec)
+            assert summary["lost_ticks"] == lost and summary["lost_s"] == pytest.approx(lost * whole.tick_dt(), abs=1e-3)
+        rec.close()
+
+
+def test_report_on_a_file_whose_first_chunk_says_footer_counts_the_loss_and_exits_0(small_recording, tmp_path):
+    """`report` on a fresh recording whose first chunk's opcode reads 0x02: every later tick is
+    read, the loss said is the first chunk's, and the note does not call the file cut off."""
+    whole = read_recording(small_recording)
+    first = _scan(small_recording).places[0][0]
+    data = bytearray(small_recording.read_bytes())
+    data[first] = 0x02
+    bad = tmp_path / "footer.mcap"
+    bad.write_bytes(bytes(data))
+    res = main_cli("report", str(bad), "--out", str(tmp_path / "rep"))
+    assert res.returncode == 0, res.stderr
+    import json
+
+    summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
+    rec = read_recording(bad)
+    lost = _true_loss(whole, rec)
+    assert 0 < lost and summary["lost_ticks"] == lost and summary["ticks_read"] + lost == len(whole.ticks)
+    assert "cut off" not in res.stderr
+
+
 def test_the_benchs_damage_table_counts_what_it_flipped_and_replay_opens_the_files(small_recording, tmp_path):
     """bench --long-recording's damage table on a short recording: the reader's count is the
-    true count, within a second per damaged chunk, and replay (a fresh process) opens the file."""
-    from app.cli.bench import damage_table
+    true count, within a second per damaged chunk, and replay (a fresh process) opens the file;
+    its loss cases (opcodes, the summary) say the true loss and leave the file as it was."""
+    from app.cli.bench import damage_table, loss_cases
 
     copy = tmp_path / "long.mcap"
     shutil.copyfile(small_recording, copy)
@@ -414,3 +568,8 @@ def test_the_benchs_damage_table_counts_what_it_flipped_and_replay_opens_the_fil
     (row,) = rows
     assert row["said_ticks"] == row["lost_ticks"] and row["replay_opens"]
     assert row["lost_s"] <= row["damaged_chunks"] * 1.0 + 1e-6
+    before = copy.read_bytes()
+    cases = loss_cases(copy, lines.append, trials=4)  # its cases of damage that used to end the reading or
+    assert [c["trials"] for c in cases] == [1, 1, 1, 4]  # take the count from a damaged summary
+    assert all(c["short"] == 0 and c["said_s"] == pytest.approx(c["true_s"]) for c in cases), lines
+    assert cases[0]["true_s"] > 0 and copy.read_bytes() == before  # each damage undone

@@ -14,7 +14,7 @@ from app.backends.emulator import PtyEndpoint
 from core.link import protocol as p
 from core.types import Commands
 
-from tests.helpers import EmulatorThread, wait_for
+from tests.helpers import EmulatorThread, plain, sealed, wait_for
 
 
 def test_link_spec_is_checked_in_one_line():
@@ -124,7 +124,7 @@ def test_a_follower_stops_by_itself_when_commands_stop_coming(emulated):
     """The watchdog, through the real pty: one command, then silence (a hung service)."""
     port = serial.Serial(emulated.path, 115200, timeout=0.1)
     try:
-        port.write(p.encode_frame(p.set_velocity(1, 1, 0.2, 0.0)))
+        port.write(sealed(p.set_velocity(1, 1, 0.2, 0.0), counter=1))  # docs: the open key, no key given
         t_cmd = time.monotonic()
         hw = emulated.emulator.hw
         wait_for(lambda: emulated.emulator.snapshot()[1].measured(hw)[0] > 0.1, 1, "the follower to move")
@@ -149,15 +149,23 @@ def test_a_missing_port_never_blocks_the_loop():
         link.close()
 
 
-def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated):
+def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated, tmp_path):
+    """SIGTERM stops every robot on the wire, an older one (protocol 2, driven as the operator
+    allowed) too; every recorded tick's link state says the radio was unauthenticated by choice."""
+    from app.backends.serial_link import ALLOWED_NOTE
+    from app.recording.reader import read_recording
     from tests.helpers import serve_then_signal
 
+    emulated.emulator.older = frozenset({2})  # R2 speaks protocol 2 only
     hw = emulated.emulator.hw
-    moving = lambda: any(r.moving for r in emulated.emulator.snapshot().values())
-    run = serve_then_signal("--port", "0", "--feedback", "truth", "--no-record", "--link", f"serial:{emulated.path}",
-                            until=moving)
+    moving = lambda: all(r.moving for r in emulated.emulator.snapshot().values())
+    record = tmp_path / "s.mcap"
+    run = serve_then_signal("--port", "0", "--feedback", "truth", "--record", str(record), "--link",
+                            f"serial:{emulated.path}", "--allow-unauthenticated-radio", until=moving)
     assert run.returncode == 0, run.stderr
     assert "all followers commanded to zero" in run.stdout
+    states = [t["link_state"] for t in read_recording(record).ticks]
+    assert states and all(st.endswith(ALLOWED_NOTE) for st in states), states[:3]
     # the service wrote STOP before it ended; the emulator (a thread here) takes it when it gets the CPU
     wait_for(lambda: all(r.flags & p.FLAG_STOPPED and r.target_l_mps == 0 == r.target_r_mps
                          for r in emulated.emulator.snapshot().values()), 30, "every robot to take the STOP")
@@ -173,6 +181,12 @@ def test_bad_link_arguments_exit_2():
     assert len(out.stderr.strip().splitlines()) == 1
     out = main_cli("emulate-follower", "--port", "/nonexistent/tty")
     assert out.returncode == 2 and "cannot open serial port /nonexistent/tty" in out.stderr
+    out = main_cli("emulate-follower", "--protocol", "2", "--radio-key", "/nonexistent/robots.json")
+    assert out.returncode == 2 and "--protocol 2 robots know no key" in out.stderr
+    out = main_cli("radio", "--older-robots", "0,2")
+    assert out.returncode == 2 and "robot addresses 1..250" in out.stderr
+    out = main_cli("radio-provision", "/nonexistent/robots.json")
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1
     out = main_cli("emulate-follower", "--drop", "1.5")
     assert out.returncode == 2 and "--drop" in out.stderr
 
@@ -217,13 +231,14 @@ def test_the_host_numbers_frames_per_line_and_tick_and_broadcasts_only_stop():
             time.sleep(1 / 30)
         def four_ticks() -> bool:
             frames.extend(parser.feed(end.read(0.05)))
-            return len([f for f in frames if f.msg_type == p.MSG_SET_VELOCITY]) >= 12
+            return len([f for f in plain(frames) if f.msg_type == p.MSG_SET_VELOCITY]) >= 12
 
         wait_for(four_ticks, 5, "4 ticks of frames")
     finally:
         link.close()
     frames += parser.feed(end.read(0.3))
     end.close()
+    frames = plain(frames)  # every frame authenticated (the open key): what a robot reads inside
     velocity = [f for f in frames if f.msg_type == p.MSG_SET_VELOCITY]
     ticks: dict[int, list[int]] = {}
     for f in velocity:

@@ -203,7 +203,7 @@ def test_every_example_frame_in_the_protocol_document_is_valid():
 
     doc = (Path(__file__).resolve().parents[2] / "docs" / "follower-protocol.md").read_text()
     examples = re.findall(r"`(a5 5a(?: [0-9a-f]{2})+)`", doc)
-    assert len(examples) == 10  # five of protocol 1, five of ownership (protocol 2)
+    assert len(examples) == 12  # five of protocol 1, five of ownership (protocol 2), two authenticated (3)
     frames = []
     for hex_text in examples:
         raw = bytes.fromhex(hex_text)

@@ -1,0 +1,207 @@
+"""The fleet's radio key on disk: one file per leader, one record for the robots, and what the
+firmware is flashed with (docs/follower-protocol.md, "Keys and provisioning").
+
+`omniformation fleet-keys DIR ...` writes DIR/radio/ (mode 0700, the operator's, like the CA):
+``robots.json`` (the keys the robots accept, the leaders' radio ids, the STOP policy) and
+``<leader>.radio`` per leader (its radio id, its place among the leaders, and the key it signs
+with), each mode 0600. A leader's machine gets only its own ``.radio`` file; the robots get
+``robots.json`` turned into a C header or a binary record by `omniformation radio-provision`.
+A key file that others may read, or that is not what it should be, is one line naming it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import stat
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+from core.link import protocol as p
+from core.link.follower import MAX_SENDERS, STOP_ANYONE, STOP_POLICIES, RadioAuth
+
+from app.files import UserError
+
+ROBOTS = "robots.json"
+SUFFIX = ".radio"
+NEXT = "next"  # during a rotation: the leaders' files with the next key, to deploy once the robots hold both
+RECORD_MAGIC = b"OFR3"
+
+
+@dataclass(frozen=True)
+class LeaderRadioKey:
+    """What a leader signs its frames with."""
+
+    radio_id: int
+    key: bytes
+
+
+def _write_secret(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.new")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.chmod(tmp, 0o600)
+    tmp.replace(path)
+
+
+def _private_dir(directory: Path) -> None:
+    directory.mkdir(parents=True, exist_ok=True)
+    os.chmod(directory, 0o700)
+
+
+def _leader_text(radio_id: int, key: bytes) -> str:
+    return json.dumps({"radio_id": radio_id, "key": key.hex()}, indent=1) + "\n"
+
+
+def write_radio_keys(directory: Path, leaders: tuple[str, ...], *, overwrite: bool = False,
+                     stop: str = STOP_ANYONE) -> list[Path]:
+    """A fresh radio key (32 random bytes) for the fleet: ``directory``/robots.json and one
+    ``<leader>.radio`` per leader (radio id = its place among the leaders, 1..). Refuses
+    (FileExistsError naming the file) to write over a key unless ``overwrite``."""
+    if len(leaders) > MAX_SENDERS:
+        raise ValueError(f"{len(leaders)} leaders: a robot keeps counters for at most {MAX_SENDERS}")
+    files = [directory / ROBOTS] + [directory / f"{name}{SUFFIX}" for name in leaders]
+    if not overwrite:
+        for f in files:
+            if f.exists():
+                raise FileExistsError(f"{f}: exists; the radio key is replaced only with --overwrite")
+    _private_dir(directory)
+    key = secrets.token_bytes(p.RADIO_KEY_LEN)
+    ids = {name: k + 1 for k, name in enumerate(leaders)}
+    _write_secret(files[0], json.dumps({"keys": [key.hex()], "leaders": ids, "stop": stop}, indent=1) + "\n")
+    for name in leaders:
+        _write_secret(directory / f"{name}{SUFFIX}", _leader_text(ids[name], key))
+    return files
+
+
+def _read_private(path: Path, what: str) -> dict[str, object]:
+    try:
+        st = path.stat()
+        text = path.read_text()
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise UserError(f"{path}: {what} is readable or writable by others (mode {stat.S_IMODE(st.st_mode):o});"
+                        f" chmod 600 {path}")
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise UserError(f"{path}: not {what} ({exc})") from None
+    if not isinstance(data, dict):
+        raise UserError(f"{path}: not {what} (a JSON object expected)")
+    return data
+
+
+def _key(path: Path, value: object) -> bytes:
+    if not isinstance(value, str) or len(value) != 2 * p.RADIO_KEY_LEN:
+        raise UserError(f"{path}: a radio key is {p.RADIO_KEY_LEN} bytes in hex ({2 * p.RADIO_KEY_LEN} digits)")
+    try:
+        return bytes.fromhex(value)
+    except ValueError:
+        raise UserError(f"{path}: a radio key is {p.RADIO_KEY_LEN} bytes in hex") from None
+
+
+def load_leader_key(path: Path) -> LeaderRadioKey:
+    """A leader's ``.radio`` file, checked (one-line UserError)."""
+    data = _read_private(path, "a leader's radio key")
+    rid = data.get("radio_id")
+    if type(rid) is not int or not 1 <= rid <= p.MAX_LEADER:
+        raise UserError(f"{path}: radio_id must be 1..{p.MAX_LEADER}")
+    return LeaderRadioKey(rid, _key(path, data.get("key")))
+
+
+def load_robot_auth(path: Path) -> RadioAuth:
+    """The robots' record (``robots.json``), checked (one-line UserError)."""
+    data = _read_private(path, "the robots' radio keys")
+    keys = data.get("keys")
+    if not isinstance(keys, list) or not 1 <= len(keys) <= 2:
+        raise UserError(f"{path}: keys must list the current key and, during a rotation, the next one")
+    leaders = data.get("leaders")
+    if not isinstance(leaders, dict) or not leaders or len(leaders) > MAX_SENDERS or any(
+            type(v) is not int or not 1 <= v <= p.MAX_LEADER for v in leaders.values()):
+        raise UserError(f"{path}: leaders must map 1..{MAX_SENDERS} leader names to radio ids 1..{p.MAX_LEADER}")
+    stop = data.get("stop", STOP_ANYONE)
+    if stop not in STOP_POLICIES:
+        raise UserError(f"{path}: stop must be one of {', '.join(STOP_POLICIES)}, not {stop!r}")
+    return RadioAuth(tuple(_key(path, k) for k in keys), tuple(sorted(leaders.values())), str(stop))
+
+
+def set_stop_policy(path: Path, stop: str) -> None:
+    data = _read_private(path, "the robots' radio keys")
+    data["stop"] = stop
+    _write_secret(path, json.dumps(data, indent=1) + "\n")
+
+
+def rotate(directory: Path, finish: bool) -> list[Path]:
+    """Begin a rotation (a new key: the robots accept both, the leaders' next files are written to
+    ``NEXT``/) or finish it (the robots accept only the new key; the next files replace the
+    leaders' files). docs/follower-protocol.md, "Rotating the key", step by step."""
+    robots = directory / ROBOTS
+    load_robot_auth(robots)  # checked
+    data = _read_private(robots, "the robots' radio keys")
+    keys = list(data["keys"])  # type: ignore[call-overload]
+    leaders: dict[str, int] = dict(data["leaders"])  # type: ignore[call-overload]
+    nxt = directory / NEXT
+    if not finish:
+        if len(keys) == 2:
+            raise UserError(f"{robots}: a rotation is already under way; finish it first (--finish)")
+        new = secrets.token_bytes(p.RADIO_KEY_LEN)
+        data["keys"] = [keys[0], new.hex()]
+        _private_dir(nxt)
+        written = [robots] + [nxt / f"{n}{SUFFIX}" for n in leaders]
+        for n, rid in leaders.items():
+            _write_secret(nxt / f"{n}{SUFFIX}", _leader_text(rid, new))
+        _write_secret(robots, json.dumps(data, indent=1) + "\n")
+        return written
+    if len(keys) != 2:
+        raise UserError(f"{robots}: no rotation under way (--begin starts one)")
+    data["keys"] = [keys[1]]
+    written = [robots]
+    for n in leaders:
+        src = nxt / f"{n}{SUFFIX}"
+        if src.exists():
+            src.replace(directory / f"{n}{SUFFIX}")
+            written.append(directory / f"{n}{SUFFIX}")
+    _write_secret(robots, json.dumps(data, indent=1) + "\n")
+    if nxt.is_dir() and not any(nxt.iterdir()):
+        nxt.rmdir()
+    return written
+
+
+def binary_record(auth: RadioAuth) -> bytes:
+    """What a robot's flash holds (firmware/host_sim.c reads it): "OFR3", n keys, the keys, n
+    leaders, their ids, the STOP policy (0 anyone, 1 authenticated), CRC-16 of all before it."""
+    body = RECORD_MAGIC + bytes((len(auth.keys),)) + b"".join(auth.keys) + bytes((len(auth.leaders),)) \
+        + bytes(auth.leaders) + bytes((STOP_POLICIES.index(auth.stop),))
+    return body + struct.pack("<H", p.crc16(body))
+
+
+def c_header(auth: RadioAuth) -> str:
+    """A C header defining ``OF_RADIO_AUTH`` (an of_radio_auth) for firmware/omni_follower.h."""
+    def arr(b: bytes) -> str:
+        return "{" + ", ".join(f"0x{x:02x}" for x in b) + "}"
+
+    keys = ",\n     ".join(arr(k) for k in auth.keys)
+    return ("/* The fleet's radio key for the robots: SECRET, keep out of version control. */\n"
+            "#include \"omni_follower.h\"\n"
+            f"static const of_radio_auth OF_RADIO_AUTH = {{\n    {{{keys}}},\n    {len(auth.keys)}u,\n"
+            f"    {arr(bytes(auth.leaders))},\n    {len(auth.leaders)}u,\n"
+            f"    {'OF_STOP_ANYONE' if auth.stop == STOP_ANYONE else 'OF_STOP_AUTHENTICATED'}\n}};\n")
+
+
+def write_provision(auth: RadioAuth, header: Path | None, record: Path | None) -> list[Path]:
+    out = []
+    if header is not None:
+        _write_secret(header, c_header(auth))
+        out.append(header)
+    if record is not None:
+        tmp = record.with_name(f".{record.name}.new")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "wb") as f:
+            f.write(binary_record(auth))
+        tmp.replace(record)
+        out.append(record)
+    return out

@@ -1,0 +1,124 @@
+"""Frame-to-command latency on a real rig's path (`omniformation bench --latency`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from app.files import load_scenario
+
+from app.cli.bench.browsers import _VIEWER
+
+
+def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, browsers: int = 1,
+                  realtime: bool = False) -> dict[str, float]:
+    """Frame-to-command latency on a real rig's path: a folder of the synthetic rig's pictures of a
+    team driving (experiment 1's first seconds, rendered) played at 30 fps, the vision pipeline,
+    the serial link to emulated followers on a pty, recording on, ``browsers`` Chromium pages
+    attached (on idle CPU, as in the soak). Latency is each tick's ``latency_ms``: the frame's
+    arrival to its commands written to the link. ``realtime``: as ``run --realtime`` (the loop's and
+    the camera's threads on SCHED_FIFO, app.realtime)."""
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+    import time as _time
+    from pathlib import Path
+
+    import cv2
+
+    from app.backends.camera import FolderSource
+    from app.backends.hardware import HardwareTeam
+    from app.backends.serial_link import SerialLink
+    from app.contracts import Rig
+    from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
+    from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
+    from app.services.recording import start_recording
+    from core.camera.render import Renderer
+    from core.geometry import heading_world_to_leader, world_to_leader
+    from core.sim.stepped import simulate_stepped
+
+    folder = Path(tempfile.mkdtemp(prefix="omniformation-latency-"))
+    frames_dir = folder / "frames"
+    frames_dir.mkdir()
+    scenario = load_scenario("experiment1")
+    run = simulate_stepped(scenario.replace(duration_s=min(seconds, 20.0)))  # truth feedback: the team as it drives
+    model = load_camera(SYNTHETIC_CAMERA)  # the pictures; the service reads them with the calibration
+    rig = load_camera(SYNTHETIC_CALIBRATED)
+    assert model.model is not None
+    renderer = Renderer(model.model, model.render)
+    rng = np.random.default_rng(0)
+    log = run.log
+    count = min(len(log.t), int(seconds * 30) + 1)
+    for k in range(count):
+        theta = float(log.leader[k, 2])
+        p = world_to_leader(log.followers_world[k, :, :2], log.leader[k, :2], theta)
+        a = heading_world_to_leader(log.followers_world[k, :, 2], theta)
+        cv2.imwrite(str(frames_dir / f"f{k:05d}.png"),
+                    renderer.render(np.array([0.0, 0.0, np.pi / 2]), np.column_stack([p, a]), k / 30, rng))
+    print_fn(f"latency: {count} frames of the synthetic rig rendered; playing them at 30 fps"
+             f" (looped) for {seconds:g} s")
+    # the robots are not in the service's process on a real rig: the emulator runs in its own
+    emu = subprocess.Popen([sys.executable, "-m", "app.cli", "emulate-follower", "--pty", "--followers", "2",
+                            "--seed", "3"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert emu.stdout is not None
+    pty_path = emu.stdout.readline().split(" on ", 1)[1].strip()
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    link = SerialLink(pty_path, 2)
+    source = FolderSource(frames_dir, fps=30.0, loop=True)
+    camera = Rig(rig, rig.require_gamma())
+    svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0, camera=camera, frames=source,
+                  hardware=HardwareTeam(2, link), realtime=realtime)
+    recorder = start_recording(svc, config, None, None, camera, 10.0, folder / "latency.mcap")
+    latencies: list[float] = []
+    phases: list[str] = []
+    fresh: list[bool] = []
+    def keep(state: Any) -> None:
+        latencies.append(state.latency_ms)
+        phases.append(state.phase)
+        fresh.append(state.fresh)
+
+    svc.loop.subscribe(keep)
+    svc.start()
+    viewer = None
+    chromium = shutil.which("chromium")
+    try:
+        if browsers and chromium:
+            viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers)],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            assert viewer.stdout is not None
+            viewer.stdout.readline()  # "ready": the page is up
+        else:
+            print_fn("latency: no browser attached (needs Debian's chromium and playwright: make test installs both)")
+        latencies.clear()
+        phases.clear()
+        fresh.clear()
+        _time.sleep(seconds)
+    finally:
+        if viewer is not None:
+            viewer.communicate("", timeout=60)
+        svc.close()
+        recorder.close()
+        emu.terminate()
+        emu.communicate(timeout=10)
+        shutil.rmtree(folder, ignore_errors=True)
+    n = min(len(latencies), len(phases), len(fresh))
+    values = np.array([latencies[k] for k in range(n) if fresh[k] and np.isfinite(latencies[k])])
+    stale = np.array([latencies[k] for k in range(n) if not fresh[k] and np.isfinite(latencies[k])])
+    tracking = np.array([latencies[k] for k in range(n) if fresh[k] and phases[k] == "tracking"])
+    p50, p99 = (float(np.percentile(values, q)) for q in (50, 99)) if len(values) else (float("nan"),) * 2
+    how = f"the loop {svc.loop.priority}" if realtime else "normal priority"
+    print_fn(f"frame-to-command latency ({how}): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({len(values)} ticks on a"
+             f" new frame, {len(values) / seconds:.1f} Hz; target p99 <= 5 ms)")
+    if len(tracking):
+        print_fn(f"  while tracking: p50 {np.percentile(tracking, 50):.2f} ms, p99 {np.percentile(tracking, 99):.2f} ms"
+                 f" ({len(tracking)} ticks)")
+    if len(stale):
+        print_fn(f"  {len(stale)} ticks ran on a late camera (no new frame within 1.5 periods): the observation they"
+                 f" acted on was {np.median(stale):.0f} ms old (median)")
+    return {"p50_ms": p50, "p99_ms": p99, "ticks": float(len(values)), "late_ticks": float(len(stale))}
+

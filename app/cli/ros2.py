@@ -1,0 +1,155 @@
+"""ROS 2 on the command line: ``run --ros2`` (the service as a ROS 2 node, ``--leader ros2:/cmd_vel``,
+``--ros2-control``) and ``emulate-base --ros2`` (a ROS 2 base for tests and demos). docs/ros2.md."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+from typing import TYPE_CHECKING, Any
+
+from app.cli.args import Parser, float_in, int_in
+from app.files import UserError
+
+if TYPE_CHECKING:
+    from app.backends.ros2 import Ros2Base, Ros2Node
+    from app.fleet.security import FleetKeys
+    from app.services.live import Service
+
+DOMAIN_HELP = "the ROS 2 domain (ROS_DOMAIN_ID, 0..232; default 0)"
+
+
+def add_run_args(run: argparse.ArgumentParser) -> None:
+    """``run``'s ROS 2 options (its --zenoh-connect and --keys are the fleet's, shared)."""
+    from core.rmw_zenoh import DOMAIN_MAX
+
+    run.add_argument("--ros2", action="store_true",
+                     help="be a ROS 2 node on rmw_zenoh: /tf, the followers, slots, formation error, camera and"
+                          " status out, through the ROS 2 router at --zenoh-connect (docs/ros2.md)")
+    run.add_argument("--ros2-domain", type=int_in(0, DOMAIN_MAX), default=0, metavar="N", help=DOMAIN_HELP)
+    run.add_argument("--ros2-control", action="store_true",
+                     help="--ros2: take /omniformation/stop (std_msgs/msg/Bool) and /omniformation/goal"
+                          " (geometry_msgs/msg/PoseStamped) from ROS, with the page's checks")
+
+
+def register(sub: "argparse._SubParsersAction[Parser]") -> None:
+    from core.rmw_zenoh import DOMAIN_MAX
+
+    base = sub.add_parser(
+        "emulate-base",
+        help="an emulated ROS 2 mobile base: /cmd_vel in, /odom out (for tests and demos)",
+        description="A ROS 2 base on rmw_zenoh's wire format: takes geometry_msgs/msg/Twist on /cmd_vel, publishes"
+                    " nav_msgs/msg/Odometry on /odom, moved by the simulator's robot dynamics (docs/ros2.md).",
+    )
+    base.add_argument("--ros2", action="store_true", required=True, help="on ROS 2 (rmw_zenoh); the only kind so far")
+    base.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                      help="the ROS 2 Zenoh router (default tcp/127.0.0.1:7447); loopback only")
+    base.add_argument("--ros2-domain", type=int_in(0, DOMAIN_MAX), default=0, metavar="N", help=DOMAIN_HELP)
+    base.add_argument("--rate", type=float_in(0.0, 1000.0, "Hz"), default=50.0, help="odometry rate (Hz, default 50)")
+    base.add_argument("--seconds", type=float_in(0.0, 7 * 24 * 3600.0, "s"), help="stop after this long (default: Ctrl-C)")
+    base.set_defaults(func=cmd_emulate_base)
+
+
+def open_node(connect: list[str], keys: FleetKeys | None, domain: int, name: str) -> Ros2Node:
+    """A ROS 2 node on a Zenoh client of the router at ``connect`` (the fleet's endpoint rules);
+    one line (UserError) for a bad endpoint or a router that is not there."""
+    from app.backends.ros2 import Ros2Node
+    from app.ros2.session import open_ros2_session
+
+    try:
+        session = open_ros2_session(connect, keys)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    try:
+        return Ros2Node(session, name, domain)
+    except Exception:
+        session.close()
+        raise
+
+
+def cmd_emulate_base(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from app.ros2.base import EmulatedBase
+
+    node = open_node(args.zenoh_connect or ["tcp/127.0.0.1:7447"], None, args.ros2_domain, "omniformation_base")
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    base = EmulatedBase(node, args.rate)
+    base.start()
+    print(f"omniformation: ROS 2 base on domain {args.ros2_domain}: /cmd_vel in, /odom out at {args.rate:g} Hz"
+          " (Ctrl-C to stop)", flush=True)
+    try:
+        done.wait(args.seconds)
+    finally:
+        base.close()
+        node.close()
+        node.session.close()
+    print(f"omniformation: base stopped after {len(base.commands)} commands"
+          f" ({node.dropped} malformed dropped)", flush=True)
+    return 0
+
+
+# -- run --ros2 ------------------------------------------------------------------------------
+def check_run_args(args: argparse.Namespace) -> None:
+    """Before anything opens: ``--leader ros2:TOPIC[:stamped]`` is taken out of ``--leader`` (into
+    ``args.ros2_leader``) and needs --ros2; --ros2 needs --zenoh-connect."""
+    args.ros2_leader = None
+    if args.leader is not None and args.leader.startswith("ros2:"):
+        from app.backends.ros2 import parse_leader_spec
+
+        if not args.ros2:
+            raise UserError(f"--leader {args.leader}: a ROS 2 base needs --ros2 and --zenoh-connect ROUTER")
+        try:
+            args.ros2_leader = parse_leader_spec(args.leader)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        args.leader = None
+    if not args.ros2 and (args.ros2_control or args.ros2_domain):
+        raise UserError("--ros2-control and --ros2-domain go with --ros2")
+    if args.ros2 and (args.fleet is not None or args.arena is not None or args.keys is not None):
+        raise UserError("--ros2 cannot be combined with --fleet, --arena or --keys: its --zenoh-connect is a ROS 2"
+                        " router on this machine (docs/ros2.md says how to reach ROS machines elsewhere securely)")
+    if args.ros2 and not args.zenoh_connect:
+        raise UserError("--ros2 needs --zenoh-connect ENDPOINT: the ROS 2 machines' Zenoh router"
+                        " (e.g. tcp/127.0.0.1:7447, where `ros2 run rmw_zenoh_cpp rmw_zenohd` listens)")
+
+
+def open_run_node(args: argparse.Namespace, stack: contextlib.ExitStack) -> Ros2Node | None:
+    """The service's node (None without --ros2), closed last on the way out."""
+    if not args.ros2:
+        return None
+    node = open_node(args.zenoh_connect, getattr(args, "fleet_keys", None), args.ros2_domain, "omniformation")
+    stack.callback(node.session.close)
+    stack.callback(node.close)
+    return node
+
+
+def leader_base(args: argparse.Namespace, node: Ros2Node | None) -> Ros2Base | None:
+    """``--leader ros2:TOPIC``: the leader's base on ROS 2 (its odometry on /odom)."""
+    if node is None or args.ros2_leader is None:
+        return None
+    from app.backends.ros2 import Ros2Base, publishers_of
+
+    topic, stamped = args.ros2_leader
+    others = publishers_of(node.session, args.ros2_domain, topic)
+    if others:  # a robot is never commanded by two programs
+        raise UserError(f"--leader {topic}: {', '.join(sorted(set(others)))} publish(es) on {topic} already (domain"
+                        f" {args.ros2_domain}); stop it first, a base takes commands from one program")
+    return Ros2Base(node, topic, stamped)
+
+
+def start_bridge(args: argparse.Namespace, node: Ros2Node | None, service: Service, base: Any,
+                 stack: contextlib.ExitStack) -> None:
+    """The loop's state out on ROS 2 (and STOP and goals in with --ros2-control)."""
+    if node is None:
+        return
+    from app.ros2.bridge import Ros2Bridge
+
+    bridge = Ros2Bridge(node, service.store, args.ros2_control, args.frames_hz,
+                        base_state=(lambda: base.link_state) if base is not None else None)
+    stack.callback(bridge.close)
+    service.loop.subscribe(bridge.on_tick)
+    print(f"omniformation: ROS 2 node /omniformation on domain {args.ros2_domain} via {', '.join(args.zenoh_connect)}"
+          f" ({'taking STOP and goals' if args.ros2_control else 'publishing only'})", flush=True)

@@ -1,0 +1,44 @@
+"""The Zenoh session a ROS 2 node of ours runs on: a client of the ROS 2 machines' router
+(``rmw_zenohd`` or ``zenohd``), under the fleet's endpoint rules (loopback without keys,
+mutual TLS ``tls/`` with them: app.fleet.bridge.check_endpoint)."""
+
+from __future__ import annotations
+
+import json
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from app.fleet.security import FleetKeys
+
+
+def session_config(connect: list[str], keys: FleetKeys | None = None) -> Any:
+    """A client of the router at ``connect`` (each checked; ValueError names a bad one): it listens
+    on nothing and scouts for nothing, so it reaches ROS nodes only through the router."""
+    import zenoh
+
+    from app.fleet.bridge import check_endpoint
+
+    if not connect:
+        raise ValueError("--ros2 needs --zenoh-connect ENDPOINT: the ROS 2 machines' Zenoh router")
+    config: dict[str, Any] = {"mode": "client", "connect": {"endpoints": [check_endpoint(e, keys) for e in connect]},
+                              "scouting": {"multicast": {"enabled": False}}}
+    if keys is not None:
+        from app.fleet.security import tls_config
+
+        # mutual TLS only: who may publish what on ROS keys is the ROS router's access control (docs/ros2.md)
+        config["transport"] = {"link": {"tls": tls_config(keys)}}
+    return zenoh.Config.from_json5(json.dumps(config))
+
+
+def open_ros2_session(connect: list[str], keys: FleetKeys | None = None) -> zenoh.Session:
+    """The session, else ValueError in one line (a bad endpoint, or no router answers there)."""
+    import zenoh
+
+    config = session_config(connect, keys)
+    try:
+        return zenoh.open(config)
+    except Exception as exc:  # noqa: BLE001 - zenoh says why (no router at the endpoint, ...)
+        why = str(exc).splitlines()[0].split(" at /")[0][:160] if str(exc) else type(exc).__name__
+        raise ValueError(f"--zenoh-connect {', '.join(connect)}: no ROS 2 Zenoh router answers ({why})") from None
