@@ -168,3 +168,31 @@ def test_stop_from_a_second_client_reaches_the_loop_during_a_flood(service: Serv
     finally:
         flooder.kill()
         flooder.wait(30)
+
+
+def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> None:
+    import re
+
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record", "--feedback", "truth",
+                             "--loop-process"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.stdout is not None
+    watchdog = threading.Timer(300.0, proc.kill)
+    watchdog.start()
+    try:
+        port = 0
+        for line in proc.stdout:
+            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/", line)
+            if found:
+                port = int(found.group(1))
+                break
+        assert port
+        page = _Page(port)
+        assert page.wait_for("running")  # the loop's state on the page
+        proc.kill()  # the loop's process, at once (SIGKILL: no goodbye)
+        assert page.wait_for("THE LOOP HAS ENDED", timeout=30.0)
+        page.close()
+    finally:
+        watchdog.cancel()
+        proc.kill()
+        proc.wait(30)
