@@ -145,17 +145,21 @@ class PageProcess:
         with self._cv:
             self._closed = True
             self._cv.notify_all()
-        if self._conn is not None:
-            try:
-                with self._send_lock:
-                    self._conn.send(("close",))
-            except (OSError, ValueError):
-                pass
+        conn = self._conn
+        if conn is not None:  # asked to end; sent aside: a hung page with the pipe full must not hold us here
+            threading.Thread(target=self._say_close, args=(conn,), daemon=True).start()
         if self._proc is not None:
-            self._proc.join(10.0)
+            self._proc.join(5.0)
             if self._proc.is_alive():
                 self._proc.terminate()
                 self._proc.join(5.0)
+
+    def _say_close(self, conn: multiprocessing.connection.Connection) -> None:
+        with self._send_lock:
+            try:
+                conn.send(("close",))
+            except (OSError, ValueError):
+                pass
 
 
 class ForwardingStore(ParamsStore):
