@@ -274,7 +274,7 @@ def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
                             + (f" (got {args.leader_id!r})" if args.leader_id else ""))
         args.fleet = args.fleet or fleet_scenario.name
         args.arena_radio = _arena_radio(args, ids.index(args.leader_id) + 1)
-    fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect and not args.ros2, args.fleet_control, args.keys)
+    fleet_args = (args.leader_id, args.zenoh_listen, (args.zenoh_connect or args.keys) and not args.ros2, args.fleet_control)
     if args.fleet is None and any(fleet_args):
         raise UserError("--leader-id, --zenoh-listen, --zenoh-connect, --keys and --fleet-control go with --fleet NAME")
     if args.fleet is not None:

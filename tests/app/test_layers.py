@@ -1,6 +1,12 @@
 """The house has no upward arrows: what each folder of app/ may import (every import
 statement, at any depth, type-only ones included), and no function of app/ or core/ longer
-than a screenful or two (120 lines)."""
+than a screenful or two (120 lines).
+
+The order: cli -> services -> dashboard / recording / fleet / ros2 -> live -> backends ->
+contracts -> core. app/ros2 (the service as a ROS 2 node) sits beside the fleet: like the
+fleet's bridge it reads what the loop publishes and writes the store, so it imports no loop,
+page, recorder, service or command line; it may use the fleet's endpoint rules and keys
+(app.fleet.bridge.check_endpoint, app.fleet.security), and nothing below it imports it."""
 
 from __future__ import annotations
 
@@ -11,11 +17,12 @@ from tests.helpers import ROOT
 
 # folder -> the app folders it must not import
 FORBIDDEN = {
-    "live": {"dashboard", "fleet", "services", "cli", "recording"},
-    "recording": {"dashboard", "live", "fleet", "services", "cli"},
-    "backends": {"live", "dashboard", "fleet", "services", "recording", "cli"},
-    "dashboard": {"services", "fleet", "cli"},
-    "fleet": {"services", "cli"},
+    "live": {"dashboard", "fleet", "ros2", "services", "cli", "recording"},
+    "recording": {"dashboard", "live", "fleet", "ros2", "services", "cli"},
+    "backends": {"live", "dashboard", "fleet", "ros2", "services", "recording", "cli"},
+    "dashboard": {"services", "fleet", "ros2", "cli"},
+    "fleet": {"ros2", "services", "cli"},
+    "ros2": {"live", "dashboard", "recording", "services", "cli"},
     "services": {"cli"},
 }
 MAX_FUNCTION_LINES = 120
