@@ -518,7 +518,20 @@ class ServiceLoop:
 
     def run(self) -> None:
         """Tick until stop(): on a camera's frames when the loop has one (``frames``), else at the
-        configured rate. Always leaves the followers at zero."""
+        configured rate. Always leaves the followers at zero. Every kernel it can reach is compiled
+        and warmed first, before its clock starts (app.live.warmup)."""
+        from app.live.warmup import compiled, warm_up
+
+        warm_up(self)
+        compiled_at_start = compiled()
+        try:
+            self._paced()
+        finally:
+            late = compiled() - compiled_at_start
+            if late:  # a kernel the warm-up did not reach: its first use stalled a tick (name it in app.live.warmup)
+                log.warning("loop: %d kernel(s) compiled while the loop's clock ran", late)
+
+    def _paced(self) -> None:
         if self.realtime:
             self._ask_realtime()
         if self.frames is not None:
