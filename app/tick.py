@@ -104,15 +104,16 @@ class LatestStatePublisher:
     that is superseded before it could be drawn is skipped (the plots keep their time axis).
     """
 
-    def __init__(self, publish: Callable[[TickState], bool | None]) -> None:
-        """``publish`` returns False for a state it could not draw (counted as skipped)."""
+    def __init__(self, publish: Callable[[TickState], bool | None], name: str = "omniformation-dashboard") -> None:
+        """``publish`` returns False for a state it could not draw (counted as skipped); ``name``
+        names the thread (the page's, the ROS 2 bridge's)."""
         self._publish = publish
         self._cv = threading.Condition()
         self._state: TickState | None = None
         self._closed = False
         self.published = 0
         self.skipped = 0
-        self._thread = threading.Thread(target=self._run, name="omniformation-dashboard", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def __call__(self, state: TickState) -> None:

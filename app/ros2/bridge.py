@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import threading
 import time
 from typing import Any
 
@@ -19,7 +18,7 @@ import numpy as np
 from app.backends.ros2 import Ros2Node, header, msg, pose, quaternion_yaw, vector3
 from app.params import ParamsStore
 from core.bounds import ROS
-from app.tick import TickState
+from app.tick import LatestStatePublisher, TickState
 
 WORLD, LEADER = "world", "leader"  # TF frames: the odometry (world) frame and the leader frame
 TOPICS = {  # topic -> ROS 2 type, what the node publishes
@@ -79,35 +78,19 @@ class Ros2Bridge:
         self.base_state = base_state
         self.taken = self.refused = 0
         self.events: list[tuple[str, str]] = []
-        self._cv = threading.Condition()
-        self._state: TickState | None = None
-        self._closed = False
-        self.published = 0
         if allow_control:
             node.subscribe(STOP_TOPIC, "std_msgs/msg/Bool", self._on_stop)
             node.subscribe(GOAL_TOPIC, "geometry_msgs/msg/PoseStamped", self._on_goal)
-        self._thread = threading.Thread(target=self._run, name="omniformation-ros2", daemon=True)
-        self._thread.start()
+        # the newest state on a thread of its own, as the page's (a fault is logged, the thread goes on)
+        self._publisher = LatestStatePublisher(self.publish, name="omniformation-ros2")
+
+    @property
+    def published(self) -> int:
+        return self._publisher.published
 
     # -- out ----------------------------------------------------------------------------
     def on_tick(self, state: TickState) -> None:
-        with self._cv:
-            self._state = state
-            self._cv.notify()
-
-    def _run(self) -> None:
-        while True:
-            with self._cv:
-                while self._state is None and not self._closed:
-                    self._cv.wait()
-                if self._closed:
-                    return
-                state, self._state = self._state, None
-            assert state is not None
-            try:
-                self.publish(state)
-            except Exception:  # noqa: BLE001 - a network fault must not end the publishing thread
-                pass
+        self._publisher(state)
 
     def publish(self, s: TickState) -> None:
         """Every topic a subscriber wants (a topic nobody subscribes to costs nothing)."""
@@ -138,7 +121,6 @@ class Ros2Bridge:
         if "/omniformation/status" in pubs:
             base = "" if self.base_state is None else str(self.base_state())
             pubs["/omniformation/status"].put(msg("std_msgs/msg/String", data=status_text(s, base)))
-        self.published += 1
 
     # -- in (--ros2-control) -----------------------------------------------------------
     def _apply(self, what: str, **changes: Any) -> bool:
@@ -166,9 +148,6 @@ class Ros2Bridge:
             self._apply(GOAL_TOPIC, leader_mode="goal")  # as the page's "Drive to goal" (orientation unused)
 
     def close(self) -> None:
-        with self._cv:
-            self._closed = True
-            self._cv.notify()
-        self._thread.join(2.0)
+        self._publisher.close()
         for p in self.pubs.values():
             p.close()

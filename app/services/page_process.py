@@ -31,7 +31,7 @@ import time
 from typing import Any
 
 from app.params import Params, ParamsStore
-from app.tick import TickState
+from app.tick import LatestStatePublisher, TickState
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +57,6 @@ class PageProcess:
         self.restarts = 0  # page processes started again after one died
         self.served = 0  # page processes that came up and served
         self._ctx = multiprocessing.get_context("spawn")
-        self._cv = threading.Condition()
-        self._state: TickState | None = None
         self._closed = False
         self._conn: multiprocessing.connection.Connection | None = None
         self._proc: Any = None
@@ -67,7 +65,7 @@ class PageProcess:
         self._sent_version = -1
         self._start_page()
         threading.Thread(target=self._supervise, name="page-supervisor", daemon=True).start()
-        threading.Thread(target=self._send, name="page-sender", daemon=True).start()
+        self._sender = LatestStatePublisher(self._send, name="page-sender")  # the newest state, never the loop's wait
         if not self._ready.wait(120.0):
             raise OSError("the page's process did not start")
 
@@ -87,28 +85,22 @@ class PageProcess:
 
     def on_tick(self, state: TickState) -> None:
         """A loop subscriber: keep the newest state for the sender (never blocks the loop)."""
-        with self._cv:
-            self._state = state
-            self._cv.notify()
+        self._sender(state)
 
-    def _send(self) -> None:
-        while True:
-            with self._cv:
-                while self._state is None and not self._closed:
-                    self._cv.wait()
-                if self._closed:
-                    return
-                state, self._state = self._state, None
-            conn = self._conn
-            params = self.store.get()
-            changed = params if params.version != self._sent_version else None
-            try:
-                assert conn is not None
-                with self._send_lock:
-                    conn.send(("tick", state, changed))
-                self._sent_version = params.version
-            except (OSError, ValueError, AssertionError):
-                time.sleep(0.05)  # the page is gone: the supervisor restarts it
+    def _send(self, state: TickState) -> bool:
+        """One state (and the parameters, when they changed) down the pipe; False if the page is gone."""
+        conn = self._conn
+        params = self.store.get()
+        changed = params if params.version != self._sent_version else None
+        try:
+            assert conn is not None
+            with self._send_lock:
+                conn.send(("tick", state, changed))
+            self._sent_version = params.version
+            return True
+        except (OSError, ValueError, AssertionError):
+            time.sleep(0.05)  # the page is gone: the supervisor restarts it
+            return False
 
     def _supervise(self) -> None:
         """Apply the page's changes; when it dies, STOP (held) and start a new one."""
@@ -142,9 +134,8 @@ class PageProcess:
                 self._ready.set()
 
     def close(self) -> None:
-        with self._cv:
-            self._closed = True
-            self._cv.notify_all()
+        self._closed = True
+        self._sender.close()
         conn = self._conn
         if conn is not None:  # asked to end; sent aside: a hung page with the pipe full must not hold us here
             threading.Thread(target=self._say_close, args=(conn,), daemon=True).start()
