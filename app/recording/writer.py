@@ -175,6 +175,8 @@ def params_events(old: Params, new: Params, source: str) -> list[tuple[str, str]
     for key in ("leader_mode", "leader_speed_mps", "leader_turn_deg_s", "n_followers", "paused"):
         if getattr(old, key) != getattr(new, key):
             ev.append(("setting", f"{key} {getattr(old, key)} -> {getattr(new, key)}"))
+    if new.stop and not old.stop and " STOP by " in source:  # who pressed it (the tick's own event says it held)
+        ev.append(("stop_by", f"STOP pressed by {source.split(' STOP by ', 1)[1]}"))
     if old.reset_requests != new.reset_requests:
         ev.append(("reset", "team reset"))
     return ev
@@ -319,6 +321,10 @@ class Recorder:
         t = self._clock.last
         self._put(TRIAL_TOPIC, t, jsonable(payload))
         self.event(t, "trial", f"trial {payload['number']}: {payload['label']}, {payload['status']}")
+
+    def event_now(self, kind: str, detail: str) -> None:
+        """An event at the session's time now (the last tick's)."""
+        self.event(self._clock.last, kind, detail)
 
     def event(self, t: float, kind: str, detail: str) -> None:
         self._put(EVENT_TOPIC, t, {"t": t, "kind": kind, "detail": detail})
