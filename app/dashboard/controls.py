@@ -115,6 +115,10 @@ class Controls:
             self.show_truth = gui.add_checkbox("Show true poses", initial_value=True,
                                                hint="simulation: the true pose as a wireframe beside the estimate")
             self.layers = {name: gui.add_checkbox(name, initial_value=True) for name in LAYERS}
+            self.light = gui.add_checkbox("Light mode", initial_value=False,
+                                          hint="for a browser that draws slowly (no GPU): the 3D view at 5 updates a"
+                                               " second, trails once a second, charts every 2 s; a page that draws"
+                                               " under 10 frames a second turns it on by itself")
             gui.add_markdown(LAYER_KEY)
             self.selected = gui.add_markdown("<small>click a robot in the 3D view to see its figures</small>")
         self._build_slot_inputs(p)

@@ -211,7 +211,7 @@ class Scene:
                 self.ghosts[i].position = (float(tw[0]), float(tw[1]), 0.0)
                 self.ghosts[i].wxyz = yaw_wxyz(float(tw[2]))
         now = time.monotonic()
-        every_tenth = now - self._trail_at >= 0.1  # trails and the camera follow at 10 Hz
+        every_tenth = now - self._trail_at >= (1.0 if self.controls.light.value else 0.1)  # trails at 10 Hz (light: 1)
         if every_tenth:
             self._trail_at = now
         if every_tenth:
