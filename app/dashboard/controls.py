@@ -347,7 +347,9 @@ class Controls:
              f"start-up ({s.phase}): {int(np.sum(s.tracked))}/{s.n} followers found so far")
             + f" · link: {s.link_state} · " + (f"replaying {as_text(self.recording)}" if self.replay
                                              else f"recording: {as_text(self.recording)}"),
-            "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
+            ("error to the slot (cm, true pose): " if np.all(np.isfinite(s.p_true)) else
+             "error to the slot (cm, estimate): " if not np.any(np.isfinite(s.p_true)) else
+             "error to the slot (cm, true pose where known, else estimate): ") + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
             f"safety filter: {s.safety or '-'}"
             + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else "")
             + (f" · obstacle points known {len(s.obstacles)}" if s.obstacles is not None and len(s.obstacles) else ""),

@@ -111,11 +111,14 @@ class Scene:
             return
         p, a, pd = state.p_est[i], float(state.a_est[i]), state.p_d[i]
         err = float(np.hypot(*(pd - p))) * 100 if np.all(np.isfinite(p)) else math.nan
+        t = state.p_true[i]
+        true_err = float(np.hypot(*(pd - t))) * 100 if np.all(np.isfinite(t)) else math.nan
         v, w = (float(x) for x in state.commands[i])
         seen = "tracked" if bool(state.tracked[i]) else "**not tracked**"
         self.controls.selected.content = (
-            f"**F{i + 1}** ({seen}) · leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
-            f" {math.degrees(a):.0f}° · slot ({pd[0]:+.2f}, {pd[1]:+.2f}) m · error {err:.1f} cm ·"
+            f"**F{i + 1}** ({seen}) · estimated, leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
+            f" {math.degrees(a):.0f}° · slot ({pd[0]:+.2f}, {pd[1]:+.2f}) m · error {err:.1f} cm (estimate)"
+            + (f", {true_err:.1f} cm (true pose)" if math.isfinite(true_err) else "") + " ·"
             f" command v {v:+.3f} m/s, ω {w:+.2f} rad/s · link: {state.link_state}")
 
     def _ask_reset(self) -> None:

@@ -328,6 +328,10 @@ class FleetView:
                 self.panels[lid].update(st, now - at, lid in alive)
             arena = "no arena" if truth is None else (f"arena t {truth.get('t', 0):.0f} s, {len(truth['robots'])} robots,"
                                                       f" conflicts {truth.get('conflicts', 0)}")
+            dog = truth.get("watchdog") if truth is not None else None
+            if isinstance(dog, list) and any(dog):  # in words: which robots their own watchdog holds, and why
+                arena += ("; stopped by their watchdog (their leader went quiet): "
+                          + ", ".join(f"R{r + 1}" for r, on in enumerate(dog) if on is True))
             refused = truth.get("refused") if truth is not None else None
             if isinstance(refused, dict):
                 arena += f"; arena refused: {refused_text(refused) if any(refused.values()) else 'nothing'}"
