@@ -59,6 +59,8 @@ class Controls:
                                                                     " The loop keeps observing.")
         self.release_button = gui.add_button("Release STOP", color="gray", disabled=True)
         self.status = gui.add_markdown("starting ...")
+        # the card of the robot clicked in the 3D view: beside the view, under the status (not in a folder)
+        self.selected = gui.add_markdown("<small>click a robot in the 3D view to see its figures</small>")
         self.alarm = gui.add_markdown("", visible=False)
         self.acknowledge = gui.add_button("Acknowledge alarms", color="orange", visible=False,
                                           hint="the alarms above were seen; the banner clears until the next")
@@ -120,7 +122,6 @@ class Controls:
                                                " second, trails once a second, charts every 2 s; a page that draws"
                                                " under 10 frames a second turns it on by itself")
             gui.add_markdown(LAYER_KEY)
-            self.selected = gui.add_markdown("<small>click a robot in the 3D view to see its figures</small>")
         self._build_slot_inputs(p)
         self._wire()
         store.subscribe(self._on_params)

@@ -87,6 +87,7 @@ class Scene:
         self.plan = s.add_arrows("/leader/plan", points=np.array([[[0, 0, 0.3], [0, 0.7, 0.3]]]), colors=(20, 150, 60),
                                  shaft_radius=0.012, head_radius=0.035, head_length=0.07, visible=False)
         self.active: list[viser.LineSegmentsHandle] = []
+        self.picked: list[viser.LineSegmentsHandle] = []  # a ring round the follower whose card is open
 
         @s.on_click(modifier="shift")
         def _(event: viser.SceneClickEvent) -> None:
@@ -126,13 +127,15 @@ class Scene:
 
     def _rebuild(self, n: int, state: TickState) -> None:
         s = self.server.scene
-        for line in self.active:  # children of /followers/i: first, or removing the frames took them already
+        for line in self.active + self.picked:  # children of /followers/i: first, or removing the frames took them already
             line.remove()
         for h in self.followers + self.ghosts + self.slot_handles + self.trail_handles:
             h.remove()
         self.followers, self.ghosts, self.slot_handles, self.trail_handles = [], [], [], []
         self.active = [s.add_line_segments(f"/followers/{i}/constrained", _circle(0.22), colors=(220, 30, 30),
                                            thickness=0.02, visible=False) for i in range(n)]
+        self.picked = [s.add_line_segments(f"/followers/{i}/picked", _circle(0.3), colors=(250, 176, 5),
+                                           thickness=0.03, visible=False) for i in range(n)]  # the one clicked
         self.trails = [deque(maxlen=int(TRAIL_SECONDS * 10)) for _ in range(n)]
         for i in range(n):
             rgb = follower_rgb(i)
@@ -290,3 +293,5 @@ class Scene:
         active = state.safety_active if state.safety_active is not None else np.zeros(state.n, dtype=bool)
         for i, ring in enumerate(self.active):
             ring.visible = bool(active[i]) and bool(known[i]) and self._safety_on
+        for i, ring in enumerate(self.picked):
+            ring.visible = i == self.selected and bool(known[i])
