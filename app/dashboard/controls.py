@@ -119,8 +119,8 @@ class Controls:
             self.layers = {name: gui.add_checkbox(name, initial_value=True) for name in LAYERS}
             self.light = gui.add_checkbox("Light mode", initial_value=False,
                                           hint="for a browser that draws slowly (no GPU): the 3D view at 5 updates a"
-                                               " second, trails once a second, charts every 2 s; a page that draws"
-                                               " under 10 frames a second turns it on by itself")
+                                               " second, trails once a second, charts every 2 s; a page whose browser"
+                                               " is busy over half of each second turns it on by itself")
             gui.add_markdown(LAYER_KEY)
         self._build_slot_inputs(p)
         self._wire()

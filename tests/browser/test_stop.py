@@ -79,7 +79,8 @@ def test_stop_stays_in_view_and_stops_the_leader_tick_by_tick_in_the_recording(s
             return root ? root.getBoundingClientRect().left : null; }""")
         bar_box = page.locator("#omni-stopbar").bounding_box()
         assert panel is not None and bar_box["x"] + bar_box["width"] <= panel + 1, (bar_box, panel)
-        print(f"\npage at 1280x720: {page.evaluate('window.omniFps')} frames/s")
+        print(f"\npage at 1280x720: {page.evaluate('window.omniFps')} frames/s, main thread busy"
+              f" {page.evaluate('window.omniBusy')}, light mode {service.dashboard.controls.light.value}")
         clicked = page.evaluate("performance.now()")
         bar_stop.click()
         wait_for(lambda: service.store.get().stop, 10, "STOP from the bar")
@@ -88,6 +89,12 @@ def test_stop_stays_in_view_and_stops_the_leader_tick_by_tick_in_the_recording(s
         print(f"STOP click to STOPPED shown on the bar: {(shown - clicked) / 1000:.2f} s (the bar reads 4 times a second)")
         # STOP names who pressed it, and when, on the status and in the events
         assert "by operator 127.0.0.1 at" in state.inner_text(), state.inner_text()
+        trails = service.dashboard.controls.layers["Trails"]
+        box = page.locator(f'[id="{control_id(page, "Trails")}"]').first
+        clicked = page.evaluate("performance.now()")
+        box.click()
+        wait_for(lambda: not trails.value and not box.is_checked(), 10, "the Trails box off")
+        print(f"a click to its effect shown (Trails off): {(page.evaluate('performance.now()') - clicked) / 1000:.2f} s")
         version = service.store.get().version
         wait_for(lambda: sum(1 for s in list(service.seen) if s.params_version >= version) > 45, 30, "1.5 s stopped")
     service.loop.stop()

@@ -88,7 +88,7 @@
   }
   // The bar sits over the 3D view, left of the panel: never over the panel's header or the camera.
   function place(el) {
-    var root = panelRoot() || document.querySelector(".mantine-Paper-root");
+    var root = panelRoot() || paperOf(panelStop());
     var left = root ? root.getBoundingClientRect().left : window.innerWidth;
     var room = Math.max(220, left - 16);
     el.style.maxWidth = room + "px";
@@ -124,6 +124,11 @@
   }, true);
   // "Wide panel": the control panel (its charts and the camera) at half the window, and back;
   // this browser only (the page's width is a matter for whoever looks at it)
+  function paperOf(n) {
+    var root = null;
+    for (; n; n = n.parentElement) if (n.classList && n.classList.contains("mantine-Paper-root")) root = n;
+    return root;
+  }
   function panelRoot() {
     var n = document.querySelector(".uplot") || document.querySelector("img[src^='blob:']"), root = null;
     for (; n; n = n.parentElement) if (n.classList && n.classList.contains("mantine-Paper-root")) root = n;
@@ -158,18 +163,30 @@
     document.body.appendChild(b);
     return b;
   }
-  // Light mode: when this browser draws fewer than LIGHT_FPS frames a second for 3 s (software
-  // rendering, no GPU), it ticks the panel's "Light mode": the server then sends the 3D view 5 times
+  // Light mode: when this browser's main thread is busy more than half of each second for 3 s
+  // (long tasks: software rendering, no GPU), it ticks the panel's "Light mode": the server then sends the 3D view 5 times
   // a second, trails once a second and the charts every 2 s, so the page's main thread is free for
-  // clicks and STOP. window.omniFps is the last second's frame rate (the browser tests print it).
-  var LIGHT_FPS = 10, frames = 0, slowSeconds = 0;
-  window.omniFps = NaN;
-  function count() { frames++; requestAnimationFrame(count); }
-  requestAnimationFrame(count);
+  // clicks and STOP. window.omniFps and window.omniBusy: the browser tests print them.
+  var LIGHT_BUSY = 0.5, busyMs = 0, slowSeconds = 0, frames = -1;
+  window.omniFps = NaN;  // frames drawn in the last sample (one second in five: a perpetual count would
+  window.omniBusy = NaN;  // itself make the browser draw all the time); the main thread's busy share
+  if (window.PerformanceObserver) {
+    try {
+      new PerformanceObserver(function (list) {
+        list.getEntries().forEach(function (e) { busyMs += e.duration; });
+      }).observe({type: "longtask", buffered: false});
+    } catch (err) { /* no long-task timing here: light mode stays the operator's choice */ }
+  }
+  function count() { if (frames >= 0) { frames++; requestAnimationFrame(count); } }
   setInterval(function () {
-    window.omniFps = frames;
     frames = 0;
-    slowSeconds = window.omniFps < LIGHT_FPS ? slowSeconds + 1 : 0;
+    requestAnimationFrame(count);
+    setTimeout(function () { window.omniFps = frames; frames = -1; }, 1000);
+  }, 5000);
+  setInterval(function () {
+    window.omniBusy = Math.min(1, busyMs / 1000);
+    busyMs = 0;
+    slowSeconds = window.omniBusy > LIGHT_BUSY ? slowSeconds + 1 : 0;
     if (slowSeconds >= 3 && !document.body.classList.contains("omni-light")) {
       light(true);
       var box = panelCheckbox("Light mode");  // and the server sends less (an operator's page; a viewer's is refused)
