@@ -92,7 +92,8 @@ class LeaderPanel:
             handle.on_update(changed)
 
     def update(self, state: dict[str, Any] | None, age_s: float, alive: bool) -> None:
-        self.word = "not on the bus" if not alive else "STOPPED" if state and state.get("stopped") else "running"
+        self.word = ("not on the bus" if not alive else "no state yet" if state is None
+                     else "STOPPED" if state.get("stopped") else "running")
         if state is None or not alive:  # a leader not on the bus takes nothing: its controls say so
             self.stop.disabled = not alive
             for handle in (*self.controls, self.release):
