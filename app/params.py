@@ -27,40 +27,46 @@ from collections.abc import Callable
 import numpy as np
 
 from core.control.presets import FORMATION_PRESETS, PRESET_REACH_M, default_formation, formation_preset
-from core.bounds import (GAIN_BOUNDS, GOAL_LIMIT_M, LEADER_SPEED, LEADER_TURN, MAX_FOLLOWERS, MIN_SCALE,
-                         SAFETY_DISTANCE, SLOT_COORD, SLOT_LIMIT_M)
+from core.bounds import (GOAL_LIMIT_M, LEADER_SPEED, LEADER_TURN, MAX_FOLLOWERS, MIN_SCALE, PARAMETERS,
+                         SAFETY_DISTANCE, SETTERS, SLOT_COORD, SLOT_LIMIT_M, number_default)
 from core.types import Bound, FloatArray, Gains
 
 # what the page, the CLI and the tests take from here: the store, and the bounds and presets (core's) it uses
 __all__ = ["FORMATION_PRESETS", "GOAL_LIMIT_M", "LEADER_MODES", "LEADER_SPEED", "LEADER_TURN", "MAX_FOLLOWERS",
-           "MIN_SCALE", "PRESET_REACH_M", "SAFETY_DISTANCE", "SLOT_COORD", "SLOT_LIMIT_M", "LeaderMode", "Notice",
-           "Params", "ParamsStore", "default_slots", "formation_preset"]
+           "MIN_SCALE", "PARAMETERS", "PRESET_REACH_M", "SAFETY_DISTANCE", "SLOT_COORD", "SLOT_LIMIT_M", "LeaderMode",
+           "Notice", "Params", "ParamsStore", "default_slots", "formation_preset", "params_events"]
 
 LeaderMode = Literal["stop", "straight", "circle", "eq39", "goal"]
 LEADER_MODES: tuple[LeaderMode, ...] = get_args(LeaderMode)
+assert LEADER_MODES == PARAMETERS["leader_mode"].choices  # the type's values are the table's
+
+
+def _default(name: str) -> Any:
+    return PARAMETERS[name].default
 
 
 @dataclass(frozen=True)
 class Params:
     """Everything the operator can change, as one consistent snapshot."""
 
+    # every default is its row's in the parameter table (core.bounds.PARAMETERS)
     gains: Gains = field(default_factory=Gains)
-    leader_mode: LeaderMode = "stop"
-    leader_speed_mps: float = 0.06
-    leader_turn_deg_s: float = 1.5
-    slots: FloatArray = field(default_factory=lambda: np.array([[-0.5, -0.3], [0.5, -0.3]]))
-    n_followers: int = 2
-    paused: bool = False
-    stop: bool = False  # the big STOP: every actuator commanded (0, 0), the leader too; the loop keeps observing
+    leader_mode: LeaderMode = _default("leader_mode")
+    leader_speed_mps: float = number_default("leader_speed_mps")
+    leader_turn_deg_s: float = number_default("leader_turn_deg_s")
+    slots: FloatArray = field(default_factory=lambda: np.array(_default("slots"), dtype=np.float64))
+    n_followers: int = int(number_default("n_followers"))
+    paused: bool = _default("paused")
+    stop: bool = _default("stop")  # the big STOP: every actuator commanded (0, 0), the leader too; the loop keeps observing
     # after STOP is released the leader waits where it is until every follower is tracked again;
     # STOP sets it, the loop clears it, "release anyway" releases without it
-    leader_hold: bool = False
-    safety: bool = True  # the barrier-certificate filter on every command (core.control.safety)
-    safety_distance_m: float = 0.25  # its minimum distance, centre to centre
-    goal: tuple[float, float] | None = None  # leader mode "goal": where the leader drives (odometry frame, m)
-    min_scale: float = 0.6  # how narrow the formation may get to pass a gap (core.control.navigation)
-    step_requests: int = 0
-    reset_requests: int = 0
+    leader_hold: bool = _default("leader_hold")
+    safety: bool = _default("safety")  # the barrier-certificate filter on every command (core.control.safety)
+    safety_distance_m: float = number_default("safety_distance_m")  # its minimum distance, centre to centre
+    goal: tuple[float, float] | None = _default("goal")  # leader mode "goal": where the leader drives (odometry frame, m)
+    min_scale: float = number_default("min_scale")  # how narrow the formation may get to pass a gap (core.control.navigation)
+    step_requests: int = _default("step_requests")
+    reset_requests: int = _default("reset_requests")
     version: int = 0
 
     def __post_init__(self) -> None:
@@ -135,6 +141,18 @@ class ParamsStore:
         """
         return self.change(source, lambda _: changes)
 
+    def update_from(self, who: str, source: str, **changes: Any) -> tuple[Params, tuple[Notice, ...]]:
+        """:meth:`update` for a party the table names (core.bounds.SETTERS: the fleet's bus, ROS):
+        a key its row does not let ``who`` set is refused (ValueError naming it and what ``who``
+        may set), and nothing changes."""
+        assert who in SETTERS, who
+        for key in changes:
+            row = PARAMETERS.get(key)
+            if row is None or who not in row.setters:
+                allowed = ", ".join(n for n, r in PARAMETERS.items() if who in r.setters)
+                raise ValueError(f"{key}: cannot be set from the {who} (allowed: {allowed})")
+        return self.update(source, **changes)
+
     def change(self, source: str, decide: Callable[[Params], dict[str, Any]]) -> tuple[Params, tuple[Notice, ...]]:
         """Atomic read-modify-write: ``decide(params in force)`` names the changes, applied as
         :meth:`update` applies them, with no other change in between; ``{}`` changes nothing."""
@@ -147,16 +165,19 @@ class ParamsStore:
             new_values: dict[str, Any] = {}
             gain_changes: dict[str, float] = {}
             for key, value in changes.items():
-                if key in GAIN_BOUNDS:
-                    gain_changes[key] = _clamped(key, value, GAIN_BOUNDS[key], notices)
+                row = PARAMETERS.get(key)
+                if row is None:
+                    raise ValueError(f"{key}: not a parameter the operator can set")
+                if row.kind == "gain":
+                    assert row.bound is not None
+                    gain_changes[key] = _clamped(key, value, row.bound, notices)
+                elif row.kind == "number":  # the speed, the turn rate, the safety distance, the narrowest scale
+                    assert row.bound is not None
+                    new_values[key] = _clamped(key, value, row.bound, notices)
                 elif key == "leader_mode":
                     if value not in LEADER_MODES:
                         raise ValueError(f"leader_mode = {value!r}: must be one of {', '.join(LEADER_MODES)}")
                     new_values[key] = value
-                elif key == "leader_speed_mps":
-                    new_values[key] = _clamped(key, value, LEADER_SPEED, notices)
-                elif key == "leader_turn_deg_s":
-                    new_values[key] = _clamped(key, value, LEADER_TURN, notices)
                 elif key == "slot":
                     index, x, y = value
                     slots = np.array(new_values.get("slots", current.slots), dtype=np.float64)
@@ -187,16 +208,12 @@ class ParamsStore:
                         notices.append(Notice(key, f"followers = {value}: allowed 1..{MAX_FOLLOWERS}, set to {min(max(n, 1), MAX_FOLLOWERS)}"))
                         n = min(max(n, 1), MAX_FOLLOWERS)
                     new_values[key] = n
-                elif key in ("paused", "stop", "safety", "leader_hold"):
+                elif row.kind == "flag":
                     if not isinstance(value, (bool, int, np.bool_)):
                         raise ValueError(f"{key} = {value!r}: must be true or false")
                     new_values[key] = bool(value)
                     if key == "stop" and value and "leader_hold" not in changes:
                         new_values["leader_hold"] = True  # a release waits for the team unless told otherwise
-                elif key == "safety_distance_m":
-                    new_values[key] = _clamped(key, value, SAFETY_DISTANCE, notices)
-                elif key == "min_scale":
-                    new_values[key] = _clamped(key, value, MIN_SCALE, notices)
                 elif key == "goal":
                     goal = _goal(value)
                     if goal is not None and max(abs(goal[0]), abs(goal[1])) > GOAL_LIMIT_M:
@@ -210,7 +227,7 @@ class ParamsStore:
                             notices.append(Notice(key, f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m {why}; refused"))
                             continue
                     new_values[key] = goal
-                elif key in ("step_requests", "reset_requests"):
+                elif row.kind == "request":
                     new_values[key] = getattr(current, key) + 1
                 else:
                     raise ValueError(f"{key}: not a parameter the operator can set")
@@ -227,6 +244,27 @@ class ParamsStore:
         for fn in listeners:
             fn(new, source, result)
         return new, result
+
+
+def params_events(old: Params, new: Params, source: str) -> list[tuple[str, str]]:
+    """What an operator change did, in words (the recording's events, the fleet's, Foxglove's)."""
+    ev: list[tuple[str, str]] = []
+    og, ng = old.gains.as_dict(), new.gains.as_dict()
+    changed = [f"{k} {og[k]:g} -> {ng[k]:g}" for k in ng if og[k] != ng[k]]
+    if changed:
+        ev.append(("gain", ", ".join(changed)))
+    if old.slots.shape != new.slots.shape or not np.array_equal(old.slots, new.slots):
+        kind = "preset" if "preset" in source else "target"
+        ev.append((kind, f"{source.split(' ', 1)[-1] if kind == 'preset' else 'slots'}: "
+                   + "; ".join(f"({x:.2f}, {y:.2f})" for x, y in new.slots)))
+    for key in ("leader_mode", "leader_speed_mps", "leader_turn_deg_s", "n_followers", "paused"):
+        if getattr(old, key) != getattr(new, key):
+            ev.append(("setting", f"{key} {getattr(old, key)} -> {getattr(new, key)}"))
+    if new.stop and not old.stop and " STOP by " in source:  # who pressed it (the tick's own event says it held)
+        ev.append(("stop_by", f"STOP pressed by {source.split(' STOP by ', 1)[1]}"))
+    if old.reset_requests != new.reset_requests:
+        ev.append(("reset", "team reset"))
+    return ev
 
 
 def _goal(value: Any) -> tuple[float, float] | None:

@@ -1,8 +1,12 @@
 """What one tick of the loop produced: the value the dashboard, the recorder and a replay
-read. Its own module, so that they need not import the loop (and through it every backend)."""
+read, and the publisher that hands the newest of them to a slow reader (the page, the fleet's
+bus). Its own module, so that they need not import the loop (and through it every backend)."""
 
 from __future__ import annotations
 
+import logging
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -90,3 +94,53 @@ class SessionClock:
         self._prev = t
         self.last = self._offset + t
         return self.last
+
+
+class LatestStatePublisher:
+    """Publishes on its own thread, always the newest state; the loop only hands states over.
+
+    The robots' loop must never wait for the page server: drawing the scene, encoding the
+    camera JPEG and serialising plots for every connected browser happen here, and a state
+    that is superseded before it could be drawn is skipped (the plots keep their time axis).
+    """
+
+    def __init__(self, publish: Callable[[TickState], bool | None]) -> None:
+        """``publish`` returns False for a state it could not draw (counted as skipped)."""
+        self._publish = publish
+        self._cv = threading.Condition()
+        self._state: TickState | None = None
+        self._closed = False
+        self.published = 0
+        self.skipped = 0
+        self._thread = threading.Thread(target=self._run, name="omniformation-dashboard", daemon=True)
+        self._thread.start()
+
+    def __call__(self, state: TickState) -> None:
+        with self._cv:
+            if self._state is not None:
+                self.skipped += 1
+            self._state = state
+            self._cv.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while self._state is None and not self._closed:
+                    self._cv.wait()
+                if self._closed:
+                    return
+                state, self._state = self._state, None
+            assert state is not None  # the wait above ends with a state, or on close
+            try:
+                if self._publish(state) is False:
+                    self.skipped += 1
+                else:
+                    self.published += 1
+            except Exception:  # a broken view must not take the page down with it
+                logging.getLogger(__name__).exception("state publish failed")
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify()
+        self._thread.join(5.0)

@@ -11,6 +11,8 @@ import json
 import math
 from typing import Any
 
+from core.bounds import BUS, PARAMETERS
+
 MAX_BYTES = 256 * 1024  # a truth of 8 teams of 8 robots is ~20 KiB
 MAX_DEPTH = 6  # {"commands": {"R1": [v, w]}} is 3 deep; a state's p_est 3
 MAX_DIGITS = 18  # an integer on the bus is a tick, a count or milliseconds
@@ -120,9 +122,9 @@ def numbers(x: Any, n: int, what: str) -> list[float]:
 
 
 # -- the values a command may set (docs/fleet-protocol.md, "cmd") ------------------------------------
-NUMBER_SETTINGS = ("k_f1", "k_f2", "a", "k_w1", "k_w2", "leader_speed_mps", "leader_turn_deg_s", "safety_distance_m",
-                   "min_scale")
-FLAG_SETTINGS = ("stop", "safety")
+# by their kind in the parameter table (core.bounds): the bus's own are those a command may carry
+NUMBER_SETTINGS = tuple(n for n, row in PARAMETERS.items() if row.kind in ("gain", "number") and BUS in row.setters)
+FLAG_SETTINGS = tuple(n for n, row in PARAMETERS.items() if row.kind == "flag" and BUS in row.setters)
 
 
 def setting(name: str, value: Any) -> Any:

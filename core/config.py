@@ -21,7 +21,8 @@ from core.control.safety import SafetySettings
 from core.obstacles import Obstacle, as_array, surface_distance
 from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile, LeaderProfile, Segment, SegmentsProfile
 from core.sim.team import DISTURBANCE_KINDS, Disturbance, FollowerDynamics
-from core.bounds import GOAL_LIMIT_M, GOAL_SPEED, LEADER_SPEED, LEADER_TURN, MIN_SCALE, SAFETY_DISTANCE, SLOT_LIMIT_M
+from core.bounds import (GOAL_LIMIT_M, GOAL_SPEED, LEADER_SPEED, LEADER_TURN, MIN_SCALE, SAFETY_DISTANCE, SLOT_LIMIT_M,
+                         number_default)
 from core.types import GAIN_BOUNDS, Bound, FloatArray, Gains
 
 
@@ -460,7 +461,7 @@ def _parse_safety(top: Table) -> SafetySettings | None:
     if not t.flag("enabled", True):
         t.finish()
         return None
-    d = t.bounded("min_distance_m", SAFETY_DISTANCE, default=0.25)
+    d = t.bounded("min_distance_m", SAFETY_DISTANCE, default=number_default("safety_distance_m"))
     margin = t.number("obstacle_margin_m", 0.0, 1.0, default=0.10, unit="m")
     t.finish()
     return SafetySettings.for_distance(d, obstacle_margin_m=margin)

@@ -32,7 +32,7 @@ link commands zero whatever it is given (the loop does too), and a reopened port
 for every follower before anything else. A port that fails is reopened with back-off (0.25 s
 doubling to 2 s) without ever blocking the loop.
 
-Every frame is authenticated (protocol 3, docs/follower-protocol.md, "Authenticated frames"):
+Every frame is authenticated (protocol 3; the counter and the replies' check: app.backends.link_auth, docs/follower-protocol.md, "Authenticated frames"):
 it carries this leader's radio id, a counter above every one it sent before and a SipHash-2-4 tag
 under the radio key (the open key when none is given: on a cable that proves nothing about who
 sent it, but a reply still has to carry the request's counter under a valid tag, so a device that
@@ -51,8 +51,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections import OrderedDict, deque
-from dataclasses import dataclass, field
+from collections import OrderedDict
 from typing import Any
 from collections.abc import Callable
 
@@ -61,6 +60,12 @@ import serial
 
 from core.link import protocol as p
 from core.types import Commands, FloatArray
+
+from app.backends.link_auth import ALLOWED_NOTE, UNAUTHENTICATED, FrameCounter, ReplyAuth
+from app.backends.link_stats import QUALITY_WINDOW, FollowerLinkStats
+
+__all__ = ["ALLOWED_NOTE", "QUALITY_WINDOW", "REPLY_TIMEOUT_S", "UNAUTHENTICATED", "FollowerLinkStats", "FrameCounter",
+           "PortPerFollowerLink", "SerialLink", "make_link", "parse_link_spec"]
 
 REPLY_TIMEOUT_S = 0.25  # a SET_VELOCITY not answered by then counts as a lost reply
 SILENT_S = 0.5  # no reply at all for this long: "link lost"
@@ -72,87 +77,13 @@ ODOMETRY_STALE_S = 0.2  # measured velocities older than this are taken as zero
 PING_PERIOD_S = 1.0  # each follower's STATUS (battery, watchdog) is asked for this often
 BACKOFF_S = (0.25, 2.0)
 DEGRADED_LOSS = 0.2  # more than this share of a follower's recent commands unanswered: "degraded"
-QUALITY_WINDOW = 30  # recent commands a follower's loss share is taken over (1 s at 30 Hz)
 EXPIRED_KEPT = 1024  # unanswered (address, sequence) pairs remembered, so a late reply is known as late
 # what answers each frame of ours (protocol 2's CLAIM and DRIVE: docs/follower-protocol.md, "Ownership")
 REPLIES = {p.MSG_SET_VELOCITY: (p.MSG_ACK,), p.MSG_STOP: (p.MSG_ACK,), p.MSG_PING: (p.MSG_STATUS,),
            p.MSG_CLAIM: (p.MSG_OWNER, p.MSG_NACK), p.MSG_DRIVE: (p.MSG_DRIVEN, p.MSG_NACK)}
 MOTION = (p.MSG_SET_VELOCITY, p.MSG_DRIVE)  # the frames counted as sent (one per robot per tick)
-HOST_KINDS = (*REPLIES, p.MSG_HANDOVER)  # frames a host sends, never a robot
 LEASE_MS = 1000  # with a radio id: the lease asked for; each DRIVE renews it
 CLAIM_RETRY_S = 0.5  # a robot another leader holds is asked again this often (its lease may have lapsed)
-UNAUTHENTICATED = "speaks an unauthenticated protocol"
-ALLOWED_NOTE = " · UNAUTHENTICATED RADIO ALLOWED"  # on every tick's link state while the flag is given
-
-
-class FrameCounter:
-    """This leader's frame counter: above every one it sent before, across restarts too, and not
-    guessable by a device that does not read the frames. It starts at 256 × the milliseconds since
-    2024-01-01 (UTC) plus a random 0..255, and goes up by one per frame: a leader sends far fewer
-    than 256 frames a millisecond, so a restarted one always starts above where it stopped (the
-    48 bits last until 2058). With a file it also starts above the high-water mark written there,
-    reserved in blocks, so a wrong wall clock after a restart cannot bring back a used counter."""
-
-    BLOCK = 1 << 20
-    EPOCH_S = 1_704_067_200.0  # 2024-01-01T00:00:00Z
-
-    def __init__(self, wall: Callable[[], float] = time.time, path: Any = None) -> None:
-        import secrets
-
-        self._path = path
-        self._last = int((wall() - self.EPOCH_S) * 1000) * 256 + secrets.randbelow(256)
-        self._reserved = -1
-        if path is not None:
-            try:
-                self._last = max(self._last, int(path.read_text().split()[0]) + 1)
-            except (OSError, ValueError, IndexError):
-                pass
-
-    def next(self) -> int:
-        """The next frame's counter (never above 2^48 - 1: past it a leader must rotate its key)."""
-        self._last = min(p.COUNTER_MAX, self._last + 1)
-        if self._path is not None and self._last > self._reserved:
-            self._reserved = self._last + self.BLOCK
-            tmp = self._path.with_name(self._path.name + ".new")
-            tmp.write_text(f"{self._reserved}\n")
-            tmp.replace(self._path)
-        return self._last
-
-
-@dataclass
-class FollowerLinkStats:
-    """One follower's counts: ``sent == answered + late + lost + pending`` (pending: written and
-    not yet answered nor given up, see SerialLink.pending)."""
-
-    address: int
-    sent: int = 0  # SET_VELOCITY frames written to the port
-    answered: int = 0  # ... answered by a matching ACK within REPLY_TIMEOUT_S
-    late: int = 0  # ... answered after it
-    lost: int = 0  # ... never answered (so far)
-    crc_errors: int = 0  # refused frames (bad CRC, length, type) whose address byte named this follower
-    echoes: int = 0  # our own frames to this address that came back (an echoing line)
-    unmatched: int = 0  # well-formed replies from this address that answer nothing we sent
-    recent: deque[bool] = field(default_factory=lambda: deque(maxlen=QUALITY_WINDOW))  # answered in time?
-    rtt_ms: float = math.nan  # last round trip
-    rtt_mean_ms: float = math.nan  # running mean
-    last_reply: float = -math.inf  # monotonic time of the last answer in time (see module doc)
-    prev_reply: float = -math.inf  # ... and of the one before it
-    v_meas: float = 0.0
-    w_meas: float = 0.0
-    left_ticks: int = 0
-    right_ticks: int = 0
-    flags: int = 0
-    battery_mv: int = 0
-    # protocol 2 (a radio id given): whether this leader owns the robot, who does as far as it said
-    owned: bool = False
-    owner: int = 0
-    next_claim: float = -math.inf
-    stale: int = 0  # DRIVEs the robot refused as computed from too old an observation
-    # protocol 3
-    authenticated: int = 0  # authenticated replies taken (it speaks protocol 3 with our key)
-    legacy: bool = False  # answered a plain PING and nothing authenticated: protocol 1 or 2
-    forged: int = 0  # replies from this address whose tag did not verify under our key
-    refusals: p.RadioCounts = field(default_factory=p.RadioCounts)  # what the robot refused (its STATUS)
 
 
 def parse_link_spec(spec: str) -> str:
@@ -203,6 +134,7 @@ class SerialLink:
         self._expired: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # given up on: a reply now is late
         self._unsent: OrderedDict[tuple[int, int, int], float] = OrderedDict()  # failed writes (maybe went out) -> when
         self._tags: OrderedDict[int, bytes] = OrderedDict()  # counter -> tag of the request sent with it
+        self._auth = ReplyAuth(self.radio_id, self.sender_id, self.radio_key, self._tags)  # whose a reply is
         self._seq = 0
         self._stop_first = True  # a fresh port gets STOP for everyone before anything else
         self._next_ping = 0.0
@@ -566,29 +498,10 @@ class SerialLink:
                 s = self._by_addr.get(f.address)
                 if s is None:
                     continue
-                if f.msg_type & ~p.AUTH in HOST_KINDS and f.msg_type < 0x80:
-                    # on a shared radio another leader's frames are heard too: only ours coming back is an echo
-                    ident = p.trailer(f)[0] if p.is_sealed(f) else p.sender(f)
-                    s.echoes += (self.radio_id is None and not p.is_sealed(f)) or \
-                        ident == (self.sender_id if p.is_sealed(f) else self.radio_id)
+                reply = self._auth.open(f, s)
+                if reply is None:
                     continue
-                if p.is_sealed(f):
-                    if p.trailer(f)[0] != self.sender_id:
-                        continue  # a reply to another leader on the same radio: not ours (nor checkable)
-                    request_tag = self._tags.get(p.trailer(f)[1])
-                    if request_tag is None:
-                        s.unmatched += 1  # names a counter we never used: it answers nothing we sent
-                        continue
-                    opened = p.open_sealed(f, (self.radio_key,), request_tag)
-                    if opened is None:
-                        s.forged += 1  # not signed with our key: a stranger's, or a broken robot's
-                        continue
-                    f, match, sealed = opened.frame, opened.counter, True
-                else:
-                    asker = p.answers(f)
-                    if asker is not None and asker != self.radio_id:
-                        continue  # a protocol 2 reply to another leader on the same radio: not ours
-                    match, sealed = f.seq, False
+                f, match, sealed = reply
                 asked = [(f.address, match, t) for t, rs in REPLIES.items() if f.msg_type in rs]
                 request = next((key for key in asked if key in self._pending), None)
                 if request is None:

@@ -106,6 +106,8 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     keys.add_argument("--leaders", metavar="L1,L2,...", required=True, help="the leader ids, comma-separated")
     keys.add_argument("--days", type=int_in(1, 3650), default=365, help="how long the certificates are valid (days,"
                                                                          " default 365)")
+    keys.add_argument("--ros2", action="store_true", help="also a bundle DIR/ros2/ for the ROS 2 machines (their Zenoh"
+                                                          " router, a ROS base; docs/ros2.md)")
     keys.add_argument("--overwrite", action="store_true", help="replace keys already in DIR (a new CA: every"
                                                                " identity needs its new files)")
     keys.set_defaults(func=cmd_fleet_keys)
@@ -123,13 +125,14 @@ def cmd_fleet_keys(args: argparse.Namespace) -> int:
     if args.dir.exists() and not args.dir.is_dir():
         raise UserError(f"{args.dir}: not a directory")
     try:
-        written = make_fleet_keys(args.dir, args.fleet, leaders, overwrite=args.overwrite, days=args.days)
+        written = make_fleet_keys(args.dir, args.fleet, leaders, overwrite=args.overwrite, days=args.days,
+                                  ros2=args.ros2)
     except FileExistsError as exc:
         raise UserError(str(exc)) from None
     except OSError as exc:
         raise UserError(f"{args.dir}: cannot write keys ({exc.strerror or exc})") from None
     print(f"omniformation: fleet {args.fleet}: {len(written)} files in {args.dir} (identities: arena, page,"
-          f" {', '.join(leaders)}; valid {args.days} days)", flush=True)
+          f" {', '.join(leaders)}{', ros2' if args.ros2 else ''}; valid {args.days} days)", flush=True)
     print(f"omniformation: copy {args.dir}/ID/ to the machine that runs ID and give it --keys there; keep"
           f" {args.dir}/ca/ (the CA's private key) on the operator's machine only", flush=True)
     write_fleet_radio_keys(args.dir, leaders, args.overwrite)
@@ -262,7 +265,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     from app.fleet.bridge import check_name
     from app.realtime import SWITCH_INTERVAL_S
     from app.services.fleet_page import FleetView
-    from app.fleet.recorder import FleetRecorder
+    from app.recording.fleet import FleetRecorder
     from app.cli.foxglove_args import check_foxglove_args, serve_fleet
 
     try:

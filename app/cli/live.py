@@ -101,6 +101,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--realtime", action="store_true",
                      help="the loop's and the camera's threads on real-time scheduling (SCHED_FIFO; needs root,"
                           " CAP_SYS_NICE or an rtprio limit): fewer latency spikes on a busy machine")
+    run.add_argument("--loop-process", action="store_true",
+                     help="serve the page from a process of its own, a client of the loop's (docs/safety.md); not with"
+                          " --fleet or --camera yet")
     add_foxglove_args(run)
     run.set_defaults(func=cmd_run)
 
@@ -184,6 +187,8 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
     from app.files import load_scenario
     from app.live.config import load_service_config
 
+    if getattr(args, "loop_process", False) and (args.fleet or args.arena or args.camera):
+        raise UserError("--loop-process: not yet with --fleet, --arena or --camera (run without it)")
     check_run_args(args)  # takes a ros2: leader out of --leader
     if args.viewer_token is not None and args.viewer_token == args.token:
         raise UserError("--viewer-token: must differ from --token (a viewer may not command the robots)")
@@ -269,7 +274,7 @@ def _check_fleet_args(args: argparse.Namespace) -> FleetScenario | None:
                             + (f" (got {args.leader_id!r})" if args.leader_id else ""))
         args.fleet = args.fleet or fleet_scenario.name
         args.arena_radio = _arena_radio(args, ids.index(args.leader_id) + 1)
-    fleet_args = (args.leader_id, args.zenoh_listen, args.zenoh_connect and not args.ros2, args.fleet_control, args.keys)
+    fleet_args = (args.leader_id, args.zenoh_listen, (args.zenoh_connect or args.keys) and not args.ros2, args.fleet_control)
     if args.fleet is None and any(fleet_args):
         raise UserError("--leader-id, --zenoh-listen, --zenoh-connect, --keys and --fleet-control go with --fleet NAME")
     if args.fleet is not None:
@@ -429,7 +434,8 @@ def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None,
                        link=None if plan.real else link, frames=frames, hardware=hardware,
                        recordings=args.recordings, token=args.token, viewer_token=args.viewer_token,
                        arena=fleet.arena_team if fleet else None, params=fleet.params if fleet else None,
-                       realtime=args.realtime, leader_base=None if plan.real else base)
+                       realtime=args.realtime, leader_base=None if plan.real else base,
+                       page_process=getattr(args, "loop_process", False))
     except OSError as exc:
         raise UserError(bind_error(args.host, args.port, exc)) from None
     if not is_loopback(args.host):  # after the bind: an address not here is one line, no warning first
@@ -496,7 +502,7 @@ def _say_where(args: argparse.Namespace, plan: _RunPlan, service: Service, link:
     port_name = getattr(link, "port_name", None)
     via = f"; followers on serial {port_name}" if port_name else "; observe only (no link)" if plan.real else ""
     print(f"omniformation: dashboard at {service.url}  (poses from {source}{via}; Ctrl-C to stop)", flush=True)
-    print(f"omniformation: view only (watch and STOP, nothing else) at {service.gate.viewer_url}", flush=True)
+    print(f"omniformation: view only (watch and STOP, nothing else) at {service.viewer_url}", flush=True)
     if args.realtime:
         import time
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.cli.args import Parser, float_in, int_in
@@ -42,9 +43,16 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     )
     base.add_argument("--ros2", action="store_true", required=True, help="on ROS 2 (rmw_zenoh); the only kind so far")
     base.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
-                      help="the ROS 2 Zenoh router (default tcp/127.0.0.1:7447); loopback only")
+                      help="the ROS 2 Zenoh router (default tcp/127.0.0.1:7447); loopback only without --keys,"
+                           " tls/HOST:PORT with them")
+    base.add_argument("--keys", type=Path, metavar="DIR",
+                      help="one identity's bundle of the fleet's keys (`fleet-keys DIR --ros2` writes DIR/ros2/):"
+                           " mutual TLS to the router (docs/ros2.md)")
     base.add_argument("--ros2-domain", type=int_in(0, DOMAIN_MAX), default=0, metavar="N", help=DOMAIN_HELP)
     base.add_argument("--rate", type=float_in(0.0, 1000.0, "Hz"), default=50.0, help="odometry rate (Hz, default 50)")
+    base.add_argument("--speed-scale", type=float_in(0.0, 2.0, "", lo_inclusive=True), default=1.0, metavar="S",
+                      help="the base really moves S times what it is told (a slipping or mis-calibrated base; 0..2,"
+                           " default 1); its odometry reports what it really did")
     base.add_argument("--seconds", type=float_in(0.0, 7 * 24 * 3600.0, "s"), help="stop after this long (default: Ctrl-C)")
     base.set_defaults(func=cmd_emulate_base)
 
@@ -72,11 +80,14 @@ def cmd_emulate_base(args: argparse.Namespace) -> int:
 
     from app.ros2.base import EmulatedBase
 
-    node = open_node(args.zenoh_connect or ["tcp/127.0.0.1:7447"], None, args.ros2_domain, "omniformation_base")
+    keys = load_keys(args.keys)
+    if keys is not None and not args.zenoh_connect:
+        raise UserError("--keys needs --zenoh-connect tls/HOST:PORT: the ROS 2 machines' router")
+    node = open_node(args.zenoh_connect or ["tcp/127.0.0.1:7447"], keys, args.ros2_domain, "omniformation_base")
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
-    base = EmulatedBase(node, args.rate)
+    base = EmulatedBase(node, args.rate, speed_scale=args.speed_scale)
     base.start()
     print(f"omniformation: ROS 2 base on domain {args.ros2_domain}: /cmd_vel in, /odom out at {args.rate:g} Hz"
           " (Ctrl-C to stop)", flush=True)
@@ -89,6 +100,18 @@ def cmd_emulate_base(args: argparse.Namespace) -> int:
     print(f"omniformation: base stopped after {len(base.commands)} commands"
           f" ({node.dropped} malformed dropped)", flush=True)
     return 0
+
+
+def load_keys(directory: Path | None) -> FleetKeys | None:
+    """``--keys DIR`` for a ROS 2 session: one identity's bundle, checked (UserError, one line)."""
+    if directory is None:
+        return None
+    from app.ros2.session import ros2_keys
+
+    try:
+        return ros2_keys(directory)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 # -- run --ros2 ------------------------------------------------------------------------------
@@ -108,19 +131,20 @@ def check_run_args(args: argparse.Namespace) -> None:
         args.leader = None
     if not args.ros2 and (args.ros2_control or args.ros2_domain):
         raise UserError("--ros2-control and --ros2-domain go with --ros2")
-    if args.ros2 and (args.fleet is not None or args.arena is not None or args.keys is not None):
-        raise UserError("--ros2 cannot be combined with --fleet, --arena or --keys: its --zenoh-connect is a ROS 2"
-                        " router on this machine (docs/ros2.md says how to reach ROS machines elsewhere securely)")
+    if args.ros2 and (args.fleet is not None or args.arena is not None):
+        raise UserError("--ros2 cannot be combined with --fleet or --arena: its --zenoh-connect is the ROS 2 machines'"
+                        " router (the fleet's bus is a separate Zenoh network)")
     if args.ros2 and not args.zenoh_connect:
         raise UserError("--ros2 needs --zenoh-connect ENDPOINT: the ROS 2 machines' Zenoh router"
                         " (e.g. tcp/127.0.0.1:7447, where `ros2 run rmw_zenoh_cpp rmw_zenohd` listens)")
+    args.ros2_keys = load_keys(args.keys) if args.ros2 else None
 
 
 def open_run_node(args: argparse.Namespace, stack: contextlib.ExitStack) -> Ros2Node | None:
     """The service's node (None without --ros2), closed last on the way out."""
     if not args.ros2:
         return None
-    node = open_node(args.zenoh_connect, getattr(args, "fleet_keys", None), args.ros2_domain, "omniformation")
+    node = open_node(args.zenoh_connect, args.ros2_keys, args.ros2_domain, "omniformation")
     stack.callback(node.session.close)
     stack.callback(node.close)
     return node

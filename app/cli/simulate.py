@@ -159,7 +159,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             raise UserError(f"{args.out}: cannot write: {exc.strerror or exc}") from None
         print(f"wrote {display_path(args.out)}")
     if args.plot is not None:
-        from app.recording.plots import plot_simulation
+        from app.figures import plot_simulation
 
         try:
             plot_simulation(log, args.plot)
@@ -208,7 +208,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
     from app.files import load_scenario, prepare_out_dir
     from app.live.sweep import run_sweep
-    from app.recording.plots import sweep_figure
+    from app.figures import sweep_figure
     from core.control.tuning import StepTest, check_step_test, parse_gain_range, sweep_grid
     from core.sim.sweep import LEAD_S, settled_start
 

@@ -259,7 +259,7 @@ class CalibrationPanel:
     def _draw_figure(self) -> None:
         from matplotlib.figure import Figure
 
-        from app.recording.plots import figure_rgb
+        from app.figures import figure_rgb
 
         assert self.fit is not None
         fig = Figure(figsize=(6.4, 3.4), constrained_layout=True)

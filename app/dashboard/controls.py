@@ -12,21 +12,16 @@ from collections.abc import Callable
 import numpy as np
 import viser
 
-from core.types import GAIN_BOUNDS
+from core.bounds import PARAMETERS, Parameter
 
 from app.dashboard.health import Health
 from app.dashboard.widgets import as_text
 from app.tick import TickState
 from app.params import (
     FORMATION_PRESETS,
-    GOAL_LIMIT_M,
     LEADER_MODES,
     MIN_SCALE,
-    LEADER_SPEED,
-    LEADER_TURN,
     SAFETY_DISTANCE,
-    MAX_FOLLOWERS,
-    SLOT_LIMIT_M,
     Notice,
     Params,
     ParamsStore,
@@ -34,9 +29,30 @@ from app.params import (
 )
 
 STATUS_S = 0.2  # the live status is redrawn at most this often
-GAIN_LABELS = {"k_f1": "k_f1 (m/s)", "k_f2": "k_f2 (m/s)", "a": "a (m)", "k_w1": "k_w1 (rad/s)", "k_w2": "k_w2"}
-GAIN_SLIDERS = {"k_f1": (0.01, 0.5, 0.01), "k_f2": (0.0, 0.5, 0.01), "a": (0.02, 1.0, 0.01),
-                "k_w1": (0.05, 3.0, 0.05), "k_w2": (0.1, 10.0, 0.1)}
+# the gains with a slider on the page: the parameter table's gain rows the operator sets
+PAGE_GAINS = tuple(n for n, row in PARAMETERS.items() if row.kind == "gain" and "page" in row.setters)
+
+
+def range_of(name: str) -> tuple[float, float, float]:
+    """A control's min, max and step, from the parameter table (core.bounds: the bound on the step's grid)."""
+    row: Parameter = PARAMETERS[name]
+    lo, hi = row.control_range()
+    assert row.step is not None
+    return lo, hi, float(row.step)
+
+
+def add_slider(gui: Any, name: str, label: str | None = None, **kw: Any) -> Any:
+    """A slider for the table's row ``name``: its label (unless given), min, max and step."""
+    lo, hi, step = range_of(name)
+    if PARAMETERS[name].kind == "count":
+        return gui.add_slider(label or PARAMETERS[name].label, min=int(lo), max=int(hi), step=int(step), **kw)
+    return gui.add_slider(label or PARAMETERS[name].label, min=lo, max=hi, step=step, **kw)
+
+
+def add_number(gui: Any, name: str, label: str, **kw: Any) -> Any:
+    """A number input for the table's row ``name`` (each coordinate of a point or a slot)."""
+    lo, hi, step = range_of(name)
+    return gui.add_number(label, min=lo, max=hi, step=step, **kw)
 
 
 class Controls:
@@ -69,40 +85,40 @@ class Controls:
             self.pause_button = gui.add_button("Pause")
             self.step_button = gui.add_button("Single step", disabled=True)
             self.reset_button = gui.add_button("Reset")
-            self.n_slider = gui.add_slider("Followers", min=1, max=MAX_FOLLOWERS, step=1, initial_value=p.n_followers,
+            self.n_slider = add_slider(gui, "n_followers",
+                                           initial_value=p.n_followers,
                                            hint="number of simulated followers (resets the team)")
         with gui.add_folder("Leader"):
             self.mode = gui.add_dropdown("Motion", options=LEADER_MODES, initial_value=p.leader_mode,
                                          hint="stop | straight | circle | eq39 (the paper's manoeuvre, eq. 39) |"
                                               " goal (drive to the goal below around obstacles)")
-            self.speed = gui.add_slider("Speed (m/s)", min=LEADER_SPEED.lo, max=LEADER_SPEED.hi, step=0.01,
+            self.speed = add_slider(gui, "leader_speed_mps",
                                         initial_value=p.leader_speed_mps, hint="leader forward speed v_l")
-            self.turn = gui.add_slider("Turn (deg/s)", min=LEADER_TURN.lo, max=LEADER_TURN.hi, step=0.5,
+            self.turn = add_slider(gui, "leader_turn_deg_s",
                                        initial_value=p.leader_turn_deg_s,
                                        hint="leader turn rate w_l (circle), or k1 of eq. 39")
             gx, gy = p.goal if p.goal is not None else (0.0, 2.0)
-            self.goal_x = gui.add_number("Goal x (m, odometry frame)", initial_value=float(gx), step=0.05, min=-GOAL_LIMIT_M,
-                                         max=GOAL_LIMIT_M, hint="where the leader drives in goal mode (the floor's"
-                                                                " frame: where the leader started); or shift-click the floor")
-            self.goal_y = gui.add_number("Goal y (m, odometry frame)", initial_value=float(gy), step=0.05, min=-GOAL_LIMIT_M,
-                                         max=GOAL_LIMIT_M)
+            self.goal_x = add_number(gui, "goal", "Goal x (m, odometry frame)", initial_value=float(gx),
+                                         hint="where the leader drives in goal mode (the floor's"
+                                              " frame: where the leader started); or shift-click the floor")
+            self.goal_y = add_number(gui, "goal", "Goal y (m, odometry frame)", initial_value=float(gy))
             self.go_button = gui.add_button("Drive to goal", hint="leader mode goal, to the point above")
-            self.min_scale = gui.add_slider("Narrowest formation", min=MIN_SCALE.lo, max=MIN_SCALE.hi, step=0.05,
+            self.min_scale = add_slider(gui, "min_scale",
                                             initial_value=p.min_scale, hint=MIN_SCALE.meaning +
                                             " (its width times this, at the least; goal mode)")
         with gui.add_folder("Gains"):
             self.gains: dict[str, Any] = {}
-            for name, (lo, hi, step) in GAIN_SLIDERS.items():
-                self.gains[name] = gui.add_slider(
-                    GAIN_LABELS[name], min=lo, max=hi, step=step,
-                    initial_value=float(getattr(p.gains, name)), hint=GAIN_BOUNDS[name].meaning,
-                )
+            for name in PAGE_GAINS:
+                row = PARAMETERS[name]
+                assert row.bound is not None
+                self.gains[name] = add_slider(gui, name, initial_value=float(getattr(p.gains, name)),
+                                              hint=row.bound.meaning)
         with gui.add_folder("Safety"):
             self.safety = gui.add_checkbox("Safety filter", initial_value=p.safety,
                                            hint="barrier certificates on every command: robots keep the distance below"
                                                 " from each other and from the leader (on by default)")
-            self.safety_distance = gui.add_slider("Min distance (m)", min=SAFETY_DISTANCE.lo, max=SAFETY_DISTANCE.hi,
-                                                  step=0.01, initial_value=p.safety_distance_m,
+            self.safety_distance = add_slider(gui, "safety_distance_m",
+                                                  initial_value=p.safety_distance_m,
                                                   hint=SAFETY_DISTANCE.meaning)
         with gui.add_folder("Formation"):
             self.preset = gui.add_dropdown("Preset", options=FORMATION_PRESETS, initial_value=FORMATION_PRESETS[0])
@@ -147,10 +163,8 @@ class Controls:
         self.slot_inputs = []
         with self.slot_folder:
             for j in range(p.slots.shape[0]):
-                x_in = self.server.gui.add_number(f"Slot {j + 1} x", initial_value=float(p.slots[j, 0]), step=0.01,
-                                                  min=-SLOT_LIMIT_M, max=SLOT_LIMIT_M)
-                y_in = self.server.gui.add_number(f"Slot {j + 1} y", initial_value=float(p.slots[j, 1]), step=0.01,
-                                                  min=-SLOT_LIMIT_M, max=SLOT_LIMIT_M)
+                x_in = add_number(self.server.gui, "slot", f"Slot {j + 1} x", initial_value=float(p.slots[j, 0]))
+                y_in = add_number(self.server.gui, "slot", f"Slot {j + 1} y", initial_value=float(p.slots[j, 1]))
 
                 def make_cb(j: int) -> Any:
                     def cb(event: viser.GuiEvent[Any]) -> None:

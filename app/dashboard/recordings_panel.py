@@ -17,7 +17,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import viser
 
@@ -26,14 +26,21 @@ from app.dashboard.widgets import as_text
 
 from app.files import default_recordings, display_path
 
-if TYPE_CHECKING:
-    from app.recording.reader import Recording
+
+class ReplayedFile(Protocol):
+    """What the panel says of a recording being replayed (app.recording.reader.Recording)."""
+
+    @property
+    def path(self) -> Path: ...
+
+    def loss_note(self) -> str: ...
 
 
 class ServedReplay(Protocol):
     """A recording served on a page of its own (app.services.replay.ReplayService)."""
 
-    rec: Recording
+    @property
+    def rec(self) -> ReplayedFile: ...
 
     @property
     def url(self) -> str: ...
@@ -57,11 +64,12 @@ def list_recordings(folder: Path) -> dict[str, Path]:
 
 
 class RecordingsPanel:
-    def __init__(self, server: viser.ViserServer, serve: Callable[[Recording], ServedReplay],
+    def __init__(self, server: viser.ViserServer, serve: Callable[[Path], ServedReplay],
                  folder: Path | None = None, current: str = "",
                  role_of: Callable[[int], str] = lambda _: VIEWER) -> None:
-        """``serve``: a recording to a replay page of its own, not yet started (the composition root
-        says where, with credentials of its own); ``role_of``: a client's role (the gate's), which
+        """``serve``: a recording's file to a replay page of its own, not yet started (the composition
+        root reads the file, a ValueError of one line saying why it cannot be replayed, and says where
+        the page is, with credentials of its own); ``role_of``: a client's role (the gate's), which
         says which of a replay's links it is shown (unknown: a viewer's)."""
         self.server, self.serve, self.folder = server, serve, folder or default_recordings()
         self.current = current  # the file this live run records to: not offered while it is written
@@ -108,8 +116,6 @@ class RecordingsPanel:
 
     def open_selected(self) -> str:
         """Serve the selected recording; returns its URL (or the reason it could not)."""
-        from app.recording.reader import RecordingError, check_ticks, read_recording
-
         name = self.menu.value
         if name == NONE:
             return ""
@@ -117,20 +123,18 @@ class RecordingsPanel:
         if path is None:
             self._show("**cannot replay**: not one of the listed recordings")
             return "not one of the listed recordings"
-        try:
-            rec = read_recording(path)
-            check_ticks(rec)
-        except RecordingError as exc:
-            self._show(f"**cannot replay**: {as_text(str(exc))}")
-            return str(exc)
         with self._lock:
+            try:
+                replay = self.serve(path)  # read first: a file that cannot be replayed closes no replay
+            except ValueError as exc:
+                self._show(f"**cannot replay**: {as_text(str(exc))}")
+                return str(exc)
             while len(self.replays) >= MAX_OPEN:
                 self.replays.pop(0).close()
-            replay = self.serve(rec)
             replay.start()
             self.replays.append(replay)
             names = ", ".join(as_text(r.rec.path.name) for r in self.replays)
-        note = f"  \n{as_text(rec.loss_note())}" if rec.loss_note() else ""
+        note = f"  \n{as_text(replay.rec.loss_note())}" if replay.rec.loss_note() else ""
         self._show(f"Replays being served (open in a new tab): {names}" + note)
         for client in list(self.server.get_clients().values()):
             self._show_links(client)

@@ -378,7 +378,7 @@ class TuningPanel:
                                      f" ({result.feedback} feedback){errors}  \n{BEST_RULE}")
 
     def _draw_sweep(self) -> None:
-        from app.recording.plots import figure_rgb, sweep_figure
+        from app.figures import figure_rgb, sweep_figure
 
         if self.result is None:
             return

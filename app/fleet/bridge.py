@@ -36,12 +36,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from app import wire
-from app.dashboard import LatestStatePublisher
+
 from app.keys import root
-from app.params import Params, ParamsStore
+from app.params import Params, ParamsStore, params_events
+from core.bounds import BUS, settable_by
 from core.types import Gains
-from app.tick import SessionClock, TickState
-from app.recording.writer import params_events
+from app.tick import LatestStatePublisher, SessionClock, TickState
 
 log = logging.getLogger(__name__)
 
@@ -52,8 +52,7 @@ if TYPE_CHECKING:
 
 NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
 ENDPOINT = re.compile(r"(tcp|udp|tls)/(?P<host>[A-Za-z0-9_.-]+|\[[0-9a-fA-F:]+\]):(?P<port>\d{1,5})")
-SETTABLE = ("k_f1", "k_f2", "a", "k_w1", "k_w2", "slots", "leader_mode", "leader_speed_mps", "leader_turn_deg_s",
-            "stop", "safety", "safety_distance_m", "goal", "min_scale")
+SETTABLE = settable_by(BUS)  # the parameter table's rows the bus may set (core.bounds)
 
 
 def check_name(value: str, what: str) -> str:
@@ -478,7 +477,7 @@ class FleetBridge:
 
     def _apply(self, changes: dict[str, Any], sender: str) -> None:
         try:
-            self.store.update(f"fleet:{sender}", **changes)
+            self.store.update_from(BUS, f"fleet:{sender}", **changes)
             self.commands_taken += 1
         except (ValueError, TypeError) as exc:
             self.commands_refused += 1

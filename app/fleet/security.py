@@ -28,6 +28,7 @@ from app.keys import root
 ARENA = "arena"
 PAGE = "page"
 HUBS = (ARENA, PAGE)  # the identities that may listen; of them only the arena writes what it forwards
+ROS2 = "ros2"  # fleet-keys --ros2: the ROS 2 machines' identity (their router, a ROS base); nothing on the fleet's bus
 ROSTER = "fleet.json"
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"  # only fleet-keys needs it (a new identity): keep it off the robots
@@ -58,10 +59,17 @@ class Roster:
 
     fleet: str
     leaders: tuple[str, ...]
+    ros2: bool = False  # fleet-keys --ros2 made a bundle for the ROS 2 machines too (docs/ros2.md)
 
     @property
     def identities(self) -> tuple[str, ...]:
         return (*HUBS, *self.leaders)
+
+    @property
+    def bundles(self) -> tuple[str, ...]:
+        """Every identity with a bundle: the fleet's, and ``ros2`` (no member of the fleet's bus:
+        its access control lets it write nothing there) when made."""
+        return (*self.identities, *((ROS2,) if self.ros2 else ()))
 
 
 @dataclass(frozen=True)
@@ -93,7 +101,7 @@ def parse_leaders(text: str) -> tuple[str, ...]:
     for i in ids:
         if not _identity_ok(i):
             raise ValueError(f"--leaders: {i!r}: 1 to 32 characters of A-Z, a-z, 0-9, _ and -")
-        if i in HUBS:
+        if i in (*HUBS, ROS2):
             raise ValueError(f"--leaders: {i!r} is taken by the {i} itself (a leader needs another id)")
     if len(set(ids)) != len(ids):
         dup = next(i for i in ids if ids.count(i) > 1)
@@ -108,25 +116,26 @@ def bundle_files(identity: str) -> tuple[str, ...]:
 
 
 def make_fleet_keys(directory: Path, fleet: str, leaders: tuple[str, ...], *, overwrite: bool = False,
-                    days: int = DEFAULT_DAYS, now: dt.datetime | None = None) -> list[Path]:
+                    days: int = DEFAULT_DAYS, now: dt.datetime | None = None, ros2: bool = False) -> list[Path]:
     """Writes DIR/ca/ (ca.key and ca.pem: the operator's, never given to a process) and one
     bundle per identity, DIR/<identity>/ (ca.pem, fleet.json, <identity>.pem and .key: what
     ``--keys DIR/<identity>`` reads) for ``arena``, ``page`` and every leader; folders mode
     0700, keys 0600. Refuses (FileExistsError naming the first file) to write over any of them
-    unless ``overwrite``. Returns the files written."""
+    unless ``overwrite``. ``ros2``: a bundle DIR/ros2/ for the ROS 2 machines too. Returns the
+    files written."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-    roster = Roster(fleet, leaders)
-    names = [f"{CA_DIR}/{CA_KEY}", f"{CA_DIR}/{CA_CERT}"] + [f"{i}/{n}" for i in roster.identities
+    roster = Roster(fleet, leaders, ros2)
+    names = [f"{CA_DIR}/{CA_KEY}", f"{CA_DIR}/{CA_CERT}"] + [f"{i}/{n}" for i in roster.bundles
                                                              for n in bundle_files(i)]
     if not overwrite:
         for n in names:
             if (directory / n).exists():
                 raise FileExistsError(f"{directory / n}: exists; fleet-keys writes over keys only with --overwrite")
-    for sub_dir in (CA_DIR, *roster.identities):
+    for sub_dir in (CA_DIR, *roster.bundles):
         (directory / sub_dir).mkdir(parents=True, exist_ok=True)
         os.chmod(directory / sub_dir, 0o700)  # a bundle nobody else may read or change
     now = now or dt.datetime.now(dt.UTC)
@@ -157,10 +166,11 @@ def make_fleet_keys(directory: Path, fleet: str, leaders: tuple[str, ...], *, ov
                                        serialization.NoEncryption()))
 
     ca_pem = ca.public_bytes(serialization.Encoding.PEM)
-    roster_json = (json.dumps({"fleet": fleet, "leaders": list(leaders)}, indent=1) + "\n").encode()
+    roster_json = (json.dumps({"fleet": fleet, "leaders": list(leaders), **({"ros2": True} if ros2 else {})}, indent=1)
+                   + "\n").encode()
     write(f"{CA_DIR}/{CA_KEY}", pem_key(ca_key), secret=True)
     write(f"{CA_DIR}/{CA_CERT}", ca_pem)
-    for identity in roster.identities:
+    for identity in roster.bundles:
         key = ec.generate_private_key(ec.SECP256R1())
         cert = (x509.CertificateBuilder()
                 .subject_name(x509.Name([org, x509.NameAttribute(NameOID.COMMON_NAME, identity)]))
@@ -209,9 +219,11 @@ def _roster(directory: Path) -> Roster:
     def parse(data: bytes) -> Roster:
         d = json.loads(data)
         fleet, leaders = d["fleet"], d["leaders"]  # KeyError / TypeError: not a roster
-        if not isinstance(fleet, str) or not isinstance(leaders, list) or not all(isinstance(x, str) for x in leaders):
+        ros2 = d.get("ros2", False)
+        if not isinstance(fleet, str) or not isinstance(leaders, list) or not all(isinstance(x, str) for x in leaders) \
+                or not isinstance(ros2, bool):
             raise TypeError
-        return Roster(fleet, parse_leaders(",".join(leaders)))
+        return Roster(fleet, parse_leaders(",".join(leaders)), ros2)
 
     roster: Roster = _parse(path, _read(path, "the fleet's roster"), parse,
                             'not a fleet roster ({"fleet": NAME, "leaders": [ID, ...]})')
@@ -252,10 +264,12 @@ def _check_bundle(directory: Path, identity: str) -> None:
                                " own identity's key only; move it away")
 
 
-def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datetime | None = None) -> FleetKeys:
+def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datetime | None = None,
+                    ros2: bool = False) -> FleetKeys:
     """The files ``identity`` joins ``fleet`` with, checked: present and readable, the key not
     readable by others, the certificate this fleet CA's, named ``identity``, in date and made
-    for this key. KeyFileError (a ValueError) names the file and the reason."""
+    for this key. KeyFileError (a ValueError) names the file and the reason. ``ros2``: for a ROS 2
+    session, where the ``ros2`` bundle serves too (on the fleet's bus it is nobody)."""
     from cryptography import x509
     from cryptography.exceptions import InvalidSignature
     from cryptography.hazmat.primitives import serialization
@@ -267,9 +281,10 @@ def load_fleet_keys(directory: Path, identity: str, fleet: str, *, now: dt.datet
     roster = _roster(directory)
     if roster.fleet != fleet:
         raise KeyFileError(f"{directory / ROSTER}: keys of fleet {roster.fleet!r}, not of {fleet!r}")
-    if identity not in roster.identities:
+    members = roster.bundles if ros2 else roster.identities
+    if identity not in members:
         raise KeyFileError(f"{directory / ROSTER}: {identity!r} is not in fleet {fleet} (its identities:"
-                        f" {', '.join(roster.identities)}; fleet-keys makes the keys of a new one)")
+                        f" {', '.join(members)}; fleet-keys makes the keys of a new one)")
     now = now or dt.datetime.now(dt.UTC)
     ca_path, cert_path, key_path = directory / CA_CERT, directory / f"{identity}.pem", directory / f"{identity}.key"
     ca = _parse(ca_path, _read(ca_path, "the fleet's CA certificate"), x509.load_pem_x509_certificate,

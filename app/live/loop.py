@@ -153,6 +153,7 @@ class ServiceLoop:
         self.late_frames = 0  # frame-triggered ticks that ran without a new frame (a late camera)
         self._publish_ms: dict[str, float] = {}
         self._sent: deque[tuple[FloatArray, tuple[float, float]]] = deque(maxlen=30)  # (commands, twist) per tick
+        self.leader_motion: tuple[tuple[float, float], str] = ((0.0, 0.0), "command")  # eq. 5's (v, w) and whence
         self.last: TickState | None = None
         self._safety: SafetySettings | None = None
         self._world = self._make_world(store.get())
@@ -251,6 +252,21 @@ class ServiceLoop:
             return p, a
         return predict_poses(p, a, np.array(commands), np.array(twists), self.dt)
 
+    def _leader_motion(self, twist: tuple[float, float]) -> tuple[tuple[float, float], str]:
+        """The leader's (v, w) for eq. 5's compensation: what its base measured (its odometry:
+        /odom, or a serial base's encoders) while that is fresh, else the commanded twist (and
+        the source says why); the commanded one when there is no leader base."""
+        base = self.backends.leader or (self.hardware.leader_link if self.hardware is not None else None)
+        if base is None:
+            return twist, "command"
+        if base.lost:
+            return twist, "command (no fresh odometry)"
+        v, w = base.measured()
+        measured = (float(v[0]), float(w[0]))
+        if not (math.isfinite(measured[0]) and math.isfinite(measured[1])):
+            return twist, "command (no fresh odometry)"
+        return measured, "odometry"
+
     def _leader_waits(self, params: Params, tracked: np.ndarray) -> str:
         """Why the leader stands still this tick ('' when it may drive): STOP, or a release that waits
         until every follower is tracked again (``Params.leader_hold``; the loop clears it then)."""
@@ -315,9 +331,13 @@ class ServiceLoop:
             self._mode = (self._mode[0], self._mode[1] + (self.dt if advance else 0.0))  # a profile's clock waits too
         else:
             twist = self._leader_twist(params, known, world.err_norm, tracked, params.slots)
-        out, flags, safety, p, a = self._commands(params, obs, p, a, tracked, answering, known, twist, advance)
+        motion, source = self._leader_motion(twist)  # eq. 5 compensates what the leader does, when it is measured
+        if source != self.leader_motion[1] and "odometry" in (source, self.leader_motion[1]):  # it came, or went stale
+            (log.info if source == "odometry" else log.warning)("loop: eq. 5 compensates the leader's %s", source)
+        self.leader_motion = (motion, source)
+        out, flags, safety, p, a = self._commands(params, obs, p, a, tracked, answering, known, motion, advance)
         world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
-        self._sent.append((world.last_cmd, twist))
+        self._sent.append((world.last_cmd, motion))
         if advance:  # eq. 21's V per follower, and its slope over the last RATE_WINDOW_S
             world.v_hist.append((self.t, out.v_lyap))
             while world.v_hist and world.v_hist[0][0] < self.t - RATE_WINDOW_S:
@@ -340,7 +360,9 @@ class ServiceLoop:
             assignment=world.memory.assignment.copy(),
             commands=np.column_stack([out.commands.v, out.commands.w]), a_err=out.a_err,
             v_lyap=out.v_lyap, gains=params.gains, params_version=params.version,
-            stopped=params.stop, paused=params.paused and not advance, link_state=world.team.link_state,
+            stopped=params.stop, paused=params.paused and not advance,
+            link_state=world.team.link_state + (" · eq. 5 on the commanded twist" if source.startswith("command (")
+                                                else ""),
             rate_hz=self.achieved_rate_hz, stage_ms=stage, phase=obs.phase, probing=obs.probing,
             a_raw=obs.a_raw, frame=obs.frame, windows=obs.windows, hues_deg=obs.hues_deg,
             link_detail=world.team.link_detail(), fault=self.fault, camera_state=obs.camera_state,
@@ -496,7 +518,20 @@ class ServiceLoop:
 
     def run(self) -> None:
         """Tick until stop(): on a camera's frames when the loop has one (``frames``), else at the
-        configured rate. Always leaves the followers at zero."""
+        configured rate. Always leaves the followers at zero. Every kernel it can reach is compiled
+        and warmed first, before its clock starts (app.live.warmup)."""
+        from app.live.warmup import compiled, warm_up
+
+        warm_up(self)
+        compiled_at_start = compiled()
+        try:
+            self._paced()
+        finally:
+            late = compiled() - compiled_at_start
+            if late:  # a kernel the warm-up did not reach: its first use stalled a tick (name it in app.live.warmup)
+                log.warning("loop: %d kernel(s) compiled while the loop's clock ran", late)
+
+    def _paced(self) -> None:
         if self.realtime:
             self._ask_realtime()
         if self.frames is not None:

@@ -27,7 +27,7 @@ import matplotlib.pyplot as plt
 from matplotlib.axes import Axes
 import numpy as np
 
-from app.recording.plots import colour, trajectory_panel
+from app.figures import colour, trajectory_panel
 from app.recording.reader import Recording
 from app.recording.statistics import (BOUNDARY_M, COLLISION_M, DISTANCE_BLOCK, MAX_PLOTTED, NEAR_MISS_M,
                                       OBSTACLE_CLEARANCE_M, SETTLED_M, Scan, Series, Tally, obstacle_gap,
@@ -147,7 +147,7 @@ def _lyapunov_commands(s: Series, path: Path) -> None:
 def _lyapunov_monitor(s: Series, path: Path) -> None:
     """Per follower: eq. 21's V (where it rose, shaded red; fell, green), and the strip of the
     saturations and limits that were active (core.control.tuning)."""
-    from app.recording.plots import limits_strip
+    from app.figures import limits_strip
     from core.control.tuning import lyapunov_trend
 
     v = s.v_each if s.v_each is not None else s.v_lyap[:, None]

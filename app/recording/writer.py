@@ -40,7 +40,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.params import Params
+from app.params import Params, params_events
 from core.types import Image
 from app.tick import SessionClock, TickState
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
@@ -158,27 +158,6 @@ def tick_events(prev: TickState | None, s: TickState) -> list[tuple[str, str]]:
         ev.append(("phase", f"vision {prev.phase} -> {s.phase}"))
     if prev.stopped != s.stopped:
         ev.append(("stop", "STOP: every follower at zero" if s.stopped else "STOP released"))
-    return ev
-
-
-def params_events(old: Params, new: Params, source: str) -> list[tuple[str, str]]:
-    """What an operator change did, in words."""
-    ev: list[tuple[str, str]] = []
-    og, ng = old.gains.as_dict(), new.gains.as_dict()
-    changed = [f"{k} {og[k]:g} -> {ng[k]:g}" for k in ng if og[k] != ng[k]]
-    if changed:
-        ev.append(("gain", ", ".join(changed)))
-    if old.slots.shape != new.slots.shape or not np.array_equal(old.slots, new.slots):
-        kind = "preset" if "preset" in source else "target"
-        ev.append((kind, f"{source.split(' ', 1)[-1] if kind == 'preset' else 'slots'}: "
-                   + "; ".join(f"({x:.2f}, {y:.2f})" for x, y in new.slots)))
-    for key in ("leader_mode", "leader_speed_mps", "leader_turn_deg_s", "n_followers", "paused"):
-        if getattr(old, key) != getattr(new, key):
-            ev.append(("setting", f"{key} {getattr(old, key)} -> {getattr(new, key)}"))
-    if new.stop and not old.stop and " STOP by " in source:  # who pressed it (the tick's own event says it held)
-        ev.append(("stop_by", f"STOP pressed by {source.split(' STOP by ', 1)[1]}"))
-    if old.reset_requests != new.reset_requests:
-        ev.append(("reset", "team reset"))
     return ev
 
 

@@ -1,7 +1,9 @@
 """An emulated ROS 2 mobile base (``omniformation emulate-base --ros2``): it takes
 geometry_msgs/msg/Twist on /cmd_vel and publishes nav_msgs/msg/Odometry on /odom, moved by the
 simulator's robot dynamics (core.sim.team.step_team, one robot). A command older than
-CMD_TIMEOUT_S is taken as zero, as real bases do."""
+CMD_TIMEOUT_S is taken as zero, as real bases do. ``speed_scale`` makes it a base that slips
+(or is mis-calibrated): it really moves that share of what it is told, and its odometry says
+what it really did."""
 
 from __future__ import annotations
 
@@ -24,8 +26,11 @@ class EmulatedBase:
     """One base: its pose (odom frame), its command and the odometry it publishes at ``rate_hz``."""
 
     def __init__(self, node: Ros2Node, rate_hz: float = 50.0, dynamics: FollowerDynamics | None = None,
-                 cmd_topic: str = "/cmd_vel", odom_topic: str = "/odom") -> None:
+                 cmd_topic: str = "/cmd_vel", odom_topic: str = "/odom", speed_scale: float = 1.0) -> None:
+        if not (math.isfinite(speed_scale) and speed_scale >= 0.0):
+            raise ValueError(f"speed scale {speed_scale!r}: must be a finite number >= 0")
         self.node = node
+        self.speed_scale = speed_scale
         self.dt = 1.0 / rate_hz
         self.dynamics = dynamics or FollowerDynamics()
         self.state = TeamState(np.zeros(3), np.array([[0.0, 0.0, math.pi / 2]]), np.zeros((1, 2)))
@@ -51,8 +56,9 @@ class EmulatedBase:
         return (v, w) if time.monotonic() - at <= CMD_TIMEOUT_S else (0.0, 0.0)
 
     def step(self) -> None:
-        """Move by one period under the command in force and publish the odometry."""
-        v, w = self.command()
+        """Move by one period under the command in force (times the speed scale: a slipping base)
+        and publish the odometry: what it really did."""
+        v, w = (self.speed_scale * c for c in self.command())
         self.state = step_team(self.state, Commands(np.array([v]), np.array([w])), (0.0, 0.0), self.dt, 0.0,
                                self._rng, self.dynamics)
         x, y, theta = (float(q) for q in self.state.followers[0])

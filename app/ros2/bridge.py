@@ -18,6 +18,7 @@ import numpy as np
 
 from app.backends.ros2 import Ros2Node, header, msg, pose, quaternion_yaw, vector3
 from app.params import ParamsStore
+from core.bounds import ROS
 from app.tick import TickState
 
 WORLD, LEADER = "world", "leader"  # TF frames: the odometry (world) frame and the leader frame
@@ -142,7 +143,7 @@ class Ros2Bridge:
     # -- in (--ros2-control) -----------------------------------------------------------
     def _apply(self, what: str, **changes: Any) -> bool:
         try:
-            _, notices = self.store.update(f"ros2:{what}", **changes)
+            _, notices = self.store.update_from(ROS, f"ros2:{what}", **changes)  # the table's ROS rows only
         except (ValueError, TypeError) as exc:
             self.refused += 1
             self.events.append(("refused", f"ros2 {what}: {exc}"))

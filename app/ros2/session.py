@@ -5,12 +5,35 @@ mutual TLS ``tls/`` with them: app.fleet.bridge.check_endpoint)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import zenoh
 
     from app.fleet.security import FleetKeys
+
+
+def ros2_keys(directory: Path) -> FleetKeys:
+    """``--keys DIR`` with ``--ros2``: one identity's bundle from ``fleet-keys`` (a leader's, the
+    page's, or ``ros2``: the one ``<id>.key`` in it names the identity, its fleet.json the fleet),
+    checked as the fleet checks it (app.fleet.security.load_fleet_keys: no CA key, no other
+    identity's key beside it); else ValueError in one line."""
+    from app.fleet.security import CA_DIR, CA_KEY, ROS2, ROSTER, KeyFileError, load_fleet_keys
+
+    if not directory.is_dir():
+        raise KeyFileError(f"--keys {directory}: not a directory (`omniformation fleet-keys DIR --ros2 ...` makes"
+                           " DIR/ros2/ and one bundle per identity)")
+    keys = sorted(p.stem for p in directory.glob("*.key") if p.name != CA_KEY)
+    if not keys and not (directory / CA_DIR).is_dir() and not (directory / CA_KEY).exists():
+        raise KeyFileError(f"--keys {directory}: no identity's key (<id>.key) in it: give one identity's bundle,"
+                           " fleet-keys' DIR/<id>/")
+    try:
+        fleet = json.loads((directory / ROSTER).read_bytes())["fleet"]
+    except (OSError, ValueError, KeyError, TypeError):
+        fleet = ""  # load_fleet_keys names what is wrong with the roster
+    # a whole fleet-keys folder, a CA key or a second key beside: load_fleet_keys' bundle checks refuse it
+    return load_fleet_keys(directory, keys[0] if keys else ROS2, fleet if isinstance(fleet, str) else "", ros2=True)
 
 
 def session_config(connect: list[str], keys: FleetKeys | None = None) -> Any:

@@ -26,8 +26,10 @@ from typing import Any, Protocol
 import numpy as np
 import viser
 
+from core.bounds import number_default
 from core.geometry import leader_to_world
 
+from app.dashboard.controls import add_slider
 from app.dashboard.scene import yaw_wxyz
 from app.dashboard.widgets import assign, on_page_thread
 from app import wire
@@ -71,12 +73,12 @@ class LeaderPanel:
             self.status = gui.add_markdown(f"**{leader_id}**: waiting for its state")
             self.stop = gui.add_button(f"STOP {leader_id}", color="red")
             self.release = gui.add_button(f"Release STOP {leader_id}", color="gray")
-            self.k_f1 = gui.add_slider(f"{leader_id} k_f1", min=0.01, max=1.0, step=0.01, initial_value=0.1)
-            self.k_w2 = gui.add_slider(f"{leader_id} k_w2", min=0.1, max=10.0, step=0.1, initial_value=3.0)
+            # ranges from the parameter table (core.bounds), as the leader's own page and the bus take them
+            self.k_f1 = add_slider(gui, "k_f1", f"{leader_id} k_f1", initial_value=number_default("k_f1"))
+            self.k_w2 = add_slider(gui, "k_w2", f"{leader_id} k_w2", initial_value=number_default("k_w2"))
             self.mode = gui.add_dropdown(f"{leader_id} leader mode", options=("stop", "straight", "circle"),
                                          initial_value="straight")
-            self.speed = gui.add_slider(f"{leader_id} leader speed (m/s)", min=-0.3, max=0.3, step=0.01,
-                                        initial_value=0.03)
+            self.speed = add_slider(gui, "leader_speed_mps", f"{leader_id} leader speed (m/s)", initial_value=0.03)
         self.stop.on_click(lambda _: view.send(leader_id, {"stop": True}))
         self.release.on_click(lambda _: view.send(leader_id, {"stop": False}))
         self.word = "not on the bus"  # for the page's bar: running, STOPPED, not on the bus

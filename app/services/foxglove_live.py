@@ -42,12 +42,12 @@ from foxglove.messages import (ArrowPrimitive, Color, CubePrimitive, LinePrimiti
                                TextPrimitive, Timestamp, Vector3)
 
 from app.dashboard.gate import is_loopback
-from app.params import Params
+from app.params import Params, params_events
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
 from app.recording.schema import (EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS, TF_TOPIC,
                                   TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable, params_payload,
                                   scan_payload, tick_payload, transforms_payload)
-from app.recording.writer import params_events, tick_events
+from app.recording.writer import tick_events
 from app.tick import SessionClock, TickState
 from core.camera.render.looks import follower_rgb
 

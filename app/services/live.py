@@ -31,13 +31,14 @@ from app.dashboard.camera_panel import Overlay
 from app.dashboard.tuning_panel import TuningPanel
 from app.dashboard.gate import new_token, quietly, serve_gated
 from app.dashboard.recordings_panel import RecordingsPanel
+from app.services.page_process import PageProcess
 from app.services.replay import ReplayService
 from app.live.loop import DEFAULT_NOISE, ServiceLoop
 from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
 from app.memory import bound_native_heap, bound_python_heap
-from app.recording.reader import Recording
+from app.recording.reader import check_ticks, read_recording
 
 
 
@@ -75,6 +76,20 @@ def goal_check_for(obstacles: tuple[Obstacle, ...]) -> Callable[[tuple[float, fl
     return check
 
 
+class _NoPage:
+    """Stands for the page's panels in the loop's process when the page runs in its own: what is
+    written to it goes nowhere (the recording's name is not shown on the page then)."""
+
+    def __init__(self) -> None:
+        self.controls = self
+        self.extra: list[Callable[[], None]] = []
+        self.recording = ""
+        self.current = ""
+
+    def rescan(self) -> None:
+        pass
+
+
 class Service:
     """``camera``: the synthetic rig and its Γ — the loop then sees the team through the vision
     pipeline; None feeds it the simulator's poses plus noise (``dynamics`` and ``noise`` apply)."""
@@ -87,11 +102,14 @@ class Service:
                  hardware: HardwareTeam | None = None, recordings: Path | None = None,
                  token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None,
                  viewer_token: str | None = None, realtime: bool = False,
-                 leader_base: FollowerLink | None = None) -> None:
+                 leader_base: FollowerLink | None = None, page_process: bool = False) -> None:
         """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
         ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host.
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
-        ``params``: the operator's starting values when no scenario gives them."""
+        ``params``: the operator's starting values when no scenario gives them.
+        ``page_process``: the page (gate, viser, dashboard) in a process of its own, a client of this
+        one's loop (app.services.page_process); its Tuning, Recordings and Calibration panels are not
+        served then."""
         bound_native_heap()  # hours of frames in bounded resident memory (app.memory)
         bound_python_heap()  # and of Python's small objects
         fixed = hardware.state.n if hardware is not None else len(arena.owned) if arena is not None \
@@ -112,7 +130,6 @@ class Service:
                                 realtime=realtime, leader_base=leader_base)
         if obstacles:
             self.store.goal_check = goal_check_for(obstacles)
-        self.server, self.gate = serve_gated(host, port, token, viewer_token)
         overlay = None
         if camera is not None:
             wa = camera[0].working_area
@@ -120,6 +137,20 @@ class Service:
         self.tests = StepTests(self.store, self.loop.dynamics.wheel_base_m)
         self.loop.subscribe(self.tests.on_tick)
         self.sweeps = SweepRunner()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self.page: PageProcess | None = None
+        self.dashboard: Dashboard
+        self.recordings: RecordingsPanel
+        if page_process:
+            self.page = PageProcess(self.store, host, port, token, viewer_token,
+                                    None if overlay is None else (overlay.center, overlay.inner_px, overlay.outer_px),
+                                    obstacles)
+            self.loop.subscribe(self.page.on_tick)
+            self.dashboard = _NoPage()  # type: ignore[assignment]  # what the recorder writes to a page: nowhere
+            self.recordings = _NoPage()  # type: ignore[assignment]
+            return
+        self.server, self.gate = serve_gated(host, port, token, viewer_token)
         loop = self.loop
 
         def base() -> tuple[Scenario, tuple[float, float]] | str:
@@ -143,21 +174,27 @@ class Service:
             self.calibration = CalibrationPanel(self.server, frames, rig.detect, Path("camera.toml"),
                                                 centre=(gamma.cx, gamma.cy), area=rig.working_area)
             self.dashboard.extra.append(self.calibration.refresh)
-        def replay(rec: Recording) -> ReplayService:
+
+        def replay(path: Path) -> ReplayService:
             """A replay with credentials of its own: the live page's token never goes into a link
-            (the panel shows each client the link for its role; docs/page-access.md)."""
+            (the panel shows each client the link for its role; docs/page-access.md). A file that
+            is no recording raises RecordingError (a ValueError), which the panel shows."""
+            rec = read_recording(path)
+            check_ticks(rec)
             return ReplayService(rec, host=host, port=0, token=new_token() if self.gate.token else None,
                                  viewer_token=new_token())
 
         self.recordings = RecordingsPanel(self.server, replay, recordings, role_of=self.gate.role_of)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
-        self._thread: threading.Thread | None = None
-        self._closed = False
 
     @property
     def url(self) -> str:
-        return self.gate.url
+        return self.page.url if self.page is not None else self.gate.url
+
+    @property
+    def viewer_url(self) -> str:
+        return self.page.viewer_url if self.page is not None else self.gate.viewer_url
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self.loop.run, name="omniformation-loop", daemon=True)
@@ -180,6 +217,11 @@ class Service:
         else:  # never started: nothing else closes the team's link (a serial port left open would
             self.loop.close_team()  # keep reading whatever device later gets its name)
         self.sweeps.cancel()
+        if self.page is not None:
+            self.page.close()
+            if self.loop.frames is not None:
+                self.loop.frames.close()
+            return
         self.publisher.close()
         self.recordings.close()
         self.gate.close()

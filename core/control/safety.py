@@ -40,6 +40,7 @@ from typing import Literal
 
 import numpy as np
 
+from core.bounds import number_default
 from core.types import BoolArray, Commands, FloatArray
 
 SolveStatus = Literal["inactive", "filtered", "infeasible", "no solver"]
@@ -49,7 +50,7 @@ SolveStatus = Literal["inactive", "filtered", "infeasible", "no solver"]
 class SafetySettings:
     """The filter's parameters (SI units)."""
 
-    min_distance_m: float = 0.25  # centre to centre, between any two robots (followers and leader)
+    min_distance_m: float = number_default("safety_distance_m")  # centre to centre, any two robots (core.bounds)
     obstacle_margin_m: float = 0.10  # from a follower's centre to an obstacle's surface, beyond its half-width
     follower_radius_m: float = 0.15  # half the follower's diagonal: what must clear an obstacle's surface
     projection_m: float = 0.025  # the point ahead of the axle the barriers act on

@@ -371,13 +371,15 @@ def test_a_file_name_with_html_or_markdown_in_it_is_shown_as_text(tmp_path):
     from app.dashboard.gate import quietly
     from app.dashboard.recordings_panel import RecordingsPanel
     from app.dashboard.widgets import as_text
+    from app.recording.reader import read_recording
     from app.services.replay import ReplayService
     from tests.helpers import SAMPLES
 
     name = "x<img src=a onerror=alert(1)>[click](http:evil)_*.mcap"
     shutil.copyfile(SAMPLES / "experiment2-vision.mcap", tmp_path / name)
     server = quietly(lambda: viser.ViserServer(host="127.0.0.1", port=0, verbose=False))
-    panel = RecordingsPanel(server, lambda rec: ReplayService(rec, host="127.0.0.1", port=0), tmp_path)
+    panel = RecordingsPanel(server, lambda path: ReplayService(read_recording(path), host="127.0.0.1", port=0),
+                            tmp_path)
     try:
         (listed,) = panel.menu.options
         assert listed.endswith(name)

@@ -64,9 +64,9 @@ def test_the_samples_pass_mcaps_checks(sample):
 
 
 def test_the_fleet_recorders_file_passes_mcaps_checks(tmp_path):
-    """The fleet's recorder (app/fleet/recorder.py) on its own writer thread: a leader's state
+    """The fleet's recorder (app/recording/fleet.py) on its own writer thread: a leader's state
     and events, the arena's truth, over more than one chunk's second."""
-    from app.fleet.recorder import FleetRecorder
+    from app.recording.fleet import FleetRecorder
 
     path = tmp_path / "fleet.mcap"
     rec = FleetRecorder(path)

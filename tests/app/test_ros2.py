@@ -112,7 +112,10 @@ def rig():
     states: list[Any] = []
     loop.subscribe(states.append)
     loop.subscribe(bridge.on_tick)
-    wait_for(lambda: not leader.lost, 20, "the base's odometry")
+    from core.types import Commands
+
+    leader.send(Commands(np.array([0.08]), np.array([0.0])))  # rolling when the loop starts: eq. 5 on its odometry
+    wait_for(lambda: not leader.lost and leader.measured()[0][0] > 0.04, 20, "the base's odometry")
     thread = threading.Thread(target=loop.run, daemon=True)
     thread.start()
     yield {"loop": loop, "store": store, "base": base, "leader": leader, "node": node, "bridge": bridge,
@@ -283,6 +286,7 @@ def test_no_odometry_for_half_a_second_stops_the_leader_and_says_so(rig):
     (["run", "--ros2"], "needs --zenoh-connect"),
     (["run", "--ros2", "--zenoh-connect", "tcp/10.1.2.3:7447", "--no-record"], "stays on this machine"),
     (["emulate-base", "--ros2", "--zenoh-connect", "CLOSED"], "no ROS 2 Zenoh router answers"),
+    (["emulate-base", "--ros2", "--speed-scale", "-1"], "-1 is outside [0, 2]"),
 ])
 def test_bad_ros2_input_is_one_line_and_exit_2(args, words):
     args = [_free_endpoint() if a == "CLOSED" else a for a in args]
@@ -362,3 +366,58 @@ def test_a_stamped_base_gets_twist_stamped(rig):
     m = got[-1][0]
     assert (m.twist.linear.x, m.twist.angular.z, m.header.frame_id) == (0.25, -0.5, "base_link")
     assert base.lost and "no odometry yet" in base.link_state
+
+
+def test_eq5_compensates_the_leaders_odometry_not_its_command():
+    """A base that slips (emulate-base's speed scale 0.5: it really moves half of what it is told,
+    and its /odom says so): eq. 5's leader motion is the odometry's twist, not the command, and
+    the team keeps its formation. When the odometry goes stale the loop falls back to the
+    commanded twist and its link state says so."""
+    from app.backends.ros2 import Ros2Base, Ros2Node
+    from app.live.loop import ServiceLoop
+    from app.params import Params, ParamsStore
+    from app.ros2.base import EmulatedBase
+    from app.ros2.session import open_ros2_session
+
+    endpoint = _free_endpoint()
+    router = _session("router", endpoint)
+    base_node = Ros2Node(open_ros2_session([endpoint]), "base")
+    base = EmulatedBase(base_node, speed_scale=0.5)
+    base.start()
+    node = Ros2Node(open_ros2_session([endpoint]), "omniformation")
+    leader = Ros2Base(node)
+    store = ParamsStore(Params(n_followers=2, slots=SLOTS.copy(), leader_mode="straight", leader_speed_mps=0.2))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=7, initial_poses=(SLOTS.copy(), np.full(2, math.pi / 2)),
+                       leader_base=leader)
+    used: list[tuple[Any, tuple[tuple[float, float], str]]] = []
+    loop.subscribe(lambda s: used.append((s, loop.leader_motion)))  # each tick's own compensation
+    thread = threading.Thread(target=loop.run, daemon=True)
+    try:
+        from core.types import Commands
+
+        leader.send(Commands(np.array([0.2]), np.array([0.0])))  # the base already rolling when the loop starts
+        wait_for(lambda: not leader.lost and leader.measured()[0][0] > 0.05, 20, "the base's odometry")
+        thread.start()
+        wait_for(lambda: len(used) >= 75, 60, "2.5 s of ticks")
+        steady = used[30:75]
+        assert all(src == "odometry" for _, (_, src) in steady), {src for _, (_, src) in steady}
+        v_used = np.array([m[0] for _, (m, _) in steady])
+        v_cmd = np.array([s.leader_twist[0] for s, _ in steady])
+        print(f"eq. 5's leader speed: {v_used.mean():.3f} m/s from /odom, {v_cmd.mean():.3f} m/s commanded")
+        assert np.allclose(v_cmd, 0.2) and np.allclose(v_used, 0.1, atol=0.01)  # the slip, not the command
+        err = np.concatenate([np.linalg.norm(s.p_true - s.p_d, axis=1) for s, _ in steady])
+        rms = float(np.sqrt(np.mean(err ** 2)))
+        print(f"formation RMS on a slipping base, eq. 5 on its odometry: {rms * 100:.2f} cm")
+        assert rms <= 0.02  # on the commanded twist the followers run ahead of the leader: 13 cm
+        base.close()  # no more odometry: eq. 5 falls back to the command, and says so
+        wait_for(lambda: used[-1][1][1] == "command (no fresh odometry)", 10, "the fallback")
+        s, ((v, _), _) = used[-1]
+        assert v == s.leader_twist[0] and "eq. 5 on the commanded twist" in s.link_state
+    finally:
+        loop.stop()
+        thread.join(30)
+        base.close()
+        for n in (node, base_node):
+            n.close()
+            n.session.close()
+        router.close()

@@ -121,13 +121,3 @@ def test_a_gid_is_xxh3_128_of_the_token_low_half_first():
     lo, hi = xxh3_128(token.encode())
     assert entity_gid(token) == struct.pack("<QQ", lo, hi)
 
-
-def test_the_ros2_adapters_import_nothing_above_them():
-    """app/ros2 reads what the loop publishes and writes the store: it imports no loop, page,
-    recorder, service or command line; the wire layer in app/backends imports no fleet either."""
-    from tests.app.test_layers import _app_imports
-    from tests.helpers import ROOT
-
-    for f in sorted((ROOT / "app" / "ros2").glob("*.py")):
-        assert not _app_imports(f) & {"live", "dashboard", "recording", "services", "cli"}, f
-    assert not _app_imports(ROOT / "app" / "backends" / "ros2.py") - {"contracts", "backends"}

@@ -212,7 +212,7 @@ def test_the_heat_map_shows_one_metric_in_colour_and_number_with_units():
     from core.sim.sweep import METRICS, SweepResult
     from core.types import Gains
 
-    from app.recording.plots import sweep_figure
+    from app.figures import sweep_figure
 
     r0, r1 = GainRange("k_w2", np.array([1.0, 2.0, 3.0])), GainRange("k_f1", np.array([0.05, 0.1]))
     scores, gains = [], []

@@ -17,7 +17,7 @@ from app.backends.arena import ArenaTeam
 from app.fleet.adopter import Adopter
 from app.fleet.bridge import FleetBridge, loopback_endpoint, open_session
 from app.services.fleet_page import FleetView
-from app.fleet.recorder import FleetRecorder
+from app.recording.fleet import FleetRecorder
 from app.live.loop import ServiceLoop
 from app.params import Params, ParamsStore, default_slots
 

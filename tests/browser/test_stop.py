@@ -129,7 +129,7 @@ def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(se
         _raw(conn, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"disabled": True, "visible": False}})
         _raw(conn, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"label": "go", "value": True}})
         _raw(conn, {"type": "GuiUpdateMessage", "uuid": trial._impl.uuid, "updates": {"value": 2**64 - 1}})
-        _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["k_w1"]._impl.uuid, "updates": {"value": 5.0}})
+        _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["k_w1"]._impl.uuid, "updates": {"value": 50.0}})
         _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["k_f1"]._impl.uuid, "updates": {"value": "0.2"}})
         _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["a"]._impl.uuid, "updates": {"value": 5e-324}})
         _raw(conn, {"type": "ShareUrlRequest"})

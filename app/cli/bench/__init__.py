@@ -32,6 +32,12 @@ def _floods(print_fn: Callable[[str], None]) -> dict[str, float]:
     return bench_floods(print_fn)
 
 
+def _loop(print_fn: Callable[[str], None]) -> dict[str, float]:
+    from app.cli.bench_loop import bench_loops  # the page's clients against the loop, the page in and out of its process
+
+    return bench_loops(print_fn, latency=bench_latency)
+
+
 def _ros2(print_fn: Callable[[str], None]) -> dict[str, float]:
     from app.cli.bench_ros2 import bench_ros2  # the loop's rate and CPU per tick with --ros2 (docs/ros2.md)
 
@@ -45,6 +51,7 @@ FAMILIES: list[Callable[[Callable[[str], None]], dict[str, float]]] = [
     browsers.run_family,
     _foxglove,
     _floods,
+    _loop,
     fleet.run_family,
     _ros2,
 ]

@@ -1,4 +1,5 @@
-"""Static figures in the paper's style (matplotlib, headless Agg backend).
+"""Static figures in the paper's style (matplotlib, headless Agg backend): the report's and
+simulate's, and the page's tuning and calibration panels' (below both, so neither imports the other).
 
 The simulation figure reproduces the layout of fig. 16-17: the team's world
 trajectories with formation triangles at a few instants, the x / y position

@@ -1,0 +1,213 @@
+"""`omniformation bench`'s loop figures: what the page and its clients cost the robots' loop.
+
+A live service as `make run` serves it (vision in the loop, 30 Hz) is measured alone, during a
+flood of refused updates from one raw websocket client and while 200 websockets stay open (each
+party a process of its own, speaking viser's protocol as docs/page-access.md describes it). During
+the flood a second client, from another loopback address, presses STOP and times the click until
+its page says STOPPED. The loop's own CPU time per tick is read from its thread's counters
+(/proc), so the page's work is not counted. These are the figures the loop's own process is to
+improve; the frame-to-command latency with one browser attached is `bench --latency`'s.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+FLOOD_S = 20.0
+STOP_WITHIN_S = 0.5  # the target: STOP seen as STOPPED this soon after the click, during a flood
+_FLOODER = r"""
+import socket, sys, time
+import msgspec, viser
+import websockets.exceptions
+import websockets.sync.client as wsc
+
+port, mode, seconds, speed = int(sys.argv[1]), sys.argv[2], float(sys.argv[3]), sys.argv[4]
+sub = [f"viser-v{viser.__version__}"]
+
+def connect():
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10, source_address=("127.0.0.50", 0))
+    return wsc.connect(f"ws://127.0.0.1:{port}/", sock=sock, subprotocols=sub, open_timeout=10, max_queue=None,
+                       additional_headers={"Origin": f"http://127.0.0.1:{port}"})
+
+refused = msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": speed, "updates": {"value": 1e9}})
+end = time.monotonic() + seconds
+conns = []
+print("ready", flush=True)
+while time.monotonic() < end:
+    try:
+        if mode == "sockets":
+            if len(conns) < 200:
+                conns.append(connect())  # and never read
+            else:
+                time.sleep(0.1)
+            continue
+        conn = connect()
+        while time.monotonic() < end:
+            conn.send(refused)
+    except (websockets.exceptions.InvalidHandshake, websockets.exceptions.ConnectionClosed, OSError, TimeoutError):
+        time.sleep(0.01)
+for c in conns:
+    c.close()
+"""
+
+
+def _thread_cpu_s(native_id: int) -> float:
+    """CPU seconds (user + system) one thread of this process has used."""
+    import os
+
+    with open(f"/proc/self/task/{native_id}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _frames(ws: Any, until: float) -> Any:
+    """The messages viser sends a client, decoded, until ``until`` (monotonic seconds)."""
+    import msgspec
+    import zstandard
+
+    while time.monotonic() < until:
+        frame = ws.recv(timeout=max(0.05, until - time.monotonic()))
+        if isinstance(frame, bytes) and len(frame) >= 16:
+            inner, packed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+            body = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + packed],
+                                                                                   max_output_size=inner))
+            yield from body.get("messages", [])
+
+
+def _connect(port: int, source: str, timeout: float) -> Any:
+    import viser
+    import websockets.sync.client as wsc
+    from websockets.typing import Subprotocol
+
+    sock = socket.create_connection(("127.0.0.1", port), timeout=timeout, source_address=(source, 0))
+    return wsc.connect(f"ws://127.0.0.1:{port}/", sock=sock, subprotocols=[Subprotocol(f"viser-v{viser.__version__}")],
+                       additional_headers={"Origin": f"http://127.0.0.1:{port}"}, open_timeout=timeout, max_queue=None)
+
+
+def control_ids(port: int, labels: tuple[str, ...], timeout: float = 30.0) -> dict[str, str]:
+    """The ids of the page's controls with these labels, as a client learns them (the page may be
+    served by another process)."""
+    found: dict[str, str] = {}
+    with _connect(port, "127.0.0.62", timeout) as ws:
+        for msg in _frames(ws, time.monotonic() + timeout):
+            label = (msg.get("props") or {}).get("label") if isinstance(msg.get("props"), dict) else None
+            if label in labels and "uuid" in msg:
+                found[label] = msg["uuid"]
+                if len(found) == len(labels):
+                    break
+    return found
+
+
+def press_stop(port: int, stop_id: str, timeout: float = 10.0) -> float | None:
+    """A second client (its own loopback address) opens the page, presses STOP and waits for the
+    status to say STOPPED; seconds from the click (None: not within ``timeout``)."""
+    import msgspec
+
+    try:
+        with _connect(port, "127.0.0.61", timeout) as ws:
+            for msg in _frames(ws, time.monotonic() + timeout):  # the page is loaded once STOP is among its controls
+                if msg.get("uuid") == stop_id:
+                    break
+            camera = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0],
+                      "fov": 1.0, "near": 0.01, "far": 100.0, "image_height": 720, "image_width": 1280,
+                      "look_at": [0.0, 0.0, 0.0], "up_direction": [0.0, 0.0, 1.0]}
+            ws.send(msgspec.msgpack.encode(camera))  # viser takes a page's clicks once it has its camera
+            click = time.monotonic()
+            ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": stop_id, "updates": {"value": True}}))
+            for msg in _frames(ws, click + timeout):
+                if "STOPPED" in str(msg):
+                    return time.monotonic() - click
+    except Exception:  # noqa: BLE001 - refused, timed out, closed: it did not see STOPPED
+        return None
+    return None
+
+
+def bench_loop(print_fn: Callable[[str], None] = print, seconds: float = FLOOD_S,
+               latency: Callable[..., dict[str, float]] | None = None, page_process: bool = False) -> dict[str, float]:
+    """The loop's rate and CPU per tick alone, during a flood (and a second client's STOP), and with
+    200 open websockets; first, given ``latency`` (`bench --latency`'s), frame-to-command latency
+    for 10 s with one browser attached. ``page_process``: the page in a process of its own
+    (`run --loop-process`)."""
+    results: dict[str, float] = {}
+    if latency is not None:
+        figures = latency(10.0, print_fn, browsers=1)
+        results["frame_to_command_p50_ms"], results["frame_to_command_p99_ms"] = figures["p50_ms"], figures["p99_ms"]
+    from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)  # what `make run` serves: vision in the loop
+    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, camera=config.camera(),
+                  dynamics=config.dynamics, page_process=page_process)
+    svc.start()
+    port = svc.page.port if svc.page is not None else svc.gate.port
+    ids = control_ids(port, ("STOP", "Speed (m/s)"))
+    stop_id, speed_id = ids["STOP"], ids["Speed (m/s)"]  # a slider: the flood's values are out of its bounds
+    where = "the page in its own process" if page_process else "the page in the loop's process"
+    try:
+        while svc.loop.tick_count < 60 and not svc.loop.stopping:  # past the warm-up and the first ticks
+            time.sleep(0.2)
+        thread = svc._thread  # the service's own loop thread, read for its CPU counters
+        assert thread is not None and thread.native_id is not None
+        tid = thread.native_id
+
+        def window(span: float, during: Callable[[], None] | None = None) -> tuple[float, float, float]:
+            tick0, cpu0, proc0, t0 = svc.loop.tick_count, _thread_cpu_s(tid), time.process_time(), time.monotonic()
+            if during is not None:
+                during()
+            time.sleep(max(0.0, span - (time.monotonic() - t0)))
+            ticks, cpu = svc.loop.tick_count - tick0, _thread_cpu_s(tid) - cpu0
+            per_tick = max(ticks, 1) / 1e3
+            return ticks / (time.monotonic() - t0), cpu / per_tick, (time.process_time() - proc0) / per_tick
+
+        alone_hz, alone_ms, alone_proc = window(5.0)
+        results["loop_hz_alone"], results["loop_cpu_ms_per_tick"] = alone_hz, alone_ms
+        results["loop_process_cpu_ms_per_tick"] = alone_proc
+        print_fn(f"loop alone ({where}; vision in the loop, 30 Hz, no client): {alone_hz:.2f} Hz, loop thread"
+                 f" {alone_ms:.2f} ms CPU per tick, its process {alone_proc:.2f} ms")
+        for mode in ("refused", "sockets"):
+            flooder = subprocess.Popen([sys.executable, "-c", _FLOODER, str(port), mode, str(seconds), speed_id],
+                                       stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            assert flooder.stdout is not None
+            flooder.stdout.readline()  # "ready"
+            seen: list[float | None] = []
+
+            def stop_during(seen: list[float | None] = seen) -> None:
+                time.sleep(seconds / 2)
+                seen.append(press_stop(port, stop_id))
+
+            hz, ms, proc_ms = window(seconds, stop_during if mode == "refused" else None)
+            flooder.wait(timeout=60)
+            svc.store.update("bench", stop=False)  # released for the next window
+            what = "a flood of refused updates from one client" if mode == "refused" else "200 open websockets"
+            results[f"loop_hz_{mode}"], results[f"loop_cpu_ms_per_tick_{mode}"] = hz, ms
+            extra = ""
+            if mode == "refused":
+                took = seen[0] if seen else None
+                results["stop_seen_s_during_flood"] = took if took is not None else float("inf")
+                extra = (f"; a second client's STOP seen as STOPPED {took:.2f} s after the click" if took is not None
+                         else "; a second client's STOP NOT seen as STOPPED within 10 s") \
+                    + f" (target <= {STOP_WITHIN_S} s)"
+            print_fn(f"loop during {seconds:g} s of {what}: {hz:.2f} Hz ({(hz / alone_hz - 1) * 100:+.1f} % of"
+                     f" {alone_hz:.2f} alone; target within 1 %), loop thread {ms:.2f} ms CPU per tick, its process"
+                     f" {proc_ms:.2f} ms{extra}")
+    finally:
+        svc.close()
+    return results
+
+
+def bench_loops(print_fn: Callable[[str], None] = print,
+                latency: Callable[..., dict[str, float]] | None = None) -> dict[str, float]:
+    """The figures with the page in the loop's process (`run`), then in its own (`run --loop-process`)."""
+    results = bench_loop(print_fn, latency=latency)
+    results.update({f"page_process_{k}": v for k, v in bench_loop(print_fn, page_process=True).items()})
+    return results
+
+
+if __name__ == "__main__":  # `python -m app.cli.bench_loop [--loop-process]`: these figures alone
+    bench_loop(page_process="--loop-process" in sys.argv)

@@ -1,0 +1,105 @@
+"""Compile and warm every kernel the loop can reach before its clock starts.
+
+Why: numba compiles a kernel on its first call (core.jit). On a fresh clone, whose
+cache on disk is empty, that first call came inside a paced tick and the loop fell
+seconds behind its schedule (hundreds of ticks skipped at start, more each time the
+vision pipeline entered a new phase). Here a throwaway simulated world of the same
+kind (the same team size; the synthetic camera when the loop sees through a camera,
+the simulator's poses otherwise) is stepped with nobody watching and nothing sent to
+any robot: through the pipeline's start-up into tracking, with the safety filter on,
+the goal mode's navigation and a box in view (the free-space scan). Its store, team
+and feedback are its own; the real loop's world is untouched.
+
+When numba's cache already holds the first ticks' kernels (any run after the first), only
+a few throwaway ticks run (they load the compiled code from disk) and nothing is printed;
+the later phases' kernels then load from disk in milliseconds when first used.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from typing import TYPE_CHECKING, Any
+
+from app.params import Params, ParamsStore, default_slots
+
+if TYPE_CHECKING:
+    from app.live.loop import ServiceLoop
+
+log = logging.getLogger(__name__)
+
+SHORT_TICKS = 3  # a warm cache: enough for the first tick's kernels to load from disk
+MAX_TICKS = 900  # a cold cache: the pipeline's start-up is done well within this (30 s simulated)
+AFTER_READY_TICKS = 30  # ticks of tracking once the start-up is over (its kernels differ)
+_warmed: set[str] = set()  # kinds of world warmed in this process (a second loop needs no warm-up)
+
+
+def kernels() -> list[Any]:
+    """Every numba-compiled kernel of the core modules loaded now."""
+    from numba.core.dispatcher import Dispatcher
+
+    found: dict[int, Any] = {}
+    for name, module in list(sys.modules.items()):
+        if not name.startswith("core.") or module is None:
+            continue
+        for value in list(vars(module).values()):
+            if isinstance(value, Dispatcher):
+                found[id(value)] = value
+    return list(found.values())
+
+
+def compiled() -> int:
+    """How many kernel signatures this process compiled rather than loaded from numba's cache."""
+    return sum(sum(fn.stats.cache_misses.values()) for fn in kernels())
+
+
+def warm_up(loop: ServiceLoop, say: bool = True) -> float:
+    """Step a throwaway world like ``loop``'s until every kernel it reaches has run once; returns the
+    seconds it took (0.0 when this process had warmed such a world already). On a cold cache, one
+    line says so and how long it took."""
+    from app.live.loop import ServiceLoop
+
+    camera = loop.backends.camera
+    kind = "vision" if camera is not None else "truth"
+    if kind in _warmed:
+        return 0.0
+    t0 = time.perf_counter()
+    if camera is not None and camera[0].model is None:  # a real rig: the synthetic camera runs the same pipeline
+        from app.files import DEFAULT_CONFIG
+        from app.live.config import load_service_config
+        from app.params import MAX_FOLLOWERS
+
+        camera = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS).camera()
+    from core.obstacles import Obstacle
+
+    n = loop.store.get().n_followers
+    store = ParamsStore(Params(n_followers=n, slots=default_slots(n), leader_mode="goal", goal=(0.0, 4.0),
+                               leader_speed_mps=0.05, safety=True))
+    box = (Obstacle(1.2, 1.5, 0.3, 0.3),)  # beside the path: the scan sees it, navigation plans around it
+    shadow = ServiceLoop(store, rate_hz=loop.rate_hz, seed=loop.seed, dynamics=loop.dynamics, camera=camera,
+                         obstacles=loop.backends.obstacles or box)
+    after = 0
+    cold = False
+    try:
+        for k in range(MAX_TICKS):
+            if loop.stopping:  # asked to stop while warming: the loop ends at once
+                break
+            shadow.tick()
+            if k + 1 == SHORT_TICKS:
+                cold = compiled() > 0  # something was compiled, not loaded: numba's cache was cold
+                if not cold:
+                    break
+            if shadow._world.ready:
+                after += 1
+                if after >= AFTER_READY_TICKS and k + 1 >= SHORT_TICKS:
+                    break
+    finally:
+        shadow.close_team()
+    took = time.perf_counter() - t0
+    cold = cold or compiled() > 0  # stopped early: whatever it compiled was still compiled
+    _warmed.add(kind)
+    if cold and say:
+        print(f"omniformation: first run: compiled the loop's kernels in {took:.1f} s (once; numba's cache keeps"
+              " them), before the loop's clock started", flush=True)
+    return took

@@ -1,0 +1,222 @@
+"""The page in a process of its own (`run --loop-process`): the loop's process keeps the loop,
+the link, the recorder and the one ParamsStore; the page's process (viser server, gate,
+dashboard) is a client of the loop's state over one pipe.
+
+Why: viser encodes every scene update and decodes every client's message under the same
+interpreter lock as the loop; a flood of client messages took the loop's time. Here the page's
+work runs on the other core.
+
+The channel, one pipe, pickled messages (docs/safety.md, "The page in a process of its own"):
+
+* loop -> page: ``("tick", TickState, Params | None)``, the newest tick only (a slow page
+  skips ticks, the loop never waits for it), with the parameters in force whenever they changed;
+* page -> loop: ``("update", source, changes)``: every change the page's controls make, STOP
+  included, applied by the loop's ParamsStore.update (the same validation as in one process;
+  what it refuses is refused), and ``("ready", url, viewer_url, port)`` once it serves.
+
+Dead man's switch: if the page's process dies, the loop engages STOP at once and holds it (only
+an operator's Release on a page lifts it), and a new page process is started on the same port
+with the same tokens. If the loop's process dies, the page says so at once and then ends; the
+followers stop on their link's watchdog (docs/follower-protocol.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import multiprocessing.connection
+import signal
+import threading
+import time
+from typing import Any
+
+from app.params import Params, ParamsStore
+from app.tick import TickState
+
+log = logging.getLogger(__name__)
+
+RESTART_PAUSE_S = 0.5  # between a dead page process and its successor (a crash loop stays cheap)
+ORPHAN_S = 3.0  # how long a page whose loop died keeps saying so before it ends
+
+
+class PageProcess:
+    """The loop's side: starts the page's process, feeds it ticks, applies its changes, restarts it."""
+
+    def __init__(self, store: ParamsStore, host: str, port: int, token: str | None, viewer_token: str | None,
+                 overlay: tuple[tuple[float, float], float, float] | None = None, obstacles: tuple[Any, ...] = ()
+                 ) -> None:
+        self.store = store
+        self.host = host
+        self.port = port
+        self.token = token  # the gate's, once it serves: kept across restarts (the operator's URL stays valid)
+        self.viewer_token = viewer_token
+        self.overlay = overlay
+        self.obstacles = obstacles
+        self.url = ""
+        self.viewer_url = ""
+        self.restarts = 0  # page processes started again after one died
+        self.served = 0  # page processes that came up and served
+        self._ctx = multiprocessing.get_context("spawn")
+        self._cv = threading.Condition()
+        self._state: TickState | None = None
+        self._closed = False
+        self._conn: multiprocessing.connection.Connection | None = None
+        self._proc: Any = None
+        self._ready = threading.Event()
+        self._send_lock = threading.Lock()  # one writer at a time on the pipe (interleaved pickles corrupt it)
+        self._sent_version = -1
+        self._start_page()
+        threading.Thread(target=self._supervise, name="page-supervisor", daemon=True).start()
+        threading.Thread(target=self._send, name="page-sender", daemon=True).start()
+        if not self._ready.wait(120.0):
+            raise OSError("the page's process did not start")
+
+    @property
+    def pid(self) -> int:
+        return int(self._proc.pid) if self._proc is not None else 0
+
+    def _start_page(self) -> None:
+        ours, theirs = self._ctx.Pipe(duplex=True)
+        proc = self._ctx.Process(target=page_main, name="omniformation-page", daemon=True,
+                                 args=(theirs, self.host, self.port, self.token, self.viewer_token, self.store.get(),
+                                       self.overlay, self.obstacles))
+        proc.start()
+        theirs.close()
+        self._conn, self._proc = ours, proc
+        self._sent_version = -1
+
+    def on_tick(self, state: TickState) -> None:
+        """A loop subscriber: keep the newest state for the sender (never blocks the loop)."""
+        with self._cv:
+            self._state = state
+            self._cv.notify()
+
+    def _send(self) -> None:
+        while True:
+            with self._cv:
+                while self._state is None and not self._closed:
+                    self._cv.wait()
+                if self._closed:
+                    return
+                state, self._state = self._state, None
+            conn = self._conn
+            params = self.store.get()
+            changed = params if params.version != self._sent_version else None
+            try:
+                assert conn is not None
+                with self._send_lock:
+                    conn.send(("tick", state, changed))
+                self._sent_version = params.version
+            except (OSError, ValueError, AssertionError):
+                time.sleep(0.05)  # the page is gone: the supervisor restarts it
+
+    def _supervise(self) -> None:
+        """Apply the page's changes; when it dies, STOP (held) and start a new one."""
+        while not self._closed:
+            conn = self._conn
+            assert conn is not None
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                if self._closed:
+                    return
+                self.store.update("loop", stop=True)  # the dead man's switch: no operator page, no motion
+                print("omniformation: the page's process ended; STOP engaged and held until an operator"
+                      " releases it on the new page", flush=True)
+                self._proc.join(5.0)
+                time.sleep(RESTART_PAUSE_S)
+                if self._closed:
+                    return
+                self.restarts += 1
+                self._start_page()
+                continue
+            if msg[0] == "update":
+                _, source, changes = msg
+                try:
+                    self.store.update(str(source), **dict(changes))
+                except (ValueError, TypeError) as exc:  # refused as the store refuses any bad change
+                    log.warning("page: change refused: %s", exc)
+            elif msg[0] == "ready":
+                _, self.url, self.viewer_url, self.port, self.token, self.viewer_token = msg
+                self.served += 1
+                self._ready.set()
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify_all()
+        conn = self._conn
+        if conn is not None:  # asked to end; sent aside: a hung page with the pipe full must not hold us here
+            threading.Thread(target=self._say_close, args=(conn,), daemon=True).start()
+        if self._proc is not None:
+            self._proc.join(5.0)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(5.0)
+
+    def _say_close(self, conn: multiprocessing.connection.Connection) -> None:
+        with self._send_lock:
+            try:
+                conn.send(("close",))
+            except (OSError, ValueError):
+                pass
+
+
+class ForwardingStore(ParamsStore):
+    """The page's store: its controls' changes go to the loop (and show at once here); what the
+    loop puts in force replaces them when it arrives."""
+
+    def __init__(self, initial: Params, conn: multiprocessing.connection.Connection) -> None:
+        super().__init__(initial)
+        self._conn = conn
+        self.send_lock = threading.Lock()  # one writer at a time on the pipe
+
+    def update(self, source: str = "server", **changes: Any) -> tuple[Params, tuple[Any, ...]]:
+        result = super().update(source, **changes)
+        with self.send_lock:
+            try:
+                self._conn.send(("update", source, changes))
+            except (OSError, ValueError):
+                pass  # the loop is gone: the page says so
+        return result
+
+
+def page_main(conn: multiprocessing.connection.Connection, host: str, port: int, token: str | None,
+              viewer_token: str | None,
+              params: Params, overlay: tuple[tuple[float, float], float, float] | None,
+              obstacles: tuple[Any, ...]) -> None:
+    """The page's process: the gate, viser and the dashboard, drawing what the loop sends."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the loop's process to handle: it closes this one
+    from app.dashboard import Dashboard, LatestStatePublisher
+    from app.dashboard.camera_panel import Overlay
+    from app.dashboard.gate import quietly, serve_gated
+
+    store = ForwardingStore(params, conn)
+    server, gate = serve_gated(host, port, token, viewer_token)
+    dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles)
+    gate.filter.allow_viewer(dashboard.controls.stop_button)  # stopping is always safe
+    publisher = LatestStatePublisher(dashboard.publish)
+    with store.send_lock:
+        conn.send(("ready", gate.url, gate.viewer_url, gate.port, gate.token, gate.viewer_token))
+    loop_version = -1
+    try:
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):  # the loop's process is gone
+                dashboard.controls.status.content = ("**THE LOOP HAS ENDED: its process is gone. The followers stop"
+                                                     " on their link's watchdog.**")
+                time.sleep(ORPHAN_S)
+                return
+            if msg[0] == "close":
+                return
+            if msg[0] == "tick":
+                _, state, changed = msg
+                if changed is not None and changed.version != loop_version:
+                    loop_version = changed.version
+                    store.load(changed, "loop")  # what the loop put in force, shown on the controls
+                publisher(state)
+    finally:
+        publisher.close()
+        gate.close()
+        quietly(server.stop)

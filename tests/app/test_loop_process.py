@@ -1,0 +1,198 @@
+"""The loop's start-up and its process: what `run` promises (docs/safety.md, README)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import pytest
+
+if TYPE_CHECKING:
+    from app.services.live import Service
+
+WARM = "first run: compiled the loop's kernels"
+
+
+def _run(cache: Path, until: str = "dashboard at") -> tuple[str, str]:
+    """`omniformation run` on the simulator (no recording) with numba's cache in ``cache``, until a line
+    with ``until`` and a second of ticks; then Ctrl-C. Its stdout and stderr."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record", "--feedback",
+                             "truth"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    assert proc.stdout is not None
+    lines = []
+    watchdog = threading.Timer(600.0, proc.kill)  # a run that never says so fails, it does not hang
+    watchdog.start()
+    for line in proc.stdout:
+        lines.append(line)
+        if until in line:
+            break
+    watchdog.cancel()
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    return "".join(lines) + out, err
+
+
+def test_a_fresh_cache_is_compiled_before_the_clock_starts_and_only_once(tmp_path: Path) -> None:
+    out, err = _run(tmp_path, WARM)
+    assert out.count(WARM) == 1, out  # one line, with how long it took
+    assert "compiled while the loop's clock ran" not in err, err  # no kernel left for a paced tick to compile
+    out, err = _run(tmp_path)
+    assert WARM not in out, out  # the cache keeps them: the second run says nothing
+    assert "compiled while the loop's clock ran" not in err, err
+
+
+# -- the page in a process of its own (docs/safety.md, "The page in a process of its own") ---------------
+
+class _Page:
+    """A raw client of the page (docs/page-access.md): viser's websocket, as a browser opens it."""
+
+    def __init__(self, port: int, source: str = "127.0.0.1", timeout: float = 60.0) -> None:
+        import viser
+        import websockets.sync.client as wsc
+
+        sock = socket.create_connection(("127.0.0.1", port), timeout=timeout, source_address=(source, 0))
+        self.ws = wsc.connect(f"ws://127.0.0.1:{port}/", sock=sock, subprotocols=[f"viser-v{viser.__version__}"],
+                              additional_headers={"Origin": f"http://127.0.0.1:{port}"}, open_timeout=timeout,
+                              max_queue=None)
+        self.buttons: dict[str, str] = {}  # label -> uuid
+
+    def messages(self, timeout: float) -> Iterator[dict[str, Any]]:
+        import msgspec
+        import zstandard
+
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            frame = self.ws.recv(timeout=max(0.05, end - time.monotonic()))
+            if not isinstance(frame, bytes) or len(frame) < 16:
+                continue
+            inner, packed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+            body = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + packed],
+                                                                                  max_output_size=inner))
+            for msg in body.get("messages", []):
+                if msg.get("type") == "GuiButtonMessage":
+                    self.buttons[msg["props"]["label"]] = msg["uuid"]
+                yield msg
+
+    def wait_for(self, text: str, timeout: float = 60.0) -> bool:
+        return any(text in str(msg) for msg in self.messages(timeout))
+
+    def click(self, label: str) -> None:
+        import msgspec
+
+        camera = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0],
+                  "fov": 1.0, "near": 0.01, "far": 100.0, "image_height": 720, "image_width": 1280,
+                  "look_at": [0.0, 0.0, 0.0], "up_direction": [0.0, 0.0, 1.0]}
+        self.ws.send(msgspec.msgpack.encode(camera))  # a page sends its camera first
+        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.buttons[label],
+                                            "updates": {"value": True}}))
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def _until(what: Callable[[], bool], timeout: float = 120.0) -> bool:
+    end = time.monotonic() + timeout
+    while not what():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+@pytest.fixture
+def service() -> Iterator[Service]:
+    from app.services.live import Service
+
+    svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0, page_process=True)  # truth feedback
+    svc.start()
+    yield svc
+    svc.close()
+
+
+def test_killing_the_page_process_stops_the_robots_until_released_on_the_new_page(service: Service) -> None:
+    page = service.page
+    assert page is not None
+    port, first = page.port, page.pid
+    assert _until(lambda: service.loop.tick_count > 3)
+    client = _Page(port)
+    assert client.wait_for("STOP")  # the page serves the loop's state
+    client.close()
+    assert not service.store.get().stop
+    os.kill(first, signal.SIGKILL)
+    assert _until(lambda: service.store.get().stop)  # the dead man's switch
+    ticks = service.loop.tick_count
+    assert _until(lambda: page.restarts == 1 and page.served == 2)
+    newcomer = _Page(port)  # the same address and port
+    assert newcomer.wait_for("STOPPED")  # the new page shows the hold
+    assert service.loop.tick_count > ticks  # the loop went on observing all along
+    last = service.loop.last
+    assert last is not None and last.stopped and not last.commands.any()  # every follower at zero
+    assert service.store.get().stop  # held: nothing but a Release lifts it
+    newcomer.click("Release STOP")
+    assert _until(lambda: not service.store.get().stop)  # an operator's Release, through the loop's store
+    newcomer.close()
+
+
+def test_stop_from_a_second_client_reaches_the_loop_during_a_flood(service: Service) -> None:
+    from app.cli.bench_loop import _FLOODER
+
+    page = service.page
+    assert page is not None
+    flooder = subprocess.Popen([sys.executable, "-c", _FLOODER, str(page.port), "refused", "8", "no-such-control"],
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert flooder.stdout is not None
+        flooder.stdout.readline()  # flooding
+        operator = _Page(page.port, source="127.0.0.61")
+        assert operator.wait_for("STOP")
+        time.sleep(1.0)  # well into the flood
+        ticks = service.loop.tick_count
+        operator.click("STOP")
+        assert _until(lambda: service.store.get().stop)  # through the pipe, the loop's store
+        assert operator.wait_for("STOPPED")  # and back on the page
+        assert _until(lambda: service.loop.last is not None and service.loop.last.stopped
+                      and not service.loop.last.commands.any())
+        assert service.loop.tick_count > ticks
+        operator.close()
+    finally:
+        flooder.kill()
+        flooder.wait(30)
+
+
+def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> None:
+    import re
+
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record", "--feedback", "truth",
+                             "--loop-process"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.stdout is not None
+    watchdog = threading.Timer(300.0, proc.kill)
+    watchdog.start()
+    try:
+        port = 0
+        for line in proc.stdout:
+            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/", line)
+            if found:
+                port = int(found.group(1))
+                break
+        assert port
+        page = _Page(port)
+        assert page.wait_for("running")  # the loop's state on the page
+        proc.kill()  # the loop's process, at once (SIGKILL: no goodbye)
+        assert page.wait_for("THE LOOP HAS ENDED", timeout=30.0)
+        page.close()
+    finally:
+        watchdog.cancel()
+        proc.kill()
+        proc.wait(30)
