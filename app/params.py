@@ -260,6 +260,8 @@ def params_events(old: Params, new: Params, source: str) -> list[tuple[str, str]
     for key in ("leader_mode", "leader_speed_mps", "leader_turn_deg_s", "n_followers", "paused"):
         if getattr(old, key) != getattr(new, key):
             ev.append(("setting", f"{key} {getattr(old, key)} -> {getattr(new, key)}"))
+    if new.stop and not old.stop and " STOP by " in source:  # who pressed it (the tick's own event says it held)
+        ev.append(("stop_by", f"STOP pressed by {source.split(' STOP by ', 1)[1]}"))
     if old.reset_requests != new.reset_requests:
         ev.append(("reset", "team reset"))
     return ev

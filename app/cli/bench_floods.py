@@ -146,9 +146,11 @@ def bench_floods(print_fn: Callable[[str], None] = print, seconds: float = FLOOD
                   dynamics=config.dynamics)
     svc.start()
     results: dict[str, float] = {}
+    from app.dashboard import viser_private
+
     port = svc.gate.port
-    stop_id = svc.dashboard.controls.stop_button._impl.uuid
-    speed_id = svc.dashboard.controls.speed._impl.uuid
+    stop_id = viser_private.uuid_of(svc.dashboard.controls.stop_button)
+    speed_id = viser_private.uuid_of(svc.dashboard.controls.speed)
     print_fn(f"floods on the live page (vision in the loop, 30 Hz; each flood {seconds:g} s from one client"
              " in a process of its own; a new client from another address loads the page meanwhile):")
     try:

@@ -283,6 +283,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     session = open_bus(args.zenoh_listen, args.zenoh_connect, f"fleet {args.fleet}", keys)
     try:
         server, gate = serve_gated(args.host, args.port, args.token, args.viewer_token)
+        gate.page_kind = "fleet"
     except OSError as exc:
         session.close()
         raise UserError(bind_error(args.host, args.port, exc)) from None

@@ -24,6 +24,8 @@ from app.params import ParamsStore
 
 
 __all__ = ["Dashboard", "LatestStatePublisher"]  # the publisher lives beside TickState (app.tick)
+LIGHT_SCENE_S = 0.2  # light mode: the 3D view (and the camera) at most this often
+LIGHT_PLOTS_S = 2.0  # and the charts
 
 
 class Dashboard:
@@ -43,21 +45,28 @@ class Dashboard:
         self.plots = Plots(server)
         self.extra: list[Callable[[], None]] = []  # other panels' redraws (the calibration preview), ~4 a second
         self._extra_at = 0.0
+        self._scene_at = 0.0
 
     def publish(self, state: TickState) -> bool:
         """Draw ``state``, on viser's own thread (widgets.on_page_thread); whether it was drawn."""
         return on_page_thread(self.server, lambda: self._draw(state))
 
     def _draw(self, state: TickState) -> None:
+        now = time.monotonic()
+        light = bool(self.controls.light.value)  # a slow browser asked for less (page.js turns it on)
+        scene = not light or now - self._scene_at >= LIGHT_SCENE_S or self.controls.replay
+        if scene:
+            self._scene_at = now
         with self.server.atomic():
-            self.scene.update(state)
+            if scene:
+                self.scene.update(state)
             self.controls.update_status(state)
-        self.camera.update(state)
+        if scene:
+            self.camera.update(state)
         self.monitor.update(state)
         if self.tuning is not None:
             self.tuning.update(state)
-        self.plots.update(state)
-        now = time.monotonic()
+        self.plots.update(state, LIGHT_PLOTS_S if light and not self.controls.replay else None)
         if self.extra and now - self._extra_at >= 0.25:
             self._extra_at = now
             for fn in self.extra:

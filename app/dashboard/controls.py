@@ -14,6 +14,7 @@ import viser
 
 from core.bounds import PARAMETERS, Parameter
 
+from app.dashboard.health import Health
 from app.dashboard.widgets import as_text
 from app.tick import TickState
 from app.params import (
@@ -66,10 +67,19 @@ class Controls:
         self.replay = False
         self._tracked: list[bool] = []  # the last tick's, for the question before releasing STOP
 
+        self.who: Callable[[int], str] = lambda client_id: f"client {client_id}"  # the gate's: role and address
+        self.stopped_by = ""  # who pressed STOP and when (shown on the status)
+        self.health = Health()
         self.stop_button = gui.add_button("STOP", color="red", hint="Command every follower to zero now (keyboard:"
-                                                                    " Escape or Space). The loop keeps observing.")
+                                                                    " Space, or Escape when no menu is open)."
+                                                                    " The loop keeps observing.")
         self.release_button = gui.add_button("Release STOP", color="gray", disabled=True)
         self.status = gui.add_markdown("starting ...")
+        # the card of the robot clicked in the 3D view: beside the view, under the status (not in a folder)
+        self.selected = gui.add_markdown("<small>click a robot in the 3D view to see its figures</small>")
+        self.alarm = gui.add_markdown("", visible=False)
+        self.acknowledge = gui.add_button("Acknowledge alarms", color="orange", visible=False,
+                                          hint="the alarms above were seen; the banner clears until the next")
 
         with gui.add_folder("Run"):
             self.pause_button = gui.add_button("Pause")
@@ -123,8 +133,11 @@ class Controls:
             self.show_truth = gui.add_checkbox("Show true poses", initial_value=True,
                                                hint="simulation: the true pose as a wireframe beside the estimate")
             self.layers = {name: gui.add_checkbox(name, initial_value=True) for name in LAYERS}
+            self.light = gui.add_checkbox("Light mode", initial_value=False,
+                                          hint="for a browser that draws slowly (no GPU): the 3D view at 5 updates a"
+                                               " second, trails once a second, charts every 2 s; a page whose browser"
+                                               " is busy over half of each second turns it on by itself")
             gui.add_markdown(LAYER_KEY)
-            self.selected = gui.add_markdown("<small>click a robot in the 3D view to see its figures</small>")
         self._build_slot_inputs(p)
         self._wire()
         store.subscribe(self._on_params)
@@ -137,7 +150,7 @@ class Controls:
         handles = [self.stop_button, self.release_button, self.pause_button, self.step_button, self.reset_button,
                    self.n_slider, self.mode, self.speed, self.turn, self.preset, self.apply_preset, self.safety,
                    self.safety_distance, self.goal_x, self.goal_y, self.go_button, self.min_scale,
-                   *self.gains.values(), *(h for pair in self.slot_inputs for h in pair)]
+                   self.acknowledge, *self.gains.values(), *(h for pair in self.slot_inputs for h in pair)]
         for h in handles:
             h.disabled = True
             h.hint = why
@@ -192,7 +205,15 @@ class Controls:
 
             handle.on_click(_)
 
-        on(self.stop_button, stop=True)
+        @self.stop_button.on_click
+        def _(event: viser.GuiEvent[Any]) -> None:
+            self._update(event, what=f"STOP by {self.who(event.client_id) if event.client_id is not None else 'the server'}",
+                         stop=True)
+
+        @self.acknowledge.on_click
+        def _(_: viser.GuiEvent[Any]) -> None:
+            self.health.acknowledge()
+            self.alarm.visible = self.acknowledge.visible = False
 
         @self.release_button.on_click
         def _(event: viser.GuiEvent[Any]) -> None:
@@ -296,15 +317,28 @@ class Controls:
         for j, (x_in, y_in) in enumerate(self.slot_inputs):
             self._set(x_in, float(np.round(p.slots[j, 0], 4)))
             self._set(y_in, float(np.round(p.slots[j, 1], 4)))
-        self.stop_button.disabled = p.stop
-        self.release_button.disabled = not p.stop
+        if p.stop and not self.stopped_by:
+            who = source.split(" STOP by ", 1)[1] if " STOP by " in source else source
+            self.stopped_by = f"by {who} at {time.strftime('%H:%M:%S', time.gmtime())} UTC"
+        elif not p.stop:
+            self.stopped_by = ""
+        self.stop_button.disabled = p.stop or self.replay  # a replay commands nothing, whatever it shows
+        self.release_button.disabled = not p.stop or self.replay
         self.pause_button.label = "Resume" if p.paused else "Pause"
-        self.step_button.disabled = not p.paused
+        self.step_button.disabled = not p.paused or self.replay
         if notices:
             self.notice = "; ".join(n.message for n in notices)
 
     def update_status(self, s: TickState) -> None:
         self._tracked = [bool(t) for t in s.tracked]
+        if not self.replay:
+            self.health.check(s)
+            alarms = self.health.alarms
+            text = "**ALARM** · " + " · ".join(as_text(a) for a in alarms)
+            if alarms and text != self.alarm.content:
+                self.alarm.content = text
+            if bool(alarms) != self.alarm.visible:
+                self.alarm.visible = self.acknowledge.visible = bool(alarms)
         now = time.monotonic()
         if now - self._status_at < STATUS_S and not self.replay:  # live: 5 Hz is plenty; a replay shows
             return                                                 # exactly the tick it jumped to
@@ -316,6 +350,7 @@ class Controls:
             (f"**recorded{' (STOPPED)' if s.stopped else ''}** · t = {s.t:.1f} s · loop was {s.rate_hz:.1f} Hz"
              if self.replay else
              f"**{'STOPPED — the leader and every follower at zero' if s.stopped else 'PAUSED' if s.paused else 'running'}**"
+             + (f" · {as_text(self.stopped_by)}" if s.stopped and self.stopped_by else "")
              + (f" · leader {s.leader_waits}" if s.leader_waits and not s.stopped else "")
              + (" · by a loop fault (below)" if s.fault and s.stopped else "")
              + f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz"
@@ -327,7 +362,9 @@ class Controls:
              f"start-up ({s.phase}): {int(np.sum(s.tracked))}/{s.n} followers found so far")
             + f" · link: {s.link_state} · " + (f"replaying {as_text(self.recording)}" if self.replay
                                              else f"recording: {as_text(self.recording)}"),
-            "error (cm): " + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
+            ("error to the slot (cm, true pose): " if np.all(np.isfinite(s.p_true)) else
+             "error to the slot (cm, estimate): " if not np.any(np.isfinite(s.p_true)) else
+             "error to the slot (cm, true pose where known, else estimate): ") + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
             f"safety filter: {s.safety or '-'}"
             + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else "")
             + (f" · obstacle points known {len(s.obstacles)}" if s.obstacles is not None and len(s.obstacles) else ""),

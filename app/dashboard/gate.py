@@ -39,7 +39,7 @@ address and ``MAX_CONNECTIONS`` in all, the last ``OPERATOR_RESERVE`` of them fo
 viser's own loopback port would let a local page around the gate, so the gate marks its
 upstream connections with a per-process secret header and refuses, before viser's own
 handlers run, any websocket on that port that does not carry it. That check reads viser's
-table of live connections (``WebsockServer._live_connections``, present since viser 1.0):
+table of live connections (through app.dashboard.viser_private, present since viser 1.0):
 where it is missing the gate refuses to start rather than serve unguarded.
 """
 
@@ -47,6 +47,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
+import importlib.resources
+import json
 import http
 import http.client
 import io
@@ -70,9 +73,10 @@ import websockets.exceptions
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 from websockets.typing import Subprotocol
-from viser._messages import GuiUpdateMessage
 
+from app.dashboard import viser_private
 from app.dashboard.input_filter import OPERATOR, VIEWER, InputFilter, Verdict
+from app.dashboard.viser_private import GuiUpdateMessage
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -80,151 +84,32 @@ T = TypeVar("T")
 LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 COOKIE = "omniformation_token"
 GATE_HEADER = "X-Omniformation-Gate"
-# Escape, or Space outside a text field, presses the page's STOP button (viser has no keyboard
-# hook, so the gate adds it to the page it serves; the press goes the button's own way). And STOP
-# stays in view: a bar fixed to the window (outside viser's panel, which scrolls) carries a STOP
-# that presses the panel's own and the state line (running / stopped / why) copied from the
-# status, four times a second. Where the page has no STOP (the calibration page) the bar is not shown;
-# in a replay it shows the disabled STOP and the replay's state line. Links to other pages (replays,
-# served on ports of their own) open in a new tab, and so does "Replay in a new tab".
-KEYBOARD_STOP = b"""<style>
-#omni-stopbar { position: fixed; top: 8px; left: 50%; transform: translateX(-50%); z-index: 2147483000;
-  display: none; align-items: center; gap: 10px; max-width: min(720px, 70vw); padding: 6px 10px;
-  background: rgba(255, 255, 255, 0.94); border: 1px solid #c92a2a; border-radius: 8px;
-  box-shadow: 0 2px 8px rgba(0, 0, 0, 0.25); font: 13px/1.3 system-ui, sans-serif; color: #222; }
-#omni-stopbar button { background: #e03131; color: #fff; border: 0; border-radius: 6px; padding: 6px 18px;
-  font-weight: 700; font-size: 15px; cursor: pointer; }
-#omni-stopbar button:disabled { background: #f1a5a5; cursor: default; }
-#omni-stopstate { overflow: hidden; text-overflow: ellipsis; white-space: nowrap; }
-#omni-wide { position: fixed; left: 8px; bottom: 48px; z-index: 2147483000; padding: 4px 10px;
-  background: rgba(255, 255, 255, 0.94); border: 1px solid #888; border-radius: 6px;
-  font: 12px/1.3 system-ui, sans-serif; cursor: pointer; }
-</style>
-<script>
-(function () {
-  var NAMES = ["STOP", "STOP every leader"];
-  function panelStop() {
-    return Array.prototype.find.call(document.querySelectorAll("button"), function (b) {
-      return NAMES.indexOf(b.textContent.trim()) >= 0 && !b.closest("#omni-stopbar");
-    });
-  }
-  function stateLine() {
-    var strong = Array.prototype.find.call(document.querySelectorAll("strong"), function (e) {
-      return /^(running|STOPPED|PAUSED|recorded)/.test(e.textContent.trim()) && !e.closest("#omni-stopbar");
-    });
-    if (!strong || !strong.parentNode) return "";
-    var text = "";
-    for (var n = strong; n && n.nodeName !== "BR"; n = n.nextSibling) text += n.textContent;
-    return text.trim();
-  }
-  function press() { var stop = panelStop(); if (stop && !stop.disabled) { stop.click(); return true; } return false; }
-  document.addEventListener("keydown", function (e) {
-    var typing = /^(INPUT|TEXTAREA|SELECT)$/.test((document.activeElement || {}).tagName || "");
-    if (!(e.key === "Escape" || (e.key === " " && !typing))) return;
-    if (press()) e.preventDefault();
-  }, true);
-  function bar() {
-    var el = document.getElementById("omni-stopbar");
-    if (el || !document.body) return el;
-    el = document.createElement("div");
-    el.id = "omni-stopbar";
-    el.setAttribute("role", "region");
-    el.setAttribute("aria-label", "emergency stop");
-    var b = document.createElement("button");
-    b.type = "button";
-    b.textContent = "STOP (Esc)";
-    b.title = "Stop the leader and every follower now (Escape or Space)";
-    b.addEventListener("click", press);
-    var t = document.createElement("span");
-    t.id = "omni-stopstate";
-    el.appendChild(b);
-    el.appendChild(t);
-    document.body.appendChild(el);
-    return el;
-  }
-  // a link to another page (a replay on its own port) opens in a new tab, never in place of this
-  // one; "Replay in a new tab" opens the tab at the click (browsers allow a tab only then) and
-  // sends it to the replay's link once the server has made it
-  function others() {
-    return Array.prototype.map.call(document.querySelectorAll("a[href]"), function (a) { return a.href; })
-      .filter(function (h) { return h.indexOf(location.origin + "/") !== 0 && /^https?:/.test(h); });
-  }
-  document.addEventListener("click", function (e) {
-    var target = e.target && e.target.closest ? e.target : null;
-    var a = target && target.closest("a[href]");
-    if (a && /^https?:/.test(a.href) && a.origin !== location.origin) {
-      e.preventDefault();
-      window.open(a.href, "_blank", "noopener");
-      return;
-    }
-    var b = target && target.closest("button");
-    if (!b || b.disabled || b.textContent.trim() !== "Replay in a new tab") return;
-    var before = {};
-    others().forEach(function (h) { before[h] = true; });
-    var tab = window.open("about:blank", "_blank");
-    var tries = 0;
-    var wait = setInterval(function () {
-      var fresh = others().filter(function (h) { return !before[h]; });
-      if (fresh.length && tab) { tab.location.href = fresh[0]; clearInterval(wait); }
-      else if (++tries > 120) { clearInterval(wait); if (tab) tab.close(); }  // 30 s: nothing came (the page says why)
-    }, 250);
-  }, true);
-  // "Wide panel": the control panel (its charts and the camera) at half the window, and back;
-  // this browser only (the page's width is a matter for whoever looks at it)
-  function panelRoot() {
-    var n = document.querySelector(".uplot") || document.querySelector("img[src^='blob:']"), root = null;
-    for (; n; n = n.parentElement) if (n.classList && n.classList.contains("mantine-Paper-root")) root = n;
-    return root;
-  }
-  function widen(on) {
-    var root = panelRoot();
-    if (!root) return false;
-    root.style.width = on ? "50vw" : "";
-    root.style.maxWidth = on ? "50vw" : "";
-    root.style.transform = "";
-    var r = root.getBoundingClientRect();
-    if (on && r.right > window.innerWidth) root.style.transform = "translateX(" + (window.innerWidth - r.right - 8) + "px)";
-    Array.prototype.forEach.call(root.querySelectorAll("img[src^='blob:']"), function (img) {
-      img.style.width = on ? "100%" : "";
-    });
-    window.dispatchEvent(new Event("resize"));
-    return true;
-  }
-  function wideButton() {
-    var b = document.getElementById("omni-wide");
-    if (b || !document.body || !panelRoot()) return b;
-    b = document.createElement("button");
-    b.id = "omni-wide";
-    b.type = "button";
-    b.textContent = "Wide panel";
-    b.title = "the panel, its charts and the camera at half the window (this browser only)";
-    b.addEventListener("click", function () {
-      var on = b.getAttribute("aria-pressed") !== "true";
-      if (widen(on)) { b.setAttribute("aria-pressed", on ? "true" : "false"); b.textContent = on ? "Narrow panel" : "Wide panel"; }
-    });
-    document.body.appendChild(b);
-    return b;
-  }
-  setInterval(function () {
-    var wide = wideButton();
-    if (wide && wide.getAttribute("aria-pressed") === "true") {  // a panel redrawn since keeps it
-      var root = panelRoot();
-      if (root && root.style.width !== "50vw") widen(true);
-    }
-    var el = bar(), stop = panelStop();
-    if (!el) return;
-    el.style.display = stop ? "flex" : "none";
-    if (!stop) return;
-    el.firstChild.disabled = stop.disabled;
-    el.lastChild.textContent = stateLine();
-  }, 250);
-})();
-</script>
-"""
+# What the gate adds to the page it serves (viser has no hook for either): the keyboard's STOP, a
+# bar fixed to the window with STOP and the state line, the health banner, the light mode, links to
+# other pages in new tabs, "Wide panel". The files are assets/page.css and assets/page.js (package
+# data), documented in docs/page-access.md ("What the page adds").
+PAGE_KINDS = ("live", "replay", "fleet")
+
+
+@functools.cache
+def _asset(name: str) -> str:
+    return (importlib.resources.files("app.dashboard") / "assets" / name).read_text(encoding="utf-8")
+
+
+def page_head(kind: str = "live") -> bytes:
+    """What goes before the page's ``</head>``: the style, the kind of page (a replay never looks
+    live), then the script."""
+    if kind not in PAGE_KINDS:
+        raise ValueError(f"page kind {kind!r}: must be one of {', '.join(PAGE_KINDS)}")
+    return (f"<style>\n{_asset('page.css')}</style>\n<script>window.OMNI_PAGE = {{kind: {json.dumps(kind)}}};</script>\n"
+            f"<script>\n{_asset('page.js')}</script>\n").encode()
+
+
 MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit (what the page is sent)
 MAX_CLIENT_MESSAGE = 1024 * 1024  # what a client may send in one message (the page's largest is a few hundred bytes)
 CONN_HEADER = "X-Omniformation-Connection"  # which gate connection an upstream websocket serves
 ROLE_HEADER = "X-Omniformation-Role"
+ADDRESS_HEADER = "X-Omniformation-Address"  # the client's address, for "STOP by viewer 10.0.0.7"
 LOG_EVERY_S = 1.0  # an address's refused messages (and refused requests of one kind) are logged this often at most
 NOTICE_EVERY_S = 1.0  # a client is told of refused updates this often at most (and sent a control's value back)
 RATE = 100.0  # messages a second a connection may send (viser's page sends its camera at most 50 a second, a
@@ -362,6 +247,7 @@ class Gate:
         self.refused = GateCounts()
         self.filter = InputFilter(server)
         self.roles: dict[int, str] = {}  # viser client id -> OPERATOR or VIEWER
+        self.addresses: dict[int, str] = {}  # viser client id -> the client's address (as the gate saw it)
         self._client_of: dict[str, int] = {}  # gate connection key -> viser client id
         self._log_throttle = Throttle()
         self._notice_throttle = Throttle(NOTICE_EVERY_S)
@@ -375,6 +261,7 @@ class Gate:
         self._bound = threading.Event()
         self._error: BaseException | None = None
         self.port = 0
+        self.page_kind = "live"  # what the page says it is: "live", "replay" (commands nothing) or "fleet"
         self._guard_upstream()
         self._thread = threading.Thread(target=self._run, args=(port,), name="omniformation-gate", daemon=True)
         self._thread.start()
@@ -410,15 +297,14 @@ class Gate:
     def role_of(self, client_id: int) -> str:
         return self.roles.get(client_id, VIEWER)  # unknown: the least a client may do
 
+    def who(self, client_id: int) -> str:
+        """A client as people name it: its role and address ("viewer 10.0.0.7")."""
+        return f"{self.role_of(client_id)} {self.addresses.get(client_id) or '(address unknown)'}"
+
     # -- viser's own port: only the gate may connect -------------------------------------
 
     def _guard_upstream(self) -> None:
-        infra = getattr(self.server, "_websock_server", None)
-        table = getattr(infra, "_live_connections", None)
-        callbacks = getattr(infra, "_client_connect_cb", None)
-        if infra is None or not isinstance(table, dict) or not isinstance(callbacks, list):
-            raise RuntimeError(f"viser {viser.__version__} does not expose its connections; the dashboard's gate"
-                               " cannot guard viser's loopback port, so it will not serve")
+        table, callbacks = viser_private.connection_hooks(self.server)
 
         async def check(client: Any) -> None:
             connection = table.get(client.client_id)
@@ -432,9 +318,11 @@ class Gate:
             assert request is not None
             self.roles[client.client_id] = OPERATOR if request.headers.get(ROLE_HEADER, "") == OPERATOR else VIEWER
             self._client_of[request.headers.get(CONN_HEADER, "")] = client.client_id
+            self.addresses[client.client_id] = request.headers.get(ADDRESS_HEADER, "")
 
         def forget(client: Any) -> None:
             self.roles.pop(client.client_id, None)
+            self.addresses.pop(client.client_id, None)
             for key in [k for k, v in self._client_of.items() if v == client.client_id]:
                 del self._client_of[key]
 
@@ -451,12 +339,11 @@ class Gate:
                                 with_close_button=True, color="blue")
 
         def grey_out() -> None:  # after the page's controls reached it (they come on another queue)
-            connection = getattr(client, "_websock_connection", None)
-            if connection is None or client.client_id not in self.roles:
+            if client.client_id not in self.roles:
                 return
-            for uuid in list(self.server.gui._gui_input_handle_from_uuid):
+            for uuid in list(viser_private.control_table(self.server.gui)):
                 if not self.filter.viewer_may(uuid):
-                    connection.queue_message(GuiUpdateMessage(uuid, {"disabled": True}))
+                    viser_private.send_to(client, GuiUpdateMessage(uuid, {"disabled": True}))
 
         timer = threading.Timer(VIEWER_GREY_S, grey_out)
         timer.daemon = True
@@ -581,7 +468,7 @@ class Gate:
 
     def _fetch(self, request: Request) -> Response:
         """The page's files from viser (plain GET on its loopback port); the page itself gets
-        the keyboard STOP (``KEYBOARD_STOP``)."""
+        what the gate adds (``page_head``)."""
         conn = http.client.HTTPConnection("127.0.0.1", self._upstream, timeout=30)
         page = urlsplit(request.path).path in ("/", "/index.html")
         try:
@@ -591,7 +478,7 @@ class Gate:
             up = conn.getresponse()
             body = up.read()
             if page and b"</head>" in body and (up.getheader("Content-Encoding") or "identity") == "identity":
-                body = body.replace(b"</head>", KEYBOARD_STOP + b"</head>", 1)
+                body = body.replace(b"</head>", page_head(self.page_kind) + b"</head>", 1)
             keep = {k: v for k, v in up.getheaders() if k.lower() in ("content-type", "content-encoding")}
             keep["Content-Length"] = str(len(body))
             keep["Cache-Control"] = "no-store"
@@ -621,7 +508,8 @@ class Gate:
         try:
             async with websockets.asyncio.client.connect(
                 f"ws://127.0.0.1:{self._upstream}/", subprotocols=sub, max_size=MAX_MESSAGE, compression=None,
-                additional_headers={GATE_HEADER: self._secret, CONN_HEADER: key, ROLE_HEADER: role}, open_timeout=30,
+                additional_headers={GATE_HEADER: self._secret, CONN_HEADER: key, ROLE_HEADER: role,
+                                    ADDRESS_HEADER: address}, open_timeout=30,
                 close_timeout=CLOSE_TIMEOUT_S,  # its queue unread once the client left: viser's close waits behind it
             ) as upstream:
                 async def pump(src: Any, dst: Any) -> None:
@@ -709,10 +597,9 @@ class Gate:
         if client is None:
             return
         handle = self.filter.handle(verdict.uuid) if verdict.uuid else None
-        connection = getattr(client, "_websock_connection", None)
-        if handle is not None and connection is not None and self._notice_throttle.due(("value", key, verdict.uuid)) >= 0:
+        if handle is not None and self._notice_throttle.due(("value", key, verdict.uuid)) >= 0:
             # the browser shows the value it sent: put it back (once a second per control is enough)
-            connection.queue_message(GuiUpdateMessage(verdict.uuid, {"value": handle.value}))
+            viser_private.send_to(client, GuiUpdateMessage(verdict.uuid, {"value": handle.value}))
         if self._notice_throttle.due(("notice", key)) >= 0:
             client.add_notification("Refused", one_line(verdict.why, 300), auto_close_seconds=6.0, color="yellow")
 

@@ -44,7 +44,8 @@ from typing import Any
 
 import msgspec
 import viser
-from viser import _messages as viser_messages
+
+from app.dashboard import viser_private
 
 TEXT_MAX = 1000  # characters a text box may be sent
 WHOLE_MAX = 2.0 ** 53  # beyond this a browser's number is no longer a whole number it can hold
@@ -143,26 +144,24 @@ class InputFilter:
     def __init__(self, server: viser.ViserServer) -> None:
         self.server = server
         self._viewer_may: set[str] = set()
-        if not isinstance(getattr(server.gui, "_gui_input_handle_from_uuid", None), dict):
-            raise RuntimeError(f"viser {viser.__version__} does not expose its controls; the page's input filter"
-                               " cannot check what clients send, so it will not serve")
-        self._types = viser_messages.Message._subclass_from_type_string()
+        viser_private.require_control_table(server)
+        self._types = viser_private.message_types()
         self._fields = {kind: {f.name for f in dataclasses.fields(self._types[kind])} for kind in SCENE_MESSAGES}
 
     def allow_viewer(self, *handles: Any) -> None:
         """Controls a viewer may press too (STOP: stopping is always safe)."""
-        self._viewer_may.update(h._impl.uuid for h in handles)
+        self._viewer_may.update(viser_private.uuid_of(h) for h in handles)
 
     def viewer_may(self, uuid: str) -> bool:
         return uuid in self._viewer_may
 
     def handle(self, uuid: str) -> Any:
         """The control with this id: the page's, or one a client was shown (a modal), or None."""
-        found = self.server.gui._gui_input_handle_from_uuid.get(uuid)
+        found = viser_private.control_table(self.server.gui).get(uuid)
         if found is not None:
             return found
         for client in list(self.server.get_clients().values()):
-            table = getattr(client.gui, "_gui_input_handle_from_uuid", {})
+            table = viser_private.control_table(client.gui)
             if uuid in table:
                 return table[uuid]
         return None
@@ -204,7 +203,7 @@ class InputFilter:
         if not isinstance(uuid, str) or not isinstance(updates, dict) or set(message) != {"type", "uuid", "updates"}:
             return Verdict(False, "a control update that is not {uuid, updates}")
         handle = self.handle(uuid)
-        if handle is None or handle._impl.removed:
+        if handle is None or viser_private.removed(handle):
             return Verdict(False, "an update for a control that does not exist")
         name = str(getattr(handle, "label", "") or "")[:40] or "a control"
         if set(updates) != {"value"}:

@@ -135,12 +135,12 @@ class Plots:
             self._t.popleft()
             self._rows.popleft()
 
-    def update(self, s: TickState) -> None:
-        """Append one tick and redraw at most every REDRAW_S."""
+    def update(self, s: TickState, redraw_s: float | None = None) -> None:
+        """Append one tick and redraw at most every ``redraw_s`` (REDRAW_S; longer in light mode)."""
         self.add(s)
         n = s.n
         now = time.monotonic()
-        if now - self._last_draw < REDRAW_S or len(self._t) < 2 or (self.freeze.value and self._shown is not None):
+        if now - self._last_draw < (REDRAW_S if redraw_s is None else redraw_s) or len(self._t) < 2 or (self.freeze.value and self._shown is not None):
             return
         self._last_draw = now
         self._shown = self.visible()

@@ -87,6 +87,7 @@ class Scene:
         self.plan = s.add_arrows("/leader/plan", points=np.array([[[0, 0, 0.3], [0, 0.7, 0.3]]]), colors=(20, 150, 60),
                                  shaft_radius=0.012, head_radius=0.035, head_length=0.07, visible=False)
         self.active: list[viser.LineSegmentsHandle] = []
+        self.picked: list[viser.LineSegmentsHandle] = []  # a ring round the follower whose card is open
 
         @s.on_click(modifier="shift")
         def _(event: viser.SceneClickEvent) -> None:
@@ -111,11 +112,14 @@ class Scene:
             return
         p, a, pd = state.p_est[i], float(state.a_est[i]), state.p_d[i]
         err = float(np.hypot(*(pd - p))) * 100 if np.all(np.isfinite(p)) else math.nan
+        t = state.p_true[i]
+        true_err = float(np.hypot(*(pd - t))) * 100 if np.all(np.isfinite(t)) else math.nan
         v, w = (float(x) for x in state.commands[i])
         seen = "tracked" if bool(state.tracked[i]) else "**not tracked**"
         self.controls.selected.content = (
-            f"**F{i + 1}** ({seen}) · leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
-            f" {math.degrees(a):.0f}° · slot ({pd[0]:+.2f}, {pd[1]:+.2f}) m · error {err:.1f} cm ·"
+            f"**F{i + 1}** ({seen}) · estimated, leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
+            f" {math.degrees(a):.0f}° · slot ({pd[0]:+.2f}, {pd[1]:+.2f}) m · error {err:.1f} cm (estimate)"
+            + (f", {true_err:.1f} cm (true pose)" if math.isfinite(true_err) else "") + " ·"
             f" command v {v:+.3f} m/s, ω {w:+.2f} rad/s · link: {state.link_state}")
 
     def _ask_reset(self) -> None:
@@ -123,13 +127,15 @@ class Scene:
 
     def _rebuild(self, n: int, state: TickState) -> None:
         s = self.server.scene
-        for line in self.active:  # children of /followers/i: first, or removing the frames took them already
+        for line in self.active + self.picked:  # children of /followers/i: first, or removing the frames took them already
             line.remove()
         for h in self.followers + self.ghosts + self.slot_handles + self.trail_handles:
             h.remove()
         self.followers, self.ghosts, self.slot_handles, self.trail_handles = [], [], [], []
         self.active = [s.add_line_segments(f"/followers/{i}/constrained", _circle(0.22), colors=(220, 30, 30),
                                            thickness=0.02, visible=False) for i in range(n)]
+        self.picked = [s.add_line_segments(f"/followers/{i}/picked", _circle(0.3), colors=(250, 176, 5),
+                                           thickness=0.03, visible=False) for i in range(n)]  # the one clicked
         self.trails = [deque(maxlen=int(TRAIL_SECONDS * 10)) for _ in range(n)]
         for i in range(n):
             rgb = follower_rgb(i)
@@ -211,7 +217,7 @@ class Scene:
                 self.ghosts[i].position = (float(tw[0]), float(tw[1]), 0.0)
                 self.ghosts[i].wxyz = yaw_wxyz(float(tw[2]))
         now = time.monotonic()
-        every_tenth = now - self._trail_at >= 0.1  # trails and the camera follow at 10 Hz
+        every_tenth = now - self._trail_at >= (1.0 if self.controls.light.value else 0.1)  # trails at 10 Hz (light: 1)
         if every_tenth:
             self._trail_at = now
         if every_tenth:
@@ -287,3 +293,5 @@ class Scene:
         active = state.safety_active if state.safety_active is not None else np.zeros(state.n, dtype=bool)
         for i, ring in enumerate(self.active):
             ring.visible = bool(active[i]) and bool(known[i]) and self._safety_on
+        for i, ring in enumerate(self.picked):
+            ring.visible = i == self.selected and bool(known[i])

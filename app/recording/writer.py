@@ -301,6 +301,10 @@ class Recorder:
         self._put(TRIAL_TOPIC, t, jsonable(payload))
         self.event(t, "trial", f"trial {payload['number']}: {payload['label']}, {payload['status']}")
 
+    def event_now(self, kind: str, detail: str) -> None:
+        """An event at the session's time now (the last tick's)."""
+        self.event(self._clock.last, kind, detail)
+
     def event(self, t: float, kind: str, detail: str) -> None:
         self._put(EVENT_TOPIC, t, {"t": t, "kind": kind, "detail": detail})
 

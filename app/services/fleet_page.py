@@ -81,6 +81,7 @@ class LeaderPanel:
             self.speed = add_slider(gui, "leader_speed_mps", f"{leader_id} leader speed (m/s)", initial_value=0.03)
         self.stop.on_click(lambda _: view.send(leader_id, {"stop": True}))
         self.release.on_click(lambda _: view.send(leader_id, {"stop": False}))
+        self.word = "not on the bus"  # for the page's bar: running, STOPPED, not on the bus
         self._synced = False  # the controls show the leader's values once its first state came
         self._moved_at = -math.inf  # when a person last moved one of them
         self.controls = (self.k_f1, self.k_w2, self.mode, self.speed)
@@ -93,6 +94,12 @@ class LeaderPanel:
             handle.on_update(changed)
 
     def update(self, state: dict[str, Any] | None, age_s: float, alive: bool) -> None:
+        self.word = ("not on the bus" if not alive else "no state yet" if state is None
+                     else "STOPPED" if state.get("stopped") else "running")
+        if state is None or not alive:  # a leader not on the bus takes nothing: its controls say so
+            self.stop.disabled = not alive
+            for handle in (*self.controls, self.release):
+                handle.disabled = True
         if state is None:
             self.status.content = f"**{self.leader_id}**: {'alive, no state yet' if alive else 'not on the bus'}"
             return
@@ -120,7 +127,11 @@ class LeaderPanel:
         all_of_it = state.get("takes") == "all"
         for handle in self.controls:
             handle.disabled = not all_of_it
-        self.release.disabled = not (all_of_it and bool(state.get("stopped")))
+        self.release.disabled = not (all_of_it and bool(state.get("stopped"))) or not alive
+        self.stop.disabled = bool(state.get("stopped")) or not alive  # nothing to stop: the button says so
+        if not alive:
+            for handle in self.controls:
+                handle.disabled = True
         if not all_of_it:
             self.status.content += "  \ntakes only STOP from here (started without --fleet-control)"
         refused = state.get("refused")
@@ -320,11 +331,17 @@ class FleetView:
                 self.panels[lid].update(st, now - at, lid in alive)
             arena = "no arena" if truth is None else (f"arena t {truth.get('t', 0):.0f} s, {len(truth['robots'])} robots,"
                                                       f" conflicts {truth.get('conflicts', 0)}")
+            dog = truth.get("watchdog") if truth is not None else None
+            if isinstance(dog, list) and any(dog):  # in words: which robots their own watchdog holds, and why
+                arena += ("; stopped by their watchdog (their leader went quiet): "
+                          + ", ".join(f"R{r + 1}" for r, on in enumerate(dog) if on is True))
             refused = truth.get("refused") if truth is not None else None
             if isinstance(refused, dict):
                 arena += f"; arena refused: {refused_text(refused) if any(refused.values()) else 'nothing'}"
             rec = "" if self.recorder is None else f"  \n{self.recorder.status()}"
-            self.status.content = (f"**fleet {self.fleet}**: leaders alive {', '.join(sorted(alive)) or 'none'};"
+            each = " · ".join(f"{lid} {self.panels[lid].word}" for lid in
+                              sorted(ids, key=lambda lid: (self.panels[lid].word != "STOPPED", lid)))
+            self.status.content = (f"**leaders** {each or 'none yet'}  \n**fleet {self.fleet}**: leaders alive {', '.join(sorted(alive)) or 'none'};"
                                    f" {arena}{rec}")
             self.event_text.content = "**events**  \n" + "  \n".join(reversed(events)) if events else ""
             robots = tuple(f"R{r + 1}" for r in range(len(truth["robots"]))) if truth else ("-",)

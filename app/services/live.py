@@ -165,6 +165,9 @@ class Service:
 
         self.dashboard = Dashboard(self.server, self.store, overlay, obstacles, tuning=tuning)
         self.gate.filter.allow_viewer(self.dashboard.controls.stop_button)  # stopping is always safe
+        self.dashboard.controls.who = self.gate.who  # STOP names who pressed it
+        self.dashboard.controls.health.target_hz, self.dashboard.controls.health.dropped = \
+            self.loop.rate_hz, lambda: self.loop.ticks_dropped
         self.calibration: CalibrationPanel | None = None
         if frames is not None and camera is not None:  # a real camera: recalibrate it from the live page
             rig, gamma = camera

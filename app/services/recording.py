@@ -48,6 +48,7 @@ def start_recording(service: "Service", config: "ServiceConfig", scenario: "Scen
     service.loop.subscribe(recorder.on_tick)
     service.tests.listeners.append(recorder.on_trial)
     service.store.subscribe(recorder.on_params)
+    service.dashboard.controls.health.listeners.append(lambda _t, text: recorder.event_now("alarm", text))
     service.dashboard.controls.recording = shown
     service.recordings.current = shown  # not offered for replay while it is being written
     service.recordings.rescan()

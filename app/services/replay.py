@@ -46,6 +46,7 @@ class ReplayService:
         self.frame_t = rec.frame_t
         self.event_t = sorted(float(e["t"]) for e in rec.events)
         self.server, self.gate = serve_gated(host, port, token, viewer_token)
+        self.gate.page_kind = "replay"  # the page says so, and its bar has no STOP
         self.store = ParamsStore(params_from_recording(rec))
         self._param_t = [at for at, _ in rec.params]  # when each recorded parameter set came in force
         self._params_shown = 0  # which of them the page shows

@@ -49,6 +49,11 @@ def test_the_installed_package_is_not_the_checkout(installed: Path, tmp_path: Pa
     shipped = Path(out.stdout.split()[1]).parent
     for sub in ("scenarios/vee3.toml", "fleets/three_teams.toml", "camera/synthetic.toml"):
         assert (shipped / sub).is_file(), sub  # the shipped config travels with the install
+    head = subprocess.run([str(installed / "bin" / "python"), "-c",
+                           "from app.dashboard.gate import page_head; print(page_head('replay').decode())"],
+                          capture_output=True, text=True, cwd=tmp_path)
+    assert head.returncode == 0, head.stderr  # the page's added files travel with it too
+    assert "omni-stopbar" in head.stdout and 'kind: "replay"' in head.stdout
 
 
 def test_simulate_runs_from_an_unrelated_folder(installed: Path, tmp_path: Path) -> None:

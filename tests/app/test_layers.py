@@ -13,6 +13,7 @@ and keys (app.fleet.bridge.check_endpoint, app.fleet.security), and nothing belo
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 from tests.helpers import ROOT
@@ -84,3 +85,14 @@ def test_no_module_is_longer_than_700_lines():
     long = [f"{f.relative_to(ROOT)} ({n} lines)" for folder in ("app", "core") for f in sorted((ROOT / folder).rglob("*.py"))
             if (n := len(f.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES]
     assert not long, long
+
+
+def test_only_one_module_reaches_into_viser_s_private_parts():
+    """viser's private modules and attributes (``viser._messages``, ``._impl``, ``._websock_…``)
+    are reached from app/dashboard/viser_private.py alone: a viser upgrade is checked in one file."""
+    private = re.compile(r"\bviser\._[a-z]|\._impl\b|\._websock_|\._gui_input_handle|\._live_connections")
+    found = [f"{f.relative_to(ROOT)}:{k + 1}" for folder in ("app", "core") for f in sorted((ROOT / folder).rglob("*.py"))
+             if f.name != "viser_private.py"
+             for k, line in enumerate(f.read_text(encoding="utf-8").splitlines())
+             if private.search(line.split("#")[0])]
+    assert not found, found

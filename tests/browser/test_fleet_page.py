@@ -65,6 +65,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
         leaders = [Leader(endpoint, "three_teams", "L1", True), Leader(endpoint, "three_teams", "L2", False)]
         page_session = open_session([], [endpoint])
         server, gate = serve_gated("127.0.0.1", 0)
+        gate.page_kind = "fleet"
         recorder = FleetRecorder(tmp_path / "fleet.mcap")
         view = FleetView(server, page_session, "three_teams", recorder)
         l1, l2 = leaders
@@ -83,6 +84,15 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             wait_for(lambda: l1.store.get().stop and l2.store.get().stop, 30, "every leader stopped")
             wait_for(lambda: all(v == [0.0, 0.0] for v in l1.loop.last.commands.tolist()), 30, "L1 at zero")
             wait_for(lambda: l2.loop.last.leader_twist == (0.0, 0.0), 30, "L2's own base stopped too")
+            # the bar names each leader; a stopped leader's STOP is disabled; L3 (never on the bus) has
+            # every control disabled
+            bar = page.locator("#omni-stopstate")
+            wait_for(lambda: "L1 STOPPED" in bar.inner_text() and "L2 STOPPED" in bar.inner_text(), 30, "the bar's leaders")
+            wait_for(lambda: page.get_by_role("button", name="STOP L1", exact=True).is_disabled(), 30, "STOP L1 disabled")
+            if "L3" in view.panels:
+                assert "L3 not on the bus" in bar.inner_text(), bar.inner_text()
+                assert page.get_by_role("button", name="STOP L3", exact=True).is_disabled()
+                assert all(h.disabled for h in (*view.panels["L3"].controls, view.panels["L3"].release))
 
             # L1 takes the page's commands; L2's operator did not allow it (STOP only): its controls and
             # Release are disabled, and say why; a release sent on the bus anyway is refused, and said so
@@ -93,6 +103,9 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             wait_for(lambda: not l1.store.get().stop, 30, "L1 released")
             wait_for(lambda: page.get_by_role("button", name="Release STOP L1").is_disabled(), 30,
                      "Release L1 disabled once it runs")
+            wait_for(lambda: "L1 running" in bar.inner_text() and "L2 STOPPED" in bar.inner_text(), 30,
+                     "the bar: L2 STOPPED while L1 runs")
+            assert page.get_by_role("button", name="STOP L1", exact=True).is_enabled()
             page_session.put("omniformation/three_teams/leader/L2/cmd", json.dumps({"set": {"stop": False}, "from": "test"}))
             page.get_by_text("L2: refused", exact=False).first.wait_for(timeout=30_000)
             assert l2.store.get().stop

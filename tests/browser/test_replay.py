@@ -75,6 +75,17 @@ def test_timeline_slider_shows_the_recorded_state_of_that_time(browser):
         page.get_by_text(shown).first.wait_for(timeout=PAGE_MS)
         ARTIFACTS.mkdir(exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "replay.png"), timeout=PAGE_MS)
+        # a replay never looks live: at a moment that was not stopped, STOP stays disabled (panel and
+        # bar), the bar has no STOP to press and says what this page is
+        assert not svc.store.get().stop, "the moment shown was not stopped (else this proves nothing)"
+        assert page.get_by_role("button", name="STOP", exact=True).is_disabled(timeout=PAGE_MS)
+        assert svc.dashboard.controls.stop_button.disabled and svc.dashboard.controls.release_button.disabled
+        bar = page.locator("#omni-stopbar")
+        wait_for(lambda: "REPLAY — no robot is controlled" in bar.inner_text(), WAIT_S, "the replay's bar")
+        assert not page.locator("#omni-stopbar > button").first.is_visible()
+        page.keyboard.press("Space")  # no key stops (or does) anything on a replay
+        page.keyboard.press("Escape")
+        assert not svc.store.get().stop
 
         # play at 8x, then pause: time moved on by about 8x the wall time
         page.get_by_role("button", name="Play replay").click(timeout=PAGE_MS)

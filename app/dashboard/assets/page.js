@@ -1,0 +1,234 @@
+(function () {
+  // What the gate adds to the page (docs/page-access.md, "What the page adds"). window.OMNI_PAGE.kind
+  // says which page this is: "live", "fleet", or "replay" (a replay commands nothing: its bar has no
+  // STOP and says so, and no key stops anything there).
+  var KIND = (window.OMNI_PAGE || {}).kind || "live";
+  var NAMES = ["STOP", "STOP every leader"];
+  var STATE = /^(running|STOPPED|PAUSED|recorded|leaders)/;
+  function panelStop() {
+    return Array.prototype.find.call(document.querySelectorAll("button"), function (b) {
+      return NAMES.indexOf(b.textContent.trim()) >= 0 && !b.closest("#omni-stopbar");
+    });
+  }
+  function panelButton(name) {
+    return Array.prototype.find.call(document.querySelectorAll("button"), function (b) {
+      return b.textContent.trim() === name && !b.closest("#omni-stopbar");
+    });
+  }
+  function panelCheckbox(name) {
+    var label = Array.prototype.find.call(document.querySelectorAll("label"), function (l) {
+      return l.textContent.trim() === name;
+    });
+    var id = label && label.getAttribute("for");
+    return id ? document.getElementById(id) : null;
+  }
+  function lineOf(re) {
+    var strong = Array.prototype.find.call(document.querySelectorAll("strong"), function (e) {
+      return re.test(e.textContent.trim()) && !e.closest("#omni-stopbar");
+    });
+    if (!strong || !strong.parentNode) return "";
+    var text = "";
+    for (var n = strong; n && n.nodeName !== "BR"; n = n.nextSibling) text += n.textContent;
+    return text.trim();
+  }
+  function press() {
+    if (KIND === "replay") return false;
+    var stop = panelStop();
+    if (stop && !stop.disabled) { stop.click(); return true; }
+    return false;
+  }
+  // Something a key would close is open: a dropdown's list, a menu, a dialog (modal), a popover.
+  function somethingOpen() {
+    var open = document.querySelectorAll("[role=listbox], [role=menu], [role=dialog], .mantine-Popover-dropdown,"
+                                         + " .mantine-Combobox-dropdown, [aria-expanded=true][aria-haspopup]");
+    return Array.prototype.some.call(open, function (e) {
+      var r = e.getBoundingClientRect();
+      return r.width > 0 && r.height > 0 && getComputedStyle(e).visibility !== "hidden";
+    });
+  }
+  // Keys: Space outside a text field presses STOP; Escape presses STOP only when nothing is open (with
+  // a dropdown or a dialog open, Escape closes it and stops nothing).
+  document.addEventListener("keydown", function (e) {
+    if (e.ctrlKey || e.altKey || e.metaKey) return;
+    var typing = /^(INPUT|TEXTAREA|SELECT)$/.test((document.activeElement || {}).tagName || "");
+    var stops = (e.key === " " && !typing) || (e.key === "Escape" && !somethingOpen());
+    if (stops && press()) e.preventDefault();
+  }, true);
+  function bar() {
+    var el = document.getElementById("omni-stopbar");
+    if (el || !document.body) return el;
+    el = document.createElement("div");
+    el.id = "omni-stopbar";
+    el.setAttribute("role", "region");
+    el.setAttribute("aria-label", KIND === "replay" ? "replay" : "emergency stop");
+    if (KIND === "replay") el.className = "omni-replay";
+    var b = document.createElement("button");
+    b.type = "button";
+    b.textContent = "STOP (Space)";
+    b.title = "Stop the leader and every follower now (Space, or Escape when no menu is open)";
+    b.addEventListener("click", press);
+    if (KIND === "replay") b.style.display = "none";  // a replay commands no robot: no STOP to press
+    var t = document.createElement("span");
+    t.id = "omni-stopstate";
+    var alarm = document.createElement("div");
+    alarm.id = "omni-alarm";
+    alarm.setAttribute("role", "alert");
+    var text = document.createElement("span");
+    var ack = document.createElement("button");
+    ack.type = "button";
+    ack.textContent = "Acknowledge";
+    ack.addEventListener("click", function () { var a = panelButton("Acknowledge alarms"); if (a && !a.disabled) a.click(); });
+    alarm.appendChild(text);
+    alarm.appendChild(ack);
+    el.appendChild(b);
+    el.appendChild(t);
+    document.body.appendChild(el);
+    document.body.appendChild(alarm);  // its own box under the bar: the bar holds one button, STOP
+    return el;
+  }
+  // The bar sits over the 3D view, left of the panel: never over the panel's header or the camera.
+  function place(el) {
+    var root = panelRoot() || paperOf(panelStop());
+    var left = root ? root.getBoundingClientRect().left : window.innerWidth;
+    var room = Math.max(220, left - 16);
+    el.style.maxWidth = room + "px";
+    el.style.left = left > 236 ? "8px" : "";
+    el.style.transform = left > 236 ? "none" : "";
+  }
+  // a link to another page (a replay on its own port) opens in a new tab, never in place of this
+  // one; "Replay in a new tab" opens the tab at the click (browsers allow a tab only then) and
+  // sends it to the replay's link once the server has made it
+  function others() {
+    return Array.prototype.map.call(document.querySelectorAll("a[href]"), function (a) { return a.href; })
+      .filter(function (h) { return h.indexOf(location.origin + "/") !== 0 && /^https?:/.test(h); });
+  }
+  document.addEventListener("click", function (e) {
+    var target = e.target && e.target.closest ? e.target : null;
+    var a = target && target.closest("a[href]");
+    if (a && /^https?:/.test(a.href) && a.origin !== location.origin) {
+      e.preventDefault();
+      window.open(a.href, "_blank", "noopener");
+      return;
+    }
+    var b = target && target.closest("button");
+    if (!b || b.disabled || b.textContent.trim() !== "Replay in a new tab") return;
+    var before = {};
+    others().forEach(function (h) { before[h] = true; });
+    var tab = window.open("about:blank", "_blank");
+    var tries = 0;
+    var wait = setInterval(function () {
+      var fresh = others().filter(function (h) { return !before[h]; });
+      if (fresh.length && tab) { tab.location.href = fresh[0]; clearInterval(wait); }
+      else if (++tries > 120) { clearInterval(wait); if (tab) tab.close(); }  // 30 s: nothing came (the page says why)
+    }, 250);
+  }, true);
+  // "Wide panel": the control panel (its charts and the camera) at half the window, and back;
+  // this browser only (the page's width is a matter for whoever looks at it)
+  function paperOf(n) {
+    var root = null;
+    for (; n; n = n.parentElement) if (n.classList && n.classList.contains("mantine-Paper-root")) root = n;
+    return root;
+  }
+  function panelRoot() {
+    var n = document.querySelector(".uplot") || document.querySelector("img[src^='blob:']"), root = null;
+    for (; n; n = n.parentElement) if (n.classList && n.classList.contains("mantine-Paper-root")) root = n;
+    return root;
+  }
+  function widen(on) {
+    var root = panelRoot();
+    if (!root) return false;
+    root.style.width = on ? "50vw" : "";
+    root.style.maxWidth = on ? "50vw" : "";
+    root.style.transform = "";
+    var r = root.getBoundingClientRect();
+    if (on && r.right > window.innerWidth) root.style.transform = "translateX(" + (window.innerWidth - r.right - 8) + "px)";
+    Array.prototype.forEach.call(root.querySelectorAll("img[src^='blob:']"), function (img) {
+      img.style.width = on ? "100%" : "";
+    });
+    window.dispatchEvent(new Event("resize"));
+    return true;
+  }
+  function wideButton() {
+    var b = document.getElementById("omni-wide");
+    if (b || !document.body || !panelRoot()) return b;
+    b = document.createElement("button");
+    b.id = "omni-wide";
+    b.type = "button";
+    b.textContent = "Wide panel";
+    b.title = "the panel, its charts and the camera at half the window (this browser only)";
+    b.addEventListener("click", function () {
+      var on = b.getAttribute("aria-pressed") !== "true";
+      if (widen(on)) { b.setAttribute("aria-pressed", on ? "true" : "false"); b.textContent = on ? "Narrow panel" : "Wide panel"; }
+    });
+    document.body.appendChild(b);
+    return b;
+  }
+  // Light mode: when this browser's main thread is busy more than half of each second for 3 s
+  // (long tasks: software rendering, no GPU), it ticks the panel's "Light mode": the server then sends the 3D view 5 times
+  // a second, trails once a second and the charts every 2 s, so the page's main thread is free for
+  // clicks and STOP. window.omniFps and window.omniBusy: the browser tests print them.
+  var LIGHT_BUSY = 0.5, busyMs = 0, slowSeconds = 0, frames = -1;
+  window.omniFps = NaN;  // frames drawn in the last sample (one second in five: a perpetual count would
+  window.omniBusy = NaN;  // itself make the browser draw all the time); the main thread's busy share
+  if (window.PerformanceObserver) {
+    try {
+      new PerformanceObserver(function (list) {
+        list.getEntries().forEach(function (e) { busyMs += e.duration; });
+      }).observe({type: "longtask", buffered: false});
+    } catch (err) { /* no long-task timing here: light mode stays the operator's choice */ }
+  }
+  function count() { if (frames >= 0) { frames++; requestAnimationFrame(count); } }
+  setInterval(function () {
+    frames = 0;
+    requestAnimationFrame(count);
+    setTimeout(function () { window.omniFps = frames; frames = -1; }, 1000);
+  }, 5000);
+  setInterval(function () {
+    window.omniBusy = Math.min(1, busyMs / 1000);
+    busyMs = 0;
+    slowSeconds = window.omniBusy > LIGHT_BUSY ? slowSeconds + 1 : 0;
+    if (slowSeconds >= 3 && !document.body.classList.contains("omni-light")) {
+      light(true);
+      var box = panelCheckbox("Light mode");  // and the server sends less (an operator's page; a viewer's is refused)
+      if (box && !box.checked && !box.disabled) box.click();
+    }
+  }, 1000);
+  function light(on) {
+    document.body.classList.toggle("omni-light", on);
+  }
+  window.omniLight = light;
+  setInterval(function () {
+    var wide = wideButton();
+    if (wide && wide.getAttribute("aria-pressed") === "true") {  // a panel redrawn since keeps it
+      var root = panelRoot();
+      if (root && root.style.width !== "50vw") widen(true);
+    }
+    var el = bar(), stop = panelStop();
+    if (!el) return;
+    var show = KIND === "replay" || !!stop;
+    el.style.display = show ? "flex" : "none";
+    if (!show) return;
+    place(el);
+    var state = lineOf(STATE);
+    if (KIND === "replay") {
+      el.firstChild.disabled = true;
+      el.children[1].textContent = "REPLAY — no robot is controlled" + (state ? " · " + state : "");
+    } else {
+      el.firstChild.disabled = stop.disabled;
+      el.children[1].textContent = state + (document.body.classList.contains("omni-light") ? " · light mode" : "");
+    }
+    var alarm = KIND === "replay" ? "" : lineOf(/^ALARM/);
+    var box = document.getElementById("omni-alarm");
+    var r = el.getBoundingClientRect();
+    box.style.top = (r.bottom + 4) + "px";
+    box.style.left = r.left + "px";
+    box.style.maxWidth = el.style.maxWidth;
+    box.style.display = alarm ? "flex" : "none";
+    el.classList.toggle("omni-alarmed", !!alarm);
+    if (alarm) {
+      box.firstChild.textContent = alarm;
+      var ack = panelButton("Acknowledge alarms");
+      box.lastChild.style.display = ack && !ack.disabled ? "" : "none";
+    }
+  }, 250);
+})();
