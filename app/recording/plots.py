@@ -49,13 +49,13 @@ def trajectory_panel(ax: Axes, t: np.ndarray, leader: np.ndarray, followers_worl
             ax.plot(dw[:, 0], dw[:, 1], "--", color=colour(i), lw=0.9)
         ax.plot(followers_world[:, i, 0], followers_world[:, i, 1], color=colour(i), lw=1.3,
                 label=f"follower {i + 1}")
+    labels: list[tuple[float, float, str, str]] = []  # (x, y, text, colour): drawn last, near ones merged
     start = int(np.argmax(np.nan_to_num(t, nan=-np.inf) >= 0.0))  # rows of NaN break the lines at a reset
     for k in np.linspace(min(start, len(t) - 1), len(t) - 1, instants).astype(int):
         pts = np.vstack([leader[k, :2], followers_world[k, :, :2]])
         if np.all(np.isfinite(pts)):
             ax.fill(pts[:, 0], pts[:, 1], facecolor="none", edgecolor="tab:red", lw=1.0)
-            ax.annotate(f"{t[k]:.0f} s", (float(leader[k, 0]), float(leader[k, 1])), fontsize=7, color="tab:red",
-                        xytext=(3, 3), textcoords="offset points")
+            labels.append((float(leader[k, 0]), float(leader[k, 1]), f"{t[k]:.0f} s", "tab:red"))
     for (x, y, heading, half_l, half_w) in (np.zeros((0, 5)) if boxes is None else np.asarray(boxes, float).reshape(-1, 5)):
         c, s_ = math.cos(heading), math.sin(heading)
         corners = np.array([[x + c * u - s_ * v, y + s_ * u + c * v]
@@ -65,9 +65,16 @@ def trajectory_panel(ax: Axes, t: np.ndarray, leader: np.ndarray, followers_worl
         k = int(np.argmin(np.abs(np.nan_to_num(t, nan=np.inf) - when)))
         if np.all(np.isfinite(leader[k, :2])):
             ax.plot(leader[k, 0], leader[k, 1], mark, color="black", ms=8, mfc="none")
-            ax.annotate(what, (float(leader[k, 0]), float(leader[k, 1])), fontsize=7, xytext=(4, -9),
-                        textcoords="offset points")
-    ax.set_aspect("equal", adjustable="datalim")
+            labels.append((float(leader[k, 0]), float(leader[k, 1]), f"{what} {when:.0f} s", "black"))
+    pts = np.concatenate([leader[:, :2], followers_world[..., :2].reshape(-1, 2)])
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts):  # fitted to where the robots were (a desired path far off, or a reset's jump, does not widen it)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pad = 0.08 * max(float(np.max(hi - lo)), 0.5)
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    _place_labels(ax, labels, pad if len(pts) else 0.1)
+    ax.set_aspect("equal", adjustable="box" if len(pts) else "datalim")
     ax.set(xlabel="x world (m)", ylabel="y world (m)", title=f"{title}: team trajectory (dashed: desired)")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
@@ -114,6 +121,23 @@ def plot_simulation(log: SimulationLog, path: Path, instants: int = 6) -> None:
     ax_head.legend(fontsize=7, loc="upper right")
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _place_labels(ax: Axes, labels: list[tuple[float, float, str, str]], near: float) -> None:
+    """The trajectory's labels without overlaps: labels closer than ``near`` (m) to one already
+    placed join it, one line each, in one box (a STOP and its release where the leader stood)."""
+    groups: list[tuple[float, float, list[tuple[str, str]]]] = []
+    for x, y, text, ink in labels:
+        for gx, gy, members in groups:
+            if math.hypot(x - gx, y - gy) < near:
+                members.append((text, ink))
+                break
+        else:
+            groups.append((x, y, [(text, ink)]))
+    for x, y, members in groups:
+        for row, (text, ink) in enumerate(members):
+            ax.annotate(text, (x, y), fontsize=7, color=ink, xytext=(5, 4 - 9 * row), textcoords="offset points",
+                        bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7})
 
 
 def _gain_label(name: str) -> str:
