@@ -147,13 +147,31 @@ def _gain_label(name: str) -> str:
     return f"{name} ({unit})" if unit else name
 
 
+def excluded_points(result: "SweepResult") -> tuple[list[int], list[int], float]:
+    """(points that settled but the best rule leaves out, points that did not settle, the steady
+    error limit in m): core.sim.sweep.BEST_RULE's first cut, so the page can grey them and say why."""
+    from core.sim.sweep import STEADY_SLACK
+
+    done = [(k, s.worst) for k, s in enumerate(result.scores) if s is not None]
+    settled = [w["steady_rms_m"] for _, w in done if math.isfinite(w["settling_s"]) and math.isfinite(w["steady_rms_m"])]
+    limit = min(settled) * STEADY_SLACK[0] + STEADY_SLACK[1] if settled else math.inf
+    slack = [k for k, w in done if math.isfinite(w["settling_s"]) and not w["steady_rms_m"] <= limit]
+    unsettled = [k for k, w in done if not math.isfinite(w["settling_s"])]
+    return slack, unsettled, limit
+
+
+CELL_PT = 10.0  # the heat map's cell numbers: 12.5 px at the page's 90 dpi
+
+
 def sweep_figure(result: "SweepResult", width_in: float = 7.5, stacked: bool = False,
-                 metric: str = "settling") -> "Figure":
+                 metric: str = "settling", cell_pt: float = CELL_PT) -> "Figure":
     """A sweep's result: for two gains a heat map of one ``metric`` (METRICS: its colour and the
     number in each cell are the same figure, with its unit; the colour scale spans the 5th to
     95th percentile so one slow row does not flatten the rest; not settled: grey, "no"), for one
     gain the settling time and overshoot against it; beside it the Pareto plot (settling time vs.
-    overshoot, the front joined, the best point ringed)."""
+    overshoot, the front joined, the best point ringed). Points the best rule leaves out (settled,
+    but their steady error above its limit) are hatched grey, their numbers kept; ``cell_pt``: the
+    cell numbers' size (points), omitted where a cell is too narrow for them (the enlarged figure has them)."""
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
 
@@ -182,17 +200,27 @@ def sweep_figure(result: "SweepResult", width_in: float = 7.5, stacked: bool = F
         mesh = ax.imshow(np.ma.masked_invalid(shown).T, origin="lower", aspect="auto", cmap="viridis_r",
                          vmin=lo, vmax=hi, extent=(-0.5, len(r0.values) - 0.5, -0.5, len(r1.values) - 0.5))
         fig.colorbar(mesh, ax=ax, label=label, extend="both")
+        slack, _, _ = excluded_points(result)
+        cell_in = 0.62 * width_in / len(r0.values)  # about the heat map's share of the width, per column
+        numbers = cell_in * 72 >= cell_pt * (decimals + 3) * 0.62  # the widest number fits its cell
         for i in range(len(r0.values)):
             for j in range(len(r1.values)):
                 v = shown[i, j]
+                if np.ravel_multi_index((i, j), settle.shape) in slack:
+                    ax.add_patch(Rectangle((i - 0.5, j - 0.5), 1, 1, facecolor=(0.6, 0.6, 0.6, 0.75), hatch="///",
+                                           edgecolor="0.35", lw=0))
+                if not numbers:
+                    continue
                 if np.isfinite(v):
                     r, g, b, _ = mesh.cmap(mesh.norm(v))
                     ink = "k" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "w"  # readable on every colour
-                    ax.text(i, j, f"{v:.{decimals}f}", ha="center", va="center", fontsize=6, color=ink)
+                    if np.ravel_multi_index((i, j), settle.shape) in slack:
+                        ink = "k"
+                    ax.text(i, j, f"{v:.{decimals}f}", ha="center", va="center", fontsize=cell_pt, color=ink)
                 else:
-                    ax.text(i, j, "no", ha="center", va="center", fontsize=6, color="k")
-        ax.set_xticks(range(len(r0.values)), [f"{v:g}" for v in r0.values], fontsize=7)
-        ax.set_yticks(range(len(r1.values)), [f"{v:g}" for v in r1.values], fontsize=7)
+                    ax.text(i, j, "no", ha="center", va="center", fontsize=cell_pt, color="k")
+        ax.set_xticks(range(len(r0.values)), [f"{v:g}" for v in r0.values], fontsize=9)
+        ax.set_yticks(range(len(r1.values)), [f"{v:g}" for v in r1.values], fontsize=9)
         ax.set(xlabel=_gain_label(r0.name), ylabel=_gain_label(r1.name), title=f"{result.test.label()}: {label}")
         if best is not None:
             bi, bj = np.unravel_index(best, settle.shape)
