@@ -50,13 +50,13 @@ def trajectory_panel(ax: Axes, t: np.ndarray, leader: np.ndarray, followers_worl
             ax.plot(dw[:, 0], dw[:, 1], "--", color=colour(i), lw=0.9)
         ax.plot(followers_world[:, i, 0], followers_world[:, i, 1], color=colour(i), lw=1.3,
                 label=f"follower {i + 1}")
+    labels: list[tuple[float, float, str, str]] = []  # (x, y, text, colour): drawn last, near ones merged
     start = int(np.argmax(np.nan_to_num(t, nan=-np.inf) >= 0.0))  # rows of NaN break the lines at a reset
     for k in np.linspace(min(start, len(t) - 1), len(t) - 1, instants).astype(int):
         pts = np.vstack([leader[k, :2], followers_world[k, :, :2]])
         if np.all(np.isfinite(pts)):
             ax.fill(pts[:, 0], pts[:, 1], facecolor="none", edgecolor="tab:red", lw=1.0)
-            ax.annotate(f"{t[k]:.0f} s", (float(leader[k, 0]), float(leader[k, 1])), fontsize=7, color="tab:red",
-                        xytext=(3, 3), textcoords="offset points")
+            labels.append((float(leader[k, 0]), float(leader[k, 1]), f"{t[k]:.0f} s", "tab:red"))
     for (x, y, heading, half_l, half_w) in (np.zeros((0, 5)) if boxes is None else np.asarray(boxes, float).reshape(-1, 5)):
         c, s_ = math.cos(heading), math.sin(heading)
         corners = np.array([[x + c * u - s_ * v, y + s_ * u + c * v]
@@ -66,9 +66,16 @@ def trajectory_panel(ax: Axes, t: np.ndarray, leader: np.ndarray, followers_worl
         k = int(np.argmin(np.abs(np.nan_to_num(t, nan=np.inf) - when)))
         if np.all(np.isfinite(leader[k, :2])):
             ax.plot(leader[k, 0], leader[k, 1], mark, color="black", ms=8, mfc="none")
-            ax.annotate(what, (float(leader[k, 0]), float(leader[k, 1])), fontsize=7, xytext=(4, -9),
-                        textcoords="offset points")
-    ax.set_aspect("equal", adjustable="datalim")
+            labels.append((float(leader[k, 0]), float(leader[k, 1]), f"{what} {when:.0f} s", "black"))
+    pts = np.concatenate([leader[:, :2], followers_world[..., :2].reshape(-1, 2)])
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts):  # fitted to where the robots were (a desired path far off, or a reset's jump, does not widen it)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pad = 0.08 * max(float(np.max(hi - lo)), 0.5)
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    _place_labels(ax, labels, pad if len(pts) else 0.1)
+    ax.set_aspect("equal", adjustable="box" if len(pts) else "datalim")
     ax.set(xlabel="x world (m)", ylabel="y world (m)", title=f"{title}: team trajectory (dashed: desired)")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
@@ -117,6 +124,23 @@ def plot_simulation(log: SimulationLog, path: Path, instants: int = 6) -> None:
     plt.close(fig)
 
 
+def _place_labels(ax: Axes, labels: list[tuple[float, float, str, str]], near: float) -> None:
+    """The trajectory's labels without overlaps: labels closer than ``near`` (m) to one already
+    placed join it, one line each, in one box (a STOP and its release where the leader stood)."""
+    groups: list[tuple[float, float, list[tuple[str, str]]]] = []
+    for x, y, text, ink in labels:
+        for gx, gy, members in groups:
+            if math.hypot(x - gx, y - gy) < near:
+                members.append((text, ink))
+                break
+        else:
+            groups.append((x, y, [(text, ink)]))
+    for x, y, members in groups:
+        for row, (text, ink) in enumerate(members):
+            ax.annotate(text, (x, y), fontsize=7, color=ink, xytext=(5, 4 - 9 * row), textcoords="offset points",
+                        bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7})
+
+
 def _gain_label(name: str) -> str:
     from core.types import GAIN_BOUNDS
 
@@ -124,13 +148,31 @@ def _gain_label(name: str) -> str:
     return f"{name} ({unit})" if unit else name
 
 
+def excluded_points(result: "SweepResult") -> tuple[list[int], list[int], float]:
+    """(points that settled but the best rule leaves out, points that did not settle, the steady
+    error limit in m): core.sim.sweep.BEST_RULE's first cut, so the page can grey them and say why."""
+    from core.sim.sweep import STEADY_SLACK
+
+    done = [(k, s.worst) for k, s in enumerate(result.scores) if s is not None]
+    settled = [w["steady_rms_m"] for _, w in done if math.isfinite(w["settling_s"]) and math.isfinite(w["steady_rms_m"])]
+    limit = min(settled) * STEADY_SLACK[0] + STEADY_SLACK[1] if settled else math.inf
+    slack = [k for k, w in done if math.isfinite(w["settling_s"]) and not w["steady_rms_m"] <= limit]
+    unsettled = [k for k, w in done if not math.isfinite(w["settling_s"])]
+    return slack, unsettled, limit
+
+
+CELL_PT = 10.0  # the heat map's cell numbers: 12.5 px at the page's 90 dpi
+
+
 def sweep_figure(result: "SweepResult", width_in: float = 7.5, stacked: bool = False,
-                 metric: str = "settling") -> "Figure":
+                 metric: str = "settling", cell_pt: float = CELL_PT) -> "Figure":
     """A sweep's result: for two gains a heat map of one ``metric`` (METRICS: its colour and the
     number in each cell are the same figure, with its unit; the colour scale spans the 5th to
     95th percentile so one slow row does not flatten the rest; not settled: grey, "no"), for one
     gain the settling time and overshoot against it; beside it the Pareto plot (settling time vs.
-    overshoot, the front joined, the best point ringed)."""
+    overshoot, the front joined, the best point ringed). Points the best rule leaves out (settled,
+    but their steady error above its limit) are hatched grey, their numbers kept; ``cell_pt``: the
+    cell numbers' size (points), omitted where a cell is too narrow for them (the enlarged figure has them)."""
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
 
@@ -159,17 +201,27 @@ def sweep_figure(result: "SweepResult", width_in: float = 7.5, stacked: bool = F
         mesh = ax.imshow(np.ma.masked_invalid(shown).T, origin="lower", aspect="auto", cmap="viridis_r",
                          vmin=lo, vmax=hi, extent=(-0.5, len(r0.values) - 0.5, -0.5, len(r1.values) - 0.5))
         fig.colorbar(mesh, ax=ax, label=label, extend="both")
+        slack, _, _ = excluded_points(result)
+        cell_in = 0.62 * width_in / len(r0.values)  # about the heat map's share of the width, per column
+        numbers = cell_in * 72 >= cell_pt * (decimals + 3) * 0.62  # the widest number fits its cell
         for i in range(len(r0.values)):
             for j in range(len(r1.values)):
                 v = shown[i, j]
+                if np.ravel_multi_index((i, j), settle.shape) in slack:
+                    ax.add_patch(Rectangle((i - 0.5, j - 0.5), 1, 1, facecolor=(0.6, 0.6, 0.6, 0.75), hatch="///",
+                                           edgecolor="0.35", lw=0))
+                if not numbers:
+                    continue
                 if np.isfinite(v):
                     r, g, b, _ = mesh.cmap(mesh.norm(v))
                     ink = "k" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "w"  # readable on every colour
-                    ax.text(i, j, f"{v:.{decimals}f}", ha="center", va="center", fontsize=6, color=ink)
+                    if np.ravel_multi_index((i, j), settle.shape) in slack:
+                        ink = "k"
+                    ax.text(i, j, f"{v:.{decimals}f}", ha="center", va="center", fontsize=cell_pt, color=ink)
                 else:
-                    ax.text(i, j, "no", ha="center", va="center", fontsize=6, color="k")
-        ax.set_xticks(range(len(r0.values)), [f"{v:g}" for v in r0.values], fontsize=7)
-        ax.set_yticks(range(len(r1.values)), [f"{v:g}" for v in r1.values], fontsize=7)
+                    ax.text(i, j, "no", ha="center", va="center", fontsize=cell_pt, color="k")
+        ax.set_xticks(range(len(r0.values)), [f"{v:g}" for v in r0.values], fontsize=9)
+        ax.set_yticks(range(len(r1.values)), [f"{v:g}" for v in r1.values], fontsize=9)
         ax.set(xlabel=_gain_label(r0.name), ylabel=_gain_label(r1.name), title=f"{result.test.label()}: {label}")
         if best is not None:
             bi, bj = np.unravel_index(best, settle.shape)

@@ -5,7 +5,7 @@ mirror's centre and the working area drawn on it. "Propose from image" finds the
 circle (core.camera.guide.find_mirror_rim: from its edges); the centre and the working area's radii stay
 adjustable by dragging their sliders. How the camera is turned and mirrored is read from
 the markers (core.camera.quality.detect_mounting). The guide names the next marker's bearing and distance
-(4 bearings x 6 distances); the operator puts a marker there, confirms or corrects the
+(4 bearings x 7 distances, from the working ring's inner edge out); the operator puts a marker there, confirms or corrects the
 bearing and distance, and presses Capture: the marker is found in the picture (exactly one,
 inside the working area, or the capture is refused saying why) and its pixel joins the table.
 From enough markers on, Γ is fitted after every capture (core.camera.gamma), with its
@@ -37,6 +37,29 @@ from app.dashboard.widgets import assign, on_page_thread
 
 DEGREE = 3
 PREVIEW_WIDTH = 480
+PICTURE_SHARE = 0.68  # of the main view's width the picture is centred in (the panel floats over the rest)
+GOOD_P95_CM = 2.0  # held-out p95 at or under this: good, save
+USABLE_P95_CM = 3.0  # under this: usable (the page's promise); above: capture more before saving
+STEPS = ("1. **Find the mirror**: press *Propose from image* (or drag the centre and radii sliders until the"
+         " circles sit on the mirror).",
+         "2. **Put a marker** where *Next marker* says (bearing 0–360°, 0 ahead, counter-clockwise; distance from"
+         " the camera's axis); correct the bearing and distance if it stands elsewhere.",
+         "3. **Capture**. Repeat 2–3 until the guide's plan is done; the fit and its verdict follow every capture.",
+         "4. **Save** when the verdict says good (or do what it says first).")
+
+
+def verdict(held: HeldOut | None, warnings: list[str]) -> tuple[str, str]:
+    """(word, sentence) for a fit: good (save), usable (save, or capture more) or poor (what to do)."""
+    if held is None:
+        return "none", "no fit yet: capture markers where the guide says"
+    p95 = f"p95 {held.p95_cm:.1f} cm"
+    if held.p95_cm <= GOOD_P95_CM and not warnings:
+        return "good", f"{p95}: good, Save"
+    if held.p95_cm <= USABLE_P95_CM:
+        todo = "fill the gaps the warnings name, then Save" if warnings else "Save, or capture more markers near the worst sector"
+        return "usable", f"{p95}: usable; {todo}"
+    return "poor", (f"{p95}: not good enough (over {USABLE_P95_CM:g} cm): capture more markers, most where the"
+                    " sector table shows the largest error" + ("; fill the gaps the warnings name" if warnings else ""))
 
 
 class CalibrationPanel:
@@ -52,15 +75,19 @@ class CalibrationPanel:
         self.held: HeldOut | None = None
         self.warnings: list[str] = []
         self.fitted = 0  # markers the fit shown was made from
+        self.annotated: np.ndarray | None = None  # the last preview at full size (BGR)
         self.message = ""
         self._lock = threading.Lock()
         self._busy = threading.Lock()
+        self.clicks = 0  # Capture clicks received; each ends in one capture or one refusal, in order
+        self._waiting = 0  # clicks not yet done
         frame = source.latest()[0]
         h, w = (frame.shape[:2] if frame is not None else (480, 640))
         cx, cy = centre if centre is not None else (w / 2, h / 2)
         area = area or WorkingArea(0.2 * min(w, h) / 2, 0.8 * min(w, h) / 2)
         gui = server.gui
         with gui.add_folder("Calibration"):
+            self.steps = gui.add_markdown("\n".join(STEPS))
             self.preview = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="camera", format="jpeg")
             self.propose = gui.add_button("Propose from image", hint="find the mirror's circle in the picture")
             reach = round(math.hypot(w, h) / 2)  # drag the sliders: the preview draws what they say
@@ -73,9 +100,12 @@ class CalibrationPanel:
             self.outer = gui.add_slider("Area outer (px)", min=1.0, max=float(reach), step=1.0,
                                         initial_value=min(float(reach), round(area.outer_px, 1)))
             self.guide = gui.add_markdown("")
-            self.bearing = gui.add_number("Marker bearing (deg)", initial_value=0.0, step=1.0, min=-360.0, max=360.0)
+            self.bearing = gui.add_number("Marker bearing (°, 0–360)", initial_value=0.0, step=1.0, min=0.0, max=360.0,
+                                          hint="0 ahead, counter-clockwise, 0 to 360° (360 is 0)")
             self.distance = gui.add_number("Marker distance (m)", initial_value=0.5, step=0.01, min=0.05, max=10.0)
-            self.capture = gui.add_button("Capture", hint="find the marker in the picture and add it to the table")
+            self.capture = gui.add_button("Capture", hint="find the marker in the picture and add it to the table;"
+                                                          " clicks made while one runs wait their turn")
+            self.busy = gui.add_markdown("")
             self.undo = gui.add_button("Undo last capture", color="gray")
             self.status = gui.add_markdown("")
             self.quality = gui.add_html("")
@@ -105,16 +135,33 @@ class CalibrationPanel:
                          f" working area {0.22 * c.radius:.0f}..{0.8 * c.radius:.0f} px (adjust if needed)")
 
     def capture_marker(self) -> str:
-        with self._busy:  # one capture at a time: a second click waits for the first to finish
-            return self._capture()
+        """One click: queued behind any capture running (none is dropped), the wait shown."""
+        with self._lock:
+            self.clicks += 1
+            self._waiting += 1
+        self._show_busy()
+        try:
+            with self._busy:  # one capture at a time: a second click waits for the first to finish
+                return self._capture()
+        finally:
+            with self._lock:
+                self._waiting -= 1
+            self._show_busy()
+
+    def _show_busy(self) -> None:
+        n = self._waiting
+        self.busy.content = ("" if n <= 0 else "**capturing…**" if n == 1
+                             else f"**capturing…** ({n - 1} more {'click' if n == 2 else 'clicks'} waiting)")
 
     def _capture(self) -> str:
         frame = self.source.latest()[0]
         if frame is None:
             return self._say("no picture from the camera yet")
         b, d = float(self.bearing.value), float(self.distance.value)
-        if not (math.isfinite(b) and math.isfinite(d) and d > 0):
-            return self._say(f"bearing {b!r} deg and distance {d!r} m: give a bearing and a distance over 0 m")
+        if not (math.isfinite(b) and math.isfinite(d) and d > 0 and 0.0 <= b <= 360.0):
+            return self._say(f"bearing {b!r}° and distance {d!r} m: give a bearing from 0 to 360° and a distance"
+                             " over 0 m")
+        b = _guide_deg(b)
         inner, outer = float(self.inner.value), float(self.outer.value)
         if not (math.isfinite(inner) and math.isfinite(outer) and 0 <= inner < outer):
             return self._say(f"working area {inner!r}..{outer!r} px: the inner radius must be under the outer")
@@ -125,11 +172,11 @@ class CalibrationPanel:
         with self._lock:
             same = [k for k, r in enumerate(self.rows) if abs((r[0] - b + 180) % 360 - 180) < 1e-6 and abs(r[1] - d) < 1e-6]
             if same:
-                return self._say(f"capture refused: row {same[0] + 1} already has a marker at {b:g} deg, {d:g} m;"
+                return self._say(f"capture refused: row {same[0] + 1} already has a marker at {b:g}°, {d:g} m;"
                                  " undo it or give another bearing or distance")
             self.rows.append((b % 360.0, d, found.u, found.v))
         self.show_next()
-        said = self._say(f"captured {len(self.rows)}: {b:g} deg, {d:g} m at pixel ({found.u:.1f}, {found.v:.1f})")
+        said = self._say(f"captured {len(self.rows)}: {b:g}°, {d:g} m at pixel ({found.u:.1f}, {found.v:.1f})")
         self._refit()
         return said
 
@@ -140,7 +187,7 @@ class CalibrationPanel:
             b, d, _, _ = self.rows.pop()
         self._refit()
         self.show_next()
-        return self._say(f"removed the capture at {b:g} deg, {d:g} m")
+        return self._say(f"removed the capture at {b:g}°, {d:g} m")
 
     def save_files(self) -> str:
         if self.fit is None:
@@ -232,12 +279,16 @@ class CalibrationPanel:
         self.fit, self.held, self.warnings, self.fitted = fit, held, warnings, n
         rows = "".join(f"<tr><td>{_guide_deg(s.bearing_deg):g}</td><td>{s.points}</td><td>{s.rms_cm:.2f}</td>"
                        f"<td>{s.max_cm:.2f}</td></tr>" for s in fit.sectors)
-        mounted = (f"<div>the camera is turned by {offset:+.1f} deg{' and mirrored' if flip else ''} (read from"
+        mounted = (f"<div>the camera is turned by {offset % 360.0:.1f}°{' and mirrored' if flip else ''} (read from"
                    " the markers)</div>") if (flip or offset) else ""
-        text = (f"<div data-held-out='{held.p95_cm:.3f}'>held-out error: median {held.median_cm:.2f} cm,"
+        word, sentence = verdict(held, warnings)
+        colour = {"good": "#1a7f37", "usable": "#9a6700"}.get(word, "#cf222e")
+        text = (f"<div data-verdict='{word}' style='font-size:15px;font-weight:bold;color:{colour}'>"
+                f"{html.escape(sentence)}</div>"
+                f"<div data-held-out='{held.p95_cm:.3f}'>held-out error: median {held.median_cm:.2f} cm,"
                 f" p95 {held.p95_cm:.2f} cm</div>" + mounted
                 + "".join(f"<div style='color:#b35900'>warning: {html.escape(w)}</div>" for w in warnings)
-                + "<table style='font-size:11px'><tr><th>sector (deg)</th><th>markers</th><th>RMS (cm)</th>"
+                + "<table style='font-size:11px'><tr><th>sector (°, 0–360)</th><th>markers</th><th>RMS (cm)</th>"
                   "<th>max (cm)</th></tr>" + rows + "</table>")
         self.quality.content = text
         self._draw_figure()
@@ -273,7 +324,7 @@ class CalibrationPanel:
         bx = fig.add_subplot(1, 2, 2)
         sectors = self.fit.sectors
         bx.bar([f"{_guide_deg(s.bearing_deg):g}" for s in sectors], [s.rms_cm for s in sectors], color="tab:blue")
-        bx.set_xlabel("sector (deg, as the guide names bearings)", fontsize=7)
+        bx.set_xlabel("sector (°, 0–360, as the guide names bearings)", fontsize=7)
         if self.held is not None:
             bx.axhline(self.held.p95_cm, color="tab:red", ls="--", lw=0.8, label="held-out p95")
             bx.legend(fontsize=6)
@@ -317,6 +368,7 @@ class CalibrationPanel:
         cv2.drawMarker(img, c, (0, 0, 255), cv2.MARKER_CROSS, 12, 1)
         for _, _, u, v in self.rows:
             cv2.circle(img, (int(round(u)), int(round(v))), 3, (255, 120, 0), -1)
+        self.annotated = img  # full size, for the page alone's main view (CalibrationService)
         scale = PREVIEW_WIDTH / img.shape[1]
         if scale < 1:
             img = cv2.resize(img, (PREVIEW_WIDTH, int(img.shape[0] * scale)), interpolation=cv2.INTER_AREA)
@@ -342,6 +394,7 @@ class CalibrationService:
         self.server, self.gate = serve_gated(host, port, token)
         self.server.gui.configure_theme(control_width="large", dark_mode=False)
         self.panel = CalibrationPanel(self.server, source, detect, save_as)
+        self.aspect = math.nan  # the main view's width / height the picture was last letterboxed to
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="omniformation-calibration", daemon=True)
         self._thread.start()
@@ -353,9 +406,23 @@ class CalibrationService:
     def _run(self) -> None:
         while not self._stop.wait(0.25):
             try:
-                on_page_thread(self.server, self.panel.refresh)  # widgets.on_page_thread says why
+                on_page_thread(self.server, self._draw)  # widgets.on_page_thread says why
             except Exception:  # noqa: BLE001 - a picture that cannot be drawn must not end the page
                 pass
+
+    def _draw(self) -> None:
+        """The panel's preview, and the same picture as the page's main view: the whole window
+        beside the panel (more than half its width), letterboxed to the browser's view so it is
+        not stretched."""
+        self.panel.refresh()
+        img = self.panel.annotated
+        if img is None:
+            return
+        clients = list(self.server.get_clients().values())
+        cam = clients[0].camera if clients else None
+        aspect = cam.image_width / cam.image_height if cam is not None and cam.image_height > 0 else 1.6
+        self.aspect = aspect
+        self.server.scene.set_background_image(letterbox(img, aspect)[..., ::-1], format="jpeg", jpeg_quality=85)
 
     def stop(self) -> None:
         self._stop.set()
@@ -372,6 +439,21 @@ class CalibrationService:
         self.gate.close()
         quietly(self.server.stop)
         self.source.close()
+
+
+def letterbox(img: np.ndarray, aspect: float, left: float = PICTURE_SHARE) -> np.ndarray:
+    """``img`` on a dark canvas of width / height ``aspect`` (a background is stretched to the view),
+    centred in the canvas's ``left`` share: the panel floats over the rest."""
+    h, w = img.shape[:2]
+    if not math.isfinite(aspect) or aspect <= 0:
+        return img
+    cw = max(round(w / left), round(h * aspect))
+    ch = max(h, round(cw / aspect))
+    cw = max(cw, round(ch * aspect))
+    out = np.full((ch, cw, 3), 30, np.uint8)
+    y0, x0 = (ch - h) // 2, max(0, round(cw * left / 2 - w / 2))
+    out[y0:y0 + h, x0:x0 + w] = img
+    return out
 
 
 def _markers(n: int) -> str:

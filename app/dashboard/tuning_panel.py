@@ -39,6 +39,10 @@ from app.live.sweep import SweepRunner
 from core.sim.sweep import BEST_RULE, METRICS, SweepResult
 from app.tick import TickState
 from app.live.tuning import StepTests, Trial, trial_cells, trials_csv
+from app.recording.plots import excluded_points
+from app.dashboard.controls import GAIN_SLIDERS
+from core.control.tuning import SETTLE_TOL_M, GainRange
+from core.sim.sweep import STEADY_SLACK
 
 STRIP_S = 10.0
 STRIP_ROW_PX = 8
@@ -49,6 +53,22 @@ REDRAW_S = 0.25
 LIMIT_RGB = ((230, 120, 20), (150, 60, 200), (200, 30, 30), (30, 110, 210), (20, 150, 90))
 TREND_TEXT = {-1: ("falling", "#1a7f37"), 0: ("flat", "#57606a"), 1: ("rising", "#cf222e")}
 SWEEP_GAINS = tuple(GAIN_BOUNDS)
+PANEL_CELL_PT = 12.0  # the heat map's cell numbers in the panel: the page shows its 414 px figure ~0.78 x, 11.7 px
+
+
+def on_slider(name: str, value: float) -> float:
+    """``value`` on its gain slider's step (the page's sliders: app.dashboard.controls.GAIN_SLIDERS),
+    so the slider shows exactly what is applied; gains without a slider unchanged."""
+    if name not in GAIN_SLIDERS:
+        return value
+    lo, _, step = GAIN_SLIDERS[name]
+    return round(max(lo, lo + round((value - lo) / step) * step), 6)  # beyond the slider's top: on its steps still
+
+
+def slider_range(r: GainRange) -> GainRange:
+    """A sweep axis with its values on the gain's slider steps (repeats dropped)."""
+    values = sorted({on_slider(r.name, float(v)) for v in r.values})
+    return GainRange(r.name, np.array(values, dtype=np.float64))
 
 
 def _legend() -> str:
@@ -203,6 +223,8 @@ class TuningPanel:
                 self.metric = gui.add_dropdown("Heat map shows", options=tuple(METRICS), initial_value="settling",
                                                hint="the colour and the number in each cell: one figure, with its unit")
                 self.figure = gui.add_image(np.full((8, 8, 3), 255, np.uint8), format="png", visible=False)
+                self.excluded = gui.add_markdown("")
+                self.enlarge = gui.add_button("Enlarge heat map", disabled=True, hint="the same figure, large, in a window")
                 self.point = gui.add_dropdown("Sweep point", options=("none",), initial_value="none", disabled=True,
                                               hint="best first: settled, then fastest, then least overshoot")
                 self.apply_point = gui.add_button("Apply point's gains", disabled=True)
@@ -227,11 +249,13 @@ class TuningPanel:
         return self.message
 
     def start_sweep(self, feedback: str | None = None) -> str | None:
-        """Start the sweep the widgets describe (``feedback``: instead of the widget's); why not, or None."""
+        """Start the sweep the widgets describe (``feedback``: instead of the widget's); why not, or None.
+        Each grid value is taken to its gain slider's step, so the point applied is the point measured
+        and the slider shows it exactly."""
         try:
-            ranges = [parse_gain_range(f"{self.gain1.value}={self.range1.value}")]
+            ranges = [slider_range(parse_gain_range(f"{self.gain1.value}={self.range1.value}"))]
             if self.gain2.value != "none":
-                ranges.append(parse_gain_range(f"{self.gain2.value}={self.range2.value}"))
+                ranges.append(slider_range(parse_gain_range(f"{self.gain2.value}={self.range2.value}")))
         except ValueError as exc:
             return str(exc)
         test = self.test_from_widgets()
@@ -319,6 +343,22 @@ class TuningPanel:
         def _(event: viser.GuiEvent[Any]) -> None:
             self.apply_best_point()
 
+        @self.enlarge.on_click
+        def _(event: viser.GuiEvent[Any]) -> None:
+            if event.client is not None and self.result is not None:
+                self.show_enlarged(event.client)
+
+    def show_enlarged(self, client: viser.ClientHandle) -> None:
+        """The heat map and Pareto plot, wide, in a window over the page (every cell numbered)."""
+        from app.recording.plots import figure_rgb, sweep_figure
+
+        assert self.result is not None
+        image = figure_rgb(sweep_figure(self.result, width_in=12.0, metric=str(self.metric.value), cell_pt=12.0))
+        with client.gui.add_modal("Sweep: heat map and Pareto plot") as modal:
+            client.gui.add_image(image, format="png")
+            client.gui.add_markdown(self.excluded.content)
+            client.gui.add_button("Close").on_click(lambda _: modal.close())
+
     def apply_best_point(self) -> dict[str, float] | None:
         """Set the best point's gains; which were set (None: no result)."""
         if self.result is None or self.result.best() is None:
@@ -330,17 +370,21 @@ class TuningPanel:
         return values
 
     def _set_gains(self, values: dict[str, float], what: str) -> None:
-        values = {k: float(f"{v:.4g}") for k, v in values.items()}  # a sweep's grid: 0.0875, not 0.08750000000000001
+        asked = {k: float(f"{v:.4g}") for k, v in values.items()}  # a sweep's grid: 0.0875, not 0.08750000000000001
+        values = {k: on_slider(k, v) for k, v in asked.items()}  # what the gain's slider shows, exactly
         _, notices = self.store.update("tuning", **values)
         shown = ", ".join(f"{k}={v:g}" for k, v in values.items())
-        extra = f" ({'; '.join(n.message for n in notices)})" if notices else ""
+        snapped = [f"{k} {asked[k]:g} -> {v:g}" for k, v in values.items() if v != asked[k]]
+        notes = [n.message for n in notices] + ([f"to the sliders' steps: {', '.join(snapped)}"] if snapped else [])
+        extra = f" ({'; '.join(notes)})" if notes else ""
         self.sweep_status.content = f"sweep: applied {what}: {shown}{extra}"
 
     # -- what came back -------------------------------------------------------------------
     def _on_trial(self, trial: Trial) -> None:
         trials = list(self.tests.trials)
         head = ("<tr><th>#</th><th>test</th><th>status</th><th>settle (s)</th><th>overshoot (cm)</th>"
-                "<th>steady RMS (cm)</th><th>effort</th><th>gains changed</th></tr>")
+                "<th>steady RMS (cm)</th><th title='∫ mean squared wheel speed dt'>effort (m²/s)</th>"
+                "<th>gains changed</th></tr>")
         default = Gains().as_dict()  # the controller's defaults (README): what each trial changed from them
         body = []
         for t in trials[-12:]:
@@ -382,9 +426,20 @@ class TuningPanel:
 
         if self.result is None:
             return
-        fig = sweep_figure(self.result, width_in=4.6, stacked=True, metric=str(self.metric.value))
+        fig = sweep_figure(self.result, width_in=4.6, stacked=True, metric=str(self.metric.value), cell_pt=PANEL_CELL_PT)
         self.figure.image = figure_rgb(fig)
         self.figure.visible = True
+        self.enlarge.disabled = False
+        slack, unsettled, limit = excluded_points(self.result)
+        lines = []
+        if slack:
+            lines.append(f"**hatched grey: {len(slack)} of the points that settled, left out by the best rule**: their steady"
+                         f" error is above {STEADY_SLACK[0]:g} × the smallest + {STEADY_SLACK[1] * 100:g} cm"
+                         f" = {limit * 100:.2f} cm")
+        if unsettled:
+            lines.append(f"**grey \"no\": {len(unsettled)} did not settle** (within {SETTLE_TOL_M * 100:g} cm by the"
+                         " window's end)")
+        self.excluded.content = "  \n".join(lines)
 
     def set_followers(self, n: int) -> None:
         options = tuple(f"F{i + 1}" for i in range(n))

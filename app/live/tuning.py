@@ -105,6 +105,15 @@ def trials_csv(trials: list[Trial]) -> bytes:
     return out.getvalue().encode()
 
 
+FILTER_NOTICED_MPS = 0.005  # a command the filter moved by less than this (m/s) counts as unchanged
+
+
+def share_text(part: int, whole: int) -> str:
+    """``part`` of ``whole`` as a percentage that is never "0 %" for a part over 0 (0.3 %, 4 %)."""
+    pct = 100.0 * part / max(1, whole)
+    return f"{pct:.1f} %" if 0 < pct < 10 else f"{pct:.0f} %"
+
+
 @dataclass
 class _Running:
     test: StepTest
@@ -115,16 +124,16 @@ class _Running:
     n: int
     t0: float = math.nan
     rows: list[tuple[float, FloatArray, FloatArray, FloatArray]] = field(default_factory=list)
-    filtered: int = 0  # measured ticks on which the safety filter changed a command
+    filtered: int = 0  # measured ticks on which the safety filter changed a command noticeably (FILTER_NOTICED_MPS)
     twist0: tuple[float, float] | None = None  # the leader's twist at the first measured tick
     leader_changed: bool = False  # it changed during the window (the goal navigator, an operator)
 
     def disturbed(self) -> str:
         """What besides the controller moved the team while it was measured ('' when nothing)."""
         notes = []
-        if self.filtered:
-            notes.append(f"the safety filter changed commands on {100 * self.filtered / max(1, len(self.rows)):.0f} %"
-                         " of the measured ticks")
+        if self.filtered:  # none: no warning (a filter on but never moving a command is not a disturbance)
+            notes.append(f"the safety filter changed commands on {self.filtered} of {len(self.rows)} measured ticks"
+                         f" ({share_text(self.filtered, len(self.rows))})")
         if self.leader_changed:
             notes.append("the leader's motion changed while it was measured")
         return "; ".join(notes)
@@ -219,7 +228,7 @@ class StepTests:
             r.twist0 = twist
         elif abs(twist[0] - r.twist0[0]) > 1e-3 or abs(twist[1] - r.twist0[1]) > 1e-3:
             r.leader_changed = True
-        if s.safety_active is not None and bool(np.any(s.safety_active)):
+        if s.safety_changed is not None and bool(np.any(np.abs(s.safety_changed) >= FILTER_NOTICED_MPS)):
             r.filtered += 1
         target = s.slot_targets[s.assignment] * np.array([s.formation_scale, 1.0])
         r.rows.append((s.t, s.p_est.copy(), target, s.commands.copy()))

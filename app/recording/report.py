@@ -5,7 +5,8 @@ formation triangle at a few instants), errors.png (fig. 17/19/23/26: x / y posit
 per follower), headings.png (fig. 20/24/27: measured vs Kalman-filtered headings),
 lyapunov_commands.png (V(t) and the commands), lyapunov.png (V per follower, where it rose or
 fell, and which saturation or limit was active), safety.png. summary.md and summary.json: per follower
-the settling time, steady-state error RMS and max, time not tracked; the STOP events.
+the settling time, steady-state error RMS and max, time not tracked (the session's, and each
+segment's between resets); the STOPs and releases counted apart.
 
 The numbers are app.recording.statistics' (re-exported here): one pass over the recording, a
 block of ticks at a time, tallies them over every tick and keeps every k-th tick (at most
@@ -31,7 +32,8 @@ from app.figures import colour, trajectory_panel
 from app.recording.reader import Recording
 from app.recording.statistics import (BOUNDARY_M, COLLISION_M, DISTANCE_BLOCK, MAX_PLOTTED, NEAR_MISS_M,
                                       OBSTACLE_CLEARANCE_M, SETTLED_M, Scan, Series, Tally, obstacle_gap,
-                                      recorded_obstacles, safety_summary, scan, step_tests, summarise)
+                                      is_release, recorded_obstacles, safety_summary, scan, step_tests, stop_intervals,
+                                      summarise)
 
 __all__ = ["DISTANCE_BLOCK", "FORMATS", "MAX_PLOTTED", "SETTLED_M", "Scan", "Series", "Tally", "safety_summary", "scan",
            "step_tests", "summarise", "write_report"]
@@ -41,7 +43,8 @@ def _summary_md(sm: dict[str, Any]) -> str:
     lines = [f"# Session report: {sm['recording']}", "",
              f"- duration {sm['duration_s']} s; errors from {sm['errors_from']}; settled = {sm['settled_means']}",
              f"- file complete: {'yes' if sm['complete'] else 'no (cut off; read up to its last complete chunk)'}",
-             f"- {sm['events']} events, {len(sm['stop_events'])} STOP events"]
+             f"- {sm['events']} events", f"- STOPs: {sm['stops']}", f"- releases: {sm['releases']}"]
+    lines += [f"  - {ev['t']} s: {ev['detail']}" for ev in sm["stop_events"]]
     sf = sm["safety"]
     lines.append(f"- safety ({sf['distances_from']}): closest two robots {sf['min_distance_cm']} cm; {sf['collisions']}"
                  f" collisions (< {COLLISION_M * 100:.0f} cm), {sf['near_misses']} near misses (< {NEAR_MISS_M * 100:.0f}"
@@ -54,16 +57,25 @@ def _summary_md(sm: dict[str, Any]) -> str:
                      f" (< {OBSTACLE_CLEARANCE_M * 100:.0f} cm)")
     if sm["loss"]:
         lines.append(f"- not in the file: {sm['lost_ticks']} ticks ({sm['lost_s']} s); {sm['loss']}")
-    for ev in sm["stop_events"]:
-        lines.append(f"  - {ev['t']} s: {ev['detail']}")
     lines += ["", "| follower | settling time (s) | steady error RMS (cm) | steady error max (cm) | not tracked (s) |",
               "|---|---|---|---|---|"]
     for f in sm["followers"]:
         lines.append(f"| {f['follower']} | {f['settling_time_s'] if f['settling_time_s'] is not None else 'not settled'}"
                      f" | {f['steady_error_rms_cm']} | {f['steady_error_max_cm']} | {f['time_not_tracked_s']} |")
+    if len(sm["segments"]) > 1:  # a reset started the loop's clock again: each stretch on its own
+        lines += ["", "## Segments (between resets)", "",
+                  "Each segment's times from its own start (the reset); settled as above.", "",
+                  "| segment | from (s) | to (s) | follower | settling time (s) | steady error RMS (cm) |"
+                  " steady error max (cm) | not tracked (s) |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for k, g in enumerate(sm["segments"], 1):
+            for f in g["followers"]:
+                lines.append(f"| {k} | {g['from_s']} | {g['to_s']} | {f['follower']} |"
+                             f" {f['settling_time_s'] if f['settling_time_s'] is not None else 'not settled'} |"
+                             f" {f['steady_error_rms_cm']} | {f['steady_error_max_cm']} | {f['time_not_tracked_s']} |")
     if sm["step_tests"]:
         lines += ["", "## Step tests", "",
-                  "Settling to 2 cm, overshoot past the target, steady error RMS over the last 2 s and effort"
+                  f"Settling to {SETTLED_M * 100:.0f} cm, overshoot past the target, steady error RMS over the last 2 s and effort"
                   " (∫ mean squared wheel speed dt): as the page measured them / as computed here from the"
                   " recorded ticks.", "",
                   "| # | test | status | settling (s) | overshoot (cm) | steady RMS (cm) | effort (m²/s) |",
@@ -107,14 +119,34 @@ def _per_follower(s: Series, path: Path, ylabel: str, title: str,
     plt.close(fig)
 
 
-def _errors(s: Series, path: Path) -> None:
-    err = s.p_d - s.p
+def error_limit_cm(err_cm: np.ndarray) -> float:
+    """The errors figure's half-range (cm): the 99th percentile of |error| with a margin, at least
+    1 cm, so a start-up transient or one outlier does not flatten the rest (what lies beyond is
+    drawn at the edge and said in the title)."""
+    finite = np.abs(err_cm[np.isfinite(err_cm)])
+    if not finite.size:
+        return 1.0
+    return float(max(1.0, 1.15 * np.percentile(finite, 99)))
+
+
+def _errors(s: Series, path: Path, stops: list[tuple[float, float]], resets: list[float]) -> None:
+    """x / y position error per follower in cm, on a scale that fits the data; STOPs shaded
+    red, resets as grey lines."""
+    err = (s.p_d - s.p) * 100
+    lim = error_limit_cm(err)
+    beyond = int(np.sum(np.abs(np.nan_to_num(err)) > lim))
 
     def draw(ax: Axes, i: int) -> None:
-        ax.plot(s.t, err[:, i, 0], color="tab:blue", lw=1.0, label="x error")
-        ax.plot(s.t, err[:, i, 1], color="tab:red", lw=1.0, label="y error")
+        ax.plot(s.t, np.clip(err[:, i, 0], -lim, lim), color="tab:blue", lw=1.0, label="x error")
+        ax.plot(s.t, np.clip(err[:, i, 1], -lim, lim), color="tab:red", lw=1.0, label="y error")
+        ax.set_ylim(-lim * 1.05, lim * 1.05)
+        for k, (a, b) in enumerate(stops):
+            ax.axvspan(a, b, color="tab:red", alpha=0.12, lw=0, label="STOP" if k == 0 else None)
+        for k, r in enumerate(resets):
+            ax.axvline(r, color="0.4", lw=1.0, ls="--", label="reset" if k == 0 else None)
 
-    _per_follower(s, path, "m", "position error", draw)
+    note = f" ({beyond} points beyond ±{lim:.1f} cm drawn at the edge)" if beyond else ""
+    _per_follower(s, path, "cm", f"position error{note}", draw)
 
 
 def _headings(s: Series, path: Path) -> None:
@@ -215,11 +247,12 @@ def write_report(rec: Recording, out: Path, progress: Callable[[int, int, str], 
     title = rec.metadata.get("scenario", rec.path.stem)
     boxes = recorded_obstacles(rec)
     start = float(rec.metadata.get("scenario_start_s", "0") or 0)
-    marks = [(float(e["t"]) - start, "STOP", "s") for e in rec.events if e.get("kind") == "stop"] + \
+    marks = [(float(e["t"]) - start, "release" if is_release(e) else "STOP", "s")
+             for e in rec.events if e.get("kind") == "stop"] + \
             [(g.start_s, "reset", "D") for g in sc.segments[1:]]
     steps: list[tuple[str, Callable[[Path], None]]] = [
         (f"trajectory.{fmt}", lambda p: _trajectory(shown, title, p, boxes, marks)),
-        (f"errors.{fmt}", lambda p: _errors(shown, p)),
+        (f"errors.{fmt}", lambda p: _errors(shown, p, stop_intervals(rec, start), [g.start_s for g in sc.segments[1:]])),
         (f"headings.{fmt}", lambda p: _headings(shown, p)),
         (f"lyapunov_commands.{fmt}", lambda p: _lyapunov_commands(shown, p)),
         (f"safety.{fmt}", lambda p: _safety(shown, obstacle_gap(boxes, shown), p)),

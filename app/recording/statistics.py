@@ -17,8 +17,10 @@ import numpy as np
 
 from app.recording.reader import Recording
 from app.recording.schema import json_floats, scenario_obstacles
+from core.control.tuning import SETTLE_TOL_M
 
-SETTLED_M = 0.03  # settled: the error stays under 3 cm to the end
+SETTLED_M = SETTLE_TOL_M  # settled: the error stays under 2 cm to the end (the page's step tests and sweeps use the same)
+SETTLED_MEANS = f"the error stays under {SETTLED_M * 100:.0f} cm to the end"
 DISTANCE_BLOCK = 4096  # ticks at a time for the pairwise distances (bounded memory on an hour's recording)
 
 
@@ -430,21 +432,47 @@ def safety_summary(rec: Recording, s: Series, dt: float) -> dict[str, Any]:
     return tally.safety(dt)
 
 
+def is_release(event: dict[str, Any]) -> bool:
+    """A "stop" event that released STOP (the writer notes both under one kind)."""
+    return "released" in str(event.get("detail", "")).lower()
+
+
+def stop_intervals(rec: Recording, start: float) -> list[tuple[float, float]]:
+    """(from, to) in the figures' time (s from the scenario's start) while STOP was engaged; one
+    still engaged at the end runs to the last tick."""
+    out: list[tuple[float, float]] = []
+    since: float | None = None
+    for e in sorted((e for e in rec.events if e.get("kind") == "stop"), key=lambda e: float(e["t"])):
+        t = float(e["t"]) - start
+        if is_release(e):
+            if since is not None:
+                out.append((since, t))
+            since = None
+        elif since is None:
+            since = t
+    if since is not None:
+        out.append((since, float(rec.t[-1]) - start if len(rec.t) else since))
+    return out
+
+
 def summarise(rec: Recording, sc: Scan | None = None) -> dict[str, Any]:
     """summary.json's contents (one pass over the recording unless `sc` is that pass)."""
     sc = sc if sc is not None else scan(rec)
     stops = [e for e in rec.events if e.get("kind") == "stop"]
+    released = [e for e in stops if is_release(e)]
     return {
         **sc.tally.safety(sc.dt),
         "recording": rec.path.name,
         "complete": rec.complete,
         "duration_s": round(sc.t_last - sc.t_first, 2),
         "errors_from": "true poses" if sc.truth else "estimated poses (no ground truth recorded)",
-        "settled_means": f"error stays under {SETTLED_M * 100:.0f} cm to the end",
+        "settled_means": SETTLED_MEANS,
         "followers": sc.tally.followers(sc.dt),
         "segments": [{"from_s": round(g.start_s, 2), "to_s": round(g.end_s, 2), "reset": k > 0,
                       "followers": g.tallies[sc.truth].followers(sc.dt)} for k, g in enumerate(sc.segments)],
         "stop_events": [{"t": round(float(e["t"]), 2), "detail": e["detail"]} for e in stops],
+        "stops": len(stops) - len(released),  # STOP pressed (or a fault's STOP), not counting releases
+        "releases": len(released),
         "events": len(rec.events),
         "latency_ms": sc.latency.summary(),  # frame (or observation) to commands written: p50, p95, p99, max
         "ticks_read": len(rec.t),

@@ -134,10 +134,18 @@ def apply_retention(folder: Path, max_total_bytes: int, keep: tuple[Path, ...] =
     return deleted
 
 
-def _safety_kind(text: str) -> str:
-    """"off", "inactive", "changed", "infeasible" or "no solver": an event when it changes, not every tick."""
+NOTICEABLE_MPS = 0.005  # a change the event's two decimals show (0.01 m/s); less is no change for people
+
+
+def _safety_kind(text: str, changed: Any = None) -> str:
+    """"off", "inactive", "changed", "infeasible" or "no solver": an event when it changes, not every
+    tick. A "changed" under NOTICEABLE_MPS for everyone counts as "inactive": no event that says
+    "changed F1 0.00 m/s"."""
     rest = text.partition(", ")[2]
-    return rest.split(":")[0].split(" F")[0] if rest else text
+    kind = rest.split(":")[0].split(" F")[0] if rest else text
+    if kind.startswith("changed") and (changed is None or not np.any(np.abs(np.asarray(changed, float)) >= NOTICEABLE_MPS)):
+        return "inactive"
+    return kind
 
 
 def tick_events(prev: TickState | None, s: TickState) -> list[tuple[str, str]]:
@@ -152,7 +160,7 @@ def tick_events(prev: TickState | None, s: TickState) -> list[tuple[str, str]]:
             ev.append(("found", f"follower {i + 1} found"))
     if prev.link_state != s.link_state:
         ev.append(("link", f"link {prev.link_state} -> {s.link_state}"))
-    if _safety_kind(prev.safety) != _safety_kind(s.safety) and s.safety:
+    if _safety_kind(prev.safety, prev.safety_changed) != _safety_kind(s.safety, s.safety_changed) and s.safety:
         ev.append(("safety", f"safety filter {s.safety}"))
     if prev.phase != s.phase:
         ev.append(("phase", f"vision {prev.phase} -> {s.phase}"))

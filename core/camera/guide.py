@@ -17,7 +17,11 @@ from core.camera.config import DetectSettings, WorkingArea
 from core.vision.blobs import Blob, find_blobs
 
 GUIDE_BEARINGS = 4  # around the leader, evenly (at most 100 deg apart: no coverage warning)
-GUIDE_DISTANCES_M = (0.5, 0.75, 1.0, 1.25, 1.5, 1.75)  # 4 x 6 = 24 captures
+WORKING_RING_M = (0.3, 1.5)  # where followers drive around the leader (the page draws these two circles)
+# From the ring's inner edge (followers drive there; Γ extrapolated inwards from 0.5 m was off by
+# 6-12 cm p95 at 0.35-0.5 m on the catadioptric model, 1.0-1.6 cm with this plan), denser where
+# the mirror's picture changes fastest, to a little beyond its outer edge: 4 x 8 = 32 captures.
+GUIDE_DISTANCES_M = (WORKING_RING_M[0], 0.4, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75)
 
 
 def guide_targets(bearings: int = GUIDE_BEARINGS,

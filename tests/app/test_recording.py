@@ -228,6 +228,8 @@ def test_samples_are_small_and_complete(name):
 
 
 def test_report_writes_figures_and_summary(tmp_path):
+    from app.recording.statistics import SETTLED_M
+
     out = run_cli("report", str(SAMPLES / "experiment2-vision.mcap"), "--out", str(tmp_path / "rep"))
     assert out.returncode == 0, out.stderr
     import cv2
@@ -253,7 +255,7 @@ def test_report_writes_figures_and_summary(tmp_path):
     err = np.array([np.linalg.norm(nan(tk["p_d"]) - nan(tk["p_true"]), axis=1) for tk in rec.ticks])
     for i, f in enumerate((f1, f2)):
         after = (t >= 0) & np.isfinite(err[:, i])
-        above = t[after][err[after, i] >= 0.03]
+        above = t[after][err[after, i] >= SETTLED_M]
         assert f["settling_time_s"] == pytest.approx(t[after][t[after] > above.max()][0], abs=0.01)
         steady = err[after & (t >= f["settling_time_s"] - 0.005), i]
         assert f["steady_error_rms_cm"] == pytest.approx(np.sqrt(np.mean(steady**2)) * 100, abs=2e-3)
@@ -510,7 +512,7 @@ def test_the_report_tallies_the_same_summary_whatever_the_block_and_plots_every_
 def test_the_tally_counts_episodes_and_settling_across_block_edges():
     """The summary's tally fed a series whole or in pieces of 1, 7 or 50 ticks: the same numbers
     (two collision episodes, one crossing a block edge; limit hits; a follower whose last error
-    above 3 cm is a block's last tick; one that never settles)."""
+    above 2 cm is a block's last tick; one that never settles)."""
     from dataclasses import fields, replace
 
     from app.recording.report import Series, Tally
@@ -524,7 +526,7 @@ def test_the_tally_counts_episodes_and_settling_across_block_edges():
     p[:, 0] = np.column_stack([-gap / 2, np.full(T, 1.0)])
     p[:, 1] = np.column_stack([gap / 2, np.full(T, 1.0)])
     p_d = p.copy()
-    p_d[:49, 0, 0] += np.linspace(0.5, 0.04, 49)  # follower 1: above 3 cm up to tick 48, then 1 cm
+    p_d[:49, 0, 0] += np.linspace(0.5, 0.04, 49)  # follower 1: above 2 cm up to tick 48, then 1 cm
     p_d[49:, 0, 0] += 0.01
     p_d[:, 1, 1] += 0.05 + 0.01 * np.sin(t)  # follower 2: never settles
     p[100:110, 1] = np.nan  # follower 2 unseen for a third of a second
@@ -568,3 +570,62 @@ def test_next_event_always_moves_forward_and_previous_back():
     finally:
         svc.close()
         rec.close()
+
+
+def test_the_summary_counts_stops_and_releases_apart_and_gives_each_segment(tmp_path):
+    """A short real session (the loop, the recorder, a file): two STOPs, two releases and a reset
+    between them. summary.md says `STOPs: 2` and `releases: 2` (not "4 STOP events"), a table row
+    per segment and follower with the figures summary.json has, and one meaning of "settled";
+    errors.png is in cm on a scale that fits the errors; no event says the filter changed 0.00 m/s."""
+    import cv2
+
+    from app.recording.report import error_limit_cm, write_report
+    from app.recording.statistics import SETTLED_M
+    from core.control.tuning import SETTLE_TOL_M
+
+    store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=3)
+    rec = Recorder(tmp_path / "s.mcap", {"scenario": "counts"}, store.get())
+    seen = []
+    loop.subscribe(rec.on_tick)
+    loop.subscribe(seen.append)
+    store.subscribe(rec.on_params)
+    changes = {40: {"stop": True}, 60: {"stop": False}, 90: {"reset_requests": 1}, 130: {"stop": True},
+               150: {"stop": False}}
+    for k in range(180):
+        if k in changes:
+            store.update("browser:1", **changes[k])
+        loop.tick()
+    rec.close()
+    back = read_recording(tmp_path / "s.mcap")
+    assert [e["kind"] for e in back.events if e["kind"] in ("stop", "reset")] == ["stop", "stop", "reset", "stop", "stop"]
+    assert not any("0.00 m/s" in e["detail"] for e in back.events), back.events
+    # the filter "changing" a command by less than the event's two decimals show is no event; 0.04 m/s is one
+    import dataclasses
+
+    from app.recording.writer import tick_events
+
+    quiet = dataclasses.replace(seen[-1], safety="on, inactive", safety_changed=np.zeros(2))
+    noop = dataclasses.replace(seen[-1], safety="on, changed F1 0.00 m/s", safety_changed=np.array([0.001, 0.0]))
+    moved = dataclasses.replace(seen[-1], safety="on, changed F1 0.04 m/s", safety_changed=np.array([0.04, 0.0]))
+    assert [k for k, _ in tick_events(quiet, noop)] == []
+    assert tick_events(noop, moved) == [("safety", "safety filter on, changed F1 0.04 m/s")]
+    out = tmp_path / "rep"
+    out.mkdir()
+    write_report(back, out)
+    md = (out / "summary.md").read_text()
+    sm = json.loads((out / "summary.json").read_text())
+    assert "- STOPs: 2\n" in md and "- releases: 2\n" in md and "STOP events" not in md
+    assert sm["stops"] == 2 and sm["releases"] == 2 and len(sm["stop_events"]) == 4
+    assert SETTLED_M == SETTLE_TOL_M and f"under {SETTLED_M * 100:.0f} cm" in md  # one "settled", the page's
+    assert len(sm["segments"]) == 2
+    for k, g in enumerate(sm["segments"], 1):
+        for f in g["followers"]:
+            settle = f["settling_time_s"] if f["settling_time_s"] is not None else "not settled"
+            assert (f"| {k} | {g['from_s']} | {g['to_s']} | {f['follower']} | {settle} |"
+                    f" {f['steady_error_rms_cm']} | {f['steady_error_max_cm']} |") in md
+    img = cv2.imread(str(out / "errors.png"))
+    assert img is not None and img.std() > 10
+    err = np.array([[np.linalg.norm(np.subtract(d, p)) for d, p in zip(tk["p_d"], tk["p_true"])] for tk in back.ticks])
+    lim = error_limit_cm(err * 100)
+    assert 1.0 <= lim <= max(1.0, 1.2 * np.nanmax(err) * 100)  # cm, and no wider than the data

@@ -255,12 +255,33 @@ def test_a_step_test_warns_when_more_than_the_controller_moved_the_team(tmp_path
     assert trial.payload()["disturbed"] == trial.disturbed
     (tmp_path / "quiet").mkdir()
     quiet_store, quiet_loop, quiet_tests, quiet_rec = _team(tmp_path / "quiet")
-    quiet_store.update("browser:1", safety=False)
+    assert quiet_store.get().safety  # the filter on, as by default: it watches but moves no command here
+    # the same ticks seen by two more benches: one where the filter is "active" but moves commands by
+    # 0.001 m/s (no warning: 0 % is no disturbance), one where it moves them 5 cm/s on every 10th tick
+    import dataclasses
+
+    idle, acting = StepTests(quiet_store, 0.12), StepTests(quiet_store, 0.12)
+    quiet_loop.subscribe(lambda st: idle.on_tick(dataclasses.replace(
+        st, safety_active=np.ones(st.n, bool), safety_changed=np.full(st.n, 0.001))))
+    quiet_loop.subscribe(lambda st: acting.on_tick(dataclasses.replace(
+        st, safety_active=np.ones(st.n, bool), safety_changed=np.full(st.n, 0.05 if st.tick % 10 == 0 else 0.0))))
     _tick(quiet_loop, 3.0)
     assert quiet_tests.request(StepTest("offset", 0, 0.1, window_s=4.0)) is None
+    assert idle.request(StepTest("offset", 1, 0.1, window_s=4.0)) is None
+    assert acting.request(StepTest("offset", 2, 0.1, window_s=4.0)) is None
     _tick(quiet_loop, 5.0)
     quiet_rec.close()
-    assert quiet_tests.trials[0].status == "done" and quiet_tests.trials[0].disturbed == ""
+    assert quiet_tests.trials[0].status == "done" and quiet_tests.trials[0].disturbed == "", quiet_tests.trials[0]
+    assert idle.trials[0].status == "done" and idle.trials[0].disturbed == "", idle.trials[0]
+    warn = acting.trials[0].disturbed
+    assert acting.trials[0].status == "done" and "the safety filter changed commands on" in warn, warn
+    import re
+
+    part, whole, pct = re.search(r"on (\d+) of (\d+) measured ticks \(([\d.]+) %\)", warn).groups()
+    assert 0 < int(part) < int(whole) and float(pct) == pytest.approx(100 * int(part) / int(whole), abs=0.5)
+    from app.live.tuning import share_text
+
+    assert [share_text(k, 300) for k in (1, 15, 150)] == ["0.3 %", "5.0 %", "50 %"]  # never "0 %" for a tick
 
 
 def test_the_limits_strip_names_each_follower_and_its_time_axis():

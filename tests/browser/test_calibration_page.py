@@ -49,6 +49,29 @@ def test_from_an_empty_table_to_a_saved_calibration_in_the_browser(service, rig)
         page.goto(service.url)
         page.get_by_role("button", name="Capture", exact=True).wait_for(timeout=30_000)
         settle(page)
+        steps = page.locator("ol").filter(has_text="Find the mirror").first  # numbered steps, in order
+        steps.wait_for(timeout=30_000)
+        items = [t.strip() for t in steps.locator("li").all_inner_texts()]
+        assert [t.split()[0] for t in items] == ["Find", "Put", "Capture.", "Save"], items
+        # the camera's picture is the page's main view: more than half the window wide, and not blank
+        canvas = page.locator('canvas[data-engine^="three.js"]').first
+        wait_for(lambda: canvas.bounding_box() is not None, 30.0, "the main view")
+        box = canvas.bounding_box()
+        assert box["width"] >= 0.5 * 1400, box
+        import cv2
+
+        def shown_std() -> float:
+            shot = cv2.imdecode(np.frombuffer(page.screenshot(clip=box), np.uint8), cv2.IMREAD_COLOR)
+            return float(shot.std())
+
+        wait_for(lambda: shown_std() > 20.0, 30.0, "the camera's picture in the main view")
+        wait_for(lambda: abs(service.aspect - box["width"] / box["height"]) < 0.01, 30.0, "the view's shape")
+        from app.dashboard.calibration_panel import letterbox
+
+        frame = source.latest()[0]
+        shown_w = box["width"] * frame.shape[1] / letterbox(frame, service.aspect).shape[1]  # not stretched
+        print(f"main view {box['width']:.0f} x {box['height']:.0f} px, the picture {shown_w:.0f} px wide")
+        assert shown_w >= 0.5 * 1400, shown_w
         page.get_by_role("button", name="Propose from image").click()
         wait_for(lambda: abs(panel.cx.value - (cam.model.cx)) < 2.0 and abs(panel.cy.value - cam.model.cy) < 2.0,
                  30.0, "the mirror's centre proposed from the picture")
@@ -68,12 +91,30 @@ def test_from_an_empty_table_to_a_saved_calibration_in_the_browser(service, rig)
         assert panel.rows == []
         panel.outer.value = outer
         panel.show_next()  # the helper puts the marker back where the guide asked
-        for k in range(24):
-            page.get_by_role("button", name="Capture", exact=True).click()
-            wait_for(lambda k=k: panel.message.startswith(f"captured {k + 1}:"), 30.0, f"capture {k + 1}")
-        wait_for(lambda: panel.fitted == 24, 30.0, "the fit of all 24 markers")
+        # the guide's plan, clicked as fast as the browser can: every click is a capture, none dropped
+        plan = len(panel.targets)
+        assert min(d for _, d in panel.targets) == 0.3  # from the working ring's inner edge, where followers drive
+        button = page.get_by_role("button", name="Capture", exact=True)
+        clicks = panel.clicks
+        for _ in range(plan):
+            button.click(no_wait_after=True)
+        page.get_by_text("clicks waiting", exact=False).first.wait_for(timeout=30_000)  # it shows it is busy
+        wait_for(lambda: len(panel.rows) == plan, 120.0, f"all {plan} captures")
+        assert panel.clicks - clicks == plan
+        wait_for(lambda: panel.busy.content == "", 60.0, "the busy note cleared after the last click")
+        wait_for(lambda: panel.fitted == plan, 60.0, f"the fit of all {plan} markers")
+        print(f"calibration page: {plan} quick clicks, {len(panel.rows)} captures")
         page.get_by_text("held-out error: median", exact=False).first.wait_for(timeout=30_000)
         assert panel.held is not None and panel.held.median_cm <= 1.5, panel.held
+        # a verdict, the p95 in it; bearings named 0-360 (no negative bearing anywhere in the fit's words)
+        verdict = page.locator("[data-verdict]").first
+        verdict.wait_for(timeout=30_000)
+        said = verdict.inner_text()
+        assert f"p95 {panel.held.p95_cm:.1f} cm" in said and ("good, Save" in said or "capture more" in said
+                                                               or "usable" in said), said
+        import re
+
+        assert not re.search(r"-\d+(\.\d+)? ?(°|deg)", panel.quality.content), panel.quality.content
         ARTIFACTS.mkdir(exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "calibration.png"), full_page=True)
         page.get_by_role("button", name="Save camera file and table").click()
@@ -91,20 +132,21 @@ def test_from_an_empty_table_to_a_saved_calibration_in_the_browser(service, rig)
     rng = np.random.default_rng(11)
     errors = []
     for _ in range(80):
-        b, d = float(rng.uniform(0, 360)), float(rng.uniform(0.5, 1.75))
+        b, d = float(rng.uniform(0, 360)), float(rng.uniform(0.3, 1.75))
         source.place([(b, d)])
         blob = find_marker(source.latest()[0], (gamma.cx, gamma.cy), WorkingArea(area.inner_px, area.outer_px),
                            cam.detect)
         assert not isinstance(blob, str), blob
         xy = bearing_range_to_xy(np.array(math.radians(b)), np.array(d))
         errors.append(float(np.linalg.norm(gamma.pixel_to_leader(np.array(blob.u), np.array(blob.v)) - xy)) * 100)
-    print(f"calibration page, 24 captures: 80 fresh markers median {np.median(errors):.2f} cm,"
+    print(f"calibration page, {len(panel.rows)} captures: 80 fresh markers median {np.median(errors):.2f} cm,"
           f" p95 {np.percentile(errors, 95):.2f} cm; the page's held-out estimate {panel.held}")
     assert np.median(errors) <= 1.5 and np.percentile(errors, 95) <= 3.0, (np.median(errors), np.percentile(errors, 95))
-    # what the page said it would be: within 1 cm of what the fresh markers show, median and p95
+    # what the page said it would be: never more than 1 cm better than the fresh markers show, and cautious by
+    # at most 1.5 cm (docs/calibration.md: the plan's first distance, left out, is extrapolated)
     held = panel.held
-    assert abs(held.median_cm - np.median(errors)) <= 1.0, (held, np.median(errors))
-    assert abs(held.p95_cm - np.percentile(errors, 95)) <= 1.0, (held, np.percentile(errors, 95))
+    assert -1.0 <= held.median_cm - np.median(errors) <= 1.5, (held, np.median(errors))
+    assert -1.0 <= held.p95_cm - np.percentile(errors, 95) <= 1.5, (held, np.percentile(errors, 95))
 
 
 @pytest.mark.parametrize("args, words", [

@@ -55,6 +55,8 @@ def test_a_step_test_from_the_page_adds_a_scored_row(page, service):
     assert trial.status == "done" and trial.score is not None, trial.status
     assert trial.test.kind == "offset" and trial.test.size == pytest.approx(0.10) and trial.test.window_s == 6.0
     page.locator("tr[data-trial='1']").get_by_text("done").wait_for(timeout=30_000)
+    assert page.get_by_text("effort (m²/s)", exact=True).count() >= 1  # the effort column's unit
+    assert "%" not in trial.disturbed or "0 %" not in trial.disturbed, trial.disturbed  # never "changed 0 %"
     # the monitor: one row per follower, each saying whether its V falls, is flat or rises
     page.locator("td[data-trend]").nth(2).wait_for(timeout=30_000)
     assert page.locator("td[data-trend]").count() == 3
@@ -70,14 +72,50 @@ def test_a_sweep_from_the_page_applies_its_best_point_on_the_next_tick(page, ser
     result = tuning.result
     assert result is not None and len(result.gains) == 9 and all(s is not None for s in result.scores)
     page.get_by_text("sweep: done, 9 of 9 points").first.wait_for(timeout=30_000)
+    # every grid value is one the gain's slider shows exactly (0.125 would show as 0.13): 0.05, 0.13, 0.2
+    assert list(result.ranges[1].values) == [0.05, 0.13, 0.2] and list(result.ranges[0].values) == [1.0, 2.5, 4.0]
+    # the heat map's numbers: at least 11 px as shown (the figure is scaled to the panel's width)
+    from app.dashboard.tuning_panel import PANEL_CELL_PT
+    from app.recording.plots import excluded_points
+
+    shape = tuning.figure.image.shape
+    sizes = page.evaluate("""([w, h]) => [...document.querySelectorAll('img')]
+        .filter(i => i.naturalWidth === w && i.naturalHeight === h).map(i => i.getBoundingClientRect().width)""",
+                          [shape[1], shape[0]])
+    assert sizes, "the heat map's image on the page"
+    cell_px = PANEL_CELL_PT * 90 / 72 * sizes[0] / shape[1]
+    print(f"heat map cell numbers {cell_px:.1f} px as shown")
+    assert cell_px >= 11.0, cell_px
+    slack, unsettled, _ = excluded_points(result)  # greyed, and the reason said
+    if slack:
+        page.get_by_text(f"{len(slack)} of the points that settled, left out by the best rule", exact=False).first.wait_for(
+            timeout=30_000)
+    if unsettled:
+        page.get_by_text(f"{len(unsettled)} did not settle", exact=False).first.wait_for(timeout=30_000)
     ARTIFACTS.mkdir(exist_ok=True)
     page.screenshot(path=str(ARTIFACTS / "tuning.png"), full_page=True)
+    page.get_by_role("button", name="Enlarge heat map").click()  # enlargeable: the same figure, wide, in a window
+    dialog = page.get_by_role("dialog")
+    dialog.wait_for(timeout=30_000)
+    big = dialog.locator("img").first
+    big.wait_for(timeout=30_000)
+    assert big.evaluate("i => i.naturalWidth") >= 1000 and big.bounding_box()["width"] > sizes[0]
+    page.screenshot(path=str(ARTIFACTS / "tuning-heatmap.png"))
+    dialog.get_by_role("button", name="Close").click()
+    dialog.wait_for(state="hidden", timeout=30_000)
     best = result.best()
     assert best is not None
     k_w2, k_f1 = result.values(best)
     page.get_by_role("button", name="Apply best").click()
     wait_for(lambda: service.store.get().gains.k_w2 == pytest.approx(k_w2)
              and service.store.get().gains.k_f1 == pytest.approx(k_f1), what="the best point's gains in the store")
+    # the gain sliders show exactly the applied values
+    import re
+
+    for label, value in (("k_f1 (m/s)", k_f1), ("k_w2", k_w2)):  # the Gains folder is open by default
+        ident = page.locator("label:visible").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.get_attribute("for")
+        box = page.locator(f'[id="{ident}"] + div input').first
+        wait_for(lambda box=box, value=value: float(box.input_value() or "nan") == value, 30.0, f"{label} shows {value}")
     version = service.store.get().version
     wait_for(lambda: any(s.params_version >= version for s in list(service.seen)), what="a tick with them")
     first = next(s for s in list(service.seen) if s.params_version >= version)

@@ -30,7 +30,7 @@ def measured(model: CameraModel, bearings, distances, rng, noise_px=0.3, place_m
     return MatchingTable(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
 
 
-PAGE_PLAN = list(GUIDE_DISTANCES_M)  # the page's 24 captures: 4 bearings x 6 distances
+PAGE_PLAN = list(GUIDE_DISTANCES_M)  # the page's 32 captures: 4 bearings x 8 distances, from the ring's inner edge
 
 
 @pytest.mark.parametrize(("bearings", "distances", "place_m", "tilt"), [
@@ -48,8 +48,11 @@ def test_the_held_out_error_is_within_1_cm_of_the_error_on_fresh_markers(bearing
     fresh_b, fresh_d = rng.uniform(0, 360, 400), rng.uniform(lo, max(distances), 400)
     fresh = [measured(model, [b], [d], rng) for b, d in zip(fresh_b, fresh_d)]
     err = np.concatenate([position_errors_cm(fit.gamma, t) for t in fresh])
-    assert abs(held.median_cm - np.median(err)) <= 1.0, (held, np.median(err))
-    assert abs(held.p95_cm - np.percentile(err, 95)) <= 1.0, (held, np.percentile(err, 95))
+    # never more than 1 cm better than the fresh markers show; cautious by up to 1.5 cm on the page's plan (its
+    # first distance, left out, is extrapolated; the fresh markers are placed exactly, the table's give or take 3 mm)
+    cautious = 1.5 if distances is PAGE_PLAN else 1.0
+    assert -1.0 <= held.median_cm - np.median(err) <= cautious, (held, np.median(err))
+    assert -1.0 <= held.p95_cm - np.percentile(err, 95) <= cautious, (held, np.percentile(err, 95))
     assert held.refits > bearings
 
 
@@ -87,3 +90,26 @@ def test_repeated_markers_in_a_table_are_reported_row_by_row():
     assert "\n" not in msg
     assert "lines 2 and 4 (0 deg, 0.5 m) are a duplicate, pixels 0.5 px apart" in msg
     assert "lines 3 and 5 (90 deg, 0.5 m) are contradictory, pixels 12.0 px apart" in msg
+
+
+def test_the_guides_plan_starts_at_the_working_rings_inner_edge_and_places_near_markers_well():
+    """The page's plan begins where followers drive nearest (the ring the page draws), and a fit
+    on it places markers at 0.35-0.5 m within 3 cm p95 on the catadioptric model (tilted 2 deg,
+    12 px off-centre, 3 mm placement error); the old plan from 0.5 m missed them by over 5 cm."""
+    from app.dashboard.scene import WORKING_RING_M as PAGE_RING
+    from core.camera.guide import WORKING_RING_M, guide_targets
+
+    assert min(GUIDE_DISTANCES_M) == WORKING_RING_M[0] == PAGE_RING[0]
+    assert max(GUIDE_DISTANCES_M) >= WORKING_RING_M[1] == PAGE_RING[1]
+    assert sorted({d for _, d in guide_targets()}) == sorted(GUIDE_DISTANCES_M)
+    model = CameraModel(tilt_deg=2.0, cx=324.0 + 12.0)
+
+    def near_p95(distances, seed):
+        rng = np.random.default_rng(seed)
+        fit = fit_gamma(measured(model, [0.0, 90.0, 180.0, 270.0], list(distances), rng, place_m=0.003))
+        fresh = [measured(model, [b], [d], rng) for b, d in zip(rng.uniform(0, 360, 150), rng.uniform(0.35, 0.5, 150))]
+        return float(np.percentile(np.concatenate([position_errors_cm(fit.gamma, t) for t in fresh]), 95))
+
+    for seed in (0, 1):
+        now, old = near_p95(GUIDE_DISTANCES_M, seed), near_p95((0.5, 0.75, 1.0, 1.25, 1.5, 1.75), seed)
+        assert now <= 3.0 and old > 5.0, (seed, now, old)
