@@ -21,10 +21,10 @@ from app.dashboard.controls import Controls
 from app.dashboard.gate import Throttle
 from app.tick import TickState
 from app.params import ParamsStore
+from core.camera.guide import WORKING_RING_M
 
 log = logging.getLogger(__name__)
 
-WORKING_RING_M = (0.3, 1.5)
 TRAIL_SECONDS = 20.0
 
 

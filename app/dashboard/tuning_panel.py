@@ -39,8 +39,9 @@ from app.live.sweep import SweepRunner
 from core.sim.sweep import BEST_RULE, METRICS, SweepResult
 from app.tick import TickState
 from app.live.tuning import StepTests, Trial, trial_cells, trials_csv
-from app.recording.plots import excluded_points
-from app.dashboard.controls import GAIN_SLIDERS
+from app.figures import excluded_points
+from app.dashboard.controls import range_of
+from core.bounds import PARAMETERS
 from core.control.tuning import SETTLE_TOL_M, GainRange
 from core.sim.sweep import STEADY_SLACK
 
@@ -57,11 +58,12 @@ PANEL_CELL_PT = 12.0  # the heat map's cell numbers in the panel: the page shows
 
 
 def on_slider(name: str, value: float) -> float:
-    """``value`` on its gain slider's step (the page's sliders: app.dashboard.controls.GAIN_SLIDERS),
+    """``value`` on its gain slider's step (the parameter table's row, core.bounds.PARAMETERS),
     so the slider shows exactly what is applied; gains without a slider unchanged."""
-    if name not in GAIN_SLIDERS:
+    row = PARAMETERS.get(name)
+    if row is None or row.step is None or row.bound is None:
         return value
-    lo, _, step = GAIN_SLIDERS[name]
+    lo, _, step = range_of(name)
     return round(max(lo, lo + round((value - lo) / step) * step), 6)  # beyond the slider's top: on its steps still
 
 
@@ -350,7 +352,7 @@ class TuningPanel:
 
     def show_enlarged(self, client: viser.ClientHandle) -> None:
         """The heat map and Pareto plot, wide, in a window over the page (every cell numbered)."""
-        from app.recording.plots import figure_rgb, sweep_figure
+        from app.figures import figure_rgb, sweep_figure
 
         assert self.result is not None
         image = figure_rgb(sweep_figure(self.result, width_in=12.0, metric=str(self.metric.value), cell_pt=12.0))

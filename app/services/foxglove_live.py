@@ -50,6 +50,7 @@ from app.recording.schema import (EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCAN_H
 from app.recording.writer import tick_events
 from app.tick import SessionClock, TickState
 from core.camera.render.looks import follower_rgb
+from core.camera.guide import WORKING_RING_M
 
 SCENE_TOPIC = "/omniformation/scene"
 LOG_TOPIC = "/omniformation/log"  # the events again, as foxglove.Log: Foxglove's Log panel is the event log
@@ -58,7 +59,6 @@ DEFAULT_PORT = 8765  # Foxglove's own default
 PARAMS_EVERY_S = 1.0  # the parameter set again, for a client that joins later (a live stream keeps nothing)
 MAX_WAITING = 300  # states queued for the server's thread (10 s at 30 Hz); beyond, the newest is dropped
 BACKLOG = 4096  # messages the SDK buffers per client before it drops the oldest
-WORKING_RING_M = (0.3, 1.5)  # as the page draws them (app.dashboard.scene)
 SLOT_Z_M = 0.16
 FOLLOWER_RADIUS_M = 0.11  # half the diagonal of the follower's footprint drawn (0.25 x 0.15 m): the safety ring's
 

@@ -76,7 +76,7 @@ def test_a_sweep_from_the_page_applies_its_best_point_on_the_next_tick(page, ser
     assert list(result.ranges[1].values) == [0.05, 0.13, 0.2] and list(result.ranges[0].values) == [1.0, 2.5, 4.0]
     # the heat map's numbers: at least 11 px as shown (the figure is scaled to the panel's width)
     from app.dashboard.tuning_panel import PANEL_CELL_PT
-    from app.recording.plots import excluded_points
+    from app.figures import excluded_points
 
     shape = tuning.figure.image.shape
     sizes = page.evaluate("""([w, h]) => [...document.querySelectorAll('img')]
