@@ -18,42 +18,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from app.cli.bench_floods import _FLOODER  # one hostile party for both benches
+
 FLOOD_S = 20.0
 STOP_WITHIN_S = 0.5  # the target: STOP seen as STOPPED this soon after the click, during a flood
-_FLOODER = r"""
-import socket, sys, time
-import msgspec, viser
-import websockets.exceptions
-import websockets.sync.client as wsc
+FLOODER_ADDRESS = "127.0.0.50"  # the flooder's own loopback address (its refusal is its own)
 
-port, mode, seconds, speed = int(sys.argv[1]), sys.argv[2], float(sys.argv[3]), sys.argv[4]
-sub = [f"viser-v{viser.__version__}"]
-
-def connect():
-    sock = socket.create_connection(("127.0.0.1", port), timeout=10, source_address=("127.0.0.50", 0))
-    return wsc.connect(f"ws://127.0.0.1:{port}/", sock=sock, subprotocols=sub, open_timeout=10, max_queue=None,
-                       additional_headers={"Origin": f"http://127.0.0.1:{port}"})
-
-refused = msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": speed, "updates": {"value": 1e9}})
-end = time.monotonic() + seconds
-conns = []
-print("ready", flush=True)
-while time.monotonic() < end:
-    try:
-        if mode == "sockets":
-            if len(conns) < 200:
-                conns.append(connect())  # and never read
-            else:
-                time.sleep(0.1)
-            continue
-        conn = connect()
-        while time.monotonic() < end:
-            conn.send(refused)
-    except (websockets.exceptions.InvalidHandshake, websockets.exceptions.ConnectionClosed, OSError, TimeoutError):
-        time.sleep(0.01)
-for c in conns:
-    c.close()
-"""
 
 
 def _thread_cpu_s(native_id: int) -> float:
@@ -171,7 +141,7 @@ def bench_loop(print_fn: Callable[[str], None] = print, seconds: float = FLOOD_S
         print_fn(f"loop alone ({where}; vision in the loop, 30 Hz, no client): {alone_hz:.2f} Hz, loop thread"
                  f" {alone_ms:.2f} ms CPU per tick, its process {alone_proc:.2f} ms")
         for mode in ("refused", "sockets"):
-            flooder = subprocess.Popen([sys.executable, "-c", _FLOODER, str(port), mode, str(seconds), speed_id],
+            flooder = subprocess.Popen([sys.executable, "-c", _FLOODER, str(port), mode, str(seconds), FLOODER_ADDRESS, speed_id],
                                        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
             assert flooder.stdout is not None
             flooder.stdout.readline()  # "ready"

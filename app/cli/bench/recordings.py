@@ -163,14 +163,18 @@ def loss_cases(path: Any, print_fn: Callable[[str], None] = print, trials: int =
         summary_at = int.from_bytes(f.read(8), "little")
     rng = np.random.default_rng(seed)
 
-    def read_damaged(flips: dict[int, int]) -> tuple[int, int, str]:
-        """(ticks lost truly, ticks lost said, the note) with each byte at an offset xored with its mask."""
+    def xor(flips: dict[int, int]) -> None:
+        """Each byte at an offset xored with its mask: once damages the file, twice undoes it."""
         with open(path, "r+b") as f:
             for at, mask in flips.items():
                 f.seek(at)
                 byte = f.read(1)[0]
                 f.seek(at)
                 f.write(bytes([byte ^ mask]))
+
+    def read_damaged(flips: dict[int, int]) -> tuple[int, int, str]:
+        """(ticks lost truly, ticks lost said, the note) with the file damaged by ``flips``."""
+        xor(flips)
         try:
             rec = read_recording(path)
             true, said, note = len(all_ticks - set(rec.tick_numbers.tolist())), rec.lost_ticks, rec.loss_note()
@@ -178,16 +182,8 @@ def loss_cases(path: Any, print_fn: Callable[[str], None] = print, trials: int =
         except RecordingError as exc:
             true, said, note = len(all_ticks), 0, str(exc)
         finally:
-            read_damaged_undo(flips)
+            xor(flips)
         return true, said, note
-
-    def read_damaged_undo(flips: dict[int, int]) -> None:
-        with open(path, "r+b") as f:
-            for at, mask in flips.items():
-                f.seek(at)
-                byte = f.read(1)[0]
-                f.seek(at)
-                f.write(bytes([byte ^ mask]))
 
     other_ops = [op for op in range(0x12) if op != 0x06]
     cases: list[tuple[str, list[dict[int, int]]]] = [
