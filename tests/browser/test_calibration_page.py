@@ -96,9 +96,15 @@ def test_from_an_empty_table_to_a_saved_calibration_in_the_browser(service, rig)
         assert min(d for _, d in panel.targets) == 0.3  # from the working ring's inner edge, where followers drive
         button = page.get_by_role("button", name="Capture", exact=True)
         clicks = panel.clicks
-        for _ in range(plan):
-            button.click(no_wait_after=True)
-        page.get_by_text("clicks waiting", exact=False).first.wait_for(timeout=30_000)  # it shows it is busy
+        # the first capture held up (as a slow camera would) so that the clicks must queue behind it: on a
+        # quiet machine each capture can end before the next click, and the busy note would never show
+        panel._busy.acquire()
+        try:
+            for _ in range(plan):
+                button.click(no_wait_after=True)
+            page.get_by_text("clicks waiting", exact=False).first.wait_for(timeout=30_000)  # it shows it is busy
+        finally:
+            panel._busy.release()
         wait_for(lambda: len(panel.rows) == plan, 120.0, f"all {plan} captures")
         assert panel.clicks - clicks == plan
         wait_for(lambda: panel.busy.content == "", 60.0, "the busy note cleared after the last click")
