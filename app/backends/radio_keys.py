@@ -171,6 +171,21 @@ def rotate(directory: Path, finish: bool) -> list[Path]:
     return written
 
 
+def copy_into_bundles(files: list[Path], fleet_dir: Path) -> list[Path]:
+    """Each leader's ``ID.radio`` also into its identity bundle ``fleet_dir/ID/`` (fleet-keys'
+    folder copied whole to that leader's machine), where that bundle exists; mode 0600."""
+    copies: list[Path] = []
+    for f in files:
+        if f.suffix != SUFFIX:
+            continue
+        bundle = fleet_dir / f.stem
+        if bundle.is_dir():
+            copy = bundle / f.name
+            _write_secret(copy, f.read_text())
+            copies.append(copy)
+    return copies
+
+
 def binary_record(auth: RadioAuth) -> bytes:
     """What a robot's flash holds (firmware/host_sim.c reads it): "OFR3", n keys, the keys, n
     leaders, their ids, the STOP policy (0 anyone, 1 authenticated), CRC-16 of all before it."""

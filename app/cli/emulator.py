@@ -126,9 +126,11 @@ def cmd_provision(args: argparse.Namespace) -> int:
 
 
 def cmd_rotate(args: argparse.Namespace) -> int:
-    from app.backends.radio_keys import rotate
+    from app.backends.radio_keys import copy_into_bundles, rotate
 
     written = rotate(args.dir, finish=args.finish)
+    if args.finish:  # the leaders' bundles (fleet-keys' DIR/ID/) hold the new key too
+        written += copy_into_bundles(written, Path(args.dir).parent)
     step = ("finished: provision the robots again (only the new key now); the leaders already sign with it"
             if args.finish else "begun: provision the robots (they accept both keys), then give each leader"
                                 " its file from next/ and restart it, then --finish")

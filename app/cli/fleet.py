@@ -6,7 +6,6 @@ from typing import TYPE_CHECKING
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -142,19 +141,11 @@ def cmd_fleet_keys(args: argparse.Namespace) -> int:
 def write_fleet_radio_keys(directory: Path, leaders: tuple[str, ...], overwrite: bool) -> None:
     """The fleet's radio key beside its certificates: DIR/radio/robots.json and DIR/radio/ID.radio
     (app.backends.radio_keys; docs/follower-protocol.md, "Keys and provisioning")."""
-    from app.backends.radio_keys import write_radio_keys
+    from app.backends.radio_keys import copy_into_bundles, write_radio_keys
 
     radio = directory / "radio"
     try:
-        written = write_radio_keys(radio, leaders, overwrite=overwrite)
-        for f in written[1:]:  # each leader's own ID.radio also in its bundle (the folder copied to its machine)
-            bundle = directory / f.stem
-            if bundle.is_dir():
-                copy = bundle / f.name
-                copy.unlink(missing_ok=True)
-                fd = os.open(copy, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-                with os.fdopen(fd, "wb") as out:
-                    out.write(f.read_bytes())
+        copy_into_bundles(write_radio_keys(radio, leaders, overwrite=overwrite), directory)
     except (FileExistsError, ValueError) as exc:
         raise UserError(str(exc)) from None
     except OSError as exc:

@@ -47,6 +47,11 @@ def test_fleet_keys_writes_private_radio_keys_and_refuses_to_write_over_them(key
     auth = load_robot_auth(keys / "robots.json")
     assert (l1.radio_id, l2.radio_id) == (1, 2) and l1.key == l2.key == auth.keys[0] and len(l1.key) == 32
     assert auth.leaders == (1, 2) and auth.stop == "anyone"
+    for name in ("L1", "L2"):  # each leader's own file also in its bundle (the folder copied to its machine)
+        bundled = keys.parent / name / f"{name}.radio"
+        assert stat.S_IMODE(bundled.stat().st_mode) == 0o600 and load_leader_key(bundled) == load_leader_key(
+            keys / f"{name}.radio")
+    assert not (keys.parent / "arena" / "arena.radio").exists() and not (keys.parent / "L1" / "L2.radio").exists()
     again = main_cli("fleet-keys", str(keys.parent), "--fleet", "lab", "--leaders", "L1,L2")
     assert again.returncode == 2 and "exists" in again.stderr
     copy = tmp_path / "L1.radio"
@@ -107,6 +112,8 @@ def test_the_firmware_provisioned_from_fleet_keys_obeys_the_fleet_and_refuses_an
 def test_a_rotation_keeps_the_fleet_driving_and_retires_the_old_key(keys, tmp_path):
     work = tmp_path / "radio"
     shutil.copytree(keys, work)
+    (tmp_path / "L1").mkdir(mode=0o700)  # L1's bundle beside it, as fleet-keys lays them out
+    shutil.copy(keys / "L1.radio", tmp_path / "L1" / "L1.radio")
     old = load_leader_key(work / "L1.radio").key
     assert main_cli("radio-rotate", str(work), "--begin").returncode == 0
     both = load_robot_auth(work / "robots.json")
@@ -130,6 +137,7 @@ def test_a_rotation_keeps_the_fleet_driving_and_retires_the_old_key(keys, tmp_pa
         assert main_cli("radio-rotate", str(work), "--finish").returncode == 0
         after = load_robot_auth(work / "robots.json")
         assert after.keys == (new,) and load_leader_key(work / "L1.radio").key == new
+        assert load_leader_key(tmp_path / "L1" / "L1.radio").key == new  # the bundle's copy too
         radio.robots.auth = after  # provisioned again (step 4): the old key is refused
         link = SerialLink(radio.paths[0], 2, radio_key=old, sender_id=1)
         try:
