@@ -321,12 +321,18 @@ class FoxgloveLive:
 
     def close(self) -> None:
         """Serve what is queued (at most a few seconds), then stop the server."""
-        try:
-            self._queue.put(None, timeout=2.0)
-        except queue.Full:
-            pass
-        self._thread.join(5.0)
-        self.server.stop()
+        _close_served(self._queue, self._thread, self.server)
+
+
+def _close_served(q: queue.Queue[Any], thread: threading.Thread, server: Any) -> None:
+    """End a serving thread (its queue's end mark, then at most a few seconds to serve what is
+    queued) and stop its Foxglove server: the session's and the fleet's views alike."""
+    try:
+        q.put(None, timeout=2.0)
+    except queue.Full:
+        pass
+    thread.join(5.0)
+    server.stop()
 
 
 FLEET_SCENE_TOPIC = "/fleet/scene"
@@ -465,9 +471,4 @@ class FoxgloveFleet:
                 log.exception("Foxglove fleet: a %s message could not be served", topic)
 
     def close(self) -> None:
-        try:
-            self._queue.put(None, timeout=2.0)
-        except queue.Full:
-            pass
-        self._thread.join(5.0)
-        self.server.stop()
+        _close_served(self._queue, self._thread, self.server)
