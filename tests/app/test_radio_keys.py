@@ -20,7 +20,7 @@ from app.backends.serial_link import ALLOWED_NOTE, UNAUTHENTICATED, SerialLink
 from core.link import protocol as p
 from core.link.follower import RadioAuth
 from core.types import Commands
-from tests.app.test_firmware import FIRMWARE, Firmware
+from tests.app.test_firmware import FIRMWARE, Firmware, firmware_bin  # noqa: F401 - the fixture
 from tests.helpers import main_cli, wait_for
 
 
@@ -63,14 +63,9 @@ def test_fleet_keys_writes_private_radio_keys_and_refuses_to_write_over_them(key
 
 
 @pytest.fixture(scope="module")
-def sim_bin(tmp_path_factory):
-    cc = shutil.which("cc") or shutil.which("gcc")
-    out = tmp_path_factory.mktemp("fw") / "follower_sim"
-    build = subprocess.run([cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2",
-                            str(FIRMWARE / "omni_follower.c"), str(FIRMWARE / "host_sim.c"), "-o", str(out), "-lm"],
-                           capture_output=True, text=True)
-    assert build.returncode == 0, build.stderr
-    return out
+def sim_bin(firmware_bin):  # noqa: F811 - the fixture imported above
+    """The reference firmware's host build, made as the conformance tests make it (-Werror -pedantic)."""
+    return firmware_bin
 
 
 def test_the_firmware_provisioned_from_fleet_keys_obeys_the_fleet_and_refuses_another_key(keys, sim_bin, tmp_path):
