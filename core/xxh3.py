@@ -1,7 +1,7 @@
 """XXH3-128 (xxHash 0.8, default secret, seed 0), portable and pure: rmw_zenoh makes an entity's
 16-byte GID from its liveliness token with it (liveliness_utils.cpp, ``Entity::Entity``: the
 low 64 bits then the high 64 bits, little-endian). Slow and simple; a GID is made once per entity.
-tests/app/test_ros2_wire.py checks it against the xxHash library where one is installed."""
+tests/core/test_rmw_zenoh.py checks it against the xxHash library where one is installed."""
 
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ The wire (keys, liveliness tokens, attachment) is core.rmw_zenoh's, from rmw_zen
 document; payloads are CDR from ``rosbags`` (its ROS 2 Jazzy type store). The type hashes
 (RIHS01, REP-2011) are rosbags' ``hash_rihs01``: SHA-256 over the canonical JSON of each
 type's description, made from the ROS 2 Jazzy message definitions rosbags ships.
-tests/app/test_ros2_wire.py checks it against hashes published elsewhere: std_msgs/msg/String
+tests/core/test_rmw_zenoh.py checks it against hashes published elsewhere: std_msgs/msg/String
 (rmw_zenoh's docs/design.md) and geometry_msgs/msg/Twist, sensor_msgs/msg/Imu, MagneticField,
 FluidPressure and Temperature (keys of running rmw_zenoh systems).
 

@@ -14,7 +14,7 @@ command which robot:
   never moves on a command older than 0.5 s;
 * who owns a robot is the robot's to say, as on real robots: each arena robot runs the
   followers' own rules (core.link.follower, held to the reference firmware by
-  tests/app/test_firmware.py), protocol 2's owner and lease included. A leader's drive for a
+  tests/app/backends/test_firmware.py), protocol 2's owner and lease included. A leader's drive for a
   robot reaches it as a DRIVE (with the age of the truth it was computed from), a claim as a
   CLAIM, the operator's handover as a HANDOVER from the robot's owner; the robot obeys, grants
   or refuses (docs/follower-protocol.md, "Ownership"). A leader's lease (1 s) lives while its

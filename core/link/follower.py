@@ -16,7 +16,7 @@ those of docs/follower-protocol.md:
   went quiet) or to the owner itself, a HANDOVER only from the owner; a DRIVE computed from an
   observation older than MAX_OBSERVATION_AGE_MS stops the robot and is refused. STOP is
   obeyed from anyone (stopping is always safe). firmware/omni_follower.c does the same
-  (tests/app/test_firmware.py holds the two to one script).
+  (tests/app/backends/test_firmware.py holds the two to one script).
 * protocol 3, a radio key provisioned (:class:`RadioAuth`): only authenticated frames
   (core.link.protocol.seal) move, claim or hand the robot over: a tag no key verifies, a sender
   the robot does not know, a counter not above the last one taken from that sender, or a plain

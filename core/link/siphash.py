@@ -3,7 +3,7 @@
 Chosen for the followers' small microcontrollers: a 128-bit key, 64-bit additions, rotations and
 XORs only (no tables, no multiplications), 2 rounds per 8-byte word and 4 to finish, so a 40-byte
 frame costs about 20 rounds. firmware/omni_follower.c has the same in C99; both are checked
-against the algorithm's published test vectors (tests/core/test_radio_auth.py).
+against the algorithm's published test vectors (tests/core/link/test_radio_auth.py).
 """
 
 from __future__ import annotations

@@ -96,3 +96,18 @@ def test_only_one_module_reaches_into_viser_s_private_parts():
              for k, line in enumerate(f.read_text(encoding="utf-8").splitlines())
              if private.search(line.split("#")[0])]
     assert not found, found
+
+
+def test_the_tests_mirror_the_package():
+    """tests/app/<folder>/ tests app/<folder>/, tests/core/<folder>/ tests core/<folder>/: every
+    folder of tests/app and tests/core is a folder of the package, and a test file that sits at the
+    top of tests/app (or tests/core) tests a module at the top of app/ (or core/) or the house itself."""
+    strays = []
+    for pkg in ("app", "core"):
+        for folder in sorted(p for p in (ROOT / "tests" / pkg).rglob("*") if p.is_dir() and p.name != "__pycache__"):
+            rel = folder.relative_to(ROOT / "tests" / pkg)
+            if not (ROOT / pkg / rel / "__init__.py").is_file():
+                strays.append(f"tests/{pkg}/{rel} has no package app/core folder {pkg}/{rel}")
+    assert not strays, strays
+    flat = sorted(f.name for f in (ROOT / "tests" / "app").glob("test_*.py"))
+    assert flat == ["test_layers.py", "test_memory.py", "test_parameter_table.py", "test_params.py"], flat

@@ -392,7 +392,7 @@ def test_the_firmware_and_the_python_follower_refuse_the_same_frames(conformance
 
 def test_the_firmware_siphash_gives_the_published_test_vectors(conformance_bin):
     from core.link.siphash import siphash24
-    from tests.core.siphash_vectors import KEY, VECTORS
+    from tests.core.link.siphash_vectors import KEY, VECTORS
 
     lines = "".join(f"{KEY.hex()} {bytes(range(n)).hex()}\n" for n in range(len(VECTORS)))
     run = subprocess.run([str(conformance_bin), "--siphash"], input=lines, capture_output=True, text=True, timeout=30)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from core.link import protocol as p
 from core.link.follower import FollowerHardware, FollowerState, RadioAuth, handle_frame
 from core.link.siphash import siphash24
-from tests.core.siphash_vectors import KEY, VECTORS
+from tests.core.link.siphash_vectors import KEY, VECTORS
 from tests.helpers import ROOT
 
 DOC = (ROOT / "docs" / "follower-protocol.md").read_text()

@@ -13,7 +13,7 @@ import pytest
 
 from app.fleet.bridge import loopback_endpoint
 
-from tests.app.test_arena import Watcher
+from tests.app.fleet.test_arena import Watcher
 from tests.helpers import ROOT, TcpRelay, interrupt, wait_for
 
 zenoh = pytest.importorskip("zenoh")

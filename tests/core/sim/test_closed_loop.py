@@ -12,7 +12,7 @@ from core.control.formation import ControllerState, compute_commands
 from core.sim.run import simulate
 from core.sim.team import FollowerDynamics, make_team_state, measure_followers, step_team
 
-SCENARIOS = Path(__file__).resolve().parents[2] / "static_config" / "scenarios"
+SCENARIOS = Path(__file__).resolve().parents[3] / "static_config" / "scenarios"
 PAPER = ["paper_simulation", "experiment1", "experiment2", "experiment3"]
 
 

@@ -163,7 +163,7 @@ def test_the_service_stops_cleanly_on_sigterm():
     assert "Traceback" not in run.stderr
     from app.recording.reader import read_recording
 
-    path = Path(__file__).resolve().parents[2] / recorded.group(1)
+    path = Path(__file__).resolve().parents[3] / recorded.group(1)
     try:
         rec = read_recording(path)
         assert rec.complete and len(rec.ticks) > 10 and "config_toml" in rec.metadata

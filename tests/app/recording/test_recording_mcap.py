@@ -1,6 +1,6 @@
 """MCAP's own checks (tests/mcap_doctor.py, what `mcap doctor` checks) on every kind of file we
 write: the doctor itself is shown to find what it must; `run`, `simulate --record` and `rerun`
-recordings are checked where tests/app/test_recording.py makes them, the fleet's here."""
+recordings are checked where tests/app/recording/test_recording.py makes them, the fleet's here."""
 
 from __future__ import annotations
 

@@ -201,7 +201,7 @@ def test_every_example_frame_in_the_protocol_document_is_valid():
     import re
     from pathlib import Path
 
-    doc = (Path(__file__).resolve().parents[2] / "docs" / "follower-protocol.md").read_text()
+    doc = (Path(__file__).resolve().parents[3] / "docs" / "follower-protocol.md").read_text()
     examples = re.findall(r"`(a5 5a(?: [0-9a-f]{2})+)`", doc)
     assert len(examples) == 12  # five of protocol 1, five of ownership (protocol 2), two authenticated (3)
     frames = []

@@ -10,7 +10,7 @@ import pytest
 
 from app.services.live import Service
 from app.recording.reader import read_recording
-from tests.app.test_access import as_a_browser, ws_connect
+from tests.app.dashboard.test_access import as_a_browser, ws_connect
 from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, new_page, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")

@@ -90,7 +90,7 @@ def _spawn(*args: str) -> subprocess.Popen:
 
 def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
     """With the fleet's keys (mutual TLS, access control by identity), as a fleet on a lab network
-    runs; tests/app/test_fleet.py and the fleet page's test run the open loopback bus."""
+    runs; tests/app/fleet/test_fleet.py and the fleet page's test run the open loopback bus."""
     keys = tmp_path / "keys"
     assert main_cli("fleet-keys", str(keys), "--fleet", FLEET, "--leaders", "L1,L2,L3").returncode == 0
     endpoint = "tls/" + loopback_endpoint().split("/", 1)[1]

@@ -20,7 +20,7 @@ from app.backends.serial_link import ALLOWED_NOTE, UNAUTHENTICATED, SerialLink
 from core.link import protocol as p
 from core.link.follower import RadioAuth
 from core.types import Commands
-from tests.app.test_firmware import FIRMWARE, Firmware, firmware_bin  # noqa: F401 - the fixture
+from tests.app.backends.test_firmware import FIRMWARE, Firmware, firmware_bin  # noqa: F401 - the fixture
 from tests.helpers import main_cli, wait_for
 
 

@@ -18,7 +18,7 @@ import pytest
 
 from app.fleet.bridge import loopback_endpoint
 
-from tests.app.test_arena import Watcher, team_rms_m
+from tests.app.fleet.test_arena import Watcher, team_rms_m
 from tests.helpers import ROOT, PtyRelay, interrupt, main_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
