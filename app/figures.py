@@ -13,11 +13,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-from matplotlib.axes import Axes
 import numpy as np
 
 from core.geometry import leader_to_world
@@ -26,11 +21,23 @@ from core.sim.run import SimulationLog
 from core.camera.render.looks import follower_hex
 
 if TYPE_CHECKING:
+    from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
     from core.sim.sweep import SweepResult
 
 colour = follower_hex  # each follower in its marker's colour, as on the page
+
+
+def pyplot():  # type: ignore[no-untyped-def]
+    """matplotlib's pyplot on the headless Agg backend, imported when a figure is first drawn: a
+    process that never draws one (the live loop's, each CLI start) does not pay its import."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def trajectory_panel(ax: Axes, t: np.ndarray, leader: np.ndarray, followers_world: np.ndarray,
@@ -86,6 +93,7 @@ def plot_simulation(log: SimulationLog, path: Path, instants: int = 6) -> None:
     n = log.n
     per_follower_rows = n <= 4
     rows = (n if per_follower_rows else 2) + 1
+    plt = pyplot()
     fig = plt.figure(figsize=(13, 2.3 * rows + 1.0), constrained_layout=True)
     grid = fig.add_gridspec(rows, 2, width_ratios=[1.15, 1.0])
     ax_traj = fig.add_subplot(grid[:, 0])

@@ -5,6 +5,8 @@ leader at its goal, the formation held after the gap, and the paper's runs untou
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -72,18 +74,30 @@ def _swaps(s: Scenario, rig=None, gamma=None) -> tuple[int, int, float, float]:
         float(np.median(per_switch))
 
 
-@pytest.mark.parametrize("feedback, switches", [("truth", 100), ("vision", 25)])
-def test_preset_swaps_keep_every_pair_apart(feedback, switches, rig, gamma):
-    s = load_scenario("preset_swaps")
-    s = s.replace(duration_s=switches * 20.0 + 10.0)
+def _preset_swaps(seed: int, switches: int) -> Scenario:
+    """preset_swaps with its presets drawn from ``seed``, ``switches`` of them. The shipped seed's
+    first 33 switches happen to bring no two robots together: these seeds do within their first
+    six (without the filter, truth: seed 9 in switches 1, 3, 4 and 5, closest 11.8 cm; seed 24 in
+    1, 2 and 3), so a short run meets the dangerous switches a 100-switch run met at 33-35."""
+    from core.config import parse_scenario
+    from tests.helpers import ROOT
+
+    text = (ROOT / "static_config" / "scenarios" / "preset_swaps.toml").read_text()
+    text = re.sub(r"^seed = \d+", f"seed = {seed}", text, flags=re.M)
+    text = re.sub(r"^duration_s = [\d.]+", f"duration_s = {switches * 20.0 + 10.0}", text, flags=re.M)
+    return parse_scenario(text, f"preset_swaps (seed {seed})")
+
+
+@pytest.mark.parametrize("feedback, seed, switches", [("truth", 9, 12), ("truth", 24, 12), ("vision", 9, 6)])
+def test_preset_swaps_keep_every_pair_apart(feedback, seed, switches, rig, gamma):
+    s = _preset_swaps(seed, switches)
     cam = (rig, gamma) if feedback == "vision" else (None, None)
     off = _swaps(s.replace(safety=None), *cam)
     on = _swaps(s, *cam)
-    print(f"\npreset_swaps, {switches} switches, {feedback}: without the filter {off[0]} ticks under 0.25 m in {off[1]}"
-          f" switches (closest {off[2] * 100:.1f} cm), settled error {off[3] * 100:.2f} cm; with it {on[0]} ticks"
-          f" (closest {on[2] * 100:.1f} cm), settled error {on[3] * 100:.2f} cm")
-    if feedback == "truth":
-        assert off[0] > 0  # the switches do bring robots together: the test can fail
+    print(f"\npreset_swaps, seed {seed}, {switches} switches, {feedback}: without the filter {off[0]} ticks under 0.25 m"
+          f" in {off[1]} switches (closest {off[2] * 100:.1f} cm), settled error {off[3] * 100:.2f} cm; with it {on[0]}"
+          f" ticks (closest {on[2] * 100:.1f} cm), settled error {on[3] * 100:.2f} cm")
+    assert off[0] > 0 and off[1] >= 3  # the switches do bring robots together: the test can fail
     assert on[0] == 0 and on[2] >= 0.25
     assert on[3] <= 1.10 * off[3] + 0.002  # within 10 % (and 2 mm: both are a few mm)
 
