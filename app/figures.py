@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 colour = follower_hex  # each follower in its marker's colour, as on the page
 
 
-def pyplot():  # type: ignore[no-untyped-def]
+def pyplot() -> Any:
     """matplotlib's pyplot on the headless Agg backend, imported when a figure is first drawn: a
     process that never draws one (the live loop's, each CLI start) does not pay its import."""
     import matplotlib
