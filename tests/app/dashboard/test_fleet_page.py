@@ -138,7 +138,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             assert replies and not replies[0]["granted"] and "X9 is not alive" in replies[0]["why"], replies
             squatter.undeclare()
             # what the arena refused is on the page, by kind
-            from app.services.fleet_page import refused_text
+            from app.dashboard.fleet_view import refused_text
 
             said = refused_text(arena.refused())
             assert "1 conflicts" in said and "2 claims" in said and "malformed" in said, said
