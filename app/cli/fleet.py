@@ -9,11 +9,10 @@ import json
 import sys
 from pathlib import Path
 
-from app.cli.args import Parser, bind_error, float_in, int_in, port, probability, token_arg
-from app.files import UserError
+from app.cli.args import Parser, float_in, int_in, port, probability, token_arg
+from app.files import UserError, bind_error
 
 if TYPE_CHECKING:
-    import zenoh
 
     from app.fleet.security import FleetKeys
 
@@ -156,17 +155,6 @@ def write_fleet_radio_keys(directory: Path, leaders: tuple[str, ...], overwrite:
           flush=True)
 
 
-def open_bus(listen: list[str], connect: list[str], who: str, keys: FleetKeys | None = None) -> zenoh.Session:
-    from app.fleet.bridge import open_session
-
-    try:
-        return open_session(listen, connect, keys)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    except Exception as exc:  # noqa: BLE001 - zenoh says why it cannot open (an endpoint taken, ...)
-        raise UserError(f"{who}: cannot join the bus: {str(exc).splitlines()[0][:200]}") from None
-
-
 def cmd_arena(args: argparse.Namespace) -> int:
     import signal
     import threading
@@ -174,6 +162,7 @@ def cmd_arena(args: argparse.Namespace) -> int:
 
     from app.files import load_fleet
     from app.fleet.arena import Arena
+    from app.services.bus import open_bus
     from app.fleet.bridge import check_name
     from app.keys import root
 
@@ -255,6 +244,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     from app.files import check_new_file, display_path
     from app.fleet.bridge import check_name
     from app.realtime import SWITCH_INTERVAL_S
+    from app.services.bus import open_bus
     from app.services.fleet_page import FleetView
     from app.recording.fleet import FleetRecorder
     from app.cli.foxglove_args import check_foxglove_args, serve_fleet
