@@ -16,12 +16,15 @@ channel per leader.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
-from typing import Any, Protocol
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
 
 import viser
 
@@ -29,8 +32,13 @@ from app import wire
 from app.backends.arena import read_truth
 from app.dashboard.fleet_view import FleetPage, FleetSnapshot, LeaderPanel
 from app.dashboard.widgets import on_page_thread
+from app.files import UserError, bind_error
 from app.fleet.bridge import read_state
 from app.keys import root
+
+if TYPE_CHECKING:
+    from app.fleet.security import FleetKeys
+    from app.services.foxglove_attach import FoxglovePlan
 
 REFRESH_S = 0.1
 # a state arriving while the page redraws waited up to the GIL's 5 ms switch interval for its callback
@@ -213,3 +221,66 @@ class FleetView:
         for sub in self._subs:
             sub.undeclare()
         self._token.undeclare()
+
+
+@dataclass(frozen=True)
+class FleetPagePlan:
+    """`omniformation fleet` as checked: the bus, where to serve, the recording and Foxglove."""
+
+    fleet: str
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    keys: FleetKeys | None = None
+    host: str = "127.0.0.1"
+    port: int = 8090
+    token: str | None = None
+    viewer_token: str | None = None
+    record: Path | None = None
+    foxglove: FoxglovePlan | None = None
+
+
+@dataclass
+class FleetPageRunning:
+    """The fleet page, served: its view of the bus, its gate (the URLs), its recorder."""
+
+    view: FleetView
+    gate: Any
+    recorder: Any
+
+
+@contextlib.contextmanager
+def serve_fleet_page(plan: FleetPagePlan, say: Callable[..., None]) -> Iterator[FleetPageRunning]:
+    """On the bus, the page served behind its gate, the fleet recorded and given to Foxglove as the
+    plan asks; all of it closed on the way out through one ExitStack (the view first, the bus last)."""
+    import sys
+
+    from app.dashboard.gate import quietly, serve_gated
+    from app.realtime import SWITCH_INTERVAL_S
+    from app.recording.fleet import FleetRecorder
+    from app.services.bus import open_bus
+    from app.services.foxglove_attach import serve_fleet
+
+    with contextlib.ExitStack() as stack:
+        session = open_bus(list(plan.listen), list(plan.connect), f"fleet {plan.fleet}", plan.keys)
+        stack.callback(session.close)
+        try:
+            server, gate = serve_gated(plan.host, plan.port, plan.token, plan.viewer_token)
+        except OSError as exc:
+            raise UserError(bind_error(plan.host, plan.port, exc)) from None
+        stack.callback(quietly, server.stop)
+        stack.callback(gate.close)
+        gate.page_kind = "fleet"
+        recorder = None
+        if plan.record is not None:
+            try:
+                recorder = FleetRecorder(plan.record)
+            except OSError as exc:
+                raise UserError(f"{plan.record}: cannot record: {exc.strerror or exc}") from None
+            stack.callback(recorder.close)
+        sys.setswitchinterval(SWITCH_INTERVAL_S)  # states reach the page's callbacks sooner (REFRESH_S says why)
+        sink, fox = serve_fleet(plan.foxglove, recorder, say)
+        if fox is not None:
+            stack.callback(fox.close)
+        view = FleetView(server, session, plan.fleet, sink, allow_viewer=gate.filter.allow_viewer)
+        stack.callback(view.close)
+        yield FleetPageRunning(view, gate, recorder)
