@@ -20,7 +20,7 @@ from core.geometry import leader_to_world
 from app.dashboard.controls import add_slider
 from app.dashboard.scene import yaw_wxyz
 from app.dashboard.widgets import assign
-from app.keys import robot_name
+from app.keys import held_name, robot_index, robot_name
 
 GONE_AFTER_S = 2.0  # a leader whose state is older than this is shown as silent
 RESYNC_S = 2.0  # after a person moves a control, the leader's own value is shown again after this
@@ -41,6 +41,17 @@ def team_errors_cm(state: dict[str, Any]) -> tuple[float, float]:
     if not errs:
         return math.nan, math.nan
     return math.sqrt(float(np.mean(np.square(errs)))) * 100, max(errs) * 100
+
+
+def slots_of(states: dict[str, tuple[float, dict[str, Any]]], count: int) -> dict[int, tuple[str, int]]:
+    """robot index -> (leader id, its follower slot) from the leaders' states (their ``robots``)."""
+    held: dict[int, tuple[str, int]] = {}
+    for lid, (_, st) in states.items():
+        for k, name in enumerate(st.get("robots") or []):
+            r = robot_index(name, count)
+            if r is not None:
+                held[r] = (lid, k)
+    return held
 
 
 class Sender(Protocol):
@@ -108,8 +119,10 @@ class LeaderPanel:
         if age_s > GONE_AFTER_S:
             where += f", silent for {age_s:.0f} s"
         stop = " · **STOPPED**" if state.get("stopped") else ""
+        robots = [f"{name} (F{k + 1})" for k, name in enumerate(state.get("robots") or [])]
         self.status.content = (
             f"**{self.leader_id}** {where}{stop}  \n{tracked}/{n} followers tracked, phase {state.get('phase', '?')}  \n"
+            + (f"robots {', '.join(robots)}  \n" if robots else "")
             + f"error RMS {rms:.1f} cm, worst {worst:.1f} cm  \nleader v {v or 0.0:.2f} m/s, ω {w or 0.0:.2f} rad/s,"
             f" loop {state.get('rate_hz') or 0.0:.1f} Hz")
         # what the leader obeys from here: a STOP-only leader (no --fleet-control) refuses the rest,
@@ -178,6 +191,7 @@ class FleetPage:
         self.hand_button.on_click(hand)
         self.panels: dict[str, LeaderPanel] = {}
         self._scene: dict[str, Any] = {}
+        self.labels: dict[int, tuple[Any, str]] = {}  # robot -> (its 3D label, the text it shows)
         server.scene.add_grid("/grid", width=20, height=20, cell_size=0.5, plane="xy")
 
     def send(self, leader_id: str, changes: dict[str, Any]) -> None:
@@ -222,12 +236,19 @@ class FleetPage:
         s = self.server.scene
         if truth is not None:
             hues = truth.get("hues_deg", [])
+            held = slots_of(states, len(truth["robots"]))
             for r, pose in enumerate(truth["robots"]):
                 key = f"/arena/robots/{r}"
                 if key not in self._scene:
                     rgb = hue_rgb(hues[r]) if r < len(hues) else (120, 120, 120)
                     self._scene[key] = s.add_box(key, color=rgb, dimensions=(0.25, 0.15, 0.10))
-                    s.add_label(f"{key}/label", robot_name(r), position=(0, 0, 0.25))
+                # the robot's one name (the fleet's R id) and, while a leader drives it, whose slot it is
+                text = held_name(r, *held[r]) if r in held else robot_name(r)
+                label = self.labels.get(r)
+                if label is None or label[1] != text:
+                    if label is not None:
+                        label[0].remove()
+                    self.labels[r] = (s.add_label(f"{key}/label", text, position=(0, 0, 0.25)), text)
                 h = self._scene[key]
                 h.position = (float(pose[0]), float(pose[1]), 0.05)
                 h.wxyz = yaw_wxyz(float(pose[2]))
