@@ -7,7 +7,7 @@ from __future__ import annotations
 import colorsys
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -41,6 +41,15 @@ def team_errors_cm(state: dict[str, Any]) -> tuple[float, float]:
     if not errs:
         return math.nan, math.nan
     return math.sqrt(float(np.mean(np.square(errs)))) * 100, max(errs) * 100
+
+
+def watchdog_text(held: Sequence[Any], stops: int) -> str:
+    """The robots' watchdogs in words: how many stops so far, and which robots one holds now."""
+    words = f"{stops} watchdog stop{'' if stops == 1 else 's'} since this page started"
+    now = [robot_name(r) for r, on in enumerate(held) if on is True]
+    if now:  # which robots their own watchdog holds, and why
+        words += f"; stopped by their watchdog now (their leader went quiet): {', '.join(now)}"
+    return words
 
 
 def slots_of(states: dict[str, tuple[float, dict[str, Any]]], count: int) -> dict[int, tuple[str, int]]:
@@ -158,6 +167,7 @@ class FleetSnapshot:
     states: dict[str, tuple[float, dict[str, Any]]]  # id -> (monotonic time received, state)
     alive: set[str]
     events: list[str]
+    watchdog_stops: int = 0  # the robots' transitions into their watchdog's hold, counted by the page
     extra: str = ""  # what else is said under the status (the recording's and Foxglove's state)
     now: float = field(default_factory=time.monotonic)
 
@@ -212,9 +222,8 @@ class FleetPage:
             arena = "no arena" if truth is None else (f"arena t {truth.get('t', 0):.0f} s, {len(truth['robots'])} robots,"
                                                       f" conflicts {truth.get('conflicts', 0)}")
             dog = truth.get("watchdog") if truth is not None else None
-            if isinstance(dog, list) and any(dog):  # in words: which robots their own watchdog holds, and why
-                arena += ("; stopped by their watchdog (their leader went quiet): "
-                          + ", ".join(robot_name(r) for r, on in enumerate(dog) if on is True))
+            if isinstance(dog, list):
+                arena += "; " + watchdog_text(dog, snap.watchdog_stops)
             refused = truth.get("refused") if truth is not None else None
             if isinstance(refused, dict):
                 arena += f"; arena refused: {refused_text(refused) if any(refused.values()) else 'nothing'}"

@@ -77,6 +77,8 @@ class FleetView:
         self.received = 0
         self.malformed = 0
         self.latencies: deque[float] = deque(maxlen=2000)  # s from a state's "sent" (when given) to here
+        self.watchdog_stops = 0  # the robots' moves into their watchdog's hold, in the truths seen here
+        self._held: list[bool] | None = None  # the last truth's watchdog flags
         self.page = FleetPage(server, self.send, self.send_all_stop, self.hand_over, allow_viewer)
         self._subs = [
             session.declare_subscriber(f"{root(fleet)}/arena/truth", self._on_truth),
@@ -123,8 +125,14 @@ class FleetView:
             msg = None
         if msg is None:
             return
+        dog = msg.get("watchdog")
         with self._lock:
             self.truth = msg
+            if isinstance(dog, list):  # a stop is a robot's move into its watchdog's hold
+                held = [on is True for on in dog]
+                if self._held is not None and len(self._held) == len(held):
+                    self.watchdog_stops += sum(now and not was for was, now in zip(self._held, held))
+                self._held = held
         if self.recorder is not None:
             self.recorder.write("arena/truth", msg)
 
@@ -210,7 +218,7 @@ class FleetView:
         """What the bus gave so far, taken at once."""
         with self._lock:
             return FleetSnapshot(self.fleet, self.truth, dict(self.states), set(self.alive), list(self.events),
-                                 extra="" if self.recorder is None else self.recorder.status(), now=time.monotonic())
+                                 watchdog_stops=self.watchdog_stops, extra="" if self.recorder is None else self.recorder.status(), now=time.monotonic())
 
     def refresh(self) -> None:
         self.page.show(self.snapshot())

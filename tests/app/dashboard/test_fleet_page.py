@@ -177,6 +177,16 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             own.goto(l1.gate.url)
             own.get_by_text("R7 (F4)", exact=False).first.wait_for(timeout=60_000)  # the status's errors
             own.close()
+            # a leader that goes quiet (its loop ends, its token stays): its robots' own watchdogs stop them,
+            # and the page says so in words, with the count of stops it saw
+            l2.loop.stop()
+            l2.thread.join(10)
+            wait_for(lambda: view.watchdog_stops >= 3, 30, "L2's three robots stopped by their watchdogs")
+            page.get_by_text("stopped by their watchdog now (their leader went quiet): R4, R5, R6",
+                             exact=False).first.wait_for(timeout=30_000)
+            seen = view.watchdog_stops
+            assert seen <= arena.counts.watchdog_stops, (seen, arena.counts.watchdog_stops)
+            page.get_by_text(f"{seen} watchdog stops since this page started", exact=False).first.wait_for(timeout=30_000)
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "fleet_page.png"))
     finally:
