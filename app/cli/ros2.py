@@ -59,28 +59,21 @@ def cmd_emulate_base(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from app.ros2.base import EmulatedBase
-    from app.services.ros2_node import open_node
+    from app.services.ros2_node import run_emulated_base
 
     keys = load_keys(args.keys)
     if keys is not None and not args.zenoh_connect:
         raise UserError("--keys needs --zenoh-connect tls/HOST:PORT: the ROS 2 machines' router")
-    node = open_node(args.zenoh_connect or ["tcp/127.0.0.1:7447"], keys, args.ros2_domain, "omniformation_base")
     done = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: done.set())
-    base = EmulatedBase(node, args.rate, speed_scale=args.speed_scale)
-    base.start()
-    print(f"omniformation: ROS 2 base on domain {args.ros2_domain}: /cmd_vel in, /odom out at {args.rate:g} Hz"
-          " (Ctrl-C to stop)", flush=True)
-    try:
+    with run_emulated_base(args.zenoh_connect or ["tcp/127.0.0.1:7447"], keys, args.ros2_domain, args.rate,
+                           args.speed_scale) as base:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: done.set())
+        print(f"omniformation: ROS 2 base on domain {args.ros2_domain}: /cmd_vel in, /odom out at {args.rate:g} Hz"
+              " (Ctrl-C to stop)", flush=True)
         done.wait(args.seconds)
-    finally:
-        base.close()
-        node.close()
-        node.session.close()
     print(f"omniformation: base stopped after {len(base.commands)} commands"
-          f" ({node.dropped} malformed dropped)", flush=True)
+          f" ({base.node.dropped} malformed dropped)", flush=True)
     return 0
 
 

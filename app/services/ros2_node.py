@@ -4,7 +4,7 @@ the bridge that publishes the loop's state (and takes STOP and goals with --ros2
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -82,3 +82,20 @@ def start_bridge(plan: Ros2Plan | None, node: Ros2Node | None, service: Service,
     service.loop.subscribe(bridge.on_tick)
     say(f"omniformation: ROS 2 node /omniformation on domain {plan.domain} via {', '.join(plan.connect)}"
         f" ({'taking STOP and goals' if plan.control else 'publishing only'})")
+
+
+@contextlib.contextmanager
+def run_emulated_base(connect: list[str], keys: FleetKeys | None, domain: int, rate_hz: float,
+                      speed_scale: float) -> Iterator[Any]:
+    """`emulate-base --ros2`: an emulated ROS 2 base on its own node, running until the block
+    ends; the base, then its node and session, closed on the way out."""
+    from app.ros2.base import EmulatedBase
+
+    with contextlib.ExitStack() as stack:
+        node = open_node(connect, keys, domain, "omniformation_base")
+        stack.callback(node.session.close)
+        stack.callback(node.close)
+        base = EmulatedBase(node, rate_hz, speed_scale=speed_scale)
+        base.start()
+        stack.callback(base.close)
+        yield base
