@@ -69,10 +69,11 @@ def check_foxglove_args(args: argparse.Namespace) -> None:
 
 
 def foxglove_plan(args: argparse.Namespace) -> FoxglovePlan | None:
-    """The flags, checked, as the services take them (None without --foxglove)."""
+    """The flags, checked (whether or not --foxglove is given: its TLS flags alone are refused), as
+    the services take them (None without --foxglove)."""
+    check_foxglove_args(args)
     if getattr(args, "foxglove", None) is None:
         return None
-    check_foxglove_args(args)
     from app.services.foxglove_attach import FoxglovePlan
 
     host, port = args.foxglove
