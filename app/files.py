@@ -39,6 +39,19 @@ class UserError(Exception):
     """A mistake in what a person gave us (file, argument, value): one line, exit code 2."""
 
 
+def bind_error(host: str, port: int, exc: OSError) -> str:
+    """One line for a server that could not bind."""
+    import errno
+    import os
+
+    why = os.strerror(exc.errno) if exc.errno else str(exc)
+    if exc.errno == errno.EADDRINUSE:
+        why += " (another program, perhaps another omniformation, serves there: stop it or give another --port)"
+    elif exc.errno == errno.EADDRNOTAVAIL:
+        why += " (this machine has no such address: give one of its own, 127.0.0.1, or 0.0.0.0 for all)"
+    return f"cannot serve on {host}:{port}: {why}"
+
+
 def default_recordings() -> Path:
     """The folder sessions are recorded to and listed from: ``recordings/`` under the working folder."""
     return Path.cwd() / "recordings"

@@ -1,5 +1,6 @@
 """The names on a fleet's bus (docs/fleet-protocol.md): the key root of a fleet and the
-robots' names in an arena. Shared by the fleet's programs and the arena backend."""
+robots' names in an arena. Shared by the fleet's programs, the arena backend and the pages: a
+robot has one name on every page, the fleet's R id (a leader's page adds its slot there)."""
 
 from __future__ import annotations
 
@@ -20,3 +21,16 @@ def robot_index(name: Any, count: int) -> int | None:
         return None
     r = int(name[1:]) - 1
     return r if 0 <= r < count else None
+
+
+def follower_name(i: int, robots: tuple[int, ...] | None = None) -> str:
+    """Follower ``i``'s one name for people: the fleet's robot id with this leader's slot, "R3 (F1)",
+    when it is an arena's robot (``robots``: the fleet's index of each follower), else "F1"."""
+    if robots is not None and 0 <= i < len(robots):
+        return f"{robot_name(robots[i])} (F{i + 1})"
+    return f"F{i + 1}"
+
+
+def held_name(r: int, leader_id: str, slot: int) -> str:
+    """An arena robot on the fleet page while a leader drives it: "R3 · L1 F1" (its slot there)."""
+    return f"{robot_name(r)} · {leader_id} F{slot + 1}"

@@ -14,6 +14,8 @@ import numpy as np
 from core.types import FloatArray, Gains, Image, IntArray
 from core.vision.freespace import Scan
 
+from app.keys import follower_name
+
 
 @dataclass(frozen=True)
 class TickState:
@@ -66,10 +68,15 @@ class TickState:
     latency_ms: float = float("nan")  # from what this tick observed (a camera frame's arrival) to its commands written
     fresh: bool = True  # this tick observed anew (False: a camera without a new frame, or paused: the last one stood)
     leader_waits: str = ""  # why the leader stands still ("STOP", "waiting for F2 to be tracked"); "" when it may drive
+    robots: tuple[int, ...] | None = None  # an arena leader's: the fleet's robot index of each follower
 
     @property
     def n(self) -> int:
         return int(self.p_est.shape[0])
+
+    def name(self, i: int) -> str:
+        """Follower ``i``'s name for people: "R3 (F1)" in a fleet's arena, else "F1" (app.keys)."""
+        return follower_name(i, self.robots if self.robots is not None and len(self.robots) == self.n else None)
 
 
 class SessionClock:

@@ -66,19 +66,6 @@ def token_arg(text: str) -> str:
     return text
 
 
-def bind_error(host: str, port: int, exc: OSError) -> str:
-    """One line for a server that could not bind."""
-    import errno
-    import os
-
-    why = os.strerror(exc.errno) if exc.errno else str(exc)
-    if exc.errno == errno.EADDRINUSE:
-        why += " (another program, perhaps another omniformation, serves there: stop it or give another --port)"
-    elif exc.errno == errno.EADDRNOTAVAIL:
-        why += " (this machine has no such address: give one of its own, 127.0.0.1, or 0.0.0.0 for all)"
-    return f"cannot serve on {host}:{port}: {why}"
-
-
 def serve_page(make: Callable[[], Any], host: str, port: int, what: str, started: Callable[[Any], str]) -> int:
     """Serve a page until Ctrl-C or SIGTERM: ``make()`` builds the service (binding its port:
     a port taken or an address not here is one line, exit 2), a warning when it is served off
@@ -87,7 +74,7 @@ def serve_page(make: Callable[[], Any], host: str, port: int, what: str, started
     import sys
 
     from app.dashboard.gate import is_loopback
-    from app.files import UserError
+    from app.files import UserError, bind_error
 
     try:
         svc = make()

@@ -9,11 +9,10 @@ import json
 import sys
 from pathlib import Path
 
-from app.cli.args import Parser, bind_error, float_in, int_in, port, probability, token_arg
+from app.cli.args import Parser, float_in, int_in, port, probability, token_arg
 from app.files import UserError
 
 if TYPE_CHECKING:
-    import zenoh
 
     from app.fleet.security import FleetKeys
 
@@ -156,26 +155,15 @@ def write_fleet_radio_keys(directory: Path, leaders: tuple[str, ...], overwrite:
           flush=True)
 
 
-def open_bus(listen: list[str], connect: list[str], who: str, keys: FleetKeys | None = None) -> zenoh.Session:
-    from app.fleet.bridge import open_session
-
-    try:
-        return open_session(listen, connect, keys)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    except Exception as exc:  # noqa: BLE001 - zenoh says why it cannot open (an endpoint taken, ...)
-        raise UserError(f"{who}: cannot join the bus: {str(exc).splitlines()[0][:200]}") from None
-
-
 def cmd_arena(args: argparse.Namespace) -> int:
+    """The arena: check everything into a plan, then app.services.arena runs it; status lines here."""
     import signal
-    import threading
     import time
 
     from app.files import load_fleet
-    from app.fleet.arena import Arena
     from app.fleet.bridge import check_name
     from app.keys import root
+    from app.services.arena import ArenaPlan, run_arena
 
     scenario = load_fleet(args.fleet_scenario)
     fleet = args.fleet or scenario.name
@@ -190,30 +178,19 @@ def cmd_arena(args: argparse.Namespace) -> int:
     from app.backends.emulator import robot_auth
 
     radio_auth = robot_auth(args.radio_key) if args.radio_key is not None else None
-    keys = fleet_keys(args.keys, "arena", fleet)
-    session = open_bus(args.zenoh_listen, args.zenoh_connect, f"arena {fleet}", keys)
-    replies = session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)
-    if any(getattr(r, "ok", None) is not None for r in replies):
-        session.close()
-        raise UserError(f"fleet {fleet}: an arena runs on this bus already; one world per fleet")
-    arena = Arena(scenario, session, fleet, radio=args.radio, radio_drop=args.radio_drop,
-                  radio_delay_s=args.radio_delay_ms / 1000.0, radio_auth=radio_auth)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    stepper = threading.Thread(target=arena.run, args=(stop,), name="omniformation-arena", daemon=True)
-    stepper.start()
-    carrier = None
-    if arena.radio is not None:
-        carrier = threading.Thread(target=arena.radio.run, args=(stop,), name="omniformation-radio", daemon=True)
-        carrier.start()
-    print(f"omniformation: arena {fleet}: {len(scenario.leaders)} leaders, {scenario.robots} robots at"
-          f" {scenario.rate_hz:g} Hz; truth on {root(fleet)}/arena/truth (Ctrl-C to stop)", flush=True)
-    if arena.radio is not None:
-        for i, (lid, path) in enumerate(zip(arena.ids, arena.radio.paths)):
-            print(f"radio {lid}: {path} (radio id {i + 1})", flush=True)
-    start = time.monotonic()
-    try:
+    plan = ArenaPlan(scenario, fleet, tuple(args.zenoh_listen), tuple(args.zenoh_connect),
+                     fleet_keys(args.keys, "arena", fleet), args.radio, args.radio_drop, args.radio_delay_ms / 1000.0,
+                     radio_auth)
+    with run_arena(plan) as running:
+        arena, stop = running.arena, running.stop
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+        print(f"omniformation: arena {fleet}: {len(scenario.leaders)} leaders, {scenario.robots} robots at"
+              f" {scenario.rate_hz:g} Hz; truth on {root(fleet)}/arena/truth (Ctrl-C to stop)", flush=True)
+        if arena.radio is not None:
+            for i, (lid, path) in enumerate(zip(arena.ids, arena.radio.paths)):
+                print(f"radio {lid}: {path} (radio id {i + 1})", flush=True)
+        start = time.monotonic()
         while not stop.is_set():
             stop.wait(args.status_every if args.status_every > 0 else 1.0)
             if args.minutes is not None and time.monotonic() - start >= args.minutes * 60:
@@ -225,20 +202,8 @@ def cmd_arena(args: argparse.Namespace) -> int:
                       f" {c.claims_refused} refused  malformed {c.malformed}  two owners {arena.two_owners}"
                       f"  closest {arena.gap_m * 100:.0f} cm"
                       f" (contacts {c.contacts})", flush=True)
-    finally:
-        stop.set()
-        stepper.join(10.0)
-        if carrier is not None:
-            carrier.join(5.0)
-        summary = {"fleet": fleet, "t": round(arena.t, 3), **vars(arena.counts), "owners": list(arena.owners),
-                   "alive": sorted(arena.alive), "ever_alive": sorted(arena.ever_alive),
-                   "two_owners": arena.two_owners}
-        if arena.radio is not None:
-            summary["radio"] = arena.radio.summary()
-        arena.close()
-        session.close()
-        if args.summary is not None:
-            args.summary.write_text(json.dumps(summary, indent=1) + "\n")
+    if args.summary is not None:
+        args.summary.write_text(json.dumps(running.summary, indent=1) + "\n")
     c = arena.counts
     print(f"omniformation: arena stopped after {arena.t:.1f} s: conflicts {c.conflicts}, watchdog stops"
           f" {c.watchdog_stops}, claims {c.claims_granted} granted / {c.claims_refused} refused"
@@ -248,16 +213,15 @@ def cmd_arena(args: argparse.Namespace) -> int:
 
 
 def cmd_fleet(args: argparse.Namespace) -> int:
+    """The fleet page: check everything into a plan, then app.services.fleet_page serves it."""
     import signal
     import threading
 
-    from app.dashboard.gate import is_loopback, quietly, serve_gated
+    from app.cli.foxglove_args import check_foxglove_args, foxglove_plan
+    from app.dashboard.gate import is_loopback
     from app.files import check_new_file, display_path
     from app.fleet.bridge import check_name
-    from app.realtime import SWITCH_INTERVAL_S
-    from app.services.fleet_page import FleetView
-    from app.recording.fleet import FleetRecorder
-    from app.cli.foxglove_args import check_foxglove_args, serve_fleet
+    from app.services.fleet_page import FleetPagePlan, serve_fleet_page
 
     try:
         check_name(args.fleet, "--fleet")
@@ -270,55 +234,23 @@ def cmd_fleet(args: argparse.Namespace) -> int:
             raise UserError(f"{args.record}: exists; a recording is never written over another (give a new name)")
     if args.viewer_token is not None and args.viewer_token == args.token:
         raise UserError("--viewer-token: must differ from --token (a viewer may not command the fleet)")
-    keys = fleet_keys(args.keys, "page", args.fleet)
-    session = open_bus(args.zenoh_listen, args.zenoh_connect, f"fleet {args.fleet}", keys)
-    try:
-        server, gate = serve_gated(args.host, args.port, args.token, args.viewer_token)
-        gate.page_kind = "fleet"
-    except OSError as exc:
-        session.close()
-        raise UserError(bind_error(args.host, args.port, exc)) from None
-    recorder = None
-    if args.record is not None:
-        try:
-            recorder = FleetRecorder(args.record)
-        except OSError as exc:
-            gate.close()
-            quietly(server.stop)
-            session.close()
-            raise UserError(f"{args.record}: cannot record: {exc.strerror or exc}") from None
-    sys.setswitchinterval(SWITCH_INTERVAL_S)  # states reach the page's callbacks sooner (app.services.fleet_page)
-    try:
-        sink, fox = serve_fleet(args, recorder)
-    except UserError:
+    plan = FleetPagePlan(args.fleet, tuple(args.zenoh_listen), tuple(args.zenoh_connect),
+                         fleet_keys(args.keys, "page", args.fleet), args.host, args.port, args.token,
+                         args.viewer_token, args.record, foxglove_plan(args))
+    with serve_fleet_page(plan, lambda text, err=False: print(text, flush=True)) as running:
+        gate, recorder = running.gate, running.recorder
+        stop = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+        if not is_loopback(args.host):
+            print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
+                  " token) may see and command the fleet", file=sys.stderr)
+        print(f"omniformation: fleet {args.fleet} at {gate.url}  (Ctrl-C to stop)", flush=True)
+        print(f"omniformation: view only (watch and STOP, nothing else) at {gate.viewer_url}", flush=True)
         if recorder is not None:
-            recorder.close()
-        gate.close()
-        quietly(server.stop)
-        session.close()
-        raise
-    view = FleetView(server, session, args.fleet, sink, allow_viewer=gate.filter.allow_viewer)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    if not is_loopback(args.host):
-        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
-              " token) may see and command the fleet", file=sys.stderr)
-    print(f"omniformation: fleet {args.fleet} at {gate.url}  (Ctrl-C to stop)", flush=True)
-    print(f"omniformation: view only (watch and STOP, nothing else) at {gate.viewer_url}", flush=True)
-    if recorder is not None:
-        print(f"omniformation: recording the fleet to {display_path(recorder.path)}", flush=True)
-    try:
+            print(f"omniformation: recording the fleet to {display_path(recorder.path)}", flush=True)
         stop.wait()
-    finally:
-        view.close()
-        if fox is not None:
-            fox.close()
-        if recorder is not None:
-            recorder.close()
-            print(f"omniformation: fleet recording finished: {display_path(recorder.path)} ({recorder.written}"
-                  " messages)", flush=True)
-        gate.close()
-        quietly(server.stop)
-        session.close()
+    if recorder is not None:
+        print(f"omniformation: fleet recording finished: {display_path(recorder.path)} ({recorder.written}"
+              " messages)", flush=True)
     return 0

@@ -1,19 +1,18 @@
 """`--foxglove [HOST:]PORT` for `run`, `replay` and `fleet`: the session served to Foxglove
-(app.services.foxglove_live; docs/foxglove.md). One place for the flags and their checks, so
+(app.services.foxglove_attach; docs/foxglove.md). One place for the flags and their checks, so
 the three commands refuse alike: a host off this machine without TLS, a certificate that cannot
 be read, a port in use: one line, exit 2."""
 
 from __future__ import annotations
 
 import argparse
-import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.files import UserError
 
 if TYPE_CHECKING:
+    from app.services.foxglove_attach import FoxglovePlan
     from app.services.foxglove_live import FoxgloveLive
 
 
@@ -69,85 +68,31 @@ def check_foxglove_args(args: argparse.Namespace) -> None:
                         " CERT.pem and --foxglove-tls-key KEY.pem (or serve on 127.0.0.1)")
 
 
-def serve_foxglove(args: argparse.Namespace, subscribe: Callable[[Callable[..., None]], None] | None = None,
-                   **kwargs: Any) -> FoxgloveLive | None:
-    """The Foxglove server the flags ask for (None without --foxglove), its ``on_tick`` handed
-    to ``subscribe``; ``kwargs`` go to FoxgloveLive (start_ns, params, time_of)."""
+def foxglove_plan(args: argparse.Namespace) -> FoxglovePlan | None:
+    """The flags, checked (whether or not --foxglove is given: its TLS flags alone are refused), as
+    the services take them (None without --foxglove)."""
+    check_foxglove_args(args)
     if getattr(args, "foxglove", None) is None:
         return None
-    check_foxglove_args(args)
-    from app.services.foxglove_live import FoxgloveLive, FoxgloveRefused
+    from app.services.foxglove_attach import FoxglovePlan
 
     host, port = args.foxglove
-    try:
-        live = FoxgloveLive(host, port, _tls(args), **kwargs)
-    except FoxgloveRefused as exc:
-        raise UserError(str(exc)) from None
-    if subscribe is not None:
-        subscribe(live.on_tick)
-    print(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)", file=sys.stdout, flush=True)
-    return live
+    return FoxglovePlan(host, port, _tls(args))
 
 
-def attach_to_service(args: argparse.Namespace, service: Any, recorder: Any, stack: Any) -> None:
-    """`run --foxglove`: the live service's ticks, parameter sets and step tests served to
-    Foxglove with the recording's clock (its ``start_ns``), closed with the session."""
-    live = serve_foxglove(args, service.loop.subscribe, params=service.store.get(),
-                          start_ns=recorder.start_ns if recorder is not None else None)
-    if live is not None:
-        service.store.subscribe(live.on_params)
-        service.tests.listeners.append(live.on_trial)
-        stack.callback(live.close)
+def say(text: str) -> None:
+    print(text, flush=True)
 
 
 def serve_replay(args: argparse.Namespace, rec: Any) -> FoxgloveLive | None:
-    """`replay --foxglove`: the ticks the replay shows, at the recording's own times (its
-    ``start_ns`` and each tick's session time), so Foxglove's clock is the recording's."""
-    import numpy as np
+    """`replay --foxglove`: the recording's ticks served at their recorded times (app.services.foxglove_attach)."""
+    from app.services.foxglove_attach import serve_replay as serve
 
-    try:
-        start_ns = int(rec.metadata.get("start_ns", "0") or 0)
-    except ValueError:
-        start_ns = 0
-    numbers, times = rec.tick_numbers, rec.t
-
-    def time_of(s: Any) -> float:
-        k = int(np.clip(np.searchsorted(numbers, s.tick), 0, len(times) - 1))
-        return float(times[k])
-
-    params = None
-    if rec.params:
-        from app.recording.reader import params_from_recording
-
-        params = params_from_recording(rec)
-    return serve_foxglove(args, start_ns=start_ns, params=params, time_of=time_of)
-
-
-class _Both:
-    """The fleet page's sink for bus messages: the fleet recording and Foxglove live, either or both."""
-
-    def __init__(self, *sinks: Any) -> None:
-        self.sinks = [s for s in sinks if s is not None]
-
-    def write(self, topic: str, msg: dict[str, Any]) -> None:
-        for s in self.sinks:
-            s.write(topic, msg)
-
-    def status(self) -> str:
-        return "; ".join(s.status() for s in self.sinks)
+    return serve(foxglove_plan(args), rec, say)
 
 
 def serve_fleet(args: argparse.Namespace, recorder: Any) -> tuple[Any, Any]:
     """`fleet --foxglove`: (the sink the fleet page writes to, the Foxglove server or None)."""
-    if getattr(args, "foxglove", None) is None:
-        return recorder, None
-    check_foxglove_args(args)
-    from app.services.foxglove_live import FoxgloveFleet, FoxgloveRefused
+    from app.services.foxglove_attach import serve_fleet as serve
 
-    host, port = args.foxglove
-    try:
-        live = FoxgloveFleet(host, port, _tls(args))
-    except FoxgloveRefused as exc:
-        raise UserError(str(exc)) from None
-    print(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)", flush=True)
-    return _Both(recorder, live), live
+    return serve(foxglove_plan(args), recorder, say)

@@ -3,28 +3,18 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
-from app.cli.args import Parser, bind_error, float_in, int_in, port, seed, token_arg
-from app.files import DEFAULT_CONFIG, UserError, check_new_file, display_path
+from app.cli.args import Parser, float_in, int_in, port, seed, token_arg
+from app.files import DEFAULT_CONFIG, UserError, check_new_file
 from app.params import MAX_FOLLOWERS
 
 if TYPE_CHECKING:
-    import zenoh
-
-    from app.backends.arena import ArenaTeam
-    from app.backends.hardware import HardwareTeam
-    from app.contracts import FollowerLink, FrameSource, Rig
-    from app.fleet.bridge import FleetBridge, Presence
-    from app.live.config import ServiceConfig
-    from app.params import Params
-    from app.recording.writer import Recorder
+    from app.contracts import FollowerLink, Rig
     from app.services.live import Service
-    from core.config import Scenario
+    from app.services.run import FleetPlan, RadioPlan, RunPlan
     from core.fleet import FleetScenario
 
 
@@ -108,82 +98,42 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.set_defaults(func=cmd_run)
 
 
-
-@dataclass
-class _RunPlan:
-    """What the command line and the config ask for, checked before anything opens."""
-
-    config: ServiceConfig
-    scenario: Scenario | None
-    fleet_scenario: FleetScenario | None
-    real: bool  # a real rig: real camera, real robots, no simulator
-    link_port: str  # the followers' serial port ("": none)
-    leader_port: str  # the leader base's ("": none)
-    camera: Rig | None
-    n_followers: int
-
-
-@dataclass
-class _Fleet:
-    """This leader on a fleet's bus: the session, its arena team and liveliness token, and the
-    starting values an arena gives."""
-
-    session: zenoh.Session
-    arena_team: ArenaTeam | None = None
-    token: Any = None
-    params: Params | None = None
-    presence: Presence | None = None  # set when it was on the bus before its loop (waiting for robots)
-    t_start: float = 0.0  # the session time it reached while waiting
+def say(text: str, err: bool = False) -> None:
+    """A line for people: what the service did (stdout) or a warning (stderr)."""
+    print(text, file=sys.stderr if err else sys.stdout, flush=True)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """The live service, in steps: check everything, build the rig, join the fleet, serve and
-    record; every resource is closed on the way out whatever happens (ExitStack), the service
-    first (it zeroes the robots)."""
+    """The live service: check everything into a plan, then the services build, wire and close it
+    (app.services.run); Ctrl-C and SIGTERM ask the loop to stop, which zeroes the robots."""
     import signal
 
-    from app.cli import ros2
-    from app.cli.foxglove_args import attach_to_service, check_foxglove_args
+    from app.services.run import compose
 
     plan = _plan_run(args)
-    check_foxglove_args(args)
-    with contextlib.ExitStack() as stack:
-        handed = stack.enter_context(contextlib.ExitStack())  # closed here until the service owns them
-        frames = _open_camera(args, plan, handed)
-        fleet = _join_fleet(args, plan, stack, handed)
-        node = ros2.open_run_node(args, stack)
-        base = ros2.leader_base(args, node)
-        link, hardware = _build_rig(args, plan, handed, base)
-        service = _serve(args, plan, frames, link, hardware, fleet, base)
-        handed.pop_all()  # the service closes the team, its link and the camera now
-        stack.callback(service.close)
-        recorder = _start_recorder(args, plan, service)
-        if recorder is not None:
-            stack.callback(lambda: print(f"omniformation: {recorder.closing_line()}", flush=True))
-            stack.callback(recorder.close)
-        attach_to_service(args, service, recorder, stack)
-        bridge = _on_the_bus(args, fleet, service, stack) if fleet is not None else None
-        ros2.start_bridge(args, node, service, base, stack)
+    with compose(plan, say) as running:
+        service = running.service
         # Ctrl-C and SIGTERM only ask the loop to stop: a KeyboardInterrupt could land anywhere
         # (even before the first tick ends), and the loop's own exit is what zeroes the robots.
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: service.loop.stop())
-        stack.callback(service.close)  # first on the way out: the loop ends, every follower at zero
         service.start()
-        _say_where(args, plan, service, link)
+        _say_where(args, plan, service, running.link)
         try:
             service.wait()
         except KeyboardInterrupt:
             pass
     print("omniformation: stopped; all followers commanded to zero", flush=True)
-    if bridge is not None and bridge.twin is not None:  # it missed its twin at start and gave way to it
-        raise UserError(bridge.twin)
+    if running.twin is not None:  # it missed its twin at start and gave way to it
+        raise UserError(running.twin)
     return 0
 
 
-def _plan_run(args: argparse.Namespace) -> _RunPlan:
+def _plan_run(args: argparse.Namespace) -> RunPlan:
     """Every check of the command line against the config, before anything is opened."""
-    from app.cli.ros2 import check_run_args
+    from app.cli.foxglove_args import foxglove_plan
+    from app.cli.ros2 import check_run_args, ros2_plan
+    from app.services.run import RunPlan
     from app.files import load_scenario
     from app.live.config import load_service_config
 
@@ -234,7 +184,29 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
     else:
         camera = config.camera() if (args.feedback or config.feedback) == "vision" else None
     n_followers = scenario.n if scenario is not None else args.followers or config.followers
-    return _RunPlan(config, scenario, fleet_scenario, real, link_port, leader_port, camera, n_followers)
+    return RunPlan(config, scenario, fleet_scenario, real, link_port, leader_port, camera, n_followers,
+                   scenario_name=args.scenario, camera_source=args.camera, camera_fps=args.camera_fps,
+                   host=args.host, port=args.port, token=args.token, viewer_token=args.viewer_token,
+                   rate_hz=args.rate, seed=args.seed, recordings=args.recordings, realtime=args.realtime,
+                   loop_process=getattr(args, "loop_process", False), record=not args.no_record,
+                   record_to=args.record, frames_hz=args.frames_hz, radio=_radio_plan(args),
+                   fleet=_fleet_plan(args), ros2=ros2_plan(args), foxglove=foxglove_plan(args))
+
+
+def _radio_plan(args: argparse.Namespace) -> RadioPlan:
+    from app.services.run import RadioPlan
+
+    return RadioPlan(radio_id=args.radio_id, baud=args.baud, key=args.radio_key_bytes, sender=args.radio_sender,
+                     allow_unauthenticated=args.allow_unauthenticated_radio, counter=args.radio_counter)
+
+
+def _fleet_plan(args: argparse.Namespace) -> FleetPlan | None:
+    if args.fleet is None:
+        return None
+    from app.services.run import FleetPlan
+
+    return FleetPlan(args.fleet, args.leader_id, tuple(args.zenoh_listen), tuple(args.zenoh_connect), args.fleet_keys,
+                     args.fleet_control, args.arena, getattr(args, "arena_radio", ""))
 
 
 def _check_radio_key(args: argparse.Namespace, has_link: bool) -> None:
@@ -319,182 +291,7 @@ def _arena_radio(args: argparse.Namespace, number: int) -> str:
     return port
 
 
-def _open_camera(args: argparse.Namespace, plan: _RunPlan, handed: contextlib.ExitStack) -> FrameSource | None:
-    if not plan.real:
-        return None
-    from app.backends.camera import open_frame_source
-
-    try:
-        frames = open_frame_source(args.camera, args.camera_fps,
-                                   settings=plan.camera[0].capture if plan.camera else None)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    handed.callback(frames.close)
-    return frames
-
-
-def _join_fleet(args: argparse.Namespace, plan: _RunPlan, stack: contextlib.ExitStack,
-                handed: contextlib.ExitStack) -> _Fleet | None:
-    """On the bus before anything drives: an id taken, or no arena, ends here."""
-    if args.fleet is None:
-        return None
-    from app.cli.fleet import open_bus
-    from app.fleet.bridge import name_taken
-
-    fleet = _Fleet(open_bus(args.zenoh_listen, args.zenoh_connect, f"--fleet {args.fleet}", args.fleet_keys))
-    stack.callback(fleet.session.close)
-    config, fleet_scenario = plan.config, plan.fleet_scenario
-    if fleet_scenario is not None:
-        from app.backends.arena import ArenaTeam, NoArena
-
-        try:
-            fleet.arena_team = ArenaTeam(fleet.session, args.fleet, args.leader_id,
-                                         config.measurement.position_noise_m, config.measurement.heading_noise_rad,
-                                         config.seed if args.seed is None else args.seed,
-                                         hues_deg=fleet_scenario.hues_deg, rate_hz=fleet_scenario.rate_hz)
-        except NoArena as exc:
-            raise UserError(f"--arena {args.arena}: {exc}") from None
-        handed.callback(fleet.arena_team.close)
-        if args.arena_radio:
-            fleet.arena_team.use_radio(args.arena_radio, args.radio_id, args.baud, **radio_options(args))
-    if name_taken(fleet.session, args.fleet, args.leader_id):
-        raise UserError(f"--leader-id {args.leader_id}: a leader with this id is alive on fleet {args.fleet}"
-                        " already; every leader needs its own id")
-    team = fleet.arena_team
-    if team is not None and fleet_scenario is not None:
-        from app.keys import root
-        from app.params import Params, default_slots
-
-        if not team.owned:  # it comes back after its robots were adopted: alive, empty-handed
-            fleet.token = fleet.session.liveliness().declare_token(f"{root(args.fleet)}/alive/{args.leader_id}")
-            handed.callback(fleet.token.undeclare)
-            from app.fleet.bridge import Presence, WaitingState
-
-            fleet.presence = Presence.new()
-            waiting = WaitingState(fleet.session, args.fleet, args.leader_id, fleet.presence, args.fleet_control)
-            print(f"omniformation: {args.leader_id} owns no robot in the arena now (other leaders adopted"
-                  " them); waiting for the operator to hand one over (the fleet page's Hand over)", flush=True)
-            try:
-                team.wait_for_robots()
-            finally:
-                fleet.t_start = waiting.close()
-        me = fleet_scenario.leaders[fleet_scenario.leader_index(args.leader_id)]
-        n_owned = len(team.owned)
-        slots = default_slots(n_owned) if fleet.token is None else team.slots_for_owned()
-        fleet.params = Params(n_followers=n_owned, slots=slots, leader_mode=me.mode,  # type: ignore[arg-type]
-                              leader_speed_mps=me.speed_mps, leader_turn_deg_s=me.turn_deg_s)
-    return fleet
-
-
-def radio_options(args: argparse.Namespace) -> dict[str, Any]:
-    """What a serial link is given to authenticate its frames (checked by _check_radio_key)."""
-    from app.backends.serial_link import FrameCounter
-
-    return {"radio_key": args.radio_key_bytes, "sender_id": args.radio_sender,
-            "allow_unauthenticated": args.allow_unauthenticated_radio,
-            "counter": FrameCounter(path=args.radio_counter) if args.radio_counter is not None else None}
-
-
-def _build_rig(args: argparse.Namespace, plan: _RunPlan, handed: contextlib.ExitStack,
-               base: FollowerLink | None = None) -> tuple[FollowerLink | None, HardwareTeam | None]:
-    """The followers' link (serial, or the emulator) and, on a real rig, the real team."""
-    from app.backends.serial_link import SerialLink, make_link
-    from core.types import Gains
-
-    limits = plan.scenario.gains if plan.scenario is not None else Gains()
-    link = None
-    if plan.link_port:
-        try:
-            link = make_link(plan.link_port, plan.n_followers, baud=args.baud, v_max=limits.v_max,
-                             w_max=limits.w_max, radio_id=args.radio_id, **radio_options(args))
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-        handed.callback(link.close)
-    hardware = None
-    if plan.real:
-        from app.backends.hardware import HardwareTeam
-
-        leader = SerialLink(plan.leader_port, 1, baud=args.baud, addresses=[0]) if plan.leader_port else base
-        hardware = HardwareTeam(plan.n_followers, link, leader)
-        handed.callback(hardware.close)
-    return link, hardware
-
-
-def _serve(args: argparse.Namespace, plan: _RunPlan, frames: FrameSource | None, link: FollowerLink | None,
-           hardware: HardwareTeam | None, fleet: _Fleet | None, base: FollowerLink | None = None) -> Service:
-    from app.dashboard.gate import is_loopback
-    from app.services.live import Service
-
-    config = plan.config
-    try:
-        service = Service(host=args.host, port=args.port, scenario=plan.scenario,
-                       n_followers=plan.n_followers, rate_hz=args.rate or config.rate_hz,
-                       seed=config.seed if args.seed is None else args.seed, camera=plan.camera,
-                       dynamics=config.dynamics, noise=config.measurement,
-                       link=None if plan.real else link, frames=frames, hardware=hardware,
-                       recordings=args.recordings, token=args.token, viewer_token=args.viewer_token,
-                       arena=fleet.arena_team if fleet else None, params=fleet.params if fleet else None,
-                       realtime=args.realtime, leader_base=None if plan.real else base,
-                       page_process=getattr(args, "loop_process", False))
-    except OSError as exc:
-        raise UserError(bind_error(args.host, args.port, exc)) from None
-    if not is_loopback(args.host):  # after the bind: an address not here is one line, no warning first
-        print(f"omniformation: serving on {args.host}: only browsers that open the URL below (it carries the"
-              " token) may see and command the robots", file=sys.stderr)
-    return service
-
-
-def _start_recorder(args: argparse.Namespace, plan: _RunPlan, service: Service) -> Recorder | None:
-    if args.no_record:
-        return None
-    from app.recording.writer import RecordingRefused
-    from app.services.recording import start_recording
-
-    try:
-        recorder = start_recording(service, plan.config, plan.scenario, args.scenario, plan.camera, args.frames_hz,
-                                   args.record, args.recordings)
-    except (RecordingRefused, OSError) as exc:
-        raise UserError(str(exc) if isinstance(exc, RecordingRefused) else
-                        f"cannot record: {exc.strerror or exc}") from None
-    print(f"omniformation: recording to {display_path(recorder.path)}", flush=True)
-    return recorder
-
-
-def _on_the_bus(args: argparse.Namespace, fleet: _Fleet, service: Service,
-                stack: contextlib.ExitStack) -> FleetBridge:
-    """The bridge (state out, STOP and, if allowed, commands in) and an arena leader's adopter."""
-    import time
-
-    from app.fleet.bridge import FleetBridge
-
-    bridge = FleetBridge(service.store, args.fleet, args.leader_id, allow_control=args.fleet_control,
-                         session=fleet.session, token=fleet.token, on_twin=service.loop.stop,
-                         presence=fleet.presence, t_start=fleet.t_start)
-    stack.callback(bridge.close)
-    service.loop.subscribe(bridge.on_tick)
-    service.dashboard.extra.append(bridge.show_on(service.server))
-    if args.zenoh_connect and not fleet.arena_team:  # an arena leader knows it is connected (it had the truth)
-        deadline = time.monotonic() + 3.0
-        while not bridge.peers() and time.monotonic() < deadline:
-            time.sleep(0.1)
-        if not bridge.peers():
-            print(f"omniformation: fleet bus: no peer answers at {', '.join(args.zenoh_connect)}; retrying in the"
-                  " background (the loop runs; the page says 'fleet: disconnected')", file=sys.stderr, flush=True)
-    if fleet.arena_team is not None:
-        from app.fleet.adopter import Adopter
-
-        adopter = Adopter(fleet.session, args.fleet, args.leader_id, fleet.arena_team, service.store,
-                          event=bridge.event)
-        team = fleet.arena_team
-        bridge.empty = lambda: team.emptied
-        bridge.truths_refused = lambda: team.truths_refused
-        stack.callback(adopter.close)
-    print(f"omniformation: on the fleet bus as {args.fleet}/{args.leader_id}"
-          f" ({'taking commands' if args.fleet_control else 'STOP only'} from it)", flush=True)
-    return bridge
-
-
-def _say_where(args: argparse.Namespace, plan: _RunPlan, service: Service, link: FollowerLink | None) -> None:
+def _say_where(args: argparse.Namespace, plan: RunPlan, service: Service, link: FollowerLink | None) -> None:
     if plan.real:
         source = f"the vision pipeline on camera {args.camera}"
     else:

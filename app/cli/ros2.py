@@ -4,17 +4,15 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from app.cli.args import Parser, float_in, int_in
 from app.files import UserError
 
 if TYPE_CHECKING:
-    from app.backends.ros2 import Ros2Base, Ros2Node
     from app.fleet.security import FleetKeys
-    from app.services.live import Service
+    from app.services.ros2_node import Ros2Plan
 
 DOMAIN_HELP = "the ROS 2 domain (ROS_DOMAIN_ID, 0..232; default 0)"
 
@@ -57,48 +55,25 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     base.set_defaults(func=cmd_emulate_base)
 
 
-def open_node(connect: list[str], keys: FleetKeys | None, domain: int, name: str) -> Ros2Node:
-    """A ROS 2 node on a Zenoh client of the router at ``connect`` (the fleet's endpoint rules);
-    one line (UserError) for a bad endpoint or a router that is not there."""
-    from app.backends.ros2 import Ros2Node
-    from app.ros2.session import open_ros2_session
-
-    try:
-        session = open_ros2_session(connect, keys)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    try:
-        return Ros2Node(session, name, domain)
-    except Exception:
-        session.close()
-        raise
-
-
 def cmd_emulate_base(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from app.ros2.base import EmulatedBase
+    from app.services.ros2_node import run_emulated_base
 
     keys = load_keys(args.keys)
     if keys is not None and not args.zenoh_connect:
         raise UserError("--keys needs --zenoh-connect tls/HOST:PORT: the ROS 2 machines' router")
-    node = open_node(args.zenoh_connect or ["tcp/127.0.0.1:7447"], keys, args.ros2_domain, "omniformation_base")
     done = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: done.set())
-    base = EmulatedBase(node, args.rate, speed_scale=args.speed_scale)
-    base.start()
-    print(f"omniformation: ROS 2 base on domain {args.ros2_domain}: /cmd_vel in, /odom out at {args.rate:g} Hz"
-          " (Ctrl-C to stop)", flush=True)
-    try:
+    with run_emulated_base(args.zenoh_connect or ["tcp/127.0.0.1:7447"], keys, args.ros2_domain, args.rate,
+                           args.speed_scale) as base:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: done.set())
+        print(f"omniformation: ROS 2 base on domain {args.ros2_domain}: /cmd_vel in, /odom out at {args.rate:g} Hz"
+              " (Ctrl-C to stop)", flush=True)
         done.wait(args.seconds)
-    finally:
-        base.close()
-        node.close()
-        node.session.close()
     print(f"omniformation: base stopped after {len(base.commands)} commands"
-          f" ({node.dropped} malformed dropped)", flush=True)
+          f" ({base.node.dropped} malformed dropped)", flush=True)
     return 0
 
 
@@ -140,40 +115,10 @@ def check_run_args(args: argparse.Namespace) -> None:
     args.ros2_keys = load_keys(args.keys) if args.ros2 else None
 
 
-def open_run_node(args: argparse.Namespace, stack: contextlib.ExitStack) -> Ros2Node | None:
-    """The service's node (None without --ros2), closed last on the way out."""
+def ros2_plan(args: argparse.Namespace) -> Ros2Plan | None:
+    """``run --ros2`` as the services take it (checked by check_run_args; None without --ros2)."""
     if not args.ros2:
         return None
-    node = open_node(args.zenoh_connect, args.ros2_keys, args.ros2_domain, "omniformation")
-    stack.callback(node.session.close)
-    stack.callback(node.close)
-    return node
+    from app.services.ros2_node import Ros2Plan
 
-
-def leader_base(args: argparse.Namespace, node: Ros2Node | None) -> Ros2Base | None:
-    """``--leader ros2:TOPIC``: the leader's base on ROS 2 (its odometry on /odom)."""
-    if node is None or args.ros2_leader is None:
-        return None
-    from app.backends.ros2 import Ros2Base, publishers_of
-
-    topic, stamped = args.ros2_leader
-    others = publishers_of(node.session, args.ros2_domain, topic)
-    if others:  # a robot is never commanded by two programs
-        raise UserError(f"--leader {topic}: {', '.join(sorted(set(others)))} publish(es) on {topic} already (domain"
-                        f" {args.ros2_domain}); stop it first, a base takes commands from one program")
-    return Ros2Base(node, topic, stamped)
-
-
-def start_bridge(args: argparse.Namespace, node: Ros2Node | None, service: Service, base: Any,
-                 stack: contextlib.ExitStack) -> None:
-    """The loop's state out on ROS 2 (and STOP and goals in with --ros2-control)."""
-    if node is None:
-        return
-    from app.ros2.bridge import Ros2Bridge
-
-    bridge = Ros2Bridge(node, service.store, args.ros2_control, args.frames_hz,
-                        base_state=(lambda: base.link_state) if base is not None else None)
-    stack.callback(bridge.close)
-    service.loop.subscribe(bridge.on_tick)
-    print(f"omniformation: ROS 2 node /omniformation on domain {args.ros2_domain} via {', '.join(args.zenoh_connect)}"
-          f" ({'taking STOP and goals' if args.ros2_control else 'publishing only'})", flush=True)
+    return Ros2Plan(tuple(args.zenoh_connect), args.ros2_keys, args.ros2_domain, args.ros2_leader, args.ros2_control)

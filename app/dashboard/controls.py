@@ -66,6 +66,7 @@ class Controls:
         self._status_at = -1.0
         self.replay = False
         self._tracked: list[bool] = []  # the last tick's, for the question before releasing STOP
+        self._names: list[str] = []  # the last tick's followers' names (app.keys.follower_name)
 
         self.who: Callable[[int], str] = lambda client_id: f"client {client_id}"  # the gate's: role and address
         self.stopped_by = ""  # who pressed STOP and when (shown on the status)
@@ -223,7 +224,7 @@ class Controls:
                 return
             # a follower the camera does not see gets zero from the controller, but the operator
             # should know before the others move: ask
-            names = ", ".join(f"F{i + 1}" for i in lost)
+            names = ", ".join(self._names[i] if i < len(self._names) else f"F{i + 1}" for i in lost)
             with event.client.gui.add_modal("Release STOP?") as modal:
                 event.client.gui.add_markdown(f"**{names} {'is' if len(lost) == 1 else 'are'} not tracked.** The"
                                               " others will move; the untracked stay at zero until the camera sees"
@@ -331,6 +332,7 @@ class Controls:
 
     def update_status(self, s: TickState) -> None:
         self._tracked = [bool(t) for t in s.tracked]
+        self._names = [s.name(i) for i in range(s.n)]
         if not self.replay:
             self.health.check(s)
             alarms = self.health.alarms
@@ -364,7 +366,7 @@ class Controls:
                                              else f"recording: {as_text(self.recording)}"),
             ("error to the slot (cm, true pose): " if np.all(np.isfinite(s.p_true)) else
              "error to the slot (cm, estimate): " if not np.any(np.isfinite(s.p_true)) else
-             "error to the slot (cm, true pose where known, else estimate): ") + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
+             "error to the slot (cm, true pose where known, else estimate): ") + ", ".join(f"{s.name(i)} {e:.1f}" if np.isfinite(e) else f"{s.name(i)} -" for i, e in enumerate(err)),
             f"safety filter: {s.safety or '-'}"
             + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else "")
             + (f" · obstacle points known {len(s.obstacles)}" if s.obstacles is not None and len(s.obstacles) else ""),

@@ -68,6 +68,7 @@ class Scene:
         self.trails: list[deque[tuple[float, float]]] = []
         self.trail_handles: list[viser.LineSegmentsHandle] = []
         self._n = 0
+        self._names: tuple[str, ...] = ()  # the followers' labels in 3D
         self._slots_key = b""
         self._trail_at = -1.0
         self._dragging = False
@@ -117,7 +118,7 @@ class Scene:
         v, w = (float(x) for x in state.commands[i])
         seen = "tracked" if bool(state.tracked[i]) else "**not tracked**"
         self.controls.selected.content = (
-            f"**F{i + 1}** ({seen}) · estimated, leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
+            f"**{state.name(i)}** ({seen}) · estimated, leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
             f" {math.degrees(a):.0f}° · slot ({pd[0]:+.2f}, {pd[1]:+.2f}) m · error {err:.1f} cm (estimate)"
             + (f", {true_err:.1f} cm (true pose)" if math.isfinite(true_err) else "") + " ·"
             f" command v {v:+.3f} m/s, ω {w:+.2f} rad/s · link: {state.link_state}")
@@ -147,7 +148,7 @@ class Scene:
                 part.on_click(self._selector(i))
             s.add_arrows(f"/followers/{i}/heading", points=np.array([[[0.1, 0, 0.12], [0.35, 0, 0.12]]]), colors=rgb,
                          shaft_radius=0.01, head_radius=0.03, head_length=0.06)
-            s.add_label(f"/followers/{i}/label", f"F{i + 1}", position=(0, 0, 0.3))
+            s.add_label(f"/followers/{i}/label", state.name(i), position=(0, 0, 0.3))
             self.followers.append(f)
             g = s.add_frame(f"/truth/{i}", show_axes=False, visible=self.controls.show_truth.value)
             s.add_box(f"/truth/{i}/body", color=rgb, dimensions=(0.25, 0.15, 0.10), position=(0, 0, 0.05),
@@ -176,8 +177,10 @@ class Scene:
 
     def update(self, state: TickState) -> None:
         n = state.n
-        if n != self._n or len(self.slot_handles) != state.slot_targets.shape[0]:
+        names = tuple(state.name(i) for i in range(n))  # an arena robot's R id with its slot here
+        if n != self._n or len(self.slot_handles) != state.slot_targets.shape[0] or names != self._names:
             self._rebuild(n, state)
+            self._names = names
         lx, ly, lth = state.leader
         self.leader.position = (float(lx), float(ly), 0.0)
         self.leader.wxyz = yaw_wxyz(float(lth) - math.pi / 2)

@@ -24,7 +24,7 @@ from core.types import FloatArray
 
 from app import wire
 from app.backends.arena import ArenaTeam
-from app.keys import robot_index, robot_name, root
+from app.keys import follower_name, robot_index, robot_name, root
 from app.params import ParamsStore
 
 log = logging.getLogger(__name__)
@@ -197,7 +197,7 @@ class Adopter:
         self.store.fixed_followers = n
         self.store.update(f"fleet:{how} {robot_name(r)}", n_followers=n, slots=np.vstack([slots, new_slot]),
                           reset_requests=current.reset_requests + rebuild)
-        self.event(how, f"{robot_name(r)}: now follower {n} of {self.leader_id}")
+        self.event(how, f"{follower_name(n - 1, tuple(self.team.owned))}: now follower {n} of {self.leader_id}")
         log.info("%s %s (team of %d)", how, robot_name(r), n)
 
     def _release(self, r: int, truth: dict[str, Any], to: str | None) -> None:

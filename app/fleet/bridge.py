@@ -37,7 +37,7 @@ import numpy as np
 
 from app import wire
 
-from app.keys import root
+from app.keys import robot_index, robot_name, root
 from app.params import Params, ParamsStore, params_events
 from core.bounds import BUS, settable_by
 from core.types import Gains
@@ -223,6 +223,9 @@ def read_state(msg: Any) -> dict[str, Any]:
             raise wire.BadMessage(f"{name} must be true or false")
     for name in ("phase", "takes", "link_state", "leader_id", "instance"):
         wire.text(state.get(name, ""), name, 1000)
+    robots = state.get("robots", [])
+    if not isinstance(robots, list) or not all(robot_index(r, 1_000_000) is not None for r in robots):
+        raise wire.BadMessage("robots must be a list of robot names (R1, R2, ...)")
     for name in ("gains", "refused"):
         table = state.get(name, {})
         if not isinstance(table, dict):
@@ -256,6 +259,7 @@ def state_payload(s: TickState, leader_id: str, takes: str = "stop") -> dict[str
         "p_true": _num(s.p_true),
         "commands": _num(s.commands), "gains": s.gains.as_dict(), "stopped": bool(s.stopped), "phase": s.phase,
         "link_state": s.link_state, "rate_hz": _num(s.rate_hz), "takes": takes,
+        **({"robots": [robot_name(r) for r in s.robots]} if s.robots is not None and len(s.robots) == s.n else {}),
     }
 
 

@@ -40,6 +40,7 @@ from app.backends.world import Backends
 from app.realtime import SWITCH_INTERVAL_S, make_realtime, scheduling
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
 from app.params import Params, ParamsStore
+from app.keys import follower_name
 from app.tick import TickState
 
 log = logging.getLogger(__name__)
@@ -82,16 +83,17 @@ class _World:
     v_hist: deque[tuple[float, FloatArray]] = field(default_factory=deque)  # (t, V (n,)) over RATE_WINDOW_S
 
 
-def safety_text(result: SafetyResult | None, on: bool) -> str:
-    """The filter's state for people: what it changed this tick, and by how much."""
+def safety_text(result: SafetyResult | None, on: bool, name: Callable[[int], str] = follower_name) -> str:
+    """The filter's state for people: what it changed this tick, and by how much (``name``: a
+    follower's name, app.keys.follower_name)."""
     if not on:
         return "off"
     if result is None or result.status == "inactive":
         return "on, inactive"
     if result.status == "filtered":
-        moved = [f"F{i + 1} {result.changed[i]:.2f} m/s" for i in np.nonzero(result.active)[0]]
+        moved = [f"{name(int(i))} {result.changed[i]:.2f} m/s" for i in np.nonzero(result.active)[0]]
         return "on, changed " + (", ".join(moved) if moved else "no command noticeably")
-    stopped = ", ".join(f"F{i + 1}" for i in np.nonzero(result.active)[0])
+    stopped = ", ".join(name(int(i)) for i in np.nonzero(result.active)[0])
     return f"on, {result.status}: {stopped or 'nobody'} stopped ({result.message})"
 
 
@@ -267,6 +269,16 @@ class ServiceLoop:
             return twist, "command (no fresh odometry)"
         return measured, "odometry"
 
+    def _robots(self) -> tuple[int, ...] | None:
+        """An arena leader's: the fleet's robot index of each follower it drives (None elsewhere)."""
+        arena = self.backends.arena
+        return tuple(arena.active) if arena is not None else None
+
+    def _name(self, i: int) -> str:
+        """Follower ``i``'s one name for people (app.keys.follower_name: "R3 (F1)" in an arena)."""
+        robots = self._robots()
+        return follower_name(i, robots if robots is not None and i < len(robots) else None)
+
     def _leader_waits(self, params: Params, tracked: np.ndarray) -> str:
         """Why the leader stands still this tick ('' when it may drive): STOP, or a release that waits
         until every follower is tracked again (``Params.leader_hold``; the loop clears it then)."""
@@ -282,7 +294,7 @@ class ServiceLoop:
             # the parameters (decided on what is in force now, in one step: never half undo a STOP)
             self.store.change("loop", lambda now: {"leader_hold": False} if now.leader_hold and not now.stop else {})
             return ""
-        return "waiting for " + ", ".join(f"F{i + 1}" for i in lost) + " to be tracked"
+        return "waiting for " + ", ".join(self._name(int(i)) for i in lost) + " to be tracked"
 
     # -- one tick -------------------------------------------------------------------------
     def tick(self) -> TickState:
@@ -366,7 +378,7 @@ class ServiceLoop:
             rate_hz=self.achieved_rate_hz, stage_ms=stage, phase=obs.phase, probing=obs.probing,
             a_raw=obs.a_raw, frame=obs.frame, windows=obs.windows, hues_deg=obs.hues_deg,
             link_detail=world.team.link_detail(), fault=self.fault, camera_state=obs.camera_state,
-            safety=safety_text(safety, params.safety), safety_changed=None if safety is None else safety.changed,
+            safety=safety_text(safety, params.safety, self._name), safety_changed=None if safety is None else safety.changed,
             min_distance_m=(safety.min_distance_m if safety is not None  # the filter measured it already
                             else team_min_distance(p[tracked]) if tracked.any() else float("nan")),
             safety_active=None if safety is None else safety.active, obstacles=known, scan=obs.scan,
@@ -374,7 +386,7 @@ class ServiceLoop:
             heading=self._nav_out.heading if self._nav_out is not None else float("nan"),
             formation_scale=self._nav[1], goal_reached=self._nav_out is not None and self._nav_out.reached,
             limits=flags, v_rate=v_rate, leader_waits=waiting, latency_ms=(sent_at - obs.observed_at) * 1e3,
-            fresh=fresh,
+            fresh=fresh, robots=self._robots(),
         )
         if advance:
             world.team.advance(twist, self.dt, self.t)

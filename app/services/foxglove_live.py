@@ -120,7 +120,7 @@ def scene_update(s: TickState, ns: int) -> SceneUpdate:
             arrows=[ArrowPrimitive(pose=_pose(x + 0.1 * math.cos(a), y + 0.1 * math.sin(a), 0.12, a), shaft_length=0.19,
                                    shaft_diameter=0.02, head_length=0.06, head_diameter=0.06, color=_rgba(rgb))],
             texts=[TextPrimitive(pose=_pose(x, y, 0.3), billboard=True, font_size=14.0, scale_invariant=True,
-                                 color=_rgba(rgb), text=f"F{i + 1}")]))
+                                 color=_rgba(rgb), text=s.name(i))]))
     slots = np.asarray(s.slot_targets, dtype=np.float64).reshape(-1, 2)
     entities.append(entity("slots", spheres=[SpherePrimitive(pose=_pose(float(x), float(y), SLOT_Z_M),
                                                              size=Vector3(x=0.08, y=0.08, z=0.08), color=_rgba(SLOT_RED))

@@ -59,6 +59,19 @@ def test_the_loop_builds_no_backend_itself():
         assert made_elsewhere not in text, made_elsewhere
 
 
+def test_the_command_line_builds_no_part_itself():
+    """app/cli/*.py parses and checks arguments, prints and calls services: it opens no bus, page,
+    link, recorder, bridge or node itself (the composition roots are app/services'; the bench_*
+    modules and bench/ measure the parts one by one and are left out)."""
+    parts = re.compile(r"\b(Service|FleetBridge|Adopter|ArenaTeam|Arena|FleetView|FleetRecorder|Recorder|Ros2Bridge"
+                       r"|Ros2Node|Ros2Base|EmulatedBase|FoxgloveLive|FoxgloveFleet|HardwareTeam|SerialLink)\(|"
+                       r"\b(open_session|open_bus|serve_gated|make_link|open_ros2_session)\(")
+    built = [f"{f.relative_to(ROOT)}:{k + 1}" for f in sorted((ROOT / "app" / "cli").glob("*.py"))
+             if not f.name.startswith("bench")
+             for k, line in enumerate(f.read_text(encoding="utf-8").splitlines()) if parts.search(line.split("#")[0])]
+    assert not built, built
+
+
 def test_the_modules_beside_the_contracts_import_no_folder():
     for name in ("contracts", "params", "tick", "keys", "files", "memory", "wire", "figures"):
         imported = _app_imports(ROOT / "app" / f"{name}.py")

@@ -17,7 +17,7 @@ from app.dashboard.controls import Controls
 from app.dashboard.gate import quietly
 from app.fleet.bridge import SETTABLE
 from app.params import Params, ParamsStore
-from app.services.fleet_page import LeaderPanel
+from app.dashboard.fleet_view import LeaderPanel
 from core.bounds import BUS, OPERATOR, PARAMETERS, ROS, SCENARIO, VIEWER, markdown_table, settable_by
 from core.control.safety import SafetySettings
 from core.types import Gains

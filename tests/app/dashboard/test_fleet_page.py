@@ -18,8 +18,10 @@ from app.fleet.adopter import Adopter
 from app.fleet.bridge import FleetBridge, loopback_endpoint, open_session
 from app.services.fleet_page import FleetView
 from app.recording.fleet import FleetRecorder
+from app.dashboard import Dashboard
 from app.live.loop import ServiceLoop
 from app.params import Params, ParamsStore, default_slots
+from app.tick import LatestStatePublisher
 
 from tests.helpers import ARTIFACTS, chromium_browser, control_id, new_page, settle, wait_for
 
@@ -30,7 +32,8 @@ pytest.importorskip("zenoh")
 class Leader:
     """A leader as `run --arena` makes one, without its own page: loop, arena team, bridge."""
 
-    def __init__(self, endpoint: str, fleet: str, leader_id: str, allow_control: bool) -> None:
+    def __init__(self, endpoint: str, fleet: str, leader_id: str, allow_control: bool, page: bool = False) -> None:
+        """``page``: with its own page too (the operator's dashboard, drawn from its loop)."""
         self.session = open_session([], [endpoint])
         self.team = ArenaTeam(self.session, fleet, leader_id, 0.003, 0.01, seed=1)
         n = len(self.team.owned)
@@ -40,12 +43,21 @@ class Leader:
         self.bridge = FleetBridge(self.store, fleet, leader_id, allow_control=allow_control, session=self.session)
         self.loop.subscribe(self.bridge.on_tick)
         self.adopter = Adopter(self.session, fleet, leader_id, self.team, self.store, event=self.bridge.event)
+        self.server = self.gate = self.publisher = None
+        if page:
+            self.server, self.gate = serve_gated("127.0.0.1", 0)
+            self.publisher = LatestStatePublisher(Dashboard(self.server, self.store).publish)
+            self.loop.subscribe(self.publisher)
         self.thread = threading.Thread(target=self.loop.run, daemon=True)
         self.thread.start()
 
     def close(self) -> None:
         self.loop.stop()
         self.thread.join(10)
+        if self.publisher is not None:
+            self.publisher.close()
+            self.gate.close()
+            quietly(self.server.stop)
         self.adopter.close()
         self.bridge.close()
         self.session.close()
@@ -62,7 +74,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
     leaders: list[Leader] = []
     page_session = server = gate = view = recorder = None
     try:
-        leaders = [Leader(endpoint, "three_teams", "L1", True), Leader(endpoint, "three_teams", "L2", False)]
+        leaders = [Leader(endpoint, "three_teams", "L1", True, page=True), Leader(endpoint, "three_teams", "L2", False)]
         page_session = open_session([], [endpoint])
         server, gate = serve_gated("127.0.0.1", 0)
         gate.page_kind = "fleet"
@@ -89,10 +101,12 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             bar = page.locator("#omni-stopstate")
             wait_for(lambda: "L1 STOPPED" in bar.inner_text() and "L2 STOPPED" in bar.inner_text(), 30, "the bar's leaders")
             wait_for(lambda: page.get_by_role("button", name="STOP L1", exact=True).is_disabled(), 30, "STOP L1 disabled")
-            if "L3" in view.panels:
-                assert "L3 not on the bus" in bar.inner_text(), bar.inner_text()
-                assert page.get_by_role("button", name="STOP L3", exact=True).is_disabled()
-                assert all(h.disabled for h in (*view.panels["L3"].controls, view.panels["L3"].release))
+            assert "L3" in view.panels  # the arena's truth names it: it has a panel, every control disabled
+            assert "L3 not on the bus" in bar.inner_text(), bar.inner_text()
+            assert page.get_by_role("button", name="STOP L3", exact=True).is_disabled()
+            assert all(h.disabled for h in (*view.panels["L3"].controls, view.panels["L3"].release))
+            assert page.locator(f'[id="{control_id(page, "L3 leader mode")}"]').first.is_disabled()  # in the browser too
+            assert page.get_by_role("button", name="Release STOP L3", exact=True).is_disabled()
 
             # L1 takes the page's commands; L2's operator did not allow it (STOP only): its controls and
             # Release are disabled, and say why; a release sent on the bus anyway is refused, and said so
@@ -138,7 +152,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             assert replies and not replies[0]["granted"] and "X9 is not alive" in replies[0]["why"], replies
             squatter.undeclare()
             # what the arena refused is on the page, by kind
-            from app.services.fleet_page import refused_text
+            from app.dashboard.fleet_view import refused_text
 
             said = refused_text(arena.refused())
             assert "1 conflicts" in said and "2 claims" in said and "malformed" in said, said
@@ -155,6 +169,26 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             assert arena.owners[6] == "L1"
             wait_for(lambda: l1.team.owned == [0, 1, 2, 6] and l1.store.get().n_followers == 4, 30, "R7 in L1's team")
             wait_for(lambda: l1.loop.last is not None and l1.loop.last.n == 4, 30, "L1's loop driving four")
+            # one name per robot, the fleet's: R7 is L1's fourth follower, "R7 (F4)" on L1's own page and in
+            # L1's panel here, and its label in the fleet page's 3D view says who holds it, "R7 · L1 F4"
+            page.get_by_text("robots R1 (F1), R2 (F2), R3 (F3), R7 (F4)", exact=False).first.wait_for(timeout=30_000)
+            wait_for(lambda: view.page.labels.get(6, (None, ""))[1] == "R7 · L1 F4", 30, "R7's label in 3D")
+            assert view.page.labels[0][1] == "R1 · L1 F1" and view.page.labels[3][1] == "R4 · L2 F1"
+            assert view.page.labels[8][1] == "R9"  # L3's, never driven: held by no leader here
+            own = new_page(browser, 1500, 1000)
+            own.goto(l1.gate.url)
+            own.get_by_text("R7 (F4)", exact=False).first.wait_for(timeout=60_000)  # the status's errors
+            own.close()
+            # a leader that goes quiet (its loop ends, its token stays): its robots' own watchdogs stop them,
+            # and the page says so in words, with the count of stops it saw
+            l2.loop.stop()
+            l2.thread.join(10)
+            wait_for(lambda: view.watchdog_stops >= 3, 30, "L2's three robots stopped by their watchdogs")
+            page.get_by_text("stopped by their watchdog now (their leader went quiet): R4, R5, R6",
+                             exact=False).first.wait_for(timeout=30_000)
+            seen = view.watchdog_stops
+            assert seen <= arena.counts.watchdog_stops, (seen, arena.counts.watchdog_stops)
+            page.get_by_text(f"{seen} watchdog stops since this page started", exact=False).first.wait_for(timeout=30_000)
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "fleet_page.png"))
     finally:

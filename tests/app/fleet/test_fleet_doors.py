@@ -315,3 +315,27 @@ def test_the_page_certificate_sends_commands_and_handovers_and_speaks_for_no_one
         for s in sessions:
             s.close()
         interrupt(arena)
+
+
+def test_a_state_s_robots_are_robot_names_or_the_state_is_refused():
+    """docs/fleet-protocol.md, "state": ``robots`` (an arena leader's) is a list of robot names
+    R1, R2, ... in the followers' order; anything else is refused like any broken state."""
+    from app import wire
+    from app.fleet.bridge import read_state
+
+    base = {"p_est": [[0.1, 0.2], [0.3, 0.4]], "tracked": [True, True]}
+    assert read_state(dict(base, robots=["R3", "R7"]))["robots"] == ["R3", "R7"]
+    assert "robots" not in read_state(dict(base))  # a leader of no arena says nothing of it
+    for bad in ("R3", [3, 7], ["R3", "X7"], ["R0"], ["R-1"], [["R3"]], ["r3"], [None], ["R3 "], {"R3": 0}):
+        with pytest.raises(wire.BadMessage, match="robots must be a list of robot names"):
+            read_state(dict(base, robots=bad))
+
+
+def test_a_robot_has_one_name_the_fleet_s_with_its_leader_s_slot():
+    """docs/page-access.md, "One name per robot": R3 (F1) on its leader's page, R3 · L1 F1 on the
+    fleet page, F1 for a team of no arena."""
+    from app.keys import follower_name, held_name
+
+    assert [follower_name(i, (2, 6)) for i in range(2)] == ["R3 (F1)", "R7 (F2)"]
+    assert follower_name(0) == "F1" and follower_name(2, (2, 6)) == "F3"
+    assert held_name(2, "L1", 0) == "R3 · L1 F1"

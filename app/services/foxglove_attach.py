@@ -1,0 +1,109 @@
+"""A session served to Foxglove (app.services.foxglove_live; docs/foxglove.md), attached to what
+shows it: the live service, a replay, or the fleet page. The command line checks the flags
+(app.cli.foxglove_args) and hands over a :class:`FoxglovePlan`."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from app.files import UserError
+
+if TYPE_CHECKING:
+    from app.services.foxglove_live import FoxgloveLive
+
+Say = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class FoxglovePlan:
+    """Where to serve (host, port; 0 = any free port) and the TLS certificate and key (PEM) or None."""
+
+    host: str
+    port: int
+    tls: tuple[bytes, bytes] | None = None
+
+
+def serve_foxglove(plan: FoxglovePlan | None, say: Say, subscribe: Callable[[Callable[..., None]], None] | None = None,
+                   **kwargs: Any) -> FoxgloveLive | None:
+    """The Foxglove server the plan asks for (None without one), its ``on_tick`` handed to
+    ``subscribe``; ``kwargs`` go to FoxgloveLive (start_ns, params, time_of)."""
+    if plan is None:
+        return None
+    from app.services.foxglove_live import FoxgloveLive, FoxgloveRefused
+
+    try:
+        live = FoxgloveLive(plan.host, plan.port, plan.tls, **kwargs)
+    except FoxgloveRefused as exc:
+        raise UserError(str(exc)) from None
+    if subscribe is not None:
+        subscribe(live.on_tick)
+    say(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)")
+    return live
+
+
+def attach_to_service(plan: FoxglovePlan | None, service: Any, recorder: Any, stack: contextlib.ExitStack,
+                      say: Say) -> None:
+    """`run --foxglove`: the live service's ticks, parameter sets and step tests served to
+    Foxglove with the recording's clock (its ``start_ns``), closed with the session."""
+    live = serve_foxglove(plan, say, service.loop.subscribe, params=service.store.get(),
+                          start_ns=recorder.start_ns if recorder is not None else None)
+    if live is not None:
+        service.store.subscribe(live.on_params)
+        service.tests.listeners.append(live.on_trial)
+        stack.callback(live.close)
+
+
+def serve_replay(plan: FoxglovePlan | None, rec: Any, say: Say) -> FoxgloveLive | None:
+    """`replay --foxglove`: the ticks the replay shows, at the recording's own times (its
+    ``start_ns`` and each tick's session time), so Foxglove's clock is the recording's."""
+    if plan is None:
+        return None
+    import numpy as np
+
+    try:
+        start_ns = int(rec.metadata.get("start_ns", "0") or 0)
+    except ValueError:
+        start_ns = 0
+    numbers, times = rec.tick_numbers, rec.t
+
+    def time_of(s: Any) -> float:
+        k = int(np.clip(np.searchsorted(numbers, s.tick), 0, len(times) - 1))
+        return float(times[k])
+
+    params = None
+    if rec.params:
+        from app.recording.reader import params_from_recording
+
+        params = params_from_recording(rec)
+    return serve_foxglove(plan, say, start_ns=start_ns, params=params, time_of=time_of)
+
+
+class _Both:
+    """The fleet page's sink for bus messages: the fleet recording and Foxglove live, either or both."""
+
+    def __init__(self, *sinks: Any) -> None:
+        self.sinks = [s for s in sinks if s is not None]
+
+    def write(self, topic: str, msg: dict[str, Any]) -> None:
+        for s in self.sinks:
+            s.write(topic, msg)
+
+    def status(self) -> str:
+        return "; ".join(s.status() for s in self.sinks)
+
+
+def serve_fleet(plan: FoxglovePlan | None, recorder: Any, say: Say) -> tuple[Any, Any]:
+    """`fleet --foxglove`: (the sink the fleet page writes to, the Foxglove server or None)."""
+    if plan is None:
+        return recorder, None
+    from app.services.foxglove_live import FoxgloveFleet, FoxgloveRefused
+
+    try:
+        live = FoxgloveFleet(plan.host, plan.port, plan.tls)
+    except FoxgloveRefused as exc:
+        raise UserError(str(exc)) from None
+    say(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)")
+    return _Both(recorder, live), live
