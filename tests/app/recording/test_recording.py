@@ -162,11 +162,12 @@ def _killed_at(tmp_path: Path, feedback: str, seconds: float) -> tuple[float, fl
 @pytest.mark.slow
 @pytest.mark.parametrize("feedback", ["truth", "vision"])
 def test_a_session_killed_at_any_moment_keeps_all_but_its_last_second_and_a_half(tmp_path, feedback):
-    """SIGKILL at 2, 5, 7 and 11 s of session: the file holds every tick up to at most 1.5 s
-    before the last one the loop ran (every chunk is flushed to the OS as it closes, at 1 s)."""
+    """SIGKILL at 2.3, 3.6, 4.9 and 6.2 s of session (0.3, 0.6, 0.9 and 0.2 s into a 1 s chunk:
+    the kill lands anywhere in one): the file holds every tick up to at most 1.5 s before the last
+    one the loop ran (every chunk is flushed to the OS as it closes, at 1 s)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    times = (2.0, 5.0, 7.0, 11.0)
+    times = (2.3, 3.6, 4.9, 6.2)
     with ThreadPoolExecutor(len(times)) as pool:  # four services at once: each is judged by its own session time
         results = list(pool.map(lambda sec: _killed_at(tmp_path, feedback, sec), times))
     for ran, kept in results:
