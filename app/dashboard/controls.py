@@ -344,8 +344,6 @@ class Controls:
             return                                                 # exactly the tick it jumped to
         self._status_at = now
         stages = " · ".join(f"{k.split(':')[0]} {v:.2f}" for k, v in s.stage_ms.items() if not k.startswith("publish"))
-        pose = np.where(np.isfinite(s.p_true), s.p_true, s.p_est)  # real robots: the estimate is all we have
-        err = np.linalg.norm(pose - s.p_d, axis=1) * 100
         lines = [
             (f"**recorded{' (STOPPED)' if s.stopped else ''}** · t = {s.t:.1f} s · loop was {s.rate_hz:.1f} Hz"
              if self.replay else
@@ -362,9 +360,7 @@ class Controls:
              f"start-up ({s.phase}): {int(np.sum(s.tracked))}/{s.n} followers found so far")
             + f" · link: {s.link_state} · " + (f"replaying {as_text(self.recording)}" if self.replay
                                              else f"recording: {as_text(self.recording)}"),
-            ("error to the slot (cm, true pose): " if np.all(np.isfinite(s.p_true)) else
-             "error to the slot (cm, estimate): " if not np.any(np.isfinite(s.p_true)) else
-             "error to the slot (cm, true pose where known, else estimate): ") + ", ".join(f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)),
+            error_line(s),
             f"safety filter: {s.safety or '-'}"
             + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else "")
             + (f" · obstacle points known {len(s.obstacles)}" if s.obstacles is not None and len(s.obstacles) else ""),
@@ -392,6 +388,20 @@ LAYER_KEY = ("<small>**3D key** · dark box, coloured marker: a follower where t
              " (drag a dot to move the slot; shift-click the floor sets a goal) · coloured lines: trails ·"
              " orange points: obstacles as the leader knows them · blue rings: the camera's working area ·"
              " red ring round a follower: the safety filter holding its command back · green pole: the goal</small>")
+
+
+def error_line(s: TickState) -> str:
+    """Each follower's distance to its slot in cm, named for what it is: the true error (the
+    simulator's true pose) where there is one, else the estimated error (the estimate)."""
+    true = np.all(np.isfinite(s.p_true), axis=1)
+    pose = np.where(true[:, None], s.p_true, s.p_est)  # real robots: the estimate is all we have
+    err = np.linalg.norm(pose - s.p_d, axis=1) * 100
+    figures = [f"F{i + 1} {e:.1f}" if np.isfinite(e) else f"F{i + 1} -" for i, e in enumerate(err)]
+    if true.all():
+        return "true error to the slot (cm): " + ", ".join(figures)
+    if not true.any():
+        return "estimated error to the slot (cm): " + ", ".join(figures)
+    return "error to the slot (cm): " + ", ".join(f"{f} ({'true' if t else 'estimated'})" for f, t in zip(figures, true))
 
 
 def _phase_text(s: TickState) -> str:

@@ -117,10 +117,10 @@ class Scene:
         v, w = (float(x) for x in state.commands[i])
         seen = "tracked" if bool(state.tracked[i]) else "**not tracked**"
         self.controls.selected.content = (
-            f"**F{i + 1}** ({seen}) · estimated, leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
-            f" {math.degrees(a):.0f}° · slot ({pd[0]:+.2f}, {pd[1]:+.2f}) m · error {err:.1f} cm (estimate)"
-            + (f", {true_err:.1f} cm (true pose)" if math.isfinite(true_err) else "") + " ·"
-            f" command v {v:+.3f} m/s, ω {w:+.2f} rad/s · link: {state.link_state}")
+            f"**F{i + 1}** ({seen}) · estimated pose, leader frame: x {p[0] * 100:+.1f} cm, y {p[1] * 100:+.1f} cm,"
+            f" heading {math.degrees(a):.0f}° · slot ({pd[0] * 100:+.1f}, {pd[1] * 100:+.1f}) cm ·"
+            f" estimated error {err:.1f} cm" + (f" · true error {true_err:.1f} cm" if math.isfinite(true_err) else "")
+            + f" · command v {v:+.3f} m/s, ω {w:+.2f} rad/s · link: {state.link_state}")
 
     def _ask_reset(self) -> None:
         self._reset_asked = True  # the next update places the cameras (on the page's thread)
