@@ -24,7 +24,7 @@ from app.params import ParamsStore
 
 
 __all__ = ["Dashboard", "LatestStatePublisher"]  # the publisher lives beside TickState (app.tick)
-LIGHT_SCENE_S = 0.2  # light mode: the 3D view (and the camera) at most this often
+LIGHT_SCENE_S = 1.0  # light mode: the 3D view (and the camera) at most this often (README, "Light mode")
 LIGHT_PLOTS_S = 2.0  # and the charts
 
 
@@ -54,7 +54,7 @@ class Dashboard:
     def _draw(self, state: TickState) -> None:
         now = time.monotonic()
         light = bool(self.controls.light.value)  # a slow browser asked for less (page.js turns it on)
-        scene = not light or now - self._scene_at >= LIGHT_SCENE_S or self.controls.replay
+        scene = not light or now - self._scene_at >= LIGHT_SCENE_S or self.controls.replay or self.scene.asked
         if scene:
             self._scene_at = now
         with self.server.atomic():

@@ -64,6 +64,7 @@ class Controls:
         self.notice = ""
         self.recording = "off"  # what the status says about recording (set by the service)
         self._status_at = -1.0
+        self._status_state: tuple[bool, bool] | None = None
         self.replay = False
         self._tracked: list[bool] = []  # the last tick's, for the question before releasing STOP
 
@@ -74,9 +75,12 @@ class Controls:
                                                                     " Space, or Escape when no menu is open)."
                                                                     " The loop keeps observing.")
         self.release_button = gui.add_button("Release STOP", color="gray", disabled=True)
+        # the card of the robot clicked in the 3D view (or named here): beside the view, right under STOP,
+        # so it is in view at once (under the status and the camera it was below a 720-pixel window)
+        self.robots = gui.add_button_group("Robot card", options=("F1",),
+                                           hint="a robot's figures (or click the robot in the 3D view)")
+        self.selected = gui.add_markdown(CARD_HINT)
         self.status = gui.add_markdown("starting ...")
-        # the card of the robot clicked in the 3D view: beside the view, under the status (not in a folder)
-        self.selected = gui.add_markdown("<small>click a robot in the 3D view to see its figures</small>")
         self.alarm = gui.add_markdown("", visible=False)
         self.acknowledge = gui.add_button("Acknowledge alarms", color="orange", visible=False,
                                           hint="the alarms above were seen; the banner clears until the next")
@@ -134,9 +138,10 @@ class Controls:
                                                hint="simulation: the true pose as a wireframe beside the estimate")
             self.layers = {name: gui.add_checkbox(name, initial_value=True) for name in LAYERS}
             self.light = gui.add_checkbox("Light mode", initial_value=False,
-                                          hint="for a browser that draws slowly (no GPU): the 3D view at 5 updates a"
-                                               " second, trails once a second, charts every 2 s; a page whose browser"
-                                               " is busy over half of each second turns it on by itself")
+                                          hint="for a browser that draws slowly (no GPU): the 3D view, its trails and"
+                                               " the camera once a second (at once after a click), charts every 2 s;"
+                                               " a page whose browser is busy over half of each second turns it on"
+                                               " by itself")
             gui.add_markdown(LAYER_KEY)
         self._build_slot_inputs(p)
         self._wire()
@@ -340,9 +345,10 @@ class Controls:
             if bool(alarms) != self.alarm.visible:
                 self.alarm.visible = self.acknowledge.visible = bool(alarms)
         now = time.monotonic()
-        if now - self._status_at < STATUS_S and not self.replay:  # live: 5 Hz is plenty; a replay shows
-            return                                                 # exactly the tick it jumped to
-        self._status_at = now
+        state = (s.stopped, s.paused)  # STOPPED, running, PAUSED: shown on the tick it happens, never later
+        if now - self._status_at < STATUS_S and not self.replay and state == self._status_state:
+            return  # live: 5 Hz is plenty; a replay shows exactly the tick it jumped to
+        self._status_at, self._status_state = now, state
         stages = " · ".join(f"{k.split(':')[0]} {v:.2f}" for k, v in s.stage_ms.items() if not k.startswith("publish"))
         lines = [
             (f"**recorded{' (STOPPED)' if s.stopped else ''}** · t = {s.t:.1f} s · loop was {s.rate_hz:.1f} Hz"
@@ -381,6 +387,7 @@ class Controls:
         self.status.content = "  \n".join(lines)
 
 
+CARD_HINT = "<small>click a robot in the 3D view, or its name above, to see its figures</small>"
 CAMERA_VIEWS = ("behind the leader", "above the leader", "free")
 LAYERS = ("Formation and slots", "Trails", "Obstacles as known", "Working-area rings", "Safety rings")
 LAYER_KEY = ("<small>**3D key** · dark box, coloured marker: a follower where the camera sees it (F1, F2, …) ·"
