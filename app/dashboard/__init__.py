@@ -46,6 +46,7 @@ class Dashboard:
         self.extra: list[Callable[[], None]] = []  # other panels' redraws (the calibration preview), ~4 a second
         self._extra_at = 0.0
         self._scene_at = 0.0
+        self._shadows_off = False
 
     def publish(self, state: TickState) -> bool:
         """Draw ``state``, on viser's own thread (widgets.on_page_thread); whether it was drawn."""
@@ -54,6 +55,9 @@ class Dashboard:
     def _draw(self, state: TickState) -> None:
         now = time.monotonic()
         light = bool(self.controls.light.value)  # a slow browser asked for less (page.js turns it on)
+        if light != self._shadows_off:  # light mode: no shadows (a software frame took 13 times as long with them)
+            self._shadows_off = light
+            self.server.scene.configure_default_lights(enabled=True, cast_shadow=not light)
         scene = not light or now - self._scene_at >= LIGHT_SCENE_S or self.controls.replay or self.scene.asked
         if scene:
             self._scene_at = now

@@ -12,7 +12,7 @@ from app.tick import TickState
 from app.services.live import Service
 
 from tests.helpers import ARTIFACTS, new_page
-from tests.helpers import chromium_browser, control_id, keep_ticks, settle, wait_for
+from tests.helpers import chromium_browser, control_id, keep_ticks, settle, start_timer, timed_ms, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 
@@ -291,3 +291,26 @@ def test_wide_panel_enlarges_the_charts_and_the_camera(page, service):
     page.locator("#omni-wide").click(timeout=60_000)
     wait_for(lambda: (page.locator(".uplot").first.bounding_box() or {"width": 999})["width"] < 450, 30.0,
              "the charts narrow again")
+
+
+def test_a_robot_named_on_the_panel_is_ringed_and_its_card_is_in_view_at_1600x1000(page, service):
+    """Its name's button chooses it: the 3D view rings it and its card (estimated and true error,
+    in cm) is in the window at once, whatever the panel's scroll; the time it took is printed."""
+    page.set_viewport_size({"width": 1600, "height": 1000})
+    try:
+        page.get_by_role("button", name="F3", exact=True).wait_for(timeout=30_000)
+        page.wait_for_timeout(1000)  # the 3D view redrawn at its new size (an operator does not click mid-resize)
+        settle(page)
+        print(f"\npage at 1600x1000: {page.evaluate('window.omniFps')} frames/s, main thread busy"
+              f" {page.evaluate('window.omniBusy')}, light mode {service.dashboard.controls.light.value}")
+        start_timer(page, "card_in_view", "^F3$")
+        page.get_by_role("button", name="F3", exact=True).click()
+        wait_for(lambda: service.dashboard.scene.selected == 2, 10.0, "F3 chosen by its name")
+        print(f"a robot's name clicked to its card in view (1600x1000): {timed_ms(page):.0f} ms")
+        wait_for(lambda: service.dashboard.scene.picked[2].visible, 10.0, "F3 ringed in the 3D view")
+        text = service.dashboard.controls.selected.content
+        assert text.startswith("**F3**") and "estimated error" in text and "true error" in text, text
+        ARTIFACTS.mkdir(exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "robot-card-1600x1000.png"))
+    finally:
+        page.set_viewport_size({"width": 1500, "height": 950})
