@@ -24,7 +24,7 @@ from app.params import ParamsStore
 
 
 __all__ = ["Dashboard", "LatestStatePublisher"]  # the publisher lives beside TickState (app.tick)
-LIGHT_SCENE_S = 1.0  # light mode: the 3D view (and the camera) at most this often (README, "Light mode")
+LIGHT_SCENE_S = 1.0  # light mode: the 3D view (and the camera) at most this often (docs/page-access.md)
 LIGHT_PLOTS_S = 2.0  # and the charts
 
 

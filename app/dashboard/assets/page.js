@@ -164,9 +164,9 @@
     return b;
   }
   // Light mode: when this browser's main thread is busy more than half of each second for 3 s
-  // (long tasks: software rendering, no GPU), it ticks the panel's "Light mode": the server then sends the 3D view 5 times
-  // a second, trails once a second and the charts every 2 s, so the page's main thread is free for
-  // clicks and STOP. window.omniFps and window.omniBusy: the browser tests print them.
+  // (long tasks: software rendering, no GPU), it ticks the panel's "Light mode": the server then sends
+  // the 3D view once a second without shadows and the charts every 2 s, so the page's main thread is
+  // free for clicks and STOP. window.omniFps and window.omniBusy: the browser tests print them.
   var LIGHT_BUSY = 0.5, busyMs = 0, slowSeconds = 0, frames = -1;
   window.omniFps = NaN;  // frames drawn in the last sample (one second in five: a perpetual count would
   window.omniBusy = NaN;  // itself make the browser draw all the time); the main thread's busy share
