@@ -175,6 +175,46 @@ def settle(page) -> None:
     page.evaluate("() => new Promise(r => requestAnimationFrame(() => r(true)))")
 
 
+# Click-to-visible, timed in the page itself: from the next pointer press (the event's own time, so
+# a press that waited for a busy main thread counts its wait) to the first frame drawn after the
+# page shows the effect. ``shown`` is one of SHOWN's conditions, with its argument.
+SHOWN = {
+    "text": "([sel, re]) => { const e = document.querySelector(sel); return !!e && new RegExp(re).test(e.textContent); }",
+    "hidden_3d": "(name) => { const m = window.__viserMutable; const o = m && m.nodeRefFromName[name];"
+                 " return !!o && o.visible === false; }",
+    "card_in_view": """(re) => { const s = Array.from(document.querySelectorAll('strong')).find(e =>
+        new RegExp(re).test(e.textContent.trim()) && /\\((tracked|not tracked)\\)/.test(e.parentNode.textContent));
+        if (!s) return false; const r = s.parentNode.getBoundingClientRect();
+        return r.height > 0 && r.top >= 0 && r.left >= 0 && r.bottom <= innerHeight && r.right <= innerWidth; }""",
+}
+
+
+def start_timer(page, shown: str, arg: Any) -> None:
+    """Time the next click on ``page`` until ``SHOWN[shown](arg)`` holds and a frame is drawn (timed_ms)."""
+    page.evaluate("""([test, arg]) => { const shown = eval(test);
+      window.omniTimer = new Promise(res => { let down = null, done = false;
+        document.addEventListener('pointerdown', e => { down = e.timeStamp; }, {capture: true, once: true});
+        const check = () => { if (done || down === null || !shown(arg)) return; done = true; ob.disconnect();
+          clearInterval(poll); requestAnimationFrame(() => res(performance.now() - down)); };
+        const ob = new MutationObserver(check);
+        ob.observe(document.body, {subtree: true, childList: true, characterData: true, attributes: true});
+        const poll = setInterval(check, 10); }); }""", [SHOWN[shown], arg])
+
+
+def timed_ms(page) -> float:
+    """The click-to-visible time start_timer began (ms); waits for it."""
+    return float(page.evaluate("window.omniTimer"))
+
+
+def click_3d(page, node: str) -> None:
+    """Click the 3D view where scene node ``node`` (its centre) is drawn now."""
+    at = page.evaluate("""(name) => { const m = window.__viserMutable, o = m.nodeRefFromName[name];
+        const v = o.position.clone(); o.getWorldPosition(v); v.project(m.camera);
+        const r = m.canvas.getBoundingClientRect();
+        return [r.left + (v.x + 1) / 2 * r.width, r.top + (1 - v.y) / 2 * r.height]; }""", node)
+    page.mouse.click(at[0], at[1])
+
+
 def control_id(page, label: str) -> str:
     loc = page.locator("label", has_text=label).first
     loc.wait_for(timeout=30_000)

@@ -24,7 +24,7 @@ from app.params import ParamsStore
 
 
 __all__ = ["Dashboard", "LatestStatePublisher"]  # the publisher lives beside TickState (app.tick)
-LIGHT_SCENE_S = 0.2  # light mode: the 3D view (and the camera) at most this often
+LIGHT_SCENE_S = 1.0  # light mode: the 3D view (and the camera) at most this often (docs/page-access.md)
 LIGHT_PLOTS_S = 2.0  # and the charts
 
 
@@ -46,6 +46,7 @@ class Dashboard:
         self.extra: list[Callable[[], None]] = []  # other panels' redraws (the calibration preview), ~4 a second
         self._extra_at = 0.0
         self._scene_at = 0.0
+        self._shadows_off = False
 
     def publish(self, state: TickState) -> bool:
         """Draw ``state``, on viser's own thread (widgets.on_page_thread); whether it was drawn."""
@@ -54,7 +55,10 @@ class Dashboard:
     def _draw(self, state: TickState) -> None:
         now = time.monotonic()
         light = bool(self.controls.light.value)  # a slow browser asked for less (page.js turns it on)
-        scene = not light or now - self._scene_at >= LIGHT_SCENE_S or self.controls.replay
+        if light != self._shadows_off:  # light mode: no shadows (a software frame took 13 times as long with them)
+            self._shadows_off = light
+            self.server.scene.configure_default_lights(enabled=True, cast_shadow=not light)
+        scene = not light or now - self._scene_at >= LIGHT_SCENE_S or self.controls.replay or self.scene.asked
         if scene:
             self._scene_at = now
         with self.server.atomic():

@@ -64,6 +64,7 @@ class Controls:
         self.notice = ""
         self.recording = "off"  # what the status says about recording (set by the service)
         self._status_at = -1.0
+        self._status_state: tuple[bool, bool] | None = None
         self.replay = False
         self._tracked: list[bool] = []  # the last tick's, for the question before releasing STOP
         self._names: list[str] = []  # the last tick's followers' names (app.keys.follower_name)
@@ -75,9 +76,12 @@ class Controls:
                                                                     " Space, or Escape when no menu is open)."
                                                                     " The loop keeps observing.")
         self.release_button = gui.add_button("Release STOP", color="gray", disabled=True)
+        # the card of the robot clicked in the 3D view (or named here): beside the view, right under STOP,
+        # so it is in view at once (under the status and the camera it was below a 720-pixel window)
+        self.robots = gui.add_button_group("Robot card", options=("F1",),
+                                           hint="a robot's figures (or click the robot in the 3D view)")
+        self.selected = gui.add_markdown(CARD_HINT)
         self.status = gui.add_markdown("starting ...")
-        # the card of the robot clicked in the 3D view: beside the view, under the status (not in a folder)
-        self.selected = gui.add_markdown("<small>click a robot in the 3D view to see its figures</small>")
         self.alarm = gui.add_markdown("", visible=False)
         self.acknowledge = gui.add_button("Acknowledge alarms", color="orange", visible=False,
                                           hint="the alarms above were seen; the banner clears until the next")
@@ -135,9 +139,10 @@ class Controls:
                                                hint="simulation: the true pose as a wireframe beside the estimate")
             self.layers = {name: gui.add_checkbox(name, initial_value=True) for name in LAYERS}
             self.light = gui.add_checkbox("Light mode", initial_value=False,
-                                          hint="for a browser that draws slowly (no GPU): the 3D view at 5 updates a"
-                                               " second, trails once a second, charts every 2 s; a page whose browser"
-                                               " is busy over half of each second turns it on by itself")
+                                          hint="for a browser that draws slowly (no GPU): the 3D view, its trails and"
+                                               " the camera once a second (at once after a click), charts every 2 s;"
+                                               " a page whose browser is busy over half of each second turns it on"
+                                               " by itself")
             gui.add_markdown(LAYER_KEY)
         self._build_slot_inputs(p)
         self._wire()
@@ -342,12 +347,11 @@ class Controls:
             if bool(alarms) != self.alarm.visible:
                 self.alarm.visible = self.acknowledge.visible = bool(alarms)
         now = time.monotonic()
-        if now - self._status_at < STATUS_S and not self.replay:  # live: 5 Hz is plenty; a replay shows
-            return                                                 # exactly the tick it jumped to
-        self._status_at = now
+        state = (s.stopped, s.paused)  # STOPPED, running, PAUSED: shown on the tick it happens, never later
+        if now - self._status_at < STATUS_S and not self.replay and state == self._status_state:
+            return  # live: 5 Hz is plenty; a replay shows exactly the tick it jumped to
+        self._status_at, self._status_state = now, state
         stages = " · ".join(f"{k.split(':')[0]} {v:.2f}" for k, v in s.stage_ms.items() if not k.startswith("publish"))
-        pose = np.where(np.isfinite(s.p_true), s.p_true, s.p_est)  # real robots: the estimate is all we have
-        err = np.linalg.norm(pose - s.p_d, axis=1) * 100
         lines = [
             (f"**recorded{' (STOPPED)' if s.stopped else ''}** · t = {s.t:.1f} s · loop was {s.rate_hz:.1f} Hz"
              if self.replay else
@@ -364,9 +368,7 @@ class Controls:
              f"start-up ({s.phase}): {int(np.sum(s.tracked))}/{s.n} followers found so far")
             + f" · link: {s.link_state} · " + (f"replaying {as_text(self.recording)}" if self.replay
                                              else f"recording: {as_text(self.recording)}"),
-            ("error to the slot (cm, true pose): " if np.all(np.isfinite(s.p_true)) else
-             "error to the slot (cm, estimate): " if not np.any(np.isfinite(s.p_true)) else
-             "error to the slot (cm, true pose where known, else estimate): ") + ", ".join(f"{s.name(i)} {e:.1f}" if np.isfinite(e) else f"{s.name(i)} -" for i, e in enumerate(err)),
+            error_line(s),
             f"safety filter: {s.safety or '-'}"
             + (f" · closest two robots {s.min_distance_m * 100:.0f} cm" if np.isfinite(s.min_distance_m) else "")
             + (f" · obstacle points known {len(s.obstacles)}" if s.obstacles is not None and len(s.obstacles) else ""),
@@ -387,6 +389,7 @@ class Controls:
         self.status.content = "  \n".join(lines)
 
 
+CARD_HINT = "<small>click a robot in the 3D view, or its name above, to see its figures</small>"
 CAMERA_VIEWS = ("behind the leader", "above the leader", "free")
 LAYERS = ("Formation and slots", "Trails", "Obstacles as known", "Working-area rings", "Safety rings")
 LAYER_KEY = ("<small>**3D key** · dark box, coloured marker: a follower where the camera sees it (F1, F2, …) ·"
@@ -394,6 +397,20 @@ LAYER_KEY = ("<small>**3D key** · dark box, coloured marker: a follower where t
              " (drag a dot to move the slot; shift-click the floor sets a goal) · coloured lines: trails ·"
              " orange points: obstacles as the leader knows them · blue rings: the camera's working area ·"
              " red ring round a follower: the safety filter holding its command back · green pole: the goal</small>")
+
+
+def error_line(s: TickState) -> str:
+    """Each follower's distance to its slot in cm, named for what it is: the true error (the
+    simulator's true pose) where there is one, else the estimated error (the estimate)."""
+    true = np.all(np.isfinite(s.p_true), axis=1)
+    pose = np.where(true[:, None], s.p_true, s.p_est)  # real robots: the estimate is all we have
+    err = np.linalg.norm(pose - s.p_d, axis=1) * 100
+    figures = [f"{s.name(i)} {e:.1f}" if np.isfinite(e) else f"{s.name(i)} -" for i, e in enumerate(err)]
+    if true.all():
+        return "true error to the slot (cm): " + ", ".join(figures)
+    if not true.any():
+        return "estimated error to the slot (cm): " + ", ".join(figures)
+    return "error to the slot (cm): " + ", ".join(f"{f} ({'true' if t else 'estimated'})" for f, t in zip(figures, true))
 
 
 def _phase_text(s: TickState) -> str:

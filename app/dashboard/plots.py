@@ -1,5 +1,10 @@
 """Live uPlot charts: x / y error per follower (fig. 19 style), headings, team V, commands.
 
+Every chart names its quantity, its source (true pose in simulation, else the estimate) and its
+unit on its title and its y axis: errors in cm (as the status and the robot card), V in cm², as
+the Lyapunov monitor. The y axis is wide enough for its longest tick label ("-0.015" lost its
+minus sign at uPlot's default 50 px when the Wide panel gave the axis more ticks).
+
 The loop appends every tick to ring buffers (the last 5 minutes); the charts show the last
 10 s, 60 s or 5 min (the operator's choice) and are redrawn at about 10 Hz from a decimated
 copy, so the page stays smooth at any loop rate. "Freeze" holds the charts still while the
@@ -27,6 +32,12 @@ WINDOW_S = WINDOWS_S["60 s"]  # what the charts show at first
 KEPT_S = max(WINDOWS_S.values())
 REDRAW_S = 0.1
 MAX_POINTS = 400
+Y_AXIS_PX = 64  # room for a y tick label such as "-12.5" or "-0.015" and the axis label beside it
+
+
+def axes(y_label: str) -> tuple[uplot.Axis, uplot.Axis]:
+    """The x axis (seconds of the session) and a y axis named ``y_label`` (quantity and unit)."""
+    return ({"label": "t (s)", "labelSize": 20}, {"label": y_label, "labelSize": 20, "size": Y_AXIS_PX})
 
 
 def _rgb(i: int) -> str:
@@ -47,6 +58,7 @@ class Plots:
         self.charts: dict[str, viser.GuiUplotHandle] = {}
         self._names: list[str] = []
         self._n = -1
+        self._truth = True
         self._last_draw = 0.0
         self._rows: deque[np.ndarray] = deque()
         self._t: deque[float] = deque()
@@ -57,14 +69,15 @@ class Plots:
             if event.client is not None:
                 event.client.send_file_download("omniformation-plots.csv", self.csv(), save_immediately=True)
 
-    def _build(self, n: int) -> None:
+    def _build(self, n: int, truth: bool) -> None:
+        """Charts for ``n`` followers; ``truth``: the errors are the true poses' (simulation)."""
         for h in self.charts.values():
             h.remove()
         self.charts = {}
         empty = np.zeros(2)
 
-        def chart(key: str, title: str, names: list[str], colours: list[str], dashed: int = 0) -> None:
-            """``dashed``: the last this-many series are drawn thin and dashed."""
+        def chart(key: str, title: str, y_label: str, names: list[str], colours: list[str], dashed: int = 0) -> None:
+            """``y_label``: the y axis's quantity and unit; ``dashed``: the last this-many series thin and dashed."""
             first_dashed = len(names) - dashed
             series = (uplot.Series(label="t (s)"),) + tuple(
                 uplot.Series(label=nm, stroke=c, width=1.0, dash=(4.0, 3.0)) if k >= first_dashed
@@ -74,6 +87,7 @@ class Plots:
             with self.folder:
                 self.charts[key] = self.server.gui.add_uplot(
                     data=(empty,) + tuple(empty for _ in names), series=series, title=title, aspect=2.2,
+                    axes=axes(y_label),
                     # x is seconds of the session, not a date (uPlot's default reads it as UNIX time);
                     # one cursor key: hovering one chart shows the same instant on all of them
                     scales={"x": {"time": False}}, cursor={"sync": {"key": "omniformation"}},
@@ -81,17 +95,19 @@ class Plots:
 
         follower_names = [f"F{i + 1}" for i in range(n)]
         colours = [_rgb(i) for i in range(n)]
-        chart("ex", "x error (m)", follower_names, colours)
-        chart("ey", "y error (m)", follower_names, colours)
-        chart("a", "heading a (deg): Kalman-filtered (solid), measured eq. 34-37 (dashed)",
+        which = "true" if truth else "estimated"
+        chart("ex", f"{which} x error to the slot (cm)", f"{which} x error (cm)", follower_names, colours)
+        chart("ey", f"{which} y error to the slot (cm)", f"{which} y error (cm)", follower_names, colours)
+        chart("a", "heading a (deg): Kalman-filtered (solid), measured eq. 34-37 (dashed)", "heading a (deg)",
               follower_names + [f"{nm} raw" for nm in follower_names], colours + colours, dashed=n)
-        chart("V", "team V = Σ ½‖ρ̃‖² (cm², as the Lyapunov monitor)", ["V"], ["rgb(40,70,140)"])
-        chart("v", "command v (m/s)", follower_names, colours)
-        chart("w", "command ω (rad/s)", follower_names, colours)
-        self._names = ([f"F{i + 1} ex (m)" for i in range(n)] + [f"F{i + 1} ey (m)" for i in range(n)]
+        chart("V", "team V = Σ ½‖ρ̃‖² of the estimates (cm², as the Lyapunov monitor)", "V (cm²)", ["V"],
+              ["rgb(40,70,140)"])
+        chart("v", "command v (m/s)", "v (m/s)", follower_names, colours)
+        chart("w", "command ω (rad/s)", "ω (rad/s)", follower_names, colours)
+        self._names = ([f"F{i + 1} ex {which} (cm)" for i in range(n)] + [f"F{i + 1} ey {which} (cm)" for i in range(n)]
                        + [f"F{i + 1} a (deg)" for i in range(n)] + [f"F{i + 1} a raw (deg)" for i in range(n)]
                        + ["V (cm2)"] + [f"F{i + 1} v (m/s)" for i in range(n)] + [f"F{i + 1} w (rad/s)" for i in range(n)])
-        self._n = n
+        self._n, self._truth = n, truth
         self.reset()
 
     def reset(self) -> None:
@@ -122,9 +138,10 @@ class Plots:
     def add(self, s: TickState) -> None:
         """Append one tick to the 60 s window, without drawing."""
         n = s.n
-        if n != self._n:
-            self._build(n)
-        err = s.p_d - s.p_true
+        truth = bool(np.all(np.isfinite(s.p_true)))  # simulation: the true pose; real robots: the estimate
+        if n != self._n or truth != self._truth:
+            self._build(n, truth)
+        err = (s.p_d - (s.p_true if truth else s.p_est)) * 100  # cm
         self._t.append(s.t)
         a_raw = s.a_raw if s.a_raw is not None else s.a_est
         # uPlot has no use for NaN: a heading not known yet is drawn at 90 deg (aligned)

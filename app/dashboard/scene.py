@@ -17,7 +17,7 @@ from core.geometry import leader_to_world
 from core.obstacles import Obstacle
 
 from core.camera.render.looks import follower_rgb
-from app.dashboard.controls import Controls
+from app.dashboard.controls import CARD_HINT, Controls
 from app.dashboard.gate import Throttle
 from app.tick import TickState
 from app.params import ParamsStore
@@ -76,7 +76,17 @@ class Scene:
         self.formation_line: viser.LineSegmentsHandle | None = None
         self._reset_asked = False
         self.selected: int | None = None  # the follower clicked in the 3D view
+        self.asked = False  # the operator asked for something the view shows: draw it on the next tick
         controls.reset_view.on_click(lambda _: self._ask_reset())
+        boxes: list[Any] = [controls.show_truth, controls.camera_view, *controls.layers.values()]
+        for box in boxes:
+            box.on_update(lambda _: self._ask())
+
+        @controls.robots.on_click
+        def _(event: viser.GuiEvent[Any]) -> None:
+            name = str(controls.robots.value)
+            if name[1:].isdigit():
+                self.select(int(name[1:]) - 1)
         for k, o in enumerate(obstacles):
             s.add_box(f"/obstacles/{k}", color=(160, 110, 60), dimensions=(o.length, o.width, o.height),
                       position=(o.x, o.y, o.height / 2), wxyz=yaw_wxyz(o.heading), opacity=0.85)
@@ -103,13 +113,17 @@ class Scene:
         return chosen
 
     def select(self, i: int | None) -> None:
-        """Follower ``i`` (0-based; None: nobody) described under the View folder from the next tick on."""
+        """Follower ``i`` (0-based; None: nobody) ringed in 3D and described on its card from the next tick on."""
         self.selected = i
+        self._ask()
+
+    def _ask(self) -> None:
+        self.asked = True  # read by the dashboard (light mode draws the view at once, not at its next turn)
 
     def _describe(self, state: TickState) -> None:
         i = self.selected
         if i is None or i >= state.n:
-            self.controls.selected.content = "<small>click a robot in the 3D view to see its figures</small>"
+            self.controls.selected.content = CARD_HINT
             return
         p, a, pd = state.p_est[i], float(state.a_est[i]), state.p_d[i]
         err = float(np.hypot(*(pd - p))) * 100 if np.all(np.isfinite(p)) else math.nan
@@ -118,13 +132,14 @@ class Scene:
         v, w = (float(x) for x in state.commands[i])
         seen = "tracked" if bool(state.tracked[i]) else "**not tracked**"
         self.controls.selected.content = (
-            f"**{state.name(i)}** ({seen}) · estimated, leader frame: x {p[0]:+.3f} m, y {p[1]:+.3f} m, heading"
-            f" {math.degrees(a):.0f}° · slot ({pd[0]:+.2f}, {pd[1]:+.2f}) m · error {err:.1f} cm (estimate)"
-            + (f", {true_err:.1f} cm (true pose)" if math.isfinite(true_err) else "") + " ·"
-            f" command v {v:+.3f} m/s, ω {w:+.2f} rad/s · link: {state.link_state}")
+            f"**{state.name(i)}** ({seen}) · estimated pose, leader frame: x {p[0] * 100:+.1f} cm, y {p[1] * 100:+.1f} cm,"
+            f" heading {math.degrees(a):.0f}° · slot ({pd[0] * 100:+.1f}, {pd[1] * 100:+.1f}) cm ·"
+            f" estimated error {err:.1f} cm" + (f" · true error {true_err:.1f} cm" if math.isfinite(true_err) else "")
+            + f" · command v {v:+.3f} m/s, ω {w:+.2f} rad/s · link: {state.link_state}")
 
     def _ask_reset(self) -> None:
         self._reset_asked = True  # the next update places the cameras (on the page's thread)
+        self._ask()
 
     def _rebuild(self, n: int, state: TickState) -> None:
         s = self.server.scene
@@ -138,6 +153,7 @@ class Scene:
         self.picked = [s.add_line_segments(f"/followers/{i}/picked", _circle(0.3), colors=(250, 176, 5),
                                            thickness=0.03, visible=False) for i in range(n)]  # the one clicked
         self.trails = [deque(maxlen=int(TRAIL_SECONDS * 10)) for _ in range(n)]
+        self.controls.robots.options = tuple(f"F{i + 1}" for i in range(n))
         for i in range(n):
             rgb = follower_rgb(i)
             f = s.add_frame(f"/followers/{i}", show_axes=False)
@@ -220,7 +236,10 @@ class Scene:
                 self.ghosts[i].position = (float(tw[0]), float(tw[1]), 0.0)
                 self.ghosts[i].wxyz = yaw_wxyz(float(tw[2]))
         now = time.monotonic()
-        every_tenth = now - self._trail_at >= (1.0 if self.controls.light.value else 0.1)  # trails at 10 Hz (light: 1)
+        # trails, layers, the card and the cameras at 10 Hz (light mode: each time the view is drawn, once a
+        # second), and at once when the operator asked for something (a robot clicked, a layer's box)
+        every_tenth = now - self._trail_at >= 0.1 or self.asked
+        self.asked = False
         if every_tenth:
             self._trail_at = now
         if every_tenth:

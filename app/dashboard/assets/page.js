@@ -164,9 +164,9 @@
     return b;
   }
   // Light mode: when this browser's main thread is busy more than half of each second for 3 s
-  // (long tasks: software rendering, no GPU), it ticks the panel's "Light mode": the server then sends the 3D view 5 times
-  // a second, trails once a second and the charts every 2 s, so the page's main thread is free for
-  // clicks and STOP. window.omniFps and window.omniBusy: the browser tests print them.
+  // (long tasks: software rendering, no GPU), it ticks the panel's "Light mode": the server then sends
+  // the 3D view once a second without shadows and the charts every 2 s, so the page's main thread is
+  // free for clicks and STOP. window.omniFps and window.omniBusy: the browser tests print them.
   var LIGHT_BUSY = 0.5, busyMs = 0, slowSeconds = 0, frames = -1;
   window.omniFps = NaN;  // frames drawn in the last sample (one second in five: a perpetual count would
   window.omniBusy = NaN;  // itself make the browser draw all the time); the main thread's busy share
@@ -197,7 +197,24 @@
     document.body.classList.toggle("omni-light", on);
   }
   window.omniLight = light;
-  setInterval(function () {
+  // The robot card (a robot clicked in 3D, or its name): brought into view when another robot is
+  // chosen, wherever the panel was scrolled; left alone while the same robot's figures change.
+  var CARD = /^F\d+ \((tracked|not tracked)\)/, shownCard = "";
+  function card() {
+    var strong = Array.prototype.find.call(document.querySelectorAll("strong"), function (e) {
+      return /^F\d+$/.test(e.textContent.trim()) && e.parentNode && CARD.test(e.parentNode.textContent.trim());
+    });
+    return strong ? strong.parentNode : null;
+  }
+  function showCard() {
+    var c = card(), who = c ? c.textContent.trim().split(" ")[0] : "";
+    if (who === shownCard) return;
+    shownCard = who;
+    if (c) c.scrollIntoView({block: "nearest"});
+  }
+  // The bar and the card follow the panel as soon as it changes (a STOP shown on the panel is on the
+  // bar in the same moment), and four times a second for the layout.
+  function refresh() {
     var wide = wideButton();
     if (wide && wide.getAttribute("aria-pressed") === "true") {  // a panel redrawn since keeps it
       var root = panelRoot();
@@ -212,10 +229,10 @@
     var state = lineOf(STATE);
     if (KIND === "replay") {
       el.firstChild.disabled = true;
-      el.children[1].textContent = "REPLAY — no robot is controlled" + (state ? " · " + state : "");
+      setText(el.children[1], "REPLAY — no robot is controlled" + (state ? " · " + state : ""));
     } else {
       el.firstChild.disabled = stop.disabled;
-      el.children[1].textContent = state + (document.body.classList.contains("omni-light") ? " · light mode" : "");
+      setText(el.children[1], state + (document.body.classList.contains("omni-light") ? " · light mode" : ""));
     }
     var alarm = KIND === "replay" ? "" : lineOf(/^ALARM/);
     var box = document.getElementById("omni-alarm");
@@ -226,9 +243,26 @@
     box.style.display = alarm ? "flex" : "none";
     el.classList.toggle("omni-alarmed", !!alarm);
     if (alarm) {
-      box.firstChild.textContent = alarm;
+      setText(box.firstChild, alarm);
       var ack = panelButton("Acknowledge alarms");
       box.lastChild.style.display = ack && !ack.disabled ? "" : "none";
     }
-  }, 250);
+    if (KIND === "live") showCard();
+  }
+  function setText(node, text) { if (node.textContent !== text) node.textContent = text; }  // no change: no mutation
+  setInterval(refresh, 250);
+  var pending = false;
+  function watch() {
+    if (!document.body) { setTimeout(watch, 50); return; }
+    new MutationObserver(function (records) {
+      var ours = records.every(function (r) {
+        var n = r.target.nodeType === 1 ? r.target : r.target.parentNode;
+        return n && n.closest && n.closest("#omni-stopbar, #omni-alarm");
+      });
+      if (ours || pending) return;
+      pending = true;
+      setTimeout(function () { pending = false; refresh(); }, 0);
+    }).observe(document.body, {subtree: true, childList: true, characterData: true});
+  }
+  watch();
 })();

@@ -12,9 +12,24 @@ from app.tick import TickState
 from app.services.live import Service
 
 from tests.helpers import ARTIFACTS, new_page
-from tests.helpers import chromium_browser, control_id, keep_ticks, settle, wait_for
+from tests.helpers import chromium_browser, control_id, keep_ticks, settle, start_timer, timed_ms, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
+
+# Every number a chart draws on its canvas, with the x of its left edge (canvas pixels): a tick
+# label whose left edge is left of the canvas has lost its first characters (a minus sign).
+CHART_TEXT = r"""
+(() => { const fill = CanvasRenderingContext2D.prototype.fillText; window.omniChartText = [];
+  CanvasRenderingContext2D.prototype.fillText = function (t, x, y, ...rest) {
+    const c = this.canvas, m = this.getTransform();
+    if (c.closest && c.closest('.uplot') && m.b === 0 && /^[-\u2212]?\d/.test(String(t))) {
+      const w = this.measureText(t).width, a = this.textAlign;
+      const left = (a === 'right' || a === 'end') ? x - w : a === 'center' ? x - w / 2 : x;
+      window.omniChartText.push({chart: Array.from(document.querySelectorAll('.uplot canvas')).indexOf(c),
+                                 text: String(t), left: left * m.a + m.e});
+    }
+    return fill.call(this, t, x, y, ...rest); }; })();
+"""
 
 
 @pytest.fixture(scope="module")
@@ -36,6 +51,7 @@ def service():
 def page(service):
     with chromium_browser() as browser:
         pg = new_page(browser, 1500, 950)
+        pg.add_init_script(CHART_TEXT)
         pg.goto(service.url)
         pg.wait_for_selector('canvas[data-engine^="three.js"]', timeout=30_000)
         pg.wait_for_selector(".uplot canvas", timeout=30_000)
@@ -203,7 +219,7 @@ def test_plots_window_freeze_and_csv_export(page, service, tmp_path):
     path = tmp_path / "plots.csv"
     download.value.save_as(path)
     lines = path.read_text().splitlines()
-    assert lines[0].startswith("t (s),F1 ex (m),") and len(lines) == len(frozen) + 1
+    assert lines[0].startswith("t (s),F1 ex true (cm),") and len(lines) == len(frozen) + 1
     assert float(lines[1].split(",")[0]) == pytest.approx(frozen[0], abs=1e-3)
     page.locator(f'[id="{freeze}"] input, input[id="{freeze}"]').first.click()
     wait_for(lambda: plots.freeze.value is False, what="freeze off")
@@ -259,8 +275,42 @@ def test_wide_panel_enlarges_the_charts_and_the_camera(page, service):
     wait_for(lambda: (img.bounding_box() or {"width": 0})["width"] > 550, 30.0, "the camera wide")
     box = page.locator(".uplot").first.bounding_box()
     assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= page.viewport_size["width"]
+    # the wide charts' tick labels, as drawn: each whole (a negative one keeps its minus sign)
+    page.evaluate("window.omniChartText = []")
+    wait_for(lambda: page.evaluate("window.omniChartText.length") > 40, 30.0, "the wide charts redrawn")
+    drawn = page.evaluate("window.omniChartText")
+    assert {d["chart"] for d in drawn} >= set(range(6)), drawn
+    cut = [d for d in drawn if d["left"] < 0]
+    assert not cut, f"tick labels drawn past the chart's left edge: {cut[:5]}"
+    assert any(d["text"][0] in "-\u2212" for d in drawn), "the errors and commands go both ways: negative ticks"
+    y_labels = page.evaluate("""() => Object.values((window.__viserTestpoints || {}).uplots || {})
+        .map(p => p.chart.axes[1].label)""")
+    assert y_labels and all(label and "(" in label for label in y_labels), y_labels  # every y axis: quantity (unit)
     ARTIFACTS.mkdir(exist_ok=True)
     page.screenshot(path=str(ARTIFACTS / "wide-panel.png"))
     page.locator("#omni-wide").click(timeout=60_000)
     wait_for(lambda: (page.locator(".uplot").first.bounding_box() or {"width": 999})["width"] < 450, 30.0,
              "the charts narrow again")
+
+
+def test_a_robot_named_on_the_panel_is_ringed_and_its_card_is_in_view_at_1600x1000(page, service):
+    """Its name's button chooses it: the 3D view rings it and its card (estimated and true error,
+    in cm) is in the window at once, whatever the panel's scroll; the time it took is printed."""
+    page.set_viewport_size({"width": 1600, "height": 1000})
+    try:
+        page.get_by_role("button", name="F3", exact=True).wait_for(timeout=30_000)
+        page.wait_for_timeout(1000)  # the 3D view redrawn at its new size (an operator does not click mid-resize)
+        settle(page)
+        print(f"\npage at 1600x1000: {page.evaluate('window.omniFps')} frames/s, main thread busy"
+              f" {page.evaluate('window.omniBusy')}, light mode {service.dashboard.controls.light.value}")
+        start_timer(page, "card_in_view", "^F3$")
+        page.get_by_role("button", name="F3", exact=True).click()
+        wait_for(lambda: service.dashboard.scene.selected == 2, 10.0, "F3 chosen by its name")
+        print(f"a robot's name clicked to its card in view (1600x1000): {timed_ms(page):.0f} ms")
+        wait_for(lambda: service.dashboard.scene.picked[2].visible, 10.0, "F3 ringed in the 3D view")
+        text = service.dashboard.controls.selected.content
+        assert text.startswith("**F3**") and "estimated error" in text and "true error" in text, text
+        ARTIFACTS.mkdir(exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "robot-card-1600x1000.png"))
+    finally:
+        page.set_viewport_size({"width": 1500, "height": 950})

@@ -95,3 +95,30 @@ def test_a_stopped_server_draws_nothing_and_does_not_hang():
     drawn: list[int] = []
     assert on_page_thread(server, lambda: drawn.append(1), timeout_s=1.0) is False
     assert drawn == []
+
+
+def test_light_mode_draws_what_the_operator_asked_for_on_the_next_tick(tmp_path):
+    """Light mode draws the 3D view once a second, but a robot chosen (its name's button runs
+    ``select``) is ringed and carded on the very next tick, with its errors named and in cm; the
+    status says STOPPED on the tick STOP takes effect; light mode turns the shadows off."""
+    svc = Service(port=0, n_followers=3, recordings=tmp_path)
+    try:
+        svc.publisher.close()  # the page drawn here only, tick by tick
+        dash = svc.dashboard
+        dash.controls.light.value = True
+        lights: list[object] = []
+        queue = svc.server.scene._websock_interface.queue_message
+        svc.server.scene._websock_interface.queue_message = lambda m: (lights.append(m), queue(m))[1]
+        assert dash.publish(svc.loop.tick())  # the view drawn: its once-a-second turn starts now
+        assert any(type(m).__name__ == "EnableLightsMessage" and m.cast_shadow is False for m in lights)
+        dash.scene.select(2)
+        assert dash.publish(svc.loop.tick())
+        assert dash.scene.picked[2].visible and not dash.scene.picked[0].visible
+        card = dash.controls.selected.content
+        assert card.startswith("**F3**") and "estimated error" in card and "true error" in card and " cm" in card
+        assert "true error to the slot (cm): F1 " in dash.controls.status.content
+        svc.store.update("test", stop=True)
+        assert dash.publish(svc.loop.tick())
+        assert dash.controls.status.content.startswith("**STOPPED"), dash.controls.status.content
+    finally:
+        svc.close()

@@ -11,7 +11,8 @@ import pytest
 from app.services.live import Service
 from app.recording.reader import read_recording
 from tests.app.dashboard.test_access import as_a_browser, ws_connect
-from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, new_page, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, click_3d, control_id, keep_ticks, new_page, settle, start_timer
+from tests.helpers import timed_ms, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 PAGE_MS = 30_000
@@ -79,22 +80,31 @@ def test_stop_stays_in_view_and_stops_the_leader_tick_by_tick_in_the_recording(s
             return root ? root.getBoundingClientRect().left : null; }""")
         bar_box = page.locator("#omni-stopbar").bounding_box()
         assert panel is not None and bar_box["x"] + bar_box["width"] <= panel + 1, (bar_box, panel)
+        # the figures issue 48 asks for (printed, not asserted: they depend on the machine's load):
+        # `pytest -s tests/app/dashboard/test_stop.py -k tick_by_tick` prints them
+        wait_for(lambda: service.dashboard.controls.light.value, 30, "light mode (a page that draws slowly)")
         print(f"\npage at 1280x720: {page.evaluate('window.omniFps')} frames/s, main thread busy"
               f" {page.evaluate('window.omniBusy')}, light mode {service.dashboard.controls.light.value}")
-        clicked = page.evaluate("performance.now()")
+        start_timer(page, "text", ["#omni-stopstate", "^STOPPED"])
         bar_stop.click()
         wait_for(lambda: service.store.get().stop, 10, "STOP from the bar")
-        wait_for(lambda: "STOPPED" in state.inner_text(), 10, "the bar to say STOPPED")
-        shown = page.evaluate("performance.now()")
-        print(f"STOP click to STOPPED shown on the bar: {(shown - clicked) / 1000:.2f} s (the bar reads 4 times a second)")
+        print(f"STOP click to STOPPED shown on the bar: {timed_ms(page):.0f} ms")
         # STOP names who pressed it, and when, on the status and in the events
         assert "by operator 127.0.0.1 at" in state.inner_text(), state.inner_text()
         trails = service.dashboard.controls.layers["Trails"]
         box = page.locator(f'[id="{control_id(page, "Trails")}"]').first
-        clicked = page.evaluate("performance.now()")
+        start_timer(page, "hidden_3d", "/trails/0")
         box.click()
         wait_for(lambda: not trails.value and not box.is_checked(), 10, "the Trails box off")
-        print(f"a click to its effect shown (Trails off): {(page.evaluate('performance.now()') - clicked) / 1000:.2f} s")
+        print(f"a click to its effect shown (the trails gone from the 3D view): {timed_ms(page):.0f} ms")
+        # a robot clicked in the 3D view (the team stands still: stopped) is ringed there and its card
+        # is in view beside it at once, whatever the panel's scroll
+        start_timer(page, "card_in_view", "^F2$")
+        click_3d(page, "/followers/1/marker")
+        wait_for(lambda: service.dashboard.scene.selected == 1, 10, "F2 chosen by its click")
+        print(f"a robot clicked in 3D to its card in view: {timed_ms(page):.0f} ms")
+        wait_for(lambda: service.dashboard.scene.picked[1].visible, 10, "F2 ringed in the 3D view")
+        page.screenshot(path=str(ARTIFACTS / "robot-card-1280x720.png"))
         version = service.store.get().version
         wait_for(lambda: sum(1 for s in list(service.seen) if s.params_version >= version) > 45, 30, "1.5 s stopped")
     service.loop.stop()

@@ -168,11 +168,11 @@ def test_a_robot_chosen_in_the_3d_view_is_described_each_tick(tmp_path):
         assert on_page_thread(svc.server, lambda: scene.update(state))
         text = svc.dashboard.controls.selected.content
         err = float(np.hypot(*(state.p_d[1] - state.p_est[1]))) * 100
-        assert text.startswith("**F2** (tracked)") and f"error {err:.1f} cm" in text, text
-        assert f"x {state.p_est[1][0]:+.3f} m" in text and f"v {state.commands[1][0]:+.3f} m/s" in text
+        assert text.startswith("**F2** (tracked)") and f"estimated error {err:.1f} cm" in text, text
+        assert f"x {state.p_est[1][0] * 100:+.1f} cm" in text and f"v {state.commands[1][0]:+.3f} m/s" in text
         assert scene.picked[1].visible and not scene.picked[0].visible  # the one clicked is ringed in 3D
         true_err = float(np.hypot(*(state.p_d[1] - state.p_true[1]))) * 100
-        assert f"{err:.1f} cm (estimate), {true_err:.1f} cm (true pose)" in text, text
+        assert f"estimated error {err:.1f} cm · true error {true_err:.1f} cm" in text, text
     finally:
         svc.close()
 
