@@ -18,7 +18,7 @@ import pytest
 if TYPE_CHECKING:
     from app.services.live import Service
 
-WARM = "first run: compiled the loop's kernels"
+WARM = "warmed the loop's kernels"  # app.live.warmup.WARM_LINE, as a reader of the output sees it
 
 
 def _run(cache: Path, until: str = "dashboard at") -> tuple[str, str]:
@@ -51,6 +51,70 @@ def test_a_fresh_cache_is_compiled_before_the_clock_starts_and_only_once(tmp_pat
     assert WARM not in out, out  # the cache keeps them: the second run says nothing
     assert "compiled while the loop's clock ran" not in err, err
 
+
+# A vision loop as `make run` serves it, warmed and run for 90 ticks with numba's cache where the
+# environment says; prints the loop's own counts (with `list`: each kernel's cache folder and source file, after
+# the warm-up alone).
+_VISION_RUN = """
+import json, sys, threading, time
+from app.live import warmup
+from app.live.config import DEFAULT_CONFIG, load_service_config
+from app.live.loop import ServiceLoop
+from app.params import MAX_FOLLOWERS, Params, ParamsStore, default_slots
+config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+loop = ServiceLoop(ParamsStore(Params(n_followers=3, slots=default_slots(3))), rate_hz=30.0, camera=config.camera(),
+                   dynamics=config.dynamics)
+warmup.warm_up(loop)
+at_start = warmup.compiled()
+files = sorted({(fn._cache._cache_path, fn.py_func.__code__.co_filename) for fn in warmup.kernels()})
+if sys.argv[1:] == ["list"]:
+    print(json.dumps({"files": files}))
+    sys.exit(0)
+runner = threading.Thread(target=loop.run)
+runner.start()
+while loop.tick_count < 90 and runner.is_alive():
+    time.sleep(0.05)
+loop.stop()
+runner.join()
+print(json.dumps({"late": warmup.compiled() - at_start, "dropped": loop.ticks_dropped,
+                  "ticks": loop.tick_count}))
+"""
+
+
+def _vision_run(env: dict[str, str], *args: str) -> tuple[dict[str, Any], str]:
+    import json
+
+    done = subprocess.run([sys.executable, "-c", _VISION_RUN, *args], capture_output=True, text=True, timeout=600,
+                          env=dict(os.environ, **env))
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.strip().splitlines()
+    return json.loads(lines[-1]), "\n".join(lines[:-1])
+
+
+def test_a_cache_cold_for_one_module_is_warmed_before_the_clock_and_no_tick_is_skipped(tmp_path: Path) -> None:
+    """numba's cache warm for every kernel but the tracker's (its module's files removed, as an edit
+    of that module would invalidate them): the tracker is first used only once the pipeline's
+    start-up is over, and it must still be compiled before the loop's clock starts."""
+    import shutil
+
+    from numba.core.caching import _CacheLocator
+
+    warm, _ = _vision_run({}, "list")  # the cache the environment keeps (compiled here if it was cold)
+    cold = 0
+    for folder, source in warm["files"]:
+        into = tmp_path / _CacheLocator.get_suitable_cache_subpath(source)  # where NUMBA_CACHE_DIR puts it
+        into.mkdir(parents=True, exist_ok=True)
+        stem = Path(source).stem + "."
+        for f in Path(folder).glob(stem + "*"):
+            if Path(source).name == "tracking.py":
+                cold += 1  # left out: this module's cache is cold
+            else:
+                shutil.copy2(f, into / f.name)
+    assert cold, warm["files"]  # the tracker's module had cached kernels to leave out
+    counts, said = _vision_run({"NUMBA_CACHE_DIR": str(tmp_path)})
+    assert said.count(WARM) == 1, said  # one line: something was compiled, and how long it took
+    assert counts["late"] == 0, counts  # nothing left for a paced tick to compile
+    assert counts["ticks"] >= 90 and counts["dropped"] == 0, counts  # the loop's own count of skipped ticks
 
 # -- the page in a process of its own (docs/safety.md, "The page in a process of its own") ---------------
 
