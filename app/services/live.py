@@ -145,7 +145,7 @@ class Service:
         if page_process:
             self.page = PageProcess(self.store, host, port, token, viewer_token,
                                     None if overlay is None else (overlay.center, overlay.inner_px, overlay.outer_px),
-                                    obstacles)
+                                    obstacles, rate_hz)
             self.loop.subscribe(self.page.on_tick)
             self.dashboard = _NoPage()  # type: ignore[assignment]  # what the recorder writes to a page: nowhere
             self.recordings = _NoPage()  # type: ignore[assignment]

@@ -9,7 +9,11 @@ work runs on the other core.
 The channel, one pipe, pickled messages (docs/safety.md, "The page in a process of its own"):
 
 * loop -> page: ``("tick", TickState, Params | None)``, the newest tick only (a slow page
-  skips ticks, the loop never waits for it), with the parameters in force whenever they changed;
+  skips ticks, the loop never waits for it), with the parameters in force whenever they changed.
+  The camera's frame travels only at the rate the page's camera panel draws it (one state in
+  every ``frame_every`` ticks carries it, as plain pixels; the others carry none): rendering and
+  pickling 900 kB on every tick cost the loop's process more than the loop itself. The page keeps
+  the newest frame (with its tick's CAMSHIFT windows) for the states between;
 * page -> loop: ``("update", source, changes)``: every change the page's controls make, STOP
   included, applied by the loop's ParamsStore.update (the same validation as in one process;
   what it refuses is refused), and ``("ready", url, viewer_url, port)`` once it serves.
@@ -22,7 +26,9 @@ followers stop on their link's watchdog (docs/follower-protocol.md).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import multiprocessing
 import multiprocessing.connection
 import signal
@@ -30,6 +36,9 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
+
+from app.dashboard.camera_panel import REDRAW_S
 from app.params import Params, ParamsStore
 from app.tick import LatestStatePublisher, TickState
 
@@ -43,9 +52,15 @@ class PageProcess:
     """The loop's side: starts the page's process, feeds it ticks, applies its changes, restarts it."""
 
     def __init__(self, store: ParamsStore, host: str, port: int, token: str | None, viewer_token: str | None,
-                 overlay: tuple[tuple[float, float], float, float] | None = None, obstacles: tuple[Any, ...] = ()
-                 ) -> None:
+                 overlay: tuple[tuple[float, float], float, float] | None = None, obstacles: tuple[Any, ...] = (),
+                 rate_hz: float = 30.0) -> None:
+        """``rate_hz``: the loop's; a frame goes to the page once every ``frame_every`` ticks (the
+        camera panel's redraw period, REDRAW_S)."""
         self.store = store
+        self.frame_every = max(1, math.floor(REDRAW_S * rate_hz + 0.5))
+        self.frames_sent = 0  # states sent with the camera's frame
+        self.states_sent = 0
+        self._frame_tick = -(10**9)  # the tick of the last state sent with its frame
         self.host = host
         self.port = port
         self.token = token  # the gate's, once it serves: kept across restarts (the operator's URL stays valid)
@@ -82,6 +97,7 @@ class PageProcess:
         theirs.close()
         self._conn, self._proc = ours, proc
         self._sent_version = -1
+        self._frame_tick = -(10**9)  # the new page gets a frame at once
 
     def on_tick(self, state: TickState) -> None:
         """A loop subscriber: keep the newest state for the sender (never blocks the loop)."""
@@ -92,11 +108,20 @@ class PageProcess:
         conn = self._conn
         params = self.store.get()
         changed = params if params.version != self._sent_version else None
+        framed = False
+        if state.frame is not None:
+            framed = state.tick - self._frame_tick >= self.frame_every or state.tick < self._frame_tick  # (a reset)
+            pixels = np.ascontiguousarray(np.asarray(state.frame)) if framed else None  # a synthetic frame renders here
+            state = dataclasses.replace(state, frame=pixels)
         try:
             assert conn is not None
             with self._send_lock:
                 conn.send(("tick", state, changed))
             self._sent_version = params.version
+            self.states_sent += 1
+            if framed:
+                self._frame_tick = state.tick
+                self.frames_sent += 1
             return True
         except (OSError, ValueError, AssertionError):
             time.sleep(0.05)  # the page is gone: the supervisor restarts it
@@ -190,6 +215,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     with store.send_lock:
         conn.send(("ready", gate.url, gate.viewer_url, gate.port, gate.token, gate.viewer_token))
     loop_version = -1
+    framed: TickState | None = None  # the newest state that carried the camera's frame
     try:
         while True:
             try:
@@ -206,6 +232,10 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
                 if changed is not None and changed.version != loop_version:
                     loop_version = changed.version
                     store.load(changed, "loop")  # what the loop put in force, shown on the controls
+                if state.frame is not None:
+                    framed = state
+                elif framed is not None and framed.tick <= state.tick:  # the newest frame, with its own windows
+                    state = dataclasses.replace(state, frame=framed.frame, windows=framed.windows)
                 publisher(state)
     finally:
         publisher.close()

@@ -261,3 +261,36 @@ def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> 
         watchdog.cancel()
         proc.kill()
         proc.wait(30)
+
+
+def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> None:
+    """With vision, every tick's state reaches the page, and one in every ``frame_every`` ticks
+    carries the camera's frame (the camera panel's redraw rate); the page shows them."""
+    from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0, camera=config.camera(),
+                  dynamics=config.dynamics, page_process=True)
+    svc.start()
+    try:
+        page = svc.page
+        assert page is not None and page.frame_every == 3  # 30 Hz ticks, the panel redraws every 0.1 s
+        client = _Page(page.port)
+        image, shown = "", 0
+        for msg in client.messages(60.0):
+            if (msg.get("props") or {}).get("label") == "leader's camera":
+                image = msg["uuid"]
+            elif image and msg.get("uuid") == image and "_data" in msg.get("updates", {}):
+                shown += 1  # a frame drawn on the page
+                if shown >= 3:
+                    break
+        client.close()
+        assert shown >= 3
+        assert _until(lambda: page.frames_sent >= 3)
+        ticks = svc.loop.tick_count  # read after the count: the ticks it may have come from are all in
+        assert page.frames_sent <= ticks // page.frame_every + 1  # never more than one in frame_every ticks
+        assert page.states_sent > page.frames_sent  # the states between went without a frame
+    finally:
+        svc.close()
