@@ -294,3 +294,54 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
         assert page.states_sent > page.frames_sent  # the states between went without a frame
     finally:
         svc.close()
+
+
+def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page(tmp_path: Path) -> None:
+    """`run --camera FOLDER --loop-process`: the camera and the vision pipeline in the loop's process,
+    the frames drawn by the page's process; Ctrl-C ends both."""
+    import re
+
+    from tests.app.backends.test_real_rig import render_frames
+
+    import cv2
+
+    frames = render_frames(tmp_path, 6)
+    video = tmp_path / "rig.avi"  # 20 s at 30 fps: it plays on through the start-up and its warm-up
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (frames[0].shape[1], frames[0].shape[0]))
+    for k in range(600):
+        writer.write(frames[k % len(frames)])
+    writer.release()
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--camera", str(video), "--link", "none",
+                             "--followers", "3", "--port", "0", "--no-record", "--loop-process"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.stdout is not None
+    watchdog = threading.Timer(300.0, proc.kill)
+    watchdog.start()
+    try:
+        port = 0
+        for line in proc.stdout:
+            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/ .*vision pipeline on camera", line)
+            if found:
+                port = int(found.group(1))
+                break
+        assert port
+        page = _Page(port)
+        image, shown = "", 0
+        for msg in page.messages(60.0):
+            if (msg.get("props") or {}).get("label") == "leader's camera":
+                image = msg["uuid"]
+            elif image and msg.get("uuid") == image and "_data" in msg.get("updates", {}):
+                shown += 1
+                if shown >= 3:
+                    break
+        page.close()
+        assert shown >= 3  # the camera's frames, drawn by the page's process
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert "all followers commanded to zero" in out and "Traceback" not in err, (out, err)
+    finally:
+        watchdog.cancel()
+        proc.kill()
+        proc.wait(30)
