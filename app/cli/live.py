@@ -103,7 +103,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                           " CAP_SYS_NICE or an rtprio limit): fewer latency spikes on a busy machine")
     run.add_argument("--loop-process", action="store_true",
                      help="serve the page from a process of its own, a client of the loop's (docs/safety.md); not with"
-                          " --fleet or --arena yet")
+                          " --arena yet")
     add_foxglove_args(run)
     run.set_defaults(func=cmd_run)
 
@@ -187,8 +187,8 @@ def _plan_run(args: argparse.Namespace) -> _RunPlan:
     from app.files import load_scenario
     from app.live.config import load_service_config
 
-    if getattr(args, "loop_process", False) and (args.fleet or args.arena):
-        raise UserError("--loop-process: not yet with --fleet or --arena (run without it)")
+    if getattr(args, "loop_process", False) and args.arena:
+        raise UserError("--loop-process: not yet with --arena (run without it)")
     check_run_args(args)  # takes a ros2: leader out of --leader
     if args.viewer_token is not None and args.viewer_token == args.token:
         raise UserError("--viewer-token: must differ from --token (a viewer may not command the robots)")
@@ -472,7 +472,7 @@ def _on_the_bus(args: argparse.Namespace, fleet: _Fleet, service: Service,
                          presence=fleet.presence, t_start=fleet.t_start)
     stack.callback(bridge.close)
     service.loop.subscribe(bridge.on_tick)
-    service.dashboard.extra.append(bridge.show_on(service.server))
+    service.show_line(bridge.status)
     if args.zenoh_connect and not fleet.arena_team:  # an arena leader knows it is connected (it had the truth)
         deadline = time.monotonic() + 3.0
         while not bridge.peers() and time.monotonic() < deadline:

@@ -85,6 +85,8 @@ class _NoPage:
         self.extra: list[Callable[[], None]] = []
         self.recording = ""
         self.current = ""
+        self.health = self  # the page's alarms reach these listeners over the pipe (PageProcess.alarms)
+        self.listeners: list[Callable[[float, str], None]] = []
 
     def rescan(self) -> None:
         pass
@@ -149,6 +151,7 @@ class Service:
             self.loop.subscribe(self.page.on_tick)
             self.dashboard = _NoPage()  # type: ignore[assignment]  # what the recorder writes to a page: nowhere
             self.recordings = _NoPage()  # type: ignore[assignment]
+            self.page.alarms = self.dashboard.controls.health.listeners  # the recorder's events
             return
         self.server, self.gate = serve_gated(host, port, token, viewer_token)
         loop = self.loop
@@ -187,6 +190,21 @@ class Service:
         self.recordings = RecordingsPanel(self.server, replay, recordings, role_of=self.gate.role_of)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
+
+    def show_line(self, text: Callable[[], str]) -> None:
+        """A status line on the page (the fleet bus's), its text read from ``text`` a few times a second;
+        with the page in its own process the text travels over the pipe."""
+        if self.page is not None:
+            self.page.add_line(text)
+            return
+        line = self.server.gui.add_markdown(text())
+
+        def redraw() -> None:
+            now = text()
+            if line.content != now:
+                line.content = now
+
+        self.dashboard.extra.append(redraw)
 
     @property
     def url(self) -> str:

@@ -297,8 +297,8 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
 
 
 def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page(tmp_path: Path) -> None:
-    """`run --camera FOLDER --loop-process`: the camera and the vision pipeline in the loop's process,
-    the frames drawn by the page's process; Ctrl-C ends both."""
+    """`run --camera VIDEO --loop-process`: the camera, the vision pipeline and the recorder in the
+    loop's process, the frames drawn by the page's process; Ctrl-C ends both, the recording is one file."""
     import re
 
     from tests.app.backends.test_real_rig import render_frames
@@ -312,7 +312,8 @@ def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page
         writer.write(frames[k % len(frames)])
     writer.release()
     proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--camera", str(video), "--link", "none",
-                             "--followers", "3", "--port", "0", "--no-record", "--loop-process"],
+                             "--followers", "3", "--port", "0", "--record", str(tmp_path / "run.mcap"),
+                             "--loop-process"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED="1"))
     assert proc.stdout is not None
@@ -341,7 +342,62 @@ def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 0, err
         assert "all followers commanded to zero" in out and "Traceback" not in err, (out, err)
+        from app.recording.reader import read_recording
+
+        assert len(read_recording(tmp_path / "run.mcap").ticks) > 0  # the session recorded, as one file
     finally:
         watchdog.cancel()
         proc.kill()
         proc.wait(30)
+
+
+def test_a_fleet_leader_with_the_page_in_its_own_process_shows_the_bus_on_the_page() -> None:
+    """`run --fleet --loop-process`: the bridge runs in the loop's process (its states go on the bus,
+    its STOP reaches the loop's store); the bus's status line travels over the pipe to the page."""
+    import json
+    import re
+
+    import zenoh
+
+    from app.fleet.bridge import loopback_endpoint
+
+    endpoint = loopback_endpoint()
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
+                             "--no-record", "--fleet", "lp", "--leader-id", "L1", "--zenoh-connect", endpoint,
+                             "--loop-process"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.stdout is not None
+    watchdog = threading.Timer(300.0, proc.kill)
+    watchdog.start()
+    session = None
+    try:
+        port = 0
+        for line in proc.stdout:
+            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/", line)
+            if found:
+                port = int(found.group(1))
+                break
+        assert port
+        page = _Page(port)
+        assert page.wait_for("fleet lp/L1: disconnected")  # no peer yet: said on the page
+        c = zenoh.Config()
+        c.insert_json5("mode", '"peer"')
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+        session = zenoh.open(c)
+        states: list[dict[str, Any]] = []
+        sub = session.declare_subscriber("omniformation/lp/leader/L1/state",
+                                         lambda s: states.append(json.loads(s.payload.to_bytes())))
+        assert page.wait_for("fleet lp/L1: connected (1 peer)")  # the bus came up: the line changed
+        assert _until(lambda: len(states) > 5)  # the loop's states on the bus
+        page.close()
+        sub.undeclare()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+        assert proc.returncode == 0 and "all followers commanded to zero" in out, out
+    finally:
+        watchdog.cancel()
+        proc.kill()
+        proc.wait(30)
+        if session is not None:
+            session.close()
