@@ -40,6 +40,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -60,9 +61,13 @@ class PageProcess:
 
     def __init__(self, store: ParamsStore, host: str, port: int, token: str | None, viewer_token: str | None,
                  overlay: tuple[tuple[float, float], float, float] | None = None, obstacles: tuple[Any, ...] = (),
-                 rate_hz: float = 30.0) -> None:
+                 rate_hz: float = 30.0, recordings: Path | None = None) -> None:
         """``rate_hz``: the loop's; a frame goes to the page once every ``frame_every`` ticks (the
-        camera panel's redraw period, REDRAW_S)."""
+        camera panel's redraw period, REDRAW_S). ``recordings``: the folder the page's Recordings
+        panel lists (its replays are served by the page's process: a replay commands no robot)."""
+        self.recordings = recordings
+        self._recording: tuple[str, str] | None = None  # (status text, file being written) to show
+        self._recording_sent = False
         self.store = store
         self.frame_every = max(1, math.floor(REDRAW_S * rate_hz + 0.5))
         self.frames_sent = 0  # states sent with the camera's frame
@@ -103,17 +108,24 @@ class PageProcess:
         ours, theirs = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(target=page_main, name="omniformation-page", daemon=True,
                                  args=(theirs, self.host, self.port, self.token, self.viewer_token, self.store.get(),
-                                       self.overlay, self.obstacles))
+                                       self.overlay, self.obstacles, self.recordings))
         proc.start()
         theirs.close()
         self._conn, self._proc = ours, proc
         self._sent_version = -1
         self._frame_tick = -(10**9)  # the new page gets a frame at once
         self._lines_sent = ()  # and the status lines
+        self._recording_sent = False  # and the recording's name
 
     def add_line(self, text: Callable[[], str]) -> None:
         """A status line on the page, its text read from ``text`` a few times a second in this process."""
         self._lines.append(text)
+
+    def show_recording(self, status: str, current: str) -> None:
+        """The recording's state on the page's status line and the file its Recordings panel must
+        not offer while it is written; sent before the next tick."""
+        self._recording = (status, current)
+        self._recording_sent = False
 
     def on_tick(self, state: TickState) -> None:
         """A loop subscriber: keep the newest state for the sender (never blocks the loop)."""
@@ -138,6 +150,10 @@ class PageProcess:
         try:
             assert conn is not None
             with self._send_lock:
+                recording = self._recording
+                if recording is not None and not self._recording_sent:
+                    conn.send(("recording", *recording))
+                    self._recording_sent = recording is self._recording
                 conn.send(("tick", state, changed, lines))
             self._sent_version = params.version
             if lines is not None:
@@ -227,18 +243,33 @@ class ForwardingStore(ParamsStore):
 def page_main(conn: multiprocessing.connection.Connection, host: str, port: int, token: str | None,
               viewer_token: str | None,
               params: Params, overlay: tuple[tuple[float, float], float, float] | None,
-              obstacles: tuple[Any, ...]) -> None:
-    """The page's process: the gate, viser and the dashboard, drawing what the loop sends."""
+              obstacles: tuple[Any, ...], recordings: Path | None = None) -> None:
+    """The page's process: the gate, viser and the dashboard, drawing what the loop sends, and the
+    Recordings panel (replays served from here)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the loop's process to handle: it closes this one
     from app.dashboard import Dashboard, LatestStatePublisher
     from app.dashboard.camera_panel import Overlay
-    from app.dashboard.gate import quietly, serve_gated
+    from app.dashboard.gate import new_token, quietly, serve_gated
     from app.dashboard.widgets import on_page_thread
 
     store = ForwardingStore(params, conn)
     server, gate = serve_gated(host, port, token, viewer_token)
     dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles)
     gate.filter.allow_viewer(dashboard.controls.stop_button)  # stopping is always safe
+    dashboard.controls.who = gate.who  # STOP names who pressed it
+    from app.dashboard.recordings_panel import RecordingsPanel
+    from app.recording.reader import check_ticks, read_recording
+    from app.services.replay import ReplayService
+
+    def replay(path: Path) -> ReplayService:
+        """A replay with credentials of its own (as in one process: the live page's token never
+        goes into a link); a file that is no recording raises RecordingError (a ValueError)."""
+        rec = read_recording(path)
+        check_ticks(rec)
+        return ReplayService(rec, host=host, port=0, token=new_token() if gate.token else None,
+                             viewer_token=new_token())
+
+    panel = RecordingsPanel(server, replay, recordings, role_of=gate.role_of)
     publisher = LatestStatePublisher(dashboard.publish)
 
     def alarm(t: float, text: str) -> None:
@@ -265,6 +296,10 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
                 return
             if msg[0] == "close":
                 return
+            if msg[0] == "recording":
+                _, dashboard.controls.recording, panel.current = msg
+                panel.rescan()
+                continue
             if msg[0] == "tick":
                 _, state, changed, lines = msg
                 if lines is not None:
@@ -279,6 +314,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
                 publisher(state)
     finally:
         publisher.close()
+        panel.close()
         gate.close()
         quietly(server.stop)
 

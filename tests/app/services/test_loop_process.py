@@ -328,16 +328,20 @@ def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page
                 break
         assert port
         page = _Page(port)
-        image, shown = "", 0
+        image, shown, recording = "", 0, False
         for msg in page.messages(60.0):
+            recording = recording or "Recording now: " in str(msg)  # the file being written, told by the loop
             if (msg.get("props") or {}).get("label") == "leader's camera":
                 image = msg["uuid"]
             elif image and msg.get("uuid") == image and "_data" in msg.get("updates", {}):
                 shown += 1
-                if shown >= 3:
-                    break
-        page.close()
+            if shown >= 3 and recording:
+                break
         assert shown >= 3  # the camera's frames, drawn by the page's process
+        assert recording and "Replay in a new tab" in page.buttons  # the Recordings panel, served by the page
+        page.click("Replay in a new tab")  # the newest of recordings/ (the samples): served by the page's process
+        assert page.wait_for("](http://127.0.0.1:")  # the replay's link, for this operator
+        page.close()
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 0, err
@@ -401,3 +405,11 @@ def test_a_fleet_leader_with_the_page_in_its_own_process_shows_the_bus_on_the_pa
         proc.wait(30)
         if session is not None:
             session.close()
+
+
+def test_loop_process_with_an_arena_is_refused_in_one_line() -> None:
+    from tests.helpers import main_cli
+
+    out = main_cli("run", "--port", "0", "--no-record", "--loop-process", "--arena", "no-such-fleet.toml")
+    assert out.returncode == 2 and "--loop-process: not yet with --arena" in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
