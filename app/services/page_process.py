@@ -250,16 +250,16 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     from app.dashboard import Dashboard, LatestStatePublisher
     from app.dashboard.camera_panel import Overlay
     from app.dashboard.gate import new_token, quietly, serve_gated
+    from app.dashboard.recordings_panel import RecordingsPanel
     from app.dashboard.widgets import on_page_thread
+    from app.recording.reader import check_ticks, read_recording
+    from app.services.replay import ReplayService
 
     store = ForwardingStore(params, conn)
     server, gate = serve_gated(host, port, token, viewer_token)
     dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles)
     gate.filter.allow_viewer(dashboard.controls.stop_button)  # stopping is always safe
     dashboard.controls.who = gate.who  # STOP names who pressed it
-    from app.dashboard.recordings_panel import RecordingsPanel
-    from app.recording.reader import check_ticks, read_recording
-    from app.services.replay import ReplayService
 
     def replay(path: Path) -> ReplayService:
         """A replay with credentials of its own (as in one process: the live page's token never
