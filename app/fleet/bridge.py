@@ -386,17 +386,6 @@ class FleetBridge:
         where = f" at {', '.join(self.endpoints)}" if self.endpoints else ""
         return f"fleet {self.fleet}/{self.leader_id}: disconnected (no peer{where}; retrying)"
 
-    def show_on(self, server: Any) -> Any:
-        """A line on a leader's own page saying how its bus is; returns the redraw to call."""
-        line = server.gui.add_markdown(self.status())
-
-        def redraw() -> None:
-            text = self.status()
-            if line.content != text:
-                line.content = text
-
-        return redraw
-
     # -- out ------------------------------------------------------------------------------
     def on_tick(self, s: TickState) -> None:
         """Every tick of the loop. The state's ``t`` on the bus is this process's session time,

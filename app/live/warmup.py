@@ -10,9 +10,12 @@ any robot: through the pipeline's start-up into tracking, with the safety filter
 the goal mode's navigation and a box in view (the free-space scan). Its store, team
 and feedback are its own; the real loop's world is untouched.
 
-When numba's cache already holds the first ticks' kernels (any run after the first), only
-a few throwaway ticks run (they load the compiled code from disk) and nothing is printed;
-the later phases' kernels then load from disk in milliseconds when first used.
+The whole sequence runs on every start, not only when its first ticks compile something: a
+cache that is warm for the first tick's kernels may be cold for a later phase's (one module's
+cache removed or invalidated by an edit), and a kernel first used after the start-up then
+compiled inside a paced tick (seconds of skipped ticks). On a warm cache the sequence loads
+every kernel from disk (about 1-2 s with the synthetic camera, a fraction of that without);
+one line is printed only when something was compiled.
 """
 
 from __future__ import annotations
@@ -29,9 +32,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-SHORT_TICKS = 3  # a warm cache: enough for the first tick's kernels to load from disk
 MAX_TICKS = 900  # a cold cache: the pipeline's start-up is done well within this (30 s simulated)
 AFTER_READY_TICKS = 30  # ticks of tracking once the start-up is over (its kernels differ)
+WARM_LINE = "warmed the loop's kernels"  # the start of the one line said when something compiled
 _warmed: set[str] = set()  # kinds of world warmed in this process (a second loop needs no warm-up)
 
 
@@ -80,26 +83,22 @@ def warm_up(loop: ServiceLoop, say: bool = True) -> float:
     shadow = ServiceLoop(store, rate_hz=loop.rate_hz, seed=loop.seed, dynamics=loop.dynamics, camera=camera,
                          obstacles=loop.backends.obstacles or box)
     after = 0
-    cold = False
+    before = compiled()
     try:
-        for k in range(MAX_TICKS):
+        for _ in range(MAX_TICKS):
             if loop.stopping:  # asked to stop while warming: the loop ends at once
                 break
             shadow.tick()
-            if k + 1 == SHORT_TICKS:
-                cold = compiled() > 0  # something was compiled, not loaded: numba's cache was cold
-                if not cold:
-                    break
             if shadow._world.ready:
                 after += 1
-                if after >= AFTER_READY_TICKS and k + 1 >= SHORT_TICKS:
+                if after >= AFTER_READY_TICKS:
                     break
     finally:
         shadow.close_team()
     took = time.perf_counter() - t0
-    cold = cold or compiled() > 0  # stopped early: whatever it compiled was still compiled
+    made = compiled() - before  # compiled, not loaded from numba's cache
     _warmed.add(kind)
-    if cold and say:
-        print(f"omniformation: first run: compiled the loop's kernels in {took:.1f} s (once; numba's cache keeps"
-              " them), before the loop's clock started", flush=True)
+    if made and say:
+        print(f"omniformation: {WARM_LINE} ({made} compiled) in {took:.1f} s, before the loop's clock started"
+              " (numba's cache keeps them)", flush=True)
     return took

@@ -77,17 +77,21 @@ def goal_check_for(obstacles: tuple[Obstacle, ...]) -> Callable[[tuple[float, fl
 
 
 class _NoPage:
-    """Stands for the page's panels in the loop's process when the page runs in its own: what is
-    written to it goes nowhere (the recording's name is not shown on the page then)."""
+    """Stands for the page's panels in the loop's process when the page runs in its own: the
+    recording's name and state (``recording`` for the status, ``current`` for the Recordings panel)
+    go to the page when the recorder asks for a rescan; the other writes go nowhere."""
 
-    def __init__(self) -> None:
+    def __init__(self, page: PageProcess) -> None:
         self.controls = self
+        self.page = page
         self.extra: list[Callable[[], None]] = []
         self.recording = ""
         self.current = ""
+        self.health = self  # the page's alarms reach these listeners over the pipe (PageProcess.alarms)
+        self.listeners: list[Callable[[float, str], None]] = []
 
     def rescan(self) -> None:
-        pass
+        self.page.show_recording(self.recording, self.current)
 
 
 class Service:
@@ -108,8 +112,7 @@ class Service:
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
         ``params``: the operator's starting values when no scenario gives them.
         ``page_process``: the page (gate, viser, dashboard) in a process of its own, a client of this
-        one's loop (app.services.page_process); its Tuning, Recordings and Calibration panels are not
-        served then."""
+        one's loop (app.services.page_process); its Tuning and Calibration panels are not served then."""
         bound_native_heap()  # hours of frames in bounded resident memory (app.memory)
         bound_python_heap()  # and of Python's small objects
         fixed = hardware.state.n if hardware is not None else len(arena.owned) if arena is not None \
@@ -145,10 +148,10 @@ class Service:
         if page_process:
             self.page = PageProcess(self.store, host, port, token, viewer_token,
                                     None if overlay is None else (overlay.center, overlay.inner_px, overlay.outer_px),
-                                    obstacles)
+                                    obstacles, rate_hz, recordings)
             self.loop.subscribe(self.page.on_tick)
-            self.dashboard = _NoPage()  # type: ignore[assignment]  # what the recorder writes to a page: nowhere
-            self.recordings = _NoPage()  # type: ignore[assignment]
+            self.dashboard = self.recordings = _NoPage(self.page)  # type: ignore[assignment]  # what the recorder writes
+            self.page.alarms = self.dashboard.controls.health.listeners  # the recorder's events
             return
         self.server, self.gate = serve_gated(host, port, token, viewer_token)
         loop = self.loop
@@ -187,6 +190,21 @@ class Service:
         self.recordings = RecordingsPanel(self.server, replay, recordings, role_of=self.gate.role_of)
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
+
+    def show_line(self, text: Callable[[], str]) -> None:
+        """A status line on the page (the fleet bus's), its text read from ``text`` a few times a second;
+        with the page in its own process the text travels over the pipe."""
+        if self.page is not None:
+            self.page.add_line(text)
+            return
+        line = self.server.gui.add_markdown(text())
+
+        def redraw() -> None:
+            now = text()
+            if line.content != now:
+                line.content = now
+
+        self.dashboard.extra.append(redraw)
 
     @property
     def url(self) -> str:

@@ -8,11 +8,19 @@ work runs on the other core.
 
 The channel, one pipe, pickled messages (docs/safety.md, "The page in a process of its own"):
 
-* loop -> page: ``("tick", TickState, Params | None)``, the newest tick only (a slow page
-  skips ticks, the loop never waits for it), with the parameters in force whenever they changed;
+* loop -> page: ``("tick", TickState, Params | None, lines | None)``, the newest tick only (a slow page
+  skips ticks, the loop never waits for it), with the parameters in force whenever they changed.
+  The camera's frame travels only at the rate the page's camera panel draws it (one state in
+  every ``frame_every`` ticks carries it, as plain pixels; the others carry none): rendering and
+  pickling 900 kB on every tick cost the loop's process more than the loop itself. The page keeps
+  the newest frame (with its tick's CAMSHIFT windows) for the states between. ``lines``: the
+  texts of the status lines other parts of the loop's process show on the page (the fleet
+  bus's), read a few times a second and sent when one changed;
 * page -> loop: ``("update", source, changes)``: every change the page's controls make, STOP
   included, applied by the loop's ParamsStore.update (the same validation as in one process;
-  what it refuses is refused), and ``("ready", url, viewer_url, port)`` once it serves.
+  what it refuses is refused), ``("alarm", t, text)`` when the page's health rules raise an
+  alarm (the recorder writes it as an event), and ``("ready", url, viewer_url, port)`` once it
+  serves.
 
 Dead man's switch: if the page's process dies, the loop engages STOP at once and holds it (only
 an operator's Release on a page lifts it), and a new page process is started on the same port
@@ -22,20 +30,29 @@ followers stop on their link's watchdog (docs/follower-protocol.md).
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
+import math
 import multiprocessing
 import multiprocessing.connection
 import signal
 import threading
 import time
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from app.dashboard.camera_panel import REDRAW_S
 from app.params import Params, ParamsStore
 from app.tick import LatestStatePublisher, TickState
 
 log = logging.getLogger(__name__)
 
 RESTART_PAUSE_S = 0.5  # between a dead page process and its successor (a crash loop stays cheap)
+LINES_EVERY_S = 0.25  # how often the status lines' texts are read (the page's other panels redraw as often)
 ORPHAN_S = 3.0  # how long a page whose loop died keeps saying so before it ends
 
 
@@ -43,9 +60,23 @@ class PageProcess:
     """The loop's side: starts the page's process, feeds it ticks, applies its changes, restarts it."""
 
     def __init__(self, store: ParamsStore, host: str, port: int, token: str | None, viewer_token: str | None,
-                 overlay: tuple[tuple[float, float], float, float] | None = None, obstacles: tuple[Any, ...] = ()
-                 ) -> None:
+                 overlay: tuple[tuple[float, float], float, float] | None = None, obstacles: tuple[Any, ...] = (),
+                 rate_hz: float = 30.0, recordings: Path | None = None) -> None:
+        """``rate_hz``: the loop's; a frame goes to the page once every ``frame_every`` ticks (the
+        camera panel's redraw period, REDRAW_S). ``recordings``: the folder the page's Recordings
+        panel lists (its replays are served by the page's process: a replay commands no robot)."""
+        self.recordings = recordings
+        self._recording: tuple[str, str] | None = None  # (status text, file being written) to show
+        self._recording_sent = False
         self.store = store
+        self.frame_every = max(1, math.floor(REDRAW_S * rate_hz + 0.5))
+        self.frames_sent = 0  # states sent with the camera's frame
+        self.states_sent = 0
+        self._frame_tick = -(10**9)  # the tick of the last state sent with its frame
+        self.alarms: list[Callable[[float, str], None]] = []  # told of each alarm the page raises
+        self._lines: list[Callable[[], str]] = []  # status lines shown on the page (add_line)
+        self._lines_sent: tuple[str, ...] = ()
+        self._lines_at = 0.0
         self.host = host
         self.port = port
         self.token = token  # the gate's, once it serves: kept across restarts (the operator's URL stays valid)
@@ -77,11 +108,24 @@ class PageProcess:
         ours, theirs = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(target=page_main, name="omniformation-page", daemon=True,
                                  args=(theirs, self.host, self.port, self.token, self.viewer_token, self.store.get(),
-                                       self.overlay, self.obstacles))
+                                       self.overlay, self.obstacles, self.recordings))
         proc.start()
         theirs.close()
         self._conn, self._proc = ours, proc
         self._sent_version = -1
+        self._frame_tick = -(10**9)  # the new page gets a frame at once
+        self._lines_sent = ()  # and the status lines
+        self._recording_sent = False  # and the recording's name
+
+    def add_line(self, text: Callable[[], str]) -> None:
+        """A status line on the page, its text read from ``text`` a few times a second in this process."""
+        self._lines.append(text)
+
+    def show_recording(self, status: str, current: str) -> None:
+        """The recording's state on the page's status line and the file its Recordings panel must
+        not offer while it is written; sent before the next tick."""
+        self._recording = (status, current)
+        self._recording_sent = False
 
     def on_tick(self, state: TickState) -> None:
         """A loop subscriber: keep the newest state for the sender (never blocks the loop)."""
@@ -92,11 +136,32 @@ class PageProcess:
         conn = self._conn
         params = self.store.get()
         changed = params if params.version != self._sent_version else None
+        lines = None
+        now = time.monotonic()
+        if self._lines and now - self._lines_at >= LINES_EVERY_S:
+            self._lines_at = now
+            texts = tuple(fn() for fn in self._lines)
+            lines = texts if texts != self._lines_sent else None
+        framed = False
+        if state.frame is not None:
+            framed = state.tick - self._frame_tick >= self.frame_every or state.tick < self._frame_tick  # (a reset)
+            pixels = np.ascontiguousarray(np.asarray(state.frame)) if framed else None  # a synthetic frame renders here
+            state = dataclasses.replace(state, frame=pixels)
         try:
             assert conn is not None
             with self._send_lock:
-                conn.send(("tick", state, changed))
+                recording = self._recording
+                if recording is not None and not self._recording_sent:
+                    conn.send(("recording", *recording))
+                    self._recording_sent = recording is self._recording
+                conn.send(("tick", state, changed, lines))
             self._sent_version = params.version
+            if lines is not None:
+                self._lines_sent = lines
+            self.states_sent += 1
+            if framed:
+                self._frame_tick = state.tick
+                self.frames_sent += 1
             return True
         except (OSError, ValueError, AssertionError):
             time.sleep(0.05)  # the page is gone: the supervisor restarts it
@@ -128,6 +193,9 @@ class PageProcess:
                     self.store.update(str(source), **dict(changes))
                 except (ValueError, TypeError) as exc:  # refused as the store refuses any bad change
                     log.warning("page: change refused: %s", exc)
+            elif msg[0] == "alarm" and len(msg) == 3:
+                for fn in list(self.alarms):
+                    fn(float(msg[1]), str(msg[2]))
             elif msg[0] == "ready":
                 _, self.url, self.viewer_url, self.port, self.token, self.viewer_token = msg
                 self.served += 1
@@ -175,21 +243,48 @@ class ForwardingStore(ParamsStore):
 def page_main(conn: multiprocessing.connection.Connection, host: str, port: int, token: str | None,
               viewer_token: str | None,
               params: Params, overlay: tuple[tuple[float, float], float, float] | None,
-              obstacles: tuple[Any, ...]) -> None:
-    """The page's process: the gate, viser and the dashboard, drawing what the loop sends."""
+              obstacles: tuple[Any, ...], recordings: Path | None = None) -> None:
+    """The page's process: the gate, viser and the dashboard, drawing what the loop sends, and the
+    Recordings panel (replays served from here)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the loop's process to handle: it closes this one
     from app.dashboard import Dashboard, LatestStatePublisher
     from app.dashboard.camera_panel import Overlay
-    from app.dashboard.gate import quietly, serve_gated
+    from app.dashboard.gate import new_token, quietly, serve_gated
+    from app.dashboard.recordings_panel import RecordingsPanel
+    from app.dashboard.widgets import on_page_thread
+    from app.recording.reader import check_ticks, read_recording
+    from app.services.replay import ReplayService
 
     store = ForwardingStore(params, conn)
     server, gate = serve_gated(host, port, token, viewer_token)
     dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles)
     gate.filter.allow_viewer(dashboard.controls.stop_button)  # stopping is always safe
+    dashboard.controls.who = gate.who  # STOP names who pressed it
+
+    def replay(path: Path) -> ReplayService:
+        """A replay with credentials of its own (as in one process: the live page's token never
+        goes into a link); a file that is no recording raises RecordingError (a ValueError)."""
+        rec = read_recording(path)
+        check_ticks(rec)
+        return ReplayService(rec, host=host, port=0, token=new_token() if gate.token else None,
+                             viewer_token=new_token())
+
+    panel = RecordingsPanel(server, replay, recordings, role_of=gate.role_of)
     publisher = LatestStatePublisher(dashboard.publish)
+
+    def alarm(t: float, text: str) -> None:
+        with store.send_lock:
+            try:
+                conn.send(("alarm", t, text))
+            except (OSError, ValueError):
+                pass  # the loop is gone: the page says so
+
+    dashboard.controls.health.listeners.append(alarm)
     with store.send_lock:
         conn.send(("ready", gate.url, gate.viewer_url, gate.port, gate.token, gate.viewer_token))
     loop_version = -1
+    framed: TickState | None = None  # the newest state that carried the camera's frame
+    shown: list[Any] = []  # the status lines' markdown, made when their first texts arrive
     try:
         while True:
             try:
@@ -201,13 +296,33 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
                 return
             if msg[0] == "close":
                 return
+            if msg[0] == "recording":
+                _, dashboard.controls.recording, panel.current = msg
+                panel.rescan()
+                continue
             if msg[0] == "tick":
-                _, state, changed = msg
+                _, state, changed, lines = msg
+                if lines is not None:
+                    on_page_thread(server, functools.partial(_show_lines, server, shown, lines))
                 if changed is not None and changed.version != loop_version:
                     loop_version = changed.version
                     store.load(changed, "loop")  # what the loop put in force, shown on the controls
+                if state.frame is not None:
+                    framed = state
+                elif framed is not None and framed.tick <= state.tick:  # the newest frame, with its own windows
+                    state = dataclasses.replace(state, frame=framed.frame, windows=framed.windows)
                 publisher(state)
     finally:
         publisher.close()
+        panel.close()
         gate.close()
         quietly(server.stop)
+
+
+def _show_lines(server: Any, shown: list[Any], texts: tuple[str, ...]) -> None:
+    """The status lines' texts on the page (a markdown each, made the first time)."""
+    while len(shown) < len(texts):
+        shown.append(server.gui.add_markdown(""))
+    for line, text in zip(shown, texts):
+        if line.content != text:
+            line.content = text

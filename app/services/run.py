@@ -302,7 +302,7 @@ def _on_the_bus(plan: RunPlan, fleet: _Fleet, service: Service, stack: contextli
                          presence=fleet.presence, t_start=fleet.t_start)
     stack.callback(bridge.close)
     service.loop.subscribe(bridge.on_tick)
-    service.dashboard.extra.append(bridge.show_on(service.server))
+    service.show_line(bridge.status)
     if fp.connect and not fleet.arena_team:  # an arena leader knows it is connected (it had the truth)
         deadline = time.monotonic() + 3.0
         while not bridge.peers() and time.monotonic() < deadline:

@@ -18,7 +18,7 @@ import pytest
 if TYPE_CHECKING:
     from app.services.live import Service
 
-WARM = "first run: compiled the loop's kernels"
+WARM = "warmed the loop's kernels"  # app.live.warmup.WARM_LINE, as a reader of the output sees it
 
 
 def _run(cache: Path, until: str = "dashboard at") -> tuple[str, str]:
@@ -51,6 +51,70 @@ def test_a_fresh_cache_is_compiled_before_the_clock_starts_and_only_once(tmp_pat
     assert WARM not in out, out  # the cache keeps them: the second run says nothing
     assert "compiled while the loop's clock ran" not in err, err
 
+
+# A vision loop as `make run` serves it, warmed and run for 90 ticks with numba's cache where the
+# environment says; prints the loop's own counts (with `list`: each kernel's cache folder and source file, after
+# the warm-up alone).
+_VISION_RUN = """
+import json, sys, threading, time
+from app.live import warmup
+from app.live.config import DEFAULT_CONFIG, load_service_config
+from app.live.loop import ServiceLoop
+from app.params import MAX_FOLLOWERS, Params, ParamsStore, default_slots
+config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+loop = ServiceLoop(ParamsStore(Params(n_followers=3, slots=default_slots(3))), rate_hz=30.0, camera=config.camera(),
+                   dynamics=config.dynamics)
+warmup.warm_up(loop)
+at_start = warmup.compiled()
+files = sorted({(fn._cache._cache_path, fn.py_func.__code__.co_filename) for fn in warmup.kernels()})
+if sys.argv[1:] == ["list"]:
+    print(json.dumps({"files": files}))
+    sys.exit(0)
+runner = threading.Thread(target=loop.run)
+runner.start()
+while loop.tick_count < 90 and runner.is_alive():
+    time.sleep(0.05)
+loop.stop()
+runner.join()
+print(json.dumps({"late": warmup.compiled() - at_start, "dropped": loop.ticks_dropped,
+                  "ticks": loop.tick_count}))
+"""
+
+
+def _vision_run(env: dict[str, str], *args: str) -> tuple[dict[str, Any], str]:
+    import json
+
+    done = subprocess.run([sys.executable, "-c", _VISION_RUN, *args], capture_output=True, text=True, timeout=600,
+                          env=dict(os.environ, **env))
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.strip().splitlines()
+    return json.loads(lines[-1]), "\n".join(lines[:-1])
+
+
+def test_a_cache_cold_for_one_module_is_warmed_before_the_clock_and_no_tick_is_skipped(tmp_path: Path) -> None:
+    """numba's cache warm for every kernel but the tracker's (its module's files removed, as an edit
+    of that module would invalidate them): the tracker is first used only once the pipeline's
+    start-up is over, and it must still be compiled before the loop's clock starts."""
+    import shutil
+
+    from numba.core.caching import _CacheLocator
+
+    warm, _ = _vision_run({}, "list")  # the cache the environment keeps (compiled here if it was cold)
+    cold = 0
+    for folder, source in warm["files"]:
+        into = tmp_path / _CacheLocator.get_suitable_cache_subpath(source)  # where NUMBA_CACHE_DIR puts it
+        into.mkdir(parents=True, exist_ok=True)
+        stem = Path(source).stem + "."
+        for f in Path(folder).glob(stem + "*"):
+            if Path(source).name == "tracking.py":
+                cold += 1  # left out: this module's cache is cold
+            else:
+                shutil.copy2(f, into / f.name)
+    assert cold, warm["files"]  # the tracker's module had cached kernels to leave out
+    counts, said = _vision_run({"NUMBA_CACHE_DIR": str(tmp_path)})
+    assert said.count(WARM) == 1, said  # one line: something was compiled, and how long it took
+    assert counts["late"] == 0, counts  # nothing left for a paced tick to compile
+    assert counts["ticks"] >= 90 and counts["dropped"] == 0, counts  # the loop's own count of skipped ticks
 
 # -- the page in a process of its own (docs/safety.md, "The page in a process of its own") ---------------
 
@@ -197,3 +261,155 @@ def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> 
         watchdog.cancel()
         proc.kill()
         proc.wait(30)
+
+
+def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> None:
+    """With vision, every tick's state reaches the page, and one in every ``frame_every`` ticks
+    carries the camera's frame (the camera panel's redraw rate); the page shows them."""
+    from app.live.config import DEFAULT_CONFIG, load_service_config
+    from app.params import MAX_FOLLOWERS
+    from app.services.live import Service
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0, camera=config.camera(),
+                  dynamics=config.dynamics, page_process=True)
+    svc.start()
+    try:
+        page = svc.page
+        assert page is not None and page.frame_every == 3  # 30 Hz ticks, the panel redraws every 0.1 s
+        client = _Page(page.port)
+        image, shown = "", 0
+        for msg in client.messages(60.0):
+            if (msg.get("props") or {}).get("label") == "leader's camera":
+                image = msg["uuid"]
+            elif image and msg.get("uuid") == image and "_data" in msg.get("updates", {}):
+                shown += 1  # a frame drawn on the page
+                if shown >= 3:
+                    break
+        client.close()
+        assert shown >= 3
+        assert _until(lambda: page.frames_sent >= 3)
+        ticks = svc.loop.tick_count  # read after the count: the ticks it may have come from are all in
+        assert page.frames_sent <= ticks // page.frame_every + 1  # never more than one in frame_every ticks
+        assert page.states_sent > page.frames_sent  # the states between went without a frame
+    finally:
+        svc.close()
+
+
+def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page(tmp_path: Path) -> None:
+    """`run --camera VIDEO --loop-process`: the camera, the vision pipeline and the recorder in the
+    loop's process, the frames drawn by the page's process; Ctrl-C ends both, the recording is one file."""
+    import re
+
+    from tests.app.backends.test_real_rig import render_frames
+
+    import cv2
+
+    frames = render_frames(tmp_path, 6)
+    video = tmp_path / "rig.avi"  # 20 s at 30 fps: it plays on through the start-up and its warm-up
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (frames[0].shape[1], frames[0].shape[0]))
+    for k in range(600):
+        writer.write(frames[k % len(frames)])
+    writer.release()
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--camera", str(video), "--link", "none",
+                             "--followers", "3", "--port", "0", "--record", str(tmp_path / "run.mcap"),
+                             "--loop-process"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.stdout is not None
+    watchdog = threading.Timer(300.0, proc.kill)
+    watchdog.start()
+    try:
+        port = 0
+        for line in proc.stdout:
+            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/ .*vision pipeline on camera", line)
+            if found:
+                port = int(found.group(1))
+                break
+        assert port
+        page = _Page(port)
+        image, shown, recording = "", 0, False
+        for msg in page.messages(60.0):
+            recording = recording or "Recording now: " in str(msg)  # the file being written, told by the loop
+            if (msg.get("props") or {}).get("label") == "leader's camera":
+                image = msg["uuid"]
+            elif image and msg.get("uuid") == image and "_data" in msg.get("updates", {}):
+                shown += 1
+            if shown >= 3 and recording:
+                break
+        assert shown >= 3  # the camera's frames, drawn by the page's process
+        assert recording and "Replay in a new tab" in page.buttons  # the Recordings panel, served by the page
+        page.click("Replay in a new tab")  # the newest of recordings/ (the samples): served by the page's process
+        assert page.wait_for("](http://127.0.0.1:")  # the replay's link, for this operator
+        page.close()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert "all followers commanded to zero" in out and "Traceback" not in err, (out, err)
+        from app.recording.reader import read_recording
+
+        assert len(read_recording(tmp_path / "run.mcap").ticks) > 0  # the session recorded, as one file
+    finally:
+        watchdog.cancel()
+        proc.kill()
+        proc.wait(30)
+
+
+def test_a_fleet_leader_with_the_page_in_its_own_process_shows_the_bus_on_the_page() -> None:
+    """`run --fleet --loop-process`: the bridge runs in the loop's process (its states go on the bus,
+    its STOP reaches the loop's store); the bus's status line travels over the pipe to the page."""
+    import json
+    import re
+
+    import zenoh
+
+    from app.fleet.bridge import loopback_endpoint
+
+    endpoint = loopback_endpoint()
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
+                             "--no-record", "--fleet", "lp", "--leader-id", "L1", "--zenoh-connect", endpoint,
+                             "--loop-process"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.stdout is not None
+    watchdog = threading.Timer(300.0, proc.kill)
+    watchdog.start()
+    session = None
+    try:
+        port = 0
+        for line in proc.stdout:
+            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/", line)
+            if found:
+                port = int(found.group(1))
+                break
+        assert port
+        page = _Page(port)
+        assert page.wait_for("fleet lp/L1: disconnected")  # no peer yet: said on the page
+        c = zenoh.Config()
+        c.insert_json5("mode", '"peer"')
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+        session = zenoh.open(c)
+        states: list[dict[str, Any]] = []
+        sub = session.declare_subscriber("omniformation/lp/leader/L1/state",
+                                         lambda s: states.append(json.loads(s.payload.to_bytes())))
+        assert page.wait_for("fleet lp/L1: connected (1 peer)")  # the bus came up: the line changed
+        assert _until(lambda: len(states) > 5)  # the loop's states on the bus
+        page.close()
+        sub.undeclare()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+        assert proc.returncode == 0 and "all followers commanded to zero" in out, out
+    finally:
+        watchdog.cancel()
+        proc.kill()
+        proc.wait(30)
+        if session is not None:
+            session.close()
+
+
+def test_loop_process_with_an_arena_is_refused_in_one_line() -> None:
+    from tests.helpers import main_cli
+
+    out = main_cli("run", "--port", "0", "--no-record", "--loop-process", "--arena", "no-such-fleet.toml")
+    assert out.returncode == 2 and "--loop-process: not yet with --arena" in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
