@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -235,32 +237,38 @@ def test_stop_from_a_second_client_reaches_the_loop_during_a_flood(service: Serv
         flooder.wait(30)
 
 
-def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> None:
-    import re
-
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record", "--feedback", "truth",
-                             "--loop-process"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+@contextlib.contextmanager
+def _served(*args: str, pattern: str = r"dashboard at http://127\.0\.0\.1:(\d+)/",
+            stderr: int = subprocess.DEVNULL) -> Iterator[tuple[subprocess.Popen[str], int]]:
+    """`run --port 0 --loop-process ARGS` as a real process: (the process, its page's port once it
+    says where it serves); killed on the way out, whatever happened (a watchdog ends a hang)."""
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", *args, "--loop-process"],
+                            stdout=subprocess.PIPE, stderr=stderr, text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
     assert proc.stdout is not None
     watchdog = threading.Timer(300.0, proc.kill)
     watchdog.start()
     try:
         port = 0
         for line in proc.stdout:
-            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/", line)
+            found = re.search(pattern, line)
             if found:
                 port = int(found.group(1))
                 break
         assert port
+        yield proc, port
+    finally:
+        watchdog.cancel()
+        proc.kill()
+        proc.wait(30)
+
+
+def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> None:
+    with _served("--no-record", "--feedback", "truth") as (proc, port):
         page = _Page(port)
         assert page.wait_for("running")  # the loop's state on the page
         proc.kill()  # the loop's process, at once (SIGKILL: no goodbye)
         assert page.wait_for("THE LOOP HAS ENDED", timeout=30.0)
         page.close()
-    finally:
-        watchdog.cancel()
-        proc.kill()
-        proc.wait(30)
 
 
 def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> None:
@@ -299,7 +307,6 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
 def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page(tmp_path: Path) -> None:
     """`run --camera VIDEO --loop-process`: the camera, the vision pipeline and the recorder in the
     loop's process, the frames drawn by the page's process; Ctrl-C ends both, the recording is one file."""
-    import re
 
     from tests.app.backends.test_real_rig import render_frames
 
@@ -311,22 +318,9 @@ def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page
     for k in range(600):
         writer.write(frames[k % len(frames)])
     writer.release()
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--camera", str(video), "--link", "none",
-                             "--followers", "3", "--port", "0", "--record", str(tmp_path / "run.mcap"),
-                             "--loop-process"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    assert proc.stdout is not None
-    watchdog = threading.Timer(300.0, proc.kill)
-    watchdog.start()
-    try:
-        port = 0
-        for line in proc.stdout:
-            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/ .*vision pipeline on camera", line)
-            if found:
-                port = int(found.group(1))
-                break
-        assert port
+    with _served("--camera", str(video), "--link", "none", "--followers", "3", "--record", str(tmp_path / "run.mcap"),
+                 pattern=r"dashboard at http://127\.0\.0\.1:(\d+)/ .*vision pipeline on camera",
+                 stderr=subprocess.PIPE) as (proc, port):
         page = _Page(port)
         image, shown, recording = "", 0, False
         for msg in page.messages(60.0):
@@ -349,39 +343,23 @@ def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page
         from app.recording.reader import read_recording
 
         assert len(read_recording(tmp_path / "run.mcap").ticks) > 0  # the session recorded, as one file
-    finally:
-        watchdog.cancel()
-        proc.kill()
-        proc.wait(30)
 
 
 def test_a_fleet_leader_with_the_page_in_its_own_process_shows_the_bus_on_the_page() -> None:
     """`run --fleet --loop-process`: the bridge runs in the loop's process (its states go on the bus,
     its STOP reaches the loop's store); the bus's status line travels over the pipe to the page."""
     import json
-    import re
 
     import zenoh
 
     from app.fleet.bridge import loopback_endpoint
 
     endpoint = loopback_endpoint()
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--feedback", "truth",
-                             "--no-record", "--fleet", "lp", "--leader-id", "L1", "--zenoh-connect", endpoint,
-                             "--loop-process"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    assert proc.stdout is not None
-    watchdog = threading.Timer(300.0, proc.kill)
-    watchdog.start()
     session = None
-    try:
-        port = 0
-        for line in proc.stdout:
-            found = re.search(r"dashboard at http://127\.0\.0\.1:(\d+)/", line)
-            if found:
-                port = int(found.group(1))
-                break
-        assert port
+    with contextlib.ExitStack() as stack:
+        proc, port = stack.enter_context(_served("--feedback", "truth", "--no-record", "--fleet", "lp", "--leader-id", "L1",
+                                                 "--zenoh-connect", endpoint))
+        stack.callback(lambda: session.close() if session is not None else None)
         page = _Page(port)
         assert page.wait_for("fleet lp/L1: disconnected")  # no peer yet: said on the page
         c = zenoh.Config()
@@ -399,12 +377,6 @@ def test_a_fleet_leader_with_the_page_in_its_own_process_shows_the_bus_on_the_pa
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=60)
         assert proc.returncode == 0 and "all followers commanded to zero" in out, out
-    finally:
-        watchdog.cancel()
-        proc.kill()
-        proc.wait(30)
-        if session is not None:
-            session.close()
 
 
 def test_loop_process_with_an_arena_is_refused_in_one_line() -> None:
