@@ -455,7 +455,8 @@ def test_the_pages_health_banner_judges_the_loops_rate_and_skipped_ticks(service
 
 def test_the_tuning_panel_runs_its_step_tests_and_sweeps_on_the_loops_side(service: Service) -> None:
     """The page's Tuning panel (in the page's process): a step test and a sweep asked from the page
-    run on the loop's side (its StepTests and SweepRunner), their row and result come back and show."""
+    run on the loop's side (its StepTests and SweepRunner), their row and result come back and show,
+    and show again on the page started after a crash."""
     page = service.page
     assert page is not None
     client = _Page(page.port)
@@ -472,6 +473,17 @@ def test_the_tuning_panel_runs_its_step_tests_and_sweeps_on_the_loops_side(servi
     result = service.sweeps.last
     assert result is not None and [float(v) for v in result.ranges[0].values] == [1.0, 4.0]
     client.close()
+    os.kill(page.pid, signal.SIGKILL)  # a new page is told the rows and the last sweep
+    assert _until(lambda: page.restarts == 1 and page.served == 2)
+    newcomer = _Page(page.port)
+    seen = {"row": False, "sweep": False}
+    for msg in newcomer.messages(60.0):
+        seen["row"] = seen["row"] or "step test: trial 1 done" in str(msg)
+        seen["sweep"] = seen["sweep"] or "sweep: done, 2 of 2 points" in str(msg)
+        if all(seen.values()):
+            break
+    assert seen == {"row": True, "sweep": True}
+    newcomer.close()
 
 
 def test_tuning_messages_of_no_known_shape_are_refused_and_start_nothing(service: Service) -> None:
