@@ -92,8 +92,7 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                      help="the loop's and the camera's threads on real-time scheduling (SCHED_FIFO; needs root,"
                           " CAP_SYS_NICE or an rtprio limit): fewer latency spikes on a busy machine")
     run.add_argument("--loop-process", action="store_true",
-                     help="serve the page from a process of its own, a client of the loop's (docs/safety.md); not with"
-                          " --arena yet")
+                     help="serve the page from a process of its own, a client of the loop's (docs/safety.md)")
     add_foxglove_args(run)
     run.set_defaults(func=cmd_run)
 
@@ -137,8 +136,6 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
     from app.files import load_scenario
     from app.live.config import load_service_config
 
-    if getattr(args, "loop_process", False) and args.arena:
-        raise UserError("--loop-process: not yet with --arena (run without it)")
     check_run_args(args)  # takes a ros2: leader out of --leader
     if args.viewer_token is not None and args.viewer_token == args.token:
         raise UserError("--viewer-token: must differ from --token (a viewer may not command the robots)")

@@ -21,7 +21,8 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 import viser
@@ -166,20 +167,86 @@ class LyapunovMonitor:
         return img
 
 
-class TuningPanel:
-    """Step tests and sweeps on the live team."""
+@dataclass(frozen=True)
+class SweepAsk:
+    """A sweep as the panel's widgets describe it, in plain values (what a page in a process of its
+    own sends the loop's side, which checks it as the panel would)."""
 
-    def __init__(self, server: viser.ViserServer, store: ParamsStore, tests: StepTests, sweeps: SweepRunner,
+    gain1: str
+    range1: str
+    gain2: str  # "none": one gain
+    range2: str
+    feedback: str  # "truth" or "vision"
+
+
+class Bench(Protocol):
+    """What the panel asks of the loop's side: its step tests (``tests``: trials, status, listeners,
+    request, cancel) and sweeps (``sweeps``: on_progress, on_done, cancel), and a sweep started."""
+
+    tests: Any
+    sweeps: Any
+    vision_offered: bool
+
+    def start_sweep(self, ask: SweepAsk, test: StepTest) -> str | None: ...
+
+
+class LiveBench:
+    """The bench in the loop's process: step tests on the loop, sweeps in a worker from the team now."""
+
+    def __init__(self, store: ParamsStore, tests: StepTests, sweeps: SweepRunner,
                  base: Callable[[], tuple[Scenario, tuple[float, float]] | str],
                  vision: Callable[[], Any] | None) -> None:
         """``base()``: the team now as a scenario (app.live.tuning.live_base) or why not;
         ``vision()``: the rig and Γ for sweeps with vision in the loop (None: not offered)."""
-        self.server = server
         self.store = store
         self.tests = tests
         self.sweeps = sweeps
         self._base = base
         self._vision = vision
+        self.vision_offered = vision is not None
+
+    def start_sweep(self, ask: SweepAsk, test: StepTest) -> str | None:
+        """Start the sweep ``ask`` describes; why not, or None. Each grid value is taken to its gain
+        slider's step, so the point applied is the point measured and the slider shows it exactly."""
+        try:
+            if ask.gain1 not in SWEEP_GAINS or ask.gain2 not in ("none", *SWEEP_GAINS):
+                raise ValueError(f"gains {ask.gain1!r}, {ask.gain2!r}: must be among {', '.join(SWEEP_GAINS)}")
+            ranges = [slider_range(parse_gain_range(f"{ask.gain1}={ask.range1}"))]
+            if ask.gain2 != "none":
+                ranges.append(slider_range(parse_gain_range(f"{ask.gain2}={ask.range2}")))
+        except ValueError as exc:
+            return str(exc)
+        base = self._base()
+        if isinstance(base, str):
+            return base
+        scenario, twist = base
+        from core.control.tuning import check_step_test
+
+        why = check_step_test(test, scenario.n)
+        if why:
+            return why
+        vision = None
+        if ask.feedback == "vision":
+            if self._vision is None:
+                return "vision sweeps need the synthetic rig (run with the simulated camera)"
+            vision = self._vision()
+        elif ask.feedback != "truth":
+            return f"feedback {ask.feedback!r}: must be truth or vision"
+        return self.sweeps.start(scenario, test, twist, ranges, self.store.get().gains, vision)
+
+
+class TuningPanel:
+    """Step tests and sweeps on the live team."""
+
+    def __init__(self, server: viser.ViserServer, store: ParamsStore, bench: Bench) -> None:
+        """``bench``: the loop's side (LiveBench in one process; a proxy over the pipe when the page
+        runs in a process of its own, app.services.page_tuning)."""
+        self.server = server
+        self.store = store
+        self.bench = bench
+        self.tests = bench.tests
+        self.sweeps = bench.sweeps
+        vision = bench.vision_offered
         self.message = ""
         self.sweep_message = ""
         self.result: SweepResult | None = None
@@ -231,9 +298,9 @@ class TuningPanel:
                                               hint="best first: settled, then fastest, then least overshoot")
                 self.apply_point = gui.add_button("Apply point's gains", disabled=True)
                 self.apply_best = gui.add_button("Apply best", disabled=True)
-        tests.listeners.append(self._on_trial)
-        sweeps.on_progress.append(self._on_progress)
-        sweeps.on_done.append(self._on_sweep)
+        self.tests.listeners.append(self._on_trial)
+        self.sweeps.on_progress.append(self._on_progress)
+        self.sweeps.on_done.append(self._on_sweep)
         self._wire()
 
     # -- what the operator asked ----------------------------------------------------------
@@ -251,31 +318,10 @@ class TuningPanel:
         return self.message
 
     def start_sweep(self, feedback: str | None = None) -> str | None:
-        """Start the sweep the widgets describe (``feedback``: instead of the widget's); why not, or None.
-        Each grid value is taken to its gain slider's step, so the point applied is the point measured
-        and the slider shows it exactly."""
-        try:
-            ranges = [slider_range(parse_gain_range(f"{self.gain1.value}={self.range1.value}"))]
-            if self.gain2.value != "none":
-                ranges.append(slider_range(parse_gain_range(f"{self.gain2.value}={self.range2.value}")))
-        except ValueError as exc:
-            return str(exc)
-        test = self.test_from_widgets()
-        base = self._base()
-        if isinstance(base, str):
-            return base
-        scenario, twist = base
-        from core.control.tuning import check_step_test
-
-        why = check_step_test(test, scenario.n)
-        if why:
-            return why
-        vision = None
-        if (feedback or self.feedback.value) == "vision":
-            if self._vision is None:
-                return "vision sweeps need the synthetic rig (run with the simulated camera)"
-            vision = self._vision()
-        return self.sweeps.start(scenario, test, twist, ranges, self.store.get().gains, vision)
+        """Start the sweep the widgets describe (``feedback``: instead of the widget's); why not, or None."""
+        ask = SweepAsk(str(self.gain1.value), str(self.range1.value), str(self.gain2.value), str(self.range2.value),
+                       str(feedback or self.feedback.value))
+        return self.bench.start_sweep(ask, self.test_from_widgets())
 
     def _show_fields(self) -> None:
         """Only the fields the chosen test uses, the step size labelled with its unit."""

@@ -28,10 +28,11 @@ from app.contracts import FollowerLink, FrameSource, Rig
 from app.dashboard import Dashboard, LatestStatePublisher
 from app.dashboard.calibration_panel import CalibrationPanel
 from app.dashboard.camera_panel import Overlay
-from app.dashboard.tuning_panel import TuningPanel
+from app.dashboard.tuning_panel import LiveBench, TuningPanel
 from app.dashboard.gate import new_token, quietly, serve_gated
 from app.dashboard.recordings_panel import RecordingsPanel
 from app.services.page_process import PageProcess
+from app.services.page_tuning import serve_tuning
 from app.services.replay import ReplayService
 from app.live.loop import DEFAULT_NOISE, ServiceLoop
 from app.params import LeaderMode, Params, ParamsStore, default_slots
@@ -112,7 +113,7 @@ class Service:
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
         ``params``: the operator's starting values when no scenario gives them.
         ``page_process``: the page (gate, viser, dashboard) in a process of its own, a client of this
-        one's loop (app.services.page_process); its Tuning and Calibration panels are not served then."""
+        one's loop (app.services.page_process; the Tuning panel's work stays here, page_tuning)."""
         bound_native_heap()  # hours of frames in bounded resident memory (app.memory)
         bound_python_heap()  # and of Python's small objects
         fixed = hardware.state.n if hardware is not None else len(arena.owned) if arena is not None \
@@ -145,15 +146,6 @@ class Service:
         self.page: PageProcess | None = None
         self.dashboard: Dashboard
         self.recordings: RecordingsPanel
-        if page_process:
-            self.page = PageProcess(self.store, host, port, token, viewer_token,
-                                    None if overlay is None else (overlay.center, overlay.inner_px, overlay.outer_px),
-                                    obstacles, rate_hz, recordings)
-            self.loop.subscribe(self.page.on_tick)
-            self.dashboard = self.recordings = _NoPage(self.page)  # type: ignore[assignment]  # what the recorder writes
-            self.page.alarms = self.dashboard.controls.health.listeners  # the recorder's events
-            return
-        self.server, self.gate = serve_gated(host, port, token, viewer_token)
         loop = self.loop
 
         def base() -> tuple[Scenario, tuple[float, float]] | str:
@@ -161,10 +153,24 @@ class Service:
                              MeasurementNoise(loop.position_noise_m, loop.heading_noise_rad), loop.rate_hz, loop.seed)
 
         synthetic = camera is not None and hardware is None and camera[0].model is not None
+        self.bench = LiveBench(self.store, self.tests, self.sweeps, base, (lambda: camera) if synthetic else None)
+        if page_process:
+            self.page = PageProcess(self.store, host, port, token, viewer_token,
+                                    None if overlay is None else (overlay.center, overlay.inner_px, overlay.outer_px),
+                                    obstacles, rate_hz, recordings)
+            self.page_tuning = serve_tuning(self.page, self.bench)  # the page's Tuning panel, its work here
+            self.loop.subscribe(self.page.on_tick)
+            self.page.dropped = lambda: self.loop.ticks_dropped  # the page's health banner judges them
+            self.dashboard = self.recordings = _NoPage(self.page)  # type: ignore[assignment]  # what the recorder writes
+            self.page.alarms = self.dashboard.controls.health.listeners  # the recorder's events
+            if frames is not None and camera is not None:  # a real camera: the page's Calibration panel
+                self.page.calibration = (camera[0].detect, (camera[1].cx, camera[1].cy), camera[0].working_area)
+            self.page.start()
+            return
+        self.server, self.gate = serve_gated(host, port, token, viewer_token)
 
         def tuning(server: viser.ViserServer) -> TuningPanel:
-            return TuningPanel(server, self.store, self.tests, self.sweeps, base,
-                               (lambda: camera) if synthetic else None)
+            return TuningPanel(server, self.store, self.bench)
 
         self.dashboard = Dashboard(self.server, self.store, overlay, obstacles, tuning=tuning)
         self.gate.filter.allow_viewer(self.dashboard.controls.stop_button)  # stopping is always safe

@@ -8,19 +8,25 @@ work runs on the other core.
 
 The channel, one pipe, pickled messages (docs/safety.md, "The page in a process of its own"):
 
-* loop -> page: ``("tick", TickState, Params | None, lines | None)``, the newest tick only (a slow page
+* loop -> page: ``("tick", TickState, Params | None, lines | None, skipped)``, the newest tick only (a slow page
   skips ticks, the loop never waits for it), with the parameters in force whenever they changed.
   The camera's frame travels only at the rate the page's camera panel draws it (one state in
   every ``frame_every`` ticks carries it, as plain pixels; the others carry none): rendering and
   pickling 900 kB on every tick cost the loop's process more than the loop itself. The page keeps
   the newest frame (with its tick's CAMSHIFT windows) for the states between. ``lines``: the
   texts of the status lines other parts of the loop's process show on the page (the fleet
-  bus's), read a few times a second and sent when one changed;
+  bus's), read a few times a second and sent when one changed; ``skipped``: the ticks the loop
+  has skipped so far (with the loop's target rate, given at start, the page's health banner judges
+  them as in one process);
 * page -> loop: ``("update", source, changes)``: every change the page's controls make, STOP
   included, applied by the loop's ParamsStore.update (the same validation as in one process;
   what it refuses is refused), ``("alarm", t, text)`` when the page's health rules raise an
   alarm (the recorder writes it as an event), and ``("ready", url, viewer_url, port)`` once it
-  serves.
+  serves;
+* the panels whose work runs on the loop's side (the Tuning panel: app.services.page_tuning) send
+  and receive messages of their own kind, answered by the handler registered for it (``serve``);
+  what the loop's side sends them is queued (``post``) and goes down the pipe before the next
+  state, so no subscriber of the loop ever waits for the page.
 
 Dead man's switch: if the page's process dies, the loop engages STOP at once and holds it (only
 an operator's Release on a page lifts it), and a new page process is started on the same port
@@ -39,6 +45,7 @@ import multiprocessing.connection
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -69,12 +76,20 @@ class PageProcess:
         self._recording: tuple[str, str] | None = None  # (status text, file being written) to show
         self._recording_sent = False
         self.store = store
+        self.rate_hz = rate_hz
+        self.dropped: Callable[[], int] = lambda: 0  # the loop's skipped ticks so far (its health banner's)
         self.frame_every = max(1, math.floor(REDRAW_S * rate_hz + 0.5))
         self.frames_sent = 0  # states sent with the camera's frame
         self.states_sent = 0
         self._frame_tick = -(10**9)  # the tick of the last state sent with its frame
         self.alarms: list[Callable[[float, str], None]] = []  # told of each alarm the page raises
         self._lines: list[Callable[[], str]] = []  # status lines shown on the page (add_line)
+        self._outbox: deque[tuple[Any, ...]] = deque()  # messages for the page, sent before the next state
+        self._handlers: dict[str, Callable[[tuple[Any, ...]], None]] = {}  # a panel's messages, by kind
+        self.before_send: list[Callable[[], None]] = []  # called before each state goes (a panel's status)
+        self.new_page: list[Callable[[], None]] = []  # called when a page process starts (its history)
+        self.tuning: tuple[bool, bool] = (False, False)  # serve the Tuning panel; with vision sweeps
+        self.calibration: tuple[Any, tuple[float, float], Any] | None = None  # a real camera's (detect, centre, area)
         self._lines_sent: tuple[str, ...] = ()
         self._lines_at = 0.0
         self.host = host
@@ -94,9 +109,20 @@ class PageProcess:
         self._ready = threading.Event()
         self._send_lock = threading.Lock()  # one writer at a time on the pipe (interleaved pickles corrupt it)
         self._sent_version = -1
+        self._sender = LatestStatePublisher(self._send, name="page-sender")  # the newest state, never the loop's wait
+
+    def serve(self, kind: str, handler: Callable[[tuple[Any, ...]], None]) -> None:
+        """Messages of ``kind`` from the page go to ``handler`` (on the supervisor's thread)."""
+        self._handlers[kind] = handler
+
+    def post(self, msg: tuple[Any, ...]) -> None:
+        """Queue a message for the page (any thread; it goes before the next state)."""
+        self._outbox.append(msg)
+
+    def start(self) -> None:
+        """Start the page's process and wait until it serves."""
         self._start_page()
         threading.Thread(target=self._supervise, name="page-supervisor", daemon=True).start()
-        self._sender = LatestStatePublisher(self._send, name="page-sender")  # the newest state, never the loop's wait
         if not self._ready.wait(120.0):
             raise OSError("the page's process did not start")
 
@@ -108,7 +134,8 @@ class PageProcess:
         ours, theirs = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(target=page_main, name="omniformation-page", daemon=True,
                                  args=(theirs, self.host, self.port, self.token, self.viewer_token, self.store.get(),
-                                       self.overlay, self.obstacles, self.recordings))
+                                       self.overlay, self.obstacles, self.recordings, self.rate_hz, self.tuning,
+                                       self.calibration))
         proc.start()
         theirs.close()
         self._conn, self._proc = ours, proc
@@ -116,6 +143,9 @@ class PageProcess:
         self._frame_tick = -(10**9)  # the new page gets a frame at once
         self._lines_sent = ()  # and the status lines
         self._recording_sent = False  # and the recording's name
+        self._outbox.clear()  # what was queued for the page that died
+        for fn in self.new_page:
+            fn()
 
     def add_line(self, text: Callable[[], str]) -> None:
         """A status line on the page, its text read from ``text`` a few times a second in this process."""
@@ -137,6 +167,8 @@ class PageProcess:
         params = self.store.get()
         changed = params if params.version != self._sent_version else None
         lines = None
+        for fn in self.before_send:
+            fn()
         now = time.monotonic()
         if self._lines and now - self._lines_at >= LINES_EVERY_S:
             self._lines_at = now
@@ -154,7 +186,9 @@ class PageProcess:
                 if recording is not None and not self._recording_sent:
                     conn.send(("recording", *recording))
                     self._recording_sent = recording is self._recording
-                conn.send(("tick", state, changed, lines))
+                while self._outbox:
+                    conn.send(self._outbox.popleft())
+                conn.send(("tick", state, changed, lines, self.dropped()))
             self._sent_version = params.version
             if lines is not None:
                 self._lines_sent = lines
@@ -196,6 +230,8 @@ class PageProcess:
             elif msg[0] == "alarm" and len(msg) == 3:
                 for fn in list(self.alarms):
                     fn(float(msg[1]), str(msg[2]))
+            elif isinstance(msg[0], str) and msg[0] in self._handlers:
+                self._handlers[msg[0]](msg)
             elif msg[0] == "ready":
                 _, self.url, self.viewer_url, self.port, self.token, self.viewer_token = msg
                 self.served += 1
@@ -243,23 +279,44 @@ class ForwardingStore(ParamsStore):
 def page_main(conn: multiprocessing.connection.Connection, host: str, port: int, token: str | None,
               viewer_token: str | None,
               params: Params, overlay: tuple[tuple[float, float], float, float] | None,
-              obstacles: tuple[Any, ...], recordings: Path | None = None) -> None:
-    """The page's process: the gate, viser and the dashboard, drawing what the loop sends, and the
-    Recordings panel (replays served from here)."""
+              obstacles: tuple[Any, ...], recordings: Path | None = None, rate_hz: float = 0.0,
+              tuning: tuple[bool, bool] = (False, False),
+              calibration: tuple[Any, tuple[float, float], Any] | None = None) -> None:
+    """The page's process: the gate, viser and the dashboard, drawing what the loop sends, the
+    Recordings panel (replays served from here), the Tuning panel (its work on the loop's side) and,
+    with a real camera (``calibration``: its detect settings, centre and working area), the
+    Calibration panel on the full-size frames the loop sends."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the loop's process to handle: it closes this one
     from app.dashboard import Dashboard, LatestStatePublisher
     from app.dashboard.camera_panel import Overlay
     from app.dashboard.gate import new_token, quietly, serve_gated
     from app.dashboard.recordings_panel import RecordingsPanel
+    from app.dashboard.tuning_panel import TuningPanel
+    from app.services.page_tuning import PageBench
     from app.dashboard.widgets import on_page_thread
     from app.recording.reader import check_ticks, read_recording
     from app.services.replay import ReplayService
 
     store = ForwardingStore(params, conn)
     server, gate = serve_gated(host, port, token, viewer_token)
-    dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles)
+
+    def send(msg: tuple[Any, ...]) -> bool:
+        with store.send_lock:
+            try:
+                conn.send(msg)
+                return True
+            except (OSError, ValueError):
+                return False  # the loop is gone: the page says so
+
+    bench = PageBench(send, tuning[1]) if tuning[0] else None
+    dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles,
+                          tuning=(lambda s: TuningPanel(s, store, bench)) if bench is not None else None)
     gate.filter.allow_viewer(dashboard.controls.stop_button)  # stopping is always safe
     dashboard.controls.who = gate.who  # STOP names who pressed it
+    skipped = [0, -1]  # the loop's skipped ticks as the newest state said, and as the first did (a new page
+    # after a restart judges only what is skipped while it serves)
+    dashboard.controls.health.target_hz = rate_hz
+    dashboard.controls.health.dropped = lambda: skipped[0] - max(skipped[1], 0)
 
     def replay(path: Path) -> ReplayService:
         """A replay with credentials of its own (as in one process: the live page's token never
@@ -284,6 +341,9 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
         conn.send(("ready", gate.url, gate.viewer_url, gate.port, gate.token, gate.viewer_token))
     loop_version = -1
     framed: TickState | None = None  # the newest state that carried the camera's frame
+    newest = PageFrames()  # its pixels, full size, for the Calibration panel
+    calibrating: Any = None  # the panel, made when the first frame tells the picture's size
+    made: list[Any] = []
     shown: list[Any] = []  # the status lines' markdown, made when their first texts arrive
     try:
         while True:
@@ -296,12 +356,16 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
                 return
             if msg[0] == "close":
                 return
+            if msg[0] == "tuning" and bench is not None:
+                bench.receive(msg)
+                continue
             if msg[0] == "recording":
                 _, dashboard.controls.recording, panel.current = msg
                 panel.rescan()
                 continue
             if msg[0] == "tick":
-                _, state, changed, lines = msg
+                _, state, changed, lines, skipped[0] = msg
+                skipped[1] = skipped[0] if skipped[1] < 0 else skipped[1]
                 if lines is not None:
                     on_page_thread(server, functools.partial(_show_lines, server, shown, lines))
                 if changed is not None and changed.version != loop_version:
@@ -309,6 +373,11 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
                     store.load(changed, "loop")  # what the loop put in force, shown on the controls
                 if state.frame is not None:
                     framed = state
+                    if calibration is not None:
+                        newest.put(state.frame)
+                        if calibrating is None and on_page_thread(server, functools.partial(
+                                _calibrate, server, dashboard, newest, calibration, made)):
+                            calibrating = made[0] if made else None
                 elif framed is not None and framed.tick <= state.tick:  # the newest frame, with its own windows
                     state = dataclasses.replace(state, frame=framed.frame, windows=framed.windows)
                 publisher(state)
@@ -326,3 +395,37 @@ def _show_lines(server: Any, shown: list[Any], texts: tuple[str, ...]) -> None:
     for line, text in zip(shown, texts):
         if line.content != text:
             line.content = text
+
+
+class PageFrames:
+    """The page's camera, for its Calibration panel: the newest full-size frame the loop sent
+    (app.contracts.FrameSource); capture, propose and save use it in the page's process."""
+
+    name = "the loop's camera"
+    state = "ok"
+
+    def __init__(self) -> None:
+        self._newest: tuple[np.ndarray | None, float, int] = (None, 0.0, 0)
+
+    def put(self, frame: Any) -> None:
+        self._newest = (np.asarray(frame), time.monotonic(), self._newest[2] + 1)
+
+    def latest(self) -> tuple[np.ndarray | None, float, int]:
+        return self._newest
+
+    def wait_newer(self, count: int, timeout: float) -> int:
+        return self._newest[2]
+
+    def close(self) -> None:
+        pass
+
+
+def _calibrate(server: Any, dashboard: Any, frames: PageFrames, calibration: tuple[Any, tuple[float, float], Any],
+               made: list[Any]) -> None:
+    """The Calibration panel, once the camera's first frame is here (its sliders span the picture)."""
+    from app.dashboard.calibration_panel import CalibrationPanel
+
+    detect, centre, area = calibration
+    panel = CalibrationPanel(server, frames, detect, Path("camera.toml"), centre=centre, area=area)
+    dashboard.extra.append(panel.refresh)
+    made.append(panel)

@@ -132,6 +132,7 @@ class _Page:
                               additional_headers={"Origin": f"http://127.0.0.1:{port}"}, open_timeout=timeout,
                               max_queue=None)
         self.buttons: dict[str, str] = {}  # label -> uuid
+        self.controls: dict[str, str] = {}  # every control's label -> uuid
 
     def messages(self, timeout: float) -> Iterator[dict[str, Any]]:
         import msgspec
@@ -148,6 +149,8 @@ class _Page:
             for msg in body.get("messages", []):
                 if msg.get("type") == "GuiButtonMessage":
                     self.buttons[msg["props"]["label"]] = msg["uuid"]
+                if isinstance(msg.get("props"), dict) and "label" in msg["props"] and "uuid" in msg:
+                    self.controls[msg["props"]["label"]] = msg["uuid"]
                 yield msg
 
     def wait_for(self, text: str, timeout: float = 60.0) -> bool:
@@ -162,6 +165,13 @@ class _Page:
         self.ws.send(msgspec.msgpack.encode(camera))  # a page sends its camera first
         self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.buttons[label],
                                             "updates": {"value": True}}))
+
+    def set(self, label: str, value: Any) -> None:
+        """A control's new value, as a browser sends it."""
+        import msgspec
+
+        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.controls[label],
+                                            "updates": {"value": value}}))
 
     def close(self) -> None:
         self.ws.close()
@@ -306,7 +316,8 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
 
 def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page(tmp_path: Path) -> None:
     """`run --camera VIDEO --loop-process`: the camera, the vision pipeline and the recorder in the
-    loop's process, the frames drawn by the page's process; Ctrl-C ends both, the recording is one file."""
+    loop's process, the frames drawn by the page's process (its Calibration panel finds the mirror in
+    them); Ctrl-C ends both, the recording is one file."""
 
     from tests.app.backends.test_real_rig import render_frames
 
@@ -329,9 +340,11 @@ def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page
                 image = msg["uuid"]
             elif image and msg.get("uuid") == image and "_data" in msg.get("updates", {}):
                 shown += 1
-            if shown >= 3 and recording:
+            if shown >= 3 and recording and "Propose from image" in page.buttons:
                 break
         assert shown >= 3  # the camera's frames, drawn by the page's process
+        page.click("Propose from image")  # the Calibration panel, on the full-size frames the loop sent
+        assert page.wait_for("mirror circle: centre")
         assert recording and "Replay in a new tab" in page.buttons  # the Recordings panel, served by the page
         page.click("Replay in a new tab")  # the newest of recordings/ (the samples): served by the page's process
         assert page.wait_for("](http://127.0.0.1:")  # the replay's link, for this operator
@@ -379,9 +392,126 @@ def test_a_fleet_leader_with_the_page_in_its_own_process_shows_the_bus_on_the_pa
         assert proc.returncode == 0 and "all followers commanded to zero" in out, out
 
 
-def test_loop_process_with_an_arena_is_refused_in_one_line() -> None:
-    from tests.helpers import main_cli
+def test_an_arena_leader_with_the_page_in_its_own_process_drives_its_robots_and_shows_its_page() -> None:
+    """`run --arena --loop-process`: the arena team, the bridge and the adopter in the loop's process
+    (its states on the bus, its commands to the arena); the page in its own, showing the loop running."""
+    import json
 
-    out = main_cli("run", "--port", "0", "--no-record", "--loop-process", "--arena", "no-such-fleet.toml")
-    assert out.returncode == 2 and "--loop-process: not yet with --arena" in out.stderr, out.stderr
-    assert len(out.stderr.strip().splitlines()) == 1
+    from app.fleet.bridge import loopback_endpoint
+    from tests.helpers import ROOT, fleet_session, interrupt
+
+    endpoint = loopback_endpoint()
+    arena = subprocess.Popen([sys.executable, "-m", "app.cli", "arena", "three_teams", "--zenoh-listen", endpoint,
+                              "--status-every", "0"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                             text=True)
+    session = None
+    try:
+        assert arena.stdout is not None and "arena three_teams" in arena.stdout.readline()
+        session = fleet_session(None, None, endpoint)
+        states: list[dict[str, Any]] = []
+        sub = session.declare_subscriber("omniformation/three_teams/leader/L1/state",
+                                         lambda s: states.append(json.loads(s.payload.to_bytes())))
+        with _served("--arena", "three_teams", "--leader-id", "L1", "--zenoh-connect", endpoint,
+                     "--no-record") as (proc, port):
+            page = _Page(port)
+            assert page.wait_for("running")  # the loop's state, drawn by the page's process
+            assert _until(lambda: len(states) > 5)  # the loop's states on the bus
+            assert _until(lambda: any(s.get("robots") and not s["stopped"] and _moving(s["commands"])
+                                      for s in states[-5:]))  # it leads robots and drives them
+            page.close()
+            proc.send_signal(signal.SIGINT)
+            out, _ = proc.communicate(timeout=60)
+            assert proc.returncode == 0 and "all followers commanded to zero" in out, out
+        sub.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        interrupt(arena)
+
+
+def _moving(commands: list[list[float | None]]) -> bool:
+    return any(abs(x) > 0 for row in commands for x in row if x is not None)
+
+
+def test_the_pages_health_banner_judges_the_loops_rate_and_skipped_ticks(service: Service) -> None:
+    """The page's health rules (docs/page-access.md) know the loop's target rate and its count of
+    skipped ticks: a loop held back raises both alarms, which come back to the loop's process."""
+    heard: list[str] = []
+    service.dashboard.controls.health.listeners.append(lambda _t, text: heard.append(text))
+    held = threading.Event()
+
+    def slow(s: Any) -> None:  # a loop held back: 45 ms a tick for a 33 ms period (20 Hz), until both are heard
+        if s.tick > 30 and not held.is_set():
+            time.sleep(0.045)
+
+    service.loop.subscribe(slow)
+    try:
+        assert _until(lambda: any("ticks skipped" in h for h in heard) and any("of its 30 Hz" in h for h in heard))
+    finally:
+        held.set()
+    skipped = sum(int(h.split(" ")[0]) for h in heard if h.endswith("ticks skipped (the loop fell behind)"))
+    assert 0 < skipped <= service.loop.ticks_dropped  # the loop's own count, none made up
+
+
+def test_the_tuning_panel_runs_its_step_tests_and_sweeps_on_the_loops_side(service: Service) -> None:
+    """The page's Tuning panel (in the page's process): a step test and a sweep asked from the page
+    run on the loop's side (its StepTests and SweepRunner), their row and result come back and show,
+    and show again on the page started after a crash."""
+    page = service.page
+    assert page is not None
+    client = _Page(page.port)
+    assert client.wait_for("Run sweep")  # the panel is served
+    client.set("Measure for (s)", 3.0)
+    client.set("Range 1", "1:4:2")
+    client.set("Gain 2", "none")
+    assert _until(lambda: service.loop.tick_count > 30)
+    client.click("Run test")
+    assert client.wait_for("step test: trial 1 done")  # the row, measured on the loop's side, on the page
+    assert [t.status for t in service.tests.trials] == ["done"] and service.tests.trials[0].test.window_s == 3.0
+    client.click("Run sweep")
+    assert client.wait_for("sweep: done, 2 of 2 points")  # the result came back; the page drew its figure
+    result = service.sweeps.last
+    assert result is not None and [float(v) for v in result.ranges[0].values] == [1.0, 4.0]
+    client.close()
+    os.kill(page.pid, signal.SIGKILL)  # a new page is told the rows and the last sweep
+    assert _until(lambda: page.restarts == 1 and page.served == 2)
+    newcomer = _Page(page.port)
+    seen = {"row": False, "sweep": False}
+    for msg in newcomer.messages(60.0):
+        seen["row"] = seen["row"] or "step test: trial 1 done" in str(msg)
+        seen["sweep"] = seen["sweep"] or "sweep: done, 2 of 2 points" in str(msg)
+        if all(seen.values()):
+            break
+    assert seen == {"row": True, "sweep": True}
+    newcomer.close()
+
+
+def test_tuning_messages_of_no_known_shape_are_refused_and_start_nothing(service: Service) -> None:
+    """docs/safety.md: the loop's side builds a test or a sweep only from plain values of the
+    documented shape, checked as the panel's buttons are; anything else is answered and refused."""
+    answers: list[tuple[Any, ...]] = []
+    tuning = service.page_tuning
+    tuning.post = answers.append
+    test = {"kind": "offset", "follower": 0, "size": 0.1, "formation": "line abreast", "window_s": 3.0}
+    ask = {"gain1": "k_w2", "range1": "1:4:2", "gain2": "none", "range2": "", "feedback": "truth"}
+    hostile: list[tuple[Any, ...]] = [
+        ("tuning", 1, "test", {**test, "size": 5.0}),  # beyond the panel's 50 cm
+        ("tuning", 2, "test", {**test, "window_s": 1e9}),
+        ("tuning", 3, "test", {**test, "follower": 7}),
+        ("tuning", 4, "test", {**test, "kind": "shutdown"}),
+        ("tuning", 5, "test", {**test, "extra": 1}),
+        ("tuning", 6, "test", {**test, "size": "0.1"}),
+        ("tuning", 7, "sweep", {"ask": {**ask, "gain1": "leader_speed_mps"}, "test": test}),
+        ("tuning", 8, "sweep", {"ask": {**ask, "range1": "1:4:100000"}, "test": test}),
+        ("tuning", 9, "sweep", {"ask": {**ask, "feedback": "vision"}, "test": test}),  # no synthetic rig here
+        ("tuning", 10, "apply", {"k_w2": 99.0}),
+        ("tuning", 11, "test"),
+        ("tuning", 12),
+    ]
+    for msg in hostile:
+        tuning.receive(msg)
+    replies = [a for a in answers if a[1] == "reply"]
+    assert [r[2] for r in replies] == list(range(1, 13))  # each answered, in order
+    assert all(isinstance(r[3], str) and r[3] for r in replies), replies  # each refused, saying why
+    assert not service.tests.trials and service.tests.status == "idle" and not service.sweeps.busy
+    assert service.store.get().gains.k_w2 != 99.0
