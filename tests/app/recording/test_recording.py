@@ -170,9 +170,7 @@ def test_a_session_killed_at_any_moment_keeps_all_but_its_last_second_and_a_half
     from concurrent.futures import ThreadPoolExecutor
 
     times = (2.3, 3.6, 4.9, 6.2)
-    # two services at a time (each judged by its own session time): four vision loops and their
-    # warm-ups at once only queue for two cores
-    with ThreadPoolExecutor(2) as pool:
+    with ThreadPoolExecutor(len(times)) as pool:  # four services at once: each is judged by its own session time
         results = list(pool.map(lambda sec: _killed_at(tmp_path, feedback, sec), times))
     for ran, kept in results:
         print(f"\n{feedback}: killed at t = {ran:.2f} s, the file holds up to t = {kept:.2f} s"
