@@ -23,7 +23,7 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 	scripts/ensure-chromium
-	$(BIN)/python -m pytest -q
+	scripts/run-suite
 
 bench: $(STAMP) bench-radio
 	$(BIN)/omniformation bench
