@@ -18,6 +18,7 @@ from pathlib import Path
 
 from core.config import MeasurementNoise, Scenario
 from core.sim.team import FollowerDynamics
+from core.types import FloatArray
 from core.config import LEADER_RADIUS_M
 from core.obstacles import Obstacle, as_array, surface_distance
 from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile
@@ -107,20 +108,22 @@ class Service:
                  hardware: HardwareTeam | None = None, recordings: Path | None = None,
                  token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None,
                  viewer_token: str | None = None, realtime: bool = False,
-                 leader_base: FollowerLink | None = None, page_process: bool = False) -> None:
+                 leader_base: FollowerLink | None = None, page_process: bool = False,
+                 initial_poses: tuple[FloatArray, FloatArray] | None = None) -> None:
         """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
         ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host.
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
         ``params``: the operator's starting values when no scenario gives them.
         ``page_process``: the page (gate, viser, dashboard) in a process of its own, a client of this
-        one's loop (app.services.page_process; the Tuning panel's work stays here, page_tuning)."""
+        one's loop (app.services.page_process; the Tuning panel's work stays here, page_tuning).
+        ``initial_poses``: where the simulated followers start (positions (n, 2), headings (n,))
+        when no scenario says; else a seeded spread."""
         bound_native_heap()  # hours of frames in bounded resident memory (app.memory)
         bound_python_heap()  # and of Python's small objects
         fixed = hardware.state.n if hardware is not None else len(arena.owned) if arena is not None \
             else getattr(link, "n", None)
         self.store = ParamsStore(params or params_for(scenario, fixed or n_followers), fixed_followers=fixed)
         noise = scenario.measurement if scenario is not None else noise or DEFAULT_NOISE
-        initial_poses = None
         if scenario is not None:
             initial_poses = (scenario.initial_p, scenario.initial_a)
             dynamics = scenario.dynamics
