@@ -330,11 +330,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     publisher = LatestStatePublisher(dashboard.publish)
 
     def alarm(t: float, text: str) -> None:
-        with store.send_lock:
-            try:
-                conn.send(("alarm", t, text))
-            except (OSError, ValueError):
-                pass  # the loop is gone: the page says so
+        send(("alarm", t, text))  # the recorder writes it as an event (a gone loop: the page says so)
 
     dashboard.controls.health.listeners.append(alarm)
     with store.send_lock:
