@@ -16,6 +16,7 @@ from core.bounds import PARAMETERS, Parameter
 
 from app.dashboard.health import Health
 from app.dashboard.widgets import as_text
+from app.keys import follower_name
 from app.tick import TickState
 from app.params import (
     FORMATION_PRESETS,
@@ -229,7 +230,7 @@ class Controls:
                 return
             # a follower the camera does not see gets zero from the controller, but the operator
             # should know before the others move: ask
-            names = ", ".join(self._names[i] if i < len(self._names) else f"F{i + 1}" for i in lost)
+            names = ", ".join(self._names[i] if i < len(self._names) else follower_name(i) for i in lost)
             with event.client.gui.add_modal("Release STOP?") as modal:
                 event.client.gui.add_markdown(f"**{names} {'is' if len(lost) == 1 else 'are'} not tracked.** The"
                                               " others will move; the untracked stay at zero until the camera sees"
