@@ -4,7 +4,6 @@ pressed; the bus (subscriptions, decoding, sending) is app.services.fleet_page's
 
 from __future__ import annotations
 
-import colorsys
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -15,6 +14,7 @@ import numpy as np
 import viser
 
 from core.bounds import number_default
+from core.camera.render.looks import hue_rgb
 from core.geometry import leader_to_world
 
 from app.dashboard.controls import add_slider
@@ -24,11 +24,6 @@ from app.keys import held_name, robot_index, robot_name
 
 GONE_AFTER_S = 2.0  # a leader whose state is older than this is shown as silent
 RESYNC_S = 2.0  # after a person moves a control, the leader's own value is shown again after this
-
-
-def hue_rgb(hue_deg: float) -> tuple[int, int, int]:
-    r, g, b = colorsys.hsv_to_rgb((hue_deg % 360.0) / 360.0, 0.85, 0.95)
-    return int(r * 255), int(g * 255), int(b * 255)
 
 
 def refused_text(counts: dict[str, Any]) -> str:

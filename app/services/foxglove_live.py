@@ -41,6 +41,8 @@ from foxglove.messages import (ArrowPrimitive, Color, CubePrimitive, LinePrimiti
                                Pose, Quaternion, SceneEntity, SceneEntityDeletion, SceneUpdate, SpherePrimitive,
                                TextPrimitive, Timestamp, Vector3)
 
+from core.camera.render.looks import hue_rgb
+
 from app.dashboard.gate import is_loopback
 from app.params import Params, params_events
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
@@ -339,13 +341,6 @@ FLEET_SCENE_TOPIC = "/fleet/scene"
 FLEET_SCHEMA = {"type": "object", "description": "as in docs/fleet-protocol.md"}
 
 
-def _hue_rgb(hue_deg: float) -> tuple[int, int, int]:
-    import colorsys
-
-    r, g, b = colorsys.hsv_to_rgb((hue_deg % 360.0) / 360.0, 0.85, 0.95)
-    return int(r * 255), int(g * 255), int(b * 255)
-
-
 def _xy_list(rows: Any) -> list[tuple[float, float]]:
     out = []
     for p in rows if isinstance(rows, list) else []:
@@ -372,7 +367,7 @@ def fleet_scene(topic: str, msg: dict[str, Any], ns: int) -> SceneUpdate | None:
                 x, y, th = (float(v) for v in pose[:3])
             except (TypeError, ValueError):
                 continue
-            rgb = _hue_rgb(float(hues[r])) if r < len(hues) and isinstance(hues[r], (int, float)) else (120, 120, 120)
+            rgb = hue_rgb(float(hues[r])) if r < len(hues) and isinstance(hues[r], (int, float)) else (120, 120, 120)
             cubes.append(CubePrimitive(pose=_pose(x, y, 0.05, th), size=Vector3(x=0.25, y=0.15, z=0.10), color=_rgba(rgb)))
             texts.append(TextPrimitive(pose=_pose(x, y, 0.25), billboard=True, font_size=14.0, scale_invariant=True,
                                        color=_rgba(rgb), text=f"R{r + 1}"))

@@ -6,6 +6,7 @@ pipeline learns them, and the dashboard and figures draw each follower in its ma
 
 from __future__ import annotations
 
+import colorsys
 from dataclasses import dataclass
 
 import cv2
@@ -60,6 +61,12 @@ def follower_bgr(i: int) -> tuple[int, int, int]:
 def follower_rgb(i: int) -> tuple[int, int, int]:
     b, g, r = follower_bgr(i)
     return r, g, b
+
+
+def hue_rgb(hue_deg: float) -> tuple[int, int, int]:
+    """An arena robot's marker hue as a bright RGB for people (the fleet page's 3D view, Foxglove's)."""
+    r, g, b = colorsys.hsv_to_rgb((hue_deg % 360.0) / 360.0, 0.85, 0.95)
+    return int(r * 255), int(g * 255), int(b * 255)
 
 
 def follower_hex(i: int) -> str:
