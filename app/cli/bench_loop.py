@@ -8,7 +8,7 @@ its page says STOPPED. The loop's own CPU time per tick is read from its thread'
 (/proc), so the page's work is not counted. These are the figures the loop's own process is to
 improve; the frame-to-command latency with one browser attached is `bench --latency`'s.
 
-`bench` measures both sides by turns (one process, then `--loop-process`, then again), since the
+`bench` measures both sides by turns (`--one-process`, then `run`'s default, the loop's own process, then again), since the
 machine is shared and its load moves: each figure is given per side (the median of its turns)
 and as the ratio of the loop's own process to one process. The flood and the 200 websockets
 last TURN_FLOOD_S there (the issue's 20 s is FLOOD_S, `python -m app.cli.bench_loop`), so four
@@ -108,7 +108,7 @@ def press_stop(port: int, stop_id: str, timeout: float = 10.0) -> float | None:
 def bench_loop(print_fn: Callable[[str], None] = print, seconds: float = FLOOD_S,
                page_process: bool = False) -> dict[str, float]:
     """The loop's rate and CPU per tick alone, during a flood (and a second client's STOP), and with
-    200 open websockets. ``page_process``: the page in a process of its own (`run --loop-process`)."""
+    200 open websockets. ``page_process``: the page in a process of its own (`run`'s default; False: `run --one-process`)."""
     results: dict[str, float] = {}
     from app.live.config import DEFAULT_CONFIG, load_service_config
     from app.params import MAX_FOLLOWERS
@@ -175,7 +175,7 @@ def bench_loop(print_fn: Callable[[str], None] = print, seconds: float = FLOOD_S
     return results
 
 
-SIDES = (("one process", False), ("--loop-process", True))
+SIDES = (("--one-process", False), ("the loop's own process", True))
 # (figure, what it is, better when higher): the lines `bench` prints per side and as a ratio
 SUMMARY = (("frame_to_command_p50_ms", "frame-to-command p50 (ms, one browser)", False),
            ("frame_to_command_p99_ms", "frame-to-command p99 (ms, one browser; target <= 5)", False),
@@ -190,10 +190,10 @@ SUMMARY = (("frame_to_command_p50_ms", "frame-to-command p50 (ms, one browser)",
 def bench_loops(print_fn: Callable[[str], None] = print,
                 latency: Callable[..., dict[str, float]] | None = None, turns: int = TURNS,
                 seconds: float = TURN_FLOOD_S) -> dict[str, float]:
-    """The figures with the page in the loop's process (`run`) and in its own (`run --loop-process`),
+    """The figures with the page in the loop's process (`run --one-process`) and in its own (`run`),
     measured by turns (each side ``turns`` times, alternately); given ``latency`` (`bench
     --latency`'s), first frame-to-command latency for 10 s with one browser attached, by turns too.
-    Each side's figure is the median of its turns; the ratio is --loop-process over one process."""
+    Each side's figure is the median of its turns; the ratio is the loop's own process over one process."""
     import statistics
 
     runs: dict[bool, list[dict[str, float]]] = {False: [], True: []}
@@ -207,7 +207,7 @@ def bench_loops(print_fn: Callable[[str], None] = print,
             figures.update(bench_loop(print_fn, seconds=seconds, page_process=page_process))
             runs[page_process].append(figures)
     results: dict[str, float] = {}
-    print_fn(f"loop by turns ({turns} a side, alternately; floods of {seconds:g} s): one process | --loop-process |"
+    print_fn(f"loop by turns ({turns} a side, alternately; floods of {seconds:g} s): --one-process | the loop's own process |"
              " ratio")
     for key, what, _higher in SUMMARY:
         one = [r[key] for r in runs[False] if key in r]
@@ -221,5 +221,5 @@ def bench_loops(print_fn: Callable[[str], None] = print,
     return results
 
 
-if __name__ == "__main__":  # `python -m app.cli.bench_loop [--loop-process]`: these figures alone
-    bench_loop(page_process="--loop-process" in sys.argv)
+if __name__ == "__main__":  # `python -m app.cli.bench_loop [--one-process]`: these figures alone
+    bench_loop(page_process="--one-process" not in sys.argv)

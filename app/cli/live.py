@@ -91,8 +91,13 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     run.add_argument("--realtime", action="store_true",
                      help="the loop's and the camera's threads on real-time scheduling (SCHED_FIFO; needs root,"
                           " CAP_SYS_NICE or an rtprio limit): fewer latency spikes on a busy machine")
-    run.add_argument("--loop-process", action="store_true",
-                     help="serve the page from a process of its own, a client of the loop's (docs/safety.md)")
+    where = run.add_mutually_exclusive_group()
+    where.add_argument("--loop-process", action="store_true",
+                       help="the default: the loop in a process of its own, the page served from another, its"
+                            " client (docs/safety.md, \"The page in a process of its own\")")
+    where.add_argument("--one-process", action="store_true",
+                       help="the page in the loop's process, as before the loop had one of its own (what `bench`"
+                            " compares against); a flood of page clients then shares the loop's interpreter")
     add_foxglove_args(run)
     run.set_defaults(func=cmd_run)
 
@@ -185,7 +190,7 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
                    scenario_name=args.scenario, camera_source=args.camera, camera_fps=args.camera_fps,
                    host=args.host, port=args.port, token=args.token, viewer_token=args.viewer_token,
                    rate_hz=args.rate, seed=args.seed, recordings=args.recordings, realtime=args.realtime,
-                   loop_process=getattr(args, "loop_process", False), record=not args.no_record,
+                   loop_process=not getattr(args, "one_process", False), record=not args.no_record,
                    record_to=args.record, frames_hz=args.frames_hz, radio=_radio_plan(args),
                    fleet=_fleet_plan(args), ros2=ros2_plan(args), foxglove=foxglove_plan(args))
 

@@ -1,6 +1,6 @@
-"""The page in a process of its own (`run --loop-process`): the loop's process keeps the loop,
-the link, the recorder and the one ParamsStore; the page's process (viser server, gate,
-dashboard) is a client of the loop's state over one pipe.
+"""The page in a process of its own (`run`'s default; `run --one-process` keeps it in the loop's):
+the loop's process keeps the loop, the link, the recorder and the one ParamsStore; the page's
+process (viser server, gate, dashboard) is a client of the loop's state over one pipe.
 
 Why: viser encodes every scene update and decodes every client's message under the same
 interpreter lock as the loop; a flood of client messages took the loop's time. Here the page's
@@ -60,6 +60,7 @@ log = logging.getLogger(__name__)
 
 RESTART_PAUSE_S = 0.5  # between a dead page process and its successor (a crash loop stays cheap)
 LINES_EVERY_S = 0.25  # how often the status lines' texts are read (the page's other panels redraw as often)
+RETRY_S = 5.0  # a new page that could not serve (its port taken meanwhile) is tried again this often
 ORPHAN_S = 3.0  # how long a page whose loop died keeps saying so before it ends
 
 
@@ -107,6 +108,7 @@ class PageProcess:
         self._conn: multiprocessing.connection.Connection | None = None
         self._proc: Any = None
         self._ready = threading.Event()
+        self._failed = ""  # why the page could not serve (its one line), then no page is started again
         self._send_lock = threading.Lock()  # one writer at a time on the pipe (interleaved pickles corrupt it)
         self._sent_version = -1
         self._sender = LatestStatePublisher(self._send, name="page-sender")  # the newest state, never the loop's wait
@@ -125,6 +127,8 @@ class PageProcess:
         threading.Thread(target=self._supervise, name="page-supervisor", daemon=True).start()
         if not self._ready.wait(120.0):
             raise OSError("the page's process did not start")
+        if self._failed:
+            raise OSError(self._failed)
 
     @property
     def pid(self) -> int:
@@ -209,7 +213,7 @@ class PageProcess:
             try:
                 msg = conn.recv()
             except (EOFError, OSError):
-                if self._closed:
+                if self._closed or self._failed:
                     return
                 self.store.update("loop", stop=True)  # the dead man's switch: no operator page, no motion
                 print("omniformation: the page's process ended; STOP engaged and held until an operator"
@@ -232,6 +236,13 @@ class PageProcess:
                     fn(float(msg[1]), str(msg[2]))
             elif isinstance(msg[0], str) and msg[0] in self._handlers:
                 self._handlers[msg[0]](msg)
+            elif msg[0] == "failed":
+                if not self._ready.is_set():  # the first page: `run` says why and ends
+                    self._failed = str(msg[1])
+                    self._ready.set()
+                    return
+                log.warning("page: a new page cannot serve yet (%s); STOP stays engaged, trying again", msg[1])
+                time.sleep(RETRY_S)
             elif msg[0] == "ready":
                 _, self.url, self.viewer_url, self.port, self.token, self.viewer_token = msg
                 self.served += 1
@@ -298,7 +309,11 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     from app.services.replay import ReplayService
 
     store = ForwardingStore(params, conn)
-    server, gate = serve_gated(host, port, token, viewer_token)
+    try:
+        server, gate = serve_gated(host, port, token, viewer_token)
+    except OSError as exc:  # a port in use, an address this machine does not have: said once, by `run`
+        conn.send(("failed", str(exc)))
+        return
 
     def send(msg: tuple[Any, ...]) -> bool:
         with store.send_lock:

@@ -89,7 +89,7 @@ class RunPlan:
     seed: int | None = None  # None: the config's
     recordings: Path | None = None
     realtime: bool = False
-    loop_process: bool = False
+    loop_process: bool = True  # the page in a process of its own (run --one-process: in the loop's)
     record: bool = True
     record_to: Path | None = None
     frames_hz: float = 10.0

@@ -20,7 +20,7 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     attached (on idle CPU, as in the soak). Latency is each tick's ``latency_ms``: the frame's
     arrival to its commands written to the link. ``realtime``: as ``run --realtime`` (the loop's and
     the camera's threads on SCHED_FIFO, app.realtime). ``page_process``: the page in a process of
-    its own (`run --loop-process`)."""
+    its own (`run`'s default; False: `run --one-process`)."""
     import shutil
     import subprocess
     import sys

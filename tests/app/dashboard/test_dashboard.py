@@ -34,13 +34,15 @@ CHART_TEXT = r"""
 
 @pytest.fixture(scope="module")
 def service():
-    """What `make run` serves: default.toml, the synthetic camera and the vision pipeline."""
+    """What `make run` serves: default.toml, the synthetic camera and the vision pipeline, the page
+    in a process of its own (so these tests read the page only through the browser; the loop,
+    its store and its ticks are here)."""
     from app.params import MAX_FOLLOWERS
     from app.live.config import DEFAULT_CONFIG, load_service_config
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=4, camera=config.camera(),
-                  dynamics=config.dynamics)
+                  dynamics=config.dynamics, page_process=True)
     keep_ticks(svc, 2000)
     svc.start()
     yield svc
@@ -75,7 +77,7 @@ def test_page_shows_scene_plots_and_camera_and_is_screenshotted(page, service):
     img.wait_for(timeout=10_000)
     box = img.bounding_box()
     assert box is not None and box["width"] > 150, "the camera panel shows the leader's frame"
-    assert service.dashboard.camera.frames_shown > 10
+    assert service.page.frames_sent > 10  # frames went to the page (the panel draws them: the blob above)
     page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
     assert (ARTIFACTS / "dashboard.png").stat().st_size > 30_000
     assert page.locator(".uplot").count() >= 6
@@ -121,13 +123,11 @@ def test_out_of_range_value_is_refused_and_the_box_shows_the_value_in_force(page
     """7 typed into a box that ends at 2 m never reaches viser: the store keeps its value, the box
     is put back to it, and a notice says what is allowed."""
     before = float(service.store.get().slots[1, 1])
-    refused = service.gate.refused.messages
     ident = control_id(page, "Slot 2 y")
     box = page.locator(f'input[id="{ident}"], [id="{ident}"] input').first
     box.fill("7")
     box.press("Enter")
-    wait_for(lambda: service.gate.refused.messages > refused, what="the gate to refuse 7")
-    page.get_by_text("must be a number in [-2, 2]").first.wait_for(timeout=10_000)
+    page.get_by_text("must be a number in [-2, 2]").first.wait_for(timeout=10_000)  # the gate's notice
     wait_for(lambda: abs(float(box.input_value()) - before) < 1e-6, what="the box to show the value in force again")
     assert float(service.store.get().slots[1, 1]) == pytest.approx(before)
     assert service.loop.last is not None and service.loop.stopping is False
@@ -199,67 +199,83 @@ def test_escape_on_the_page_is_stop(page, service):
 def test_plots_window_freeze_and_csv_export(page, service, tmp_path):
     """The Plots folder: a 10 s window, freeze (the charts hold still while the loop runs on),
     and the visible data exported as CSV to this browser."""
-    plots = service.dashboard.plots
-    wait_for(lambda: len(plots._t) > 30 * 12, timeout=60.0, what="more than 10 s of ticks")
+    wait_for(lambda: service.loop.tick_count > 30 * 12, timeout=60.0, what="more than 10 s of ticks")
     ident = control_id(page, "Window")
     page.locator(f'[id="{ident}"]').first.click()
     page.get_by_role("option", name="10 s").click()
-    wait_for(lambda: plots.window.value == "10 s", what="the 10 s window on the server")
-    t, rows = plots.visible()
-    assert 9.0 <= t[-1] - t[0] <= 10.0 + 1e-9 and rows.shape == (len(t), 6 * service.loop.last.n + 1)
+    spans = """() => Object.values((window.__viserTestpoints || {}).uplots || {}).map(p => {
+        const t = p.chart.data[0]; return t && t.length > 1 ? t[t.length - 1] - t[0] : -1; })"""
+    wait_for(lambda: (lambda s: len(s) >= 6 and all(0 < x <= 10.001 for x in s))(page.evaluate(spans)), 30.0,
+             "every chart drawn over the last 10 s")
     freeze = control_id(page, "Freeze")
     page.locator(f'[id="{freeze}"] input, input[id="{freeze}"]').first.click()
-    wait_for(lambda: plots.freeze.value is True, what="freeze on the server")
-    frozen, _ = plots.visible()
+
+    def export(name: str) -> list[str]:
+        with page.expect_download(timeout=30_000) as download:
+            page.get_by_role("button", name="Export CSV").click()
+        path = tmp_path / name
+        download.value.save_as(path)
+        return path.read_text().splitlines()
+
+    frozen = export("plots.csv")  # a client's messages are taken in order: the window and freeze first
     ticks = service.loop.tick_count
     wait_for(lambda: service.loop.tick_count > ticks + 30, timeout=30.0, what="the loop to run on")
-    assert np.array_equal(plots.visible()[0], frozen)  # the charts held still
-    with page.expect_download(timeout=30_000) as download:
-        page.get_by_role("button", name="Export CSV").click()
-    path = tmp_path / "plots.csv"
-    download.value.save_as(path)
-    lines = path.read_text().splitlines()
-    assert lines[0].startswith("t (s),F1 ex true (cm),") and len(lines) == len(frozen) + 1
-    assert float(lines[1].split(",")[0]) == pytest.approx(frozen[0], abs=1e-3)
+    assert export("again.csv") == frozen  # the charts held still
+    assert frozen[0].startswith("t (s),F1 ex true (cm),")
+    assert len(frozen[0].split(",")) == 6 * service.loop.last.n + 2  # t, V and six for each follower
+    t = np.array([float(line.split(",")[0]) for line in frozen[1:]])
+    assert len(t) > 100 and 9.0 <= t[-1] - t[0] <= 10.0 + 1e-3, (len(t), t[0], t[-1])  # the 10 s window
     page.locator(f'[id="{freeze}"] input, input[id="{freeze}"]').first.click()
-    wait_for(lambda: plots.freeze.value is False, what="freeze off")
+    ticks = service.loop.tick_count
+    wait_for(lambda: service.loop.tick_count > ticks + 30, timeout=30.0, what="the loop to run on")
+    wait_for(lambda: export("moving.csv")[-1] != frozen[-1], 30.0, "the charts moving again once unfrozen")
+
+
+# Where the browser's 3D camera is, as the browser draws it: its distance to the leader's origin
+# (the same in any frame) and where the leader falls in the picture (-1..1 across, 0 in the middle).
+CAMERA_TO_LEADER = """() => { const m = window.__viserMutable, o = m.nodeRefFromName['/leader'];
+    const v = o.position.clone(), c = o.position.clone(); o.getWorldPosition(v); m.camera.getWorldPosition(c);
+    const d = c.distanceTo(v); v.project(m.camera); return [d, v.x, v.y]; }"""
+VISIBLE = """(names) => names.map(n => { const o = window.__viserMutable.nodeRefFromName[n];
+    return o ? o.visible !== false : null; })"""
 
 
 def test_the_view_folder_places_the_camera_and_hides_layers(page, service):
-    """The 3D camera behind the leader (the default) turns with it; above the leader it looks
-    down on it; each layer's box hides its layer; the key names what is drawn."""
+    """The 3D camera behind the leader (the default: 2.5 m behind, 2 m up, 3.2 m away) turns with
+    it; above the leader it looks straight down on it from 6 m; each layer's box hides its layer;
+    the key names what is drawn. All as the browser draws it."""
     import math
-
-    import numpy as np
 
     key = page.get_by_text("3D key", exact=False).first
     key.wait_for(timeout=30_000)
     key.scroll_into_view_if_needed()
     ARTIFACTS.mkdir(exist_ok=True)
     page.screenshot(path=str(ARTIFACTS / "view-key.png"))  # the layers' boxes and the key beside the 3D view
-    wait_for(lambda: bool(service.server.get_clients()), 30.0, "the browser connected")
-    client = next(iter(service.server.get_clients().values()))
+    behind = math.hypot(2.5, 2.0)
+    wait_for(lambda: abs(page.evaluate(CAMERA_TO_LEADER)[0] - behind) < 0.3, 30.0,
+             "the camera 2.5 m behind the leader, 2 m up")
+    page.locator(f'[id="{control_id(page, "3D camera")}"]').first.click()
+    page.get_by_role("option", name="above the leader").click()
 
-    def behind() -> bool:
-        lx, ly, lth = service.loop.last.leader
-        eye = np.array([lx, ly]) - 2.5 * np.array([math.cos(lth), math.sin(lth)])
-        return bool(np.allclose(np.asarray(client.camera.position)[:2], eye, atol=0.3)
-                    and abs(client.camera.position[2] - 2.0) < 0.05)
+    def above() -> bool:
+        d, x, y = page.evaluate(CAMERA_TO_LEADER)
+        return abs(d - 6.0) < 0.3 and abs(x) < 0.1 and abs(y) < 0.1
 
-    wait_for(behind, 30.0, "the camera 2.5 m behind the leader, 2 m up")
-    controls, scene = service.dashboard.controls, service.dashboard.scene
-    controls.camera_view.value = "above the leader"
-    wait_for(lambda: abs(client.camera.position[2] - 6.0) < 0.05
-             and np.allclose(np.asarray(client.camera.look_at)[:2], service.loop.last.leader[:2], atol=0.3),
-             30.0, "the camera above the leader")
-    controls.layers["Trails"].value = False
-    controls.layers["Formation and slots"].value = False
-    wait_for(lambda: not any(h.visible for h in scene.trail_handles) and not any(h.visible for h in scene.slot_handles)
-             and scene.formation_line is not None and not scene.formation_line.visible, 30.0, "the layers hidden")
-    controls.layers["Trails"].value = True
-    controls.layers["Formation and slots"].value = True
-    controls.camera_view.value = "behind the leader"
-    wait_for(lambda: all(h.visible for h in scene.trail_handles), 30.0, "the trails back")
+    wait_for(above, 30.0, "the camera 6 m above the leader, looking at it")
+    layers = ["/trails/0", "/trails/1", "/trails/2", "/leader/slots/0", "/leader/slots/1", "/leader/formation"]
+    assert page.evaluate(VISIBLE, layers) == [True] * len(layers)
+    for name in ("Trails", "Formation and slots"):
+        page.locator(f'[id="{control_id(page, name)}"]').first.click()
+    try:
+        wait_for(lambda: not any(page.evaluate(VISIBLE, layers)), 30.0, "the layers hidden")  # (or not drawn)
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}: {dict(zip(layers, page.evaluate(VISIBLE, layers)))}") from None
+    for name in ("Trails", "Formation and slots"):
+        page.locator(f'[id="{control_id(page, name)}"]').first.click()
+    page.locator(f'[id="{control_id(page, "3D camera")}"]').first.click()
+    page.get_by_role("option", name="behind the leader").click()
+    wait_for(lambda: page.evaluate(VISIBLE, layers) == [True] * len(layers), 30.0, "the layers back")
+    wait_for(lambda: abs(page.evaluate(CAMERA_TO_LEADER)[0] - behind) < 0.3, 30.0, "the camera behind again")
 
 
 def test_wide_panel_enlarges_the_charts_and_the_camera(page, service):
@@ -301,15 +317,19 @@ def test_a_robot_named_on_the_panel_is_ringed_and_its_card_is_in_view_at_1600x10
         page.get_by_role("button", name="F3", exact=True).wait_for(timeout=30_000)
         page.wait_for_timeout(1000)  # the 3D view redrawn at its new size (an operator does not click mid-resize)
         settle(page)
+        light = page.locator(f'[id="{control_id(page, "Light mode")}"]').first.is_checked()
         print(f"\npage at 1600x1000: {page.evaluate('window.omniFps')} frames/s, main thread busy"
-              f" {page.evaluate('window.omniBusy')}, light mode {service.dashboard.controls.light.value}")
+              f" {page.evaluate('window.omniBusy')}, light mode {light}")
+        ringed = ["/followers/2/picked"]
+        assert page.evaluate(VISIBLE, ringed) == [False], "F3 is not ringed before it is chosen"
         start_timer(page, "card_in_view", "^F3$")
         page.get_by_role("button", name="F3", exact=True).click()
-        wait_for(lambda: service.dashboard.scene.selected == 2, 10.0, "F3 chosen by its name")
-        print(f"a robot's name clicked to its card in view (1600x1000): {timed_ms(page):.0f} ms")
-        wait_for(lambda: service.dashboard.scene.picked[2].visible, 10.0, "F3 ringed in the 3D view")
-        text = service.dashboard.controls.selected.content
-        assert text.startswith("**F3**") and "estimated error" in text and "true error" in text, text
+        print(f"a robot's name clicked to its card in view (1600x1000): {timed_ms(page):.0f} ms")  # chosen
+        wait_for(lambda: page.evaluate(VISIBLE, ringed) == [True], 10.0, "F3 ringed in the 3D view")
+        card = page.evaluate("""() => { const s = Array.from(document.querySelectorAll('strong'))
+            .find(e => e.textContent.trim() === 'F3' && /\\((tracked|not tracked)\\)/.test(e.parentNode.textContent));
+            return s ? s.parentNode.parentNode.textContent : ''; }""")
+        assert "estimated error" in card and "true error" in card, card
         ARTIFACTS.mkdir(exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "robot-card-1600x1000.png"))
     finally:

@@ -138,15 +138,18 @@ def test_bad_keys_and_open_endpoints_are_refused_in_one_line(tmp_path):
 
 
 def listening_ports(pid: int) -> set[int]:
-    """The TCP ports process ``pid`` listens on (its sockets matched in /proc/net/tcp{,6})."""
+    """The TCP ports process ``pid`` and its children (the page's process) listen on (their sockets
+    matched in /proc/net/tcp{,6})."""
     inodes = set()
-    for fd in Path(f"/proc/{pid}/fd").iterdir():
-        try:
-            target = os.readlink(fd)
-        except OSError:
-            continue
-        if target.startswith("socket:["):
-            inodes.add(target[8:-1])
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    for proc in (pid, *map(int, children)):
+        for fd in Path(f"/proc/{proc}/fd").iterdir():
+            try:
+                target = os.readlink(fd)
+            except OSError:
+                continue
+            if target.startswith("socket:["):
+                inodes.add(target[8:-1])
     ports = set()
     for table in ("/proc/net/tcp", "/proc/net/tcp6"):
         for line in Path(table).read_text().splitlines()[1:]:
@@ -209,6 +212,7 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
         owners = list(heard.truth["owners"])
         # a leader told only where to connect listens on nothing but its own page (no implicit Zenoh
         # listener): the page's gate, and the viser server behind it on a loopback port of its own
+        # (both in the page's process, the leader's child)
         out = procs["L2"].stdout
         assert out is not None
         page_port = next(int(line.split("http://127.0.0.1:")[1].split("/")[0]) for line in iter(out.readline, "")
