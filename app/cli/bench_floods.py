@@ -26,7 +26,8 @@ MODES = ("none", "refused", "valid", "scene", "sockets")
 
 # The hostile party: argv = port, mode, seconds, source address, the speed slider's id.
 _FLOODER = r"""
-import socket, sys, time
+import os, socket, sys, time
+os.sched_setaffinity(0, range(os.cpu_count() or 1))  # every CPU, as a client elsewhere has (not the bench's)
 import msgspec, viser
 import websockets.exceptions
 import websockets.sync.client as wsc

@@ -8,9 +8,11 @@ its page says STOPPED. The loop's own CPU time per tick is read from its thread'
 (/proc), so the page's work is not counted. These are the figures the loop's own process is to
 improve; the frame-to-command latency with one browser attached is `bench --latency`'s.
 
-`bench` measures both sides by turns (`--one-process`, then `run`'s default, the loop's own process, then again), since the
-machine is shared and its load moves: each figure is given per side (the median of its turns)
-and as the ratio of the loop's own process to one process. The flood and the 200 websockets
+`bench` measures two sides by turns, since the machine is shared and its load moves: before (the
+page in the loop's process: `run --one-process`, what `run` was) and `run` now (the loop in a
+process of its own). Each figure is given per side (the median of its turns) and as the ratio of
+now to before; the latency also as `run --reserve-cpu` serves, with the browser kept off the
+loop's CPU (app.realtime.CpuReservation says why). The flood and the 200 websockets
 last TURN_FLOOD_S there (the issue's 20 s is FLOOD_S, `python -m app.cli.bench_loop`), so four
 turns stay within a few minutes of `make bench`.
 """
@@ -108,7 +110,8 @@ def press_stop(port: int, stop_id: str, timeout: float = 10.0) -> float | None:
 def bench_loop(print_fn: Callable[[str], None] = print, seconds: float = FLOOD_S,
                page_process: bool = False) -> dict[str, float]:
     """The loop's rate and CPU per tick alone, during a flood (and a second client's STOP), and with
-    200 open websockets. ``page_process``: the page in a process of its own (`run`'s default; False: `run --one-process`)."""
+    200 open websockets. ``page_process``: as `run` serves now, the page in a process of its own;
+    False: in the loop's process (`run --one-process`, before)."""
     results: dict[str, float] = {}
     from app.live.config import DEFAULT_CONFIG, load_service_config
     from app.params import MAX_FOLLOWERS
@@ -175,10 +178,12 @@ def bench_loop(print_fn: Callable[[str], None] = print, seconds: float = FLOOD_S
     return results
 
 
-SIDES = (("--one-process", False), ("the loop's own process", True))
+# before: the page in the loop's process (`run --one-process`, what `run` was); now: `run`'s default
+SIDES = (("before (one process)", False), ("run now (the loop's own process)", True))
 # (figure, what it is, better when higher): the lines `bench` prints per side and as a ratio
 SUMMARY = (("frame_to_command_p50_ms", "frame-to-command p50 (ms, one browser)", False),
            ("frame_to_command_p99_ms", "frame-to-command p99 (ms, one browser; target <= 5)", False),
+           ("frame_to_command_p99_kept_ms", "  the same, run --reserve-cpu and the browser off the loop's CPU", False),
            ("loop_hz_alone", "loop rate alone (Hz)", True),
            ("loop_hz_refused_pct", "loop rate during a flood (% of alone; target within 1 %)", True),
            ("loop_hz_sockets_pct", "loop rate with 200 open websockets (% of alone; target within 1 %)", True),
@@ -190,10 +195,10 @@ SUMMARY = (("frame_to_command_p50_ms", "frame-to-command p50 (ms, one browser)",
 def bench_loops(print_fn: Callable[[str], None] = print,
                 latency: Callable[..., dict[str, float]] | None = None, turns: int = TURNS,
                 seconds: float = TURN_FLOOD_S) -> dict[str, float]:
-    """The figures with the page in the loop's process (`run --one-process`) and in its own (`run`),
-    measured by turns (each side ``turns`` times, alternately); given ``latency`` (`bench
+    """The figures before (the page in the loop's process) and as `run` serves now (the loop in a
+    process of its own), measured by turns (each side ``turns`` times, alternately); given ``latency`` (`bench
     --latency`'s), first frame-to-command latency for 10 s with one browser attached, by turns too.
-    Each side's figure is the median of its turns; the ratio is the loop's own process over one process."""
+    Each side's figure is the median of its turns; the ratio is now over before."""
     import statistics
 
     runs: dict[bool, list[dict[str, float]]] = {False: [], True: []}
@@ -204,10 +209,12 @@ def bench_loops(print_fn: Callable[[str], None] = print,
             if latency is not None:
                 lat = latency(10.0, print_fn, browsers=1, page_process=page_process)
                 figures["frame_to_command_p50_ms"], figures["frame_to_command_p99_ms"] = lat["p50_ms"], lat["p99_ms"]
+                lat = latency(10.0, print_fn, browsers=1, page_process=page_process, reserve_cpu=True)
+                figures["frame_to_command_p99_kept_ms"] = lat["p99_ms"]
             figures.update(bench_loop(print_fn, seconds=seconds, page_process=page_process))
             runs[page_process].append(figures)
     results: dict[str, float] = {}
-    print_fn(f"loop by turns ({turns} a side, alternately; floods of {seconds:g} s): --one-process | the loop's own process |"
+    print_fn(f"loop by turns ({turns} a side, alternately; floods of {seconds:g} s): before | run now |"
              " ratio")
     for key, what, _higher in SUMMARY:
         one = [r[key] for r in runs[False] if key in r]

@@ -98,6 +98,10 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     where.add_argument("--one-process", action="store_true",
                        help="the page in the loop's process, as before the loop had one of its own (what `bench`"
                             " compares against); a flood of page clients then shares the loop's interpreter")
+    run.add_argument("--reserve-cpu", action="store_true",
+                     help="keep a CPU for the loop's thread (the highest one no other loop keeps): the service's"
+                          " other threads and its page run on the rest. With a browser on this machine, start it off"
+                          " that CPU (taskset); README, \"Speed\"")
     add_foxglove_args(run)
     run.set_defaults(func=cmd_run)
 
@@ -190,7 +194,8 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
                    scenario_name=args.scenario, camera_source=args.camera, camera_fps=args.camera_fps,
                    host=args.host, port=args.port, token=args.token, viewer_token=args.viewer_token,
                    rate_hz=args.rate, seed=args.seed, recordings=args.recordings, realtime=args.realtime,
-                   loop_process=not getattr(args, "one_process", False), record=not args.no_record,
+                   loop_process=not getattr(args, "one_process", False),
+                   reserve_cpu=getattr(args, "reserve_cpu", False), record=not args.no_record,
                    record_to=args.record, frames_hz=args.frames_hz, radio=_radio_plan(args),
                    fleet=_fleet_plan(args), ros2=ros2_plan(args), foxglove=foxglove_plan(args))
 

@@ -37,7 +37,7 @@ from core.types import BoolArray, Commands, FloatArray, IntArray
 from app.backends.hardware import HardwareTeam
 from app.backends.arena import ArenaTeam
 from app.backends.world import Backends
-from app.realtime import SWITCH_INTERVAL_S, make_realtime, scheduling
+from app.realtime import SWITCH_INTERVAL_S, CpuReservation, make_realtime, scheduling
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
 from app.params import Params, ParamsStore
 from app.keys import follower_name
@@ -135,6 +135,7 @@ class ServiceLoop:
                                  initial_poses, camera, link, frames, hardware,
                                  pipeline_settings or PipelineSettings(), tuple(obstacles), arena, leader_base)
         self.realtime = realtime
+        self.cpu: CpuReservation | None = None  # a CPU kept for the loop's thread (the service sets it: `run`'s default)
         self.priority = "normal"  # how the loop's thread is scheduled, once it runs
         self.switches = tuple(switches)
         self._switch_k = 0
@@ -452,6 +453,8 @@ class ServiceLoop:
             self.tick()
         except Exception as exc:  # noqa: BLE001 - the robots must stop, the service must live
             self._on_fault(exc)
+        if self.cpu is not None and self.tick_count % max(1, round(self.rate_hz)) == 0:
+            self.cpu.keep_off()  # once a second, after the tick's commands: threads made since, a new page
         if window:
             self._longest_gap_s = max(self._longest_gap_s, start - window[-1])
         window.append(start)
@@ -536,9 +539,16 @@ class ServiceLoop:
 
         warm_up(self)
         compiled_at_start = compiled()
+        if self.cpu is not None:  # one line, as the warm-up's: the operator starts a browser off that CPU
+            why = self.cpu.take()
+            print(f"omniformation: no CPU kept for the loop ({why})" if why else
+                  f"omniformation: CPU {self.cpu.cpu} kept for the loop's thread; the service's other threads and its"
+                  f" page run on {','.join(map(str, sorted(self.cpu.others)))}", flush=True)
         try:
             self._paced()
         finally:
+            if self.cpu is not None:
+                self.cpu.release()
             late = compiled() - compiled_at_start
             if late:  # a kernel the warm-up did not reach: its first use stalled a tick (name it in app.live.warmup)
                 log.warning("loop: %d kernel(s) compiled while the loop's clock ran", late)

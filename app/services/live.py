@@ -40,6 +40,7 @@ from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
 from app.memory import bound_native_heap, bound_python_heap
+from app.realtime import CpuReservation
 from app.recording.reader import check_ticks, read_recording
 
 
@@ -109,7 +110,7 @@ class Service:
                  token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None,
                  viewer_token: str | None = None, realtime: bool = False,
                  leader_base: FollowerLink | None = None, page_process: bool = False,
-                 initial_poses: tuple[FloatArray, FloatArray] | None = None) -> None:
+                 initial_poses: tuple[FloatArray, FloatArray] | None = None, reserve_cpu: bool = False) -> None:
         """``recordings``: the folder the Recordings panel lists (default: recordings/ in the working folder).
         ``token``: what clients must present (app.dashboard.gate); made up on a non-loopback host.
         ``arena``: this leader's robots in a fleet's arena (their count is the arena's, not the page's);
@@ -117,7 +118,9 @@ class Service:
         ``page_process``: the page (gate, viser, dashboard) in a process of its own, a client of this
         one's loop (app.services.page_process; the Tuning panel's work stays here, page_tuning).
         ``initial_poses``: where the simulated followers start (positions (n, 2), headings (n,))
-        when no scenario says; else a seeded spread."""
+        when no scenario says; else a seeded spread. ``reserve_cpu``: a CPU kept for the loop's
+        thread, the service's other threads and the page's process off it (app.realtime.CpuReservation;
+        `run --reserve-cpu`)."""
         bound_native_heap()  # hours of frames in bounded resident memory (app.memory)
         bound_python_heap()  # and of Python's small objects
         fixed = hardware.state.n if hardware is not None else len(arena.owned) if arena is not None \
@@ -141,6 +144,8 @@ class Service:
         if camera is not None:
             wa = camera[0].working_area
             overlay = Overlay((camera[1].cx, camera[1].cy), wa.inner_px, wa.outer_px)
+        if reserve_cpu:
+            self.loop.cpu = CpuReservation(lambda: [self.page.pid] if self.page is not None and self.page.pid else [])
         self.tests = StepTests(self.store, self.loop.dynamics.wheel_base_m)
         self.loop.subscribe(self.tests.on_tick)
         self.sweeps = SweepRunner()

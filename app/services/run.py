@@ -90,6 +90,7 @@ class RunPlan:
     recordings: Path | None = None
     realtime: bool = False
     loop_process: bool = True  # the page in a process of its own (run --one-process: in the loop's)
+    reserve_cpu: bool = False  # a CPU kept for the loop's thread (run --reserve-cpu)
     record: bool = True
     record_to: Path | None = None
     frames_hz: float = 10.0
@@ -265,7 +266,7 @@ def _serve(plan: RunPlan, frames: FrameSource | None, link: FollowerLink | None,
                           recordings=plan.recordings, token=plan.token, viewer_token=plan.viewer_token,
                           arena=fleet.arena_team if fleet else None, params=fleet.params if fleet else None,
                           realtime=plan.realtime, leader_base=None if plan.real else base,
-                          page_process=plan.loop_process)
+                          page_process=plan.loop_process, reserve_cpu=plan.reserve_cpu)
     except OSError as exc:
         raise UserError(bind_error(plan.host, plan.port, exc)) from None
     if not is_loopback(plan.host):  # after the bind: an address not here is one line, no warning first

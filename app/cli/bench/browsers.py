@@ -78,6 +78,10 @@ import os, sys
 os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 from playwright.sync_api import sync_playwright
 chromium, url, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+# the CPUs it may use (argv 4, e.g. "0": kept off a CPU `run --reserve-cpu` keeps); else every one,
+# as an operator's browser has (not the bench's own, which a kept CPU may have narrowed)
+cpus = sys.argv[4] if len(sys.argv) > 4 else ""
+os.sched_setaffinity(0, [int(c) for c in cpus.split(",")] if cpus else range(os.cpu_count() or 1))
 with sync_playwright() as p:
     browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
     pages = [browser.new_context().new_page() for _ in range(n)]

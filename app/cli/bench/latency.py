@@ -13,14 +13,15 @@ from app.cli.bench.browsers import _VIEWER
 
 
 def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, browsers: int = 1,
-                  realtime: bool = False, page_process: bool = False) -> dict[str, float]:
+                  realtime: bool = False, page_process: bool = False, reserve_cpu: bool = False) -> dict[str, float]:
     """Frame-to-command latency on a real rig's path: a folder of the synthetic rig's pictures of a
     team driving (experiment 1's first seconds, rendered) played at 30 fps, the vision pipeline,
     the serial link to emulated followers on a pty, recording on, ``browsers`` Chromium pages
     attached (on idle CPU, as in the soak). Latency is each tick's ``latency_ms``: the frame's
     arrival to its commands written to the link. ``realtime``: as ``run --realtime`` (the loop's and
-    the camera's threads on SCHED_FIFO, app.realtime). ``page_process``: the page in a process of
-    its own (`run`'s default; False: `run --one-process`)."""
+    the camera's threads on SCHED_FIFO, app.realtime). ``page_process``: as `run` serves now, the
+    page in a process of its own (False: `run --one-process`). ``reserve_cpu``: as `run
+    --reserve-cpu`, a CPU kept for the loop's thread, and the browser started off it."""
     import shutil
     import subprocess
     import sys
@@ -73,7 +74,8 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     source = FolderSource(frames_dir, fps=30.0, loop=True)
     camera = Rig(rig, rig.require_gamma())
     svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0, camera=camera, frames=source,
-                  hardware=HardwareTeam(2, link), realtime=realtime, page_process=page_process)
+                  hardware=HardwareTeam(2, link), realtime=realtime, page_process=page_process,
+                  reserve_cpu=reserve_cpu)
     recorder = start_recording(svc, config, None, None, camera, 10.0, folder / "latency.mcap")
     latencies: list[float] = []
     phases: list[str] = []
@@ -89,7 +91,13 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     chromium = shutil.which("chromium")
     try:
         if browsers and chromium:
-            viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers)],
+            cpus = ""
+            if reserve_cpu and svc.loop.cpu is not None:  # the browser off the kept CPU, once the loop keeps it
+                deadline = _time.monotonic() + 120
+                while svc.loop.tick_count < 1 and _time.monotonic() < deadline:
+                    _time.sleep(0.1)
+                cpus = ",".join(map(str, sorted(svc.loop.cpu.others)))
+            viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers), cpus],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             assert viewer.stdout is not None
             viewer.stdout.readline()  # "ready": the page is up
@@ -114,6 +122,9 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     p50, p99 = (float(np.percentile(values, q)) for q in (50, 99)) if len(values) else (float("nan"),) * 2
     how = f"the loop {svc.loop.priority}" if realtime else "normal priority"
     how += ", the page in its own process" if page_process else ""
+    if reserve_cpu:
+        kept = svc.loop.cpu.cpu if svc.loop.cpu is not None else None
+        how += f", CPU {kept} kept for the loop, the browser off it" if kept is not None else ", no CPU could be kept"
     print_fn(f"frame-to-command latency ({how}): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({len(values)} ticks on a"
              f" new frame, {len(values) / seconds:.1f} Hz; target p99 <= 5 ms)")
     if len(tracking):
