@@ -130,7 +130,18 @@ class CpuReservation:
         return moved
 
     def release(self) -> None:
-        """The lock file let go (the CPU may be kept by another loop)."""
+        """The lock file let go (the CPU may be kept by another loop), and this process's threads
+        that were kept off it allowed on it again (a process that serves again starts as it began)."""
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
+        if self.cpu is None:
+            return
+        every = self.others | {self.cpu}
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                if os.sched_getaffinity(int(tid)) == self.others:
+                    os.sched_setaffinity(int(tid), every)
+            except OSError:  # ended meanwhile
+                continue
+        self.cpu = None

@@ -12,15 +12,18 @@ The channel, one pipe, pickled messages (docs/safety.md, "The page in a process 
   skips ticks, the loop never waits for it), with the parameters in force whenever they changed.
   The camera's frame travels only at the rate the page's camera panel draws it (one state in
   every ``frame_every`` ticks carries it, as plain pixels; the others carry none): rendering and
-  pickling 900 kB on every tick cost the loop's process more than the loop itself. The page keeps
-  the newest frame (with its tick's CAMSHIFT windows) for the states between. ``lines``: the
+  pickling 900 kB on every tick cost the loop's process more than the loop itself; and only while
+  a browser has the page open (several leaders on one machine, none watched, each rendered
+  frames nobody saw). The page keeps the newest frame (with its tick's CAMSHIFT windows) for the
+  states between. ``lines``: the
   texts of the status lines other parts of the loop's process show on the page (the fleet
   bus's), read a few times a second and sent when one changed; ``skipped``: the ticks the loop
   has skipped so far (with the loop's target rate, given at start, the page's health banner judges
   them as in one process);
 * page -> loop: ``("update", source, changes)``: every change the page's controls make, STOP
   included, applied by the loop's ParamsStore.update (the same validation as in one process;
-  what it refuses is refused), ``("alarm", t, text)`` when the page's health rules raise an
+  what it refuses is refused), ``("clients", n)`` when the number of browsers it serves
+  changes, ``("alarm", t, text)`` when the page's health rules raise an
   alarm (the recorder writes it as an event), and ``("ready", url, viewer_url, port)`` once it
   serves;
 * the panels whose work runs on the loop's side (the Tuning panel: app.services.page_tuning) send
@@ -81,6 +84,7 @@ class PageProcess:
         self.dropped: Callable[[], int] = lambda: 0  # the loop's skipped ticks so far (its health banner's)
         self.frame_every = max(1, math.floor(REDRAW_S * rate_hz + 0.5))
         self.frames_sent = 0  # states sent with the camera's frame
+        self.clients = 0  # browsers the page serves now (it says when this changes)
         self.states_sent = 0
         self._frame_tick = -(10**9)  # the tick of the last state sent with its frame
         self.alarms: list[Callable[[float, str], None]] = []  # told of each alarm the page raises
@@ -148,6 +152,7 @@ class PageProcess:
         self._lines_sent = ()  # and the status lines
         self._recording_sent = False  # and the recording's name
         self._outbox.clear()  # what was queued for the page that died
+        self.clients = 0  # nobody has the new page open yet
         for fn in self.new_page:
             fn()
 
@@ -179,8 +184,9 @@ class PageProcess:
             texts = tuple(fn() for fn in self._lines)
             lines = texts if texts != self._lines_sent else None
         framed = False
-        if state.frame is not None:
-            framed = state.tick - self._frame_tick >= self.frame_every or state.tick < self._frame_tick  # (a reset)
+        if state.frame is not None:  # rendered and sent only while someone has the page open
+            framed = self.clients > 0 and (state.tick - self._frame_tick >= self.frame_every
+                                           or state.tick < self._frame_tick)  # (a reset)
             pixels = np.ascontiguousarray(np.asarray(state.frame)) if framed else None  # a synthetic frame renders here
             state = dataclasses.replace(state, frame=pixels)
         try:
@@ -231,6 +237,8 @@ class PageProcess:
                     self.store.update(str(source), **dict(changes))
                 except (ValueError, TypeError) as exc:  # refused as the store refuses any bad change
                     log.warning("page: change refused: %s", exc)
+            elif msg[0] == "clients" and len(msg) == 2:
+                self.clients = max(0, int(msg[1]))
             elif msg[0] == "alarm" and len(msg) == 3:
                 for fn in list(self.alarms):
                     fn(float(msg[1]), str(msg[2]))
@@ -323,6 +331,17 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
             except (OSError, ValueError):
                 return False  # the loop is gone: the page says so
 
+    watching: set[int] = set()  # the clients connected now: with none, the loop sends no camera frame
+    watch_lock = threading.Lock()
+
+    def watched(client: Any, on: bool) -> None:
+        with watch_lock:
+            (watching.add if on else watching.discard)(client.client_id)
+            count = len(watching)
+        send(("clients", count))
+
+    server.on_client_connect(lambda client: watched(client, True))
+    server.on_client_disconnect(lambda client: watched(client, False))
     bench = PageBench(send, tuning[1]) if tuning[0] else None
     dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles,
                           tuning=(lambda s: TuningPanel(s, store, bench)) if bench is not None else None)

@@ -97,13 +97,15 @@ def bench_arena_tick(leaders: int, followers: int, ticks: int = 300) -> float:
     return float(np.median(times[20:]) * 1e3)
 
 
-def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0) -> tuple[int, list[float]]:
+def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0,
+                           extra: tuple[str, ...] = ()) -> tuple[int, list[float]]:
     """Start an arena for ``max_processes`` teams of 3 (side by side, every robot in its
     fleet-wide hue), then leader processes one more at a time (`run --arena`, each rendering
     its camera from the arena with the other teams in view, the vision pipeline in the loop,
     its page served, no browser) and read every one's loop rate from the bus; how many run at
     once with every loop within 1 % of 30 Hz, and the slowest rate at each count. The arena
-    steps every team, joined or not, all along."""
+    steps every team, joined or not, all along. ``extra``: more `run` arguments (``--one-process``:
+    each leader's page in its loop's process, as `run` was before its loop had a process of its own)."""
     import subprocess
     import sys
     import tempfile
@@ -138,7 +140,7 @@ def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0) -> tup
         for k in range(1, max_processes + 1):
             procs.append(subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record",
                                            "--arena", str(fleet), "--leader-id", f"L{k}", "--feedback", "vision",
-                                           "--zenoh-connect", endpoint],
+                                           "--zenoh-connect", endpoint, *extra],
                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             deadline = _time.monotonic() + 120
             while _time.monotonic() < deadline:  # every leader past its start-up (compiling, first frames)
@@ -183,9 +185,10 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     results["arena_tick_ms_10x10"] = tick_ms
     print_fn(f"fleet: arena step for 10 leaders x 10 followers (dynamics, truth, publish): {tick_ms:.2f} ms per tick"
              f" ({tick_ms / (1000 / 30) * 100:.0f} % of a 30 Hz tick)")
-    held, slowest = bench_leader_processes()
-    results["leader_processes_at_30hz"] = held
-    print_fn(f"fleet: leader processes of 3 followers in one arena (vision in the loop, each camera rendered from the"
-             f" arena) this machine holds at 30 Hz (within 1 %): {held}; slowest loop with 1..{len(slowest)} running:"
-             f" {', '.join(f'{r:.2f}' for r in slowest)} Hz")
+    for name, extra in (("before (run --one-process)", ("--one-process",)), ("run now (the loop's own process)", ())):
+        held, slowest = bench_leader_processes(extra=extra)
+        results["leader_processes_at_30hz" + ("_one_process" if extra else "")] = held
+        print_fn(f"fleet: leader processes of 3 followers in one arena (vision in the loop, each camera rendered from"
+                 f" the arena), {name}: this machine holds {held} at 30 Hz (within 1 %); slowest loop with"
+                 f" 1..{len(slowest)} running: {', '.join(f'{r:.2f}' for r in slowest)} Hz")
     return results

@@ -22,6 +22,7 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     the camera's threads on SCHED_FIFO, app.realtime). ``page_process``: as `run` serves now, the
     page in a process of its own (False: `run --one-process`). ``reserve_cpu``: as `run
     --reserve-cpu`, a CPU kept for the loop's thread, and the browser started off it."""
+    import os
     import shutil
     import subprocess
     import sys
@@ -89,6 +90,7 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     svc.start()
     viewer = None
     chromium = shutil.which("chromium")
+    kept: int | None = None  # the CPU the loop kept (reserve_cpu)
     try:
         if browsers and chromium:
             cpus = ""
@@ -96,7 +98,10 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
                 deadline = _time.monotonic() + 120
                 while svc.loop.tick_count < 1 and _time.monotonic() < deadline:
                     _time.sleep(0.1)
+                kept = svc.loop.cpu.cpu
                 cpus = ",".join(map(str, sorted(svc.loop.cpu.others)))
+                for tid in os.listdir(f"/proc/{emu.pid}/task"):  # the robots are not on a real rig's computer
+                    os.sched_setaffinity(int(tid), svc.loop.cpu.others)
             viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers), cpus],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             assert viewer.stdout is not None
@@ -123,7 +128,6 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     how = f"the loop {svc.loop.priority}" if realtime else "normal priority"
     how += ", the page in its own process" if page_process else ""
     if reserve_cpu:
-        kept = svc.loop.cpu.cpu if svc.loop.cpu is not None else None
         how += f", CPU {kept} kept for the loop, the browser off it" if kept is not None else ", no CPU could be kept"
     print_fn(f"frame-to-command latency ({how}): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({len(values)} ticks on a"
              f" new frame, {len(values) / seconds:.1f} Hz; target p99 <= 5 ms)")

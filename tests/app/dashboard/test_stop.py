@@ -35,25 +35,21 @@ def _service(tmp_path, page_process: bool):
     keep_ticks(svc, 3000)
     svc.recorder = start_recording(svc, config, None, None, None, 1.0, path=tmp_path / "stop.mcap")
     svc.start()
-    return svc
+    yield svc
+    svc.close()
+    svc.recorder.close()
 
 
 @pytest.fixture()
 def page_process_service(tmp_path):
     """As `run` serves it: the page in a process of its own."""
-    svc = _service(tmp_path, page_process=True)
-    yield svc
-    svc.close()
-    svc.recorder.close()
+    yield from _service(tmp_path, page_process=True)
 
 
 @pytest.fixture()
 def service(tmp_path):
     """The page in the loop's process (`run --one-process`): its objects can be read here."""
-    svc = _service(tmp_path, page_process=False)
-    yield svc
-    svc.close()
-    svc.recorder.close()
+    yield from _service(tmp_path, page_process=False)
 
 
 def open_page(browser, url: str, width: int = 1280, height: int = 720):

@@ -131,6 +131,7 @@ class _Page:
         self.ws = wsc.connect(f"ws://127.0.0.1:{port}/", sock=sock, subprotocols=[f"viser-v{viser.__version__}"],
                               additional_headers={"Origin": f"http://127.0.0.1:{port}"}, open_timeout=timeout,
                               max_queue=None)
+        self.send_camera()  # as a browser does at once (viser counts a client connected from then)
         self.buttons: dict[str, str] = {}  # label -> uuid
         self.controls: dict[str, str] = {}  # every control's label -> uuid
 
@@ -159,12 +160,17 @@ class _Page:
     def click(self, label: str) -> None:
         import msgspec
 
+        self.send_camera()
+        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.buttons[label],
+                                            "updates": {"value": True}}))
+
+    def send_camera(self) -> None:
+        import msgspec
+
         camera = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0],
                   "fov": 1.0, "near": 0.01, "far": 100.0, "image_height": 720, "image_width": 1280,
                   "look_at": [0.0, 0.0, 0.0], "up_direction": [0.0, 0.0, 1.0]}
         self.ws.send(msgspec.msgpack.encode(camera))  # a page sends its camera first
-        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.buttons[label],
-                                            "updates": {"value": True}}))
 
     def set(self, label: str, value: Any) -> None:
         """A control's new value, as a browser sends it."""
@@ -295,6 +301,8 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
     try:
         page = svc.page
         assert page is not None and page.frame_every == 3  # 30 Hz ticks, the panel redraws every 0.1 s
+        assert _until(lambda: svc.loop.tick_count > 30)
+        assert page.frames_sent == 0 and page.states_sent > 0  # nobody has the page open: no frame rendered
         client = _Page(page.port)
         image, shown = "", 0
         for msg in client.messages(60.0):
@@ -304,12 +312,16 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
                 shown += 1  # a frame drawn on the page
                 if shown >= 3:
                     break
-        client.close()
         assert shown >= 3
         assert _until(lambda: page.frames_sent >= 3)
         ticks = svc.loop.tick_count  # read after the count: the ticks it may have come from are all in
         assert page.frames_sent <= ticks // page.frame_every + 1  # never more than one in frame_every ticks
         assert page.states_sent > page.frames_sent  # the states between went without a frame
+        client.close()  # the page closed: no frame is rendered or sent again
+        assert _until(lambda: page.clients == 0)
+        sent, ticks = page.frames_sent, svc.loop.tick_count
+        assert _until(lambda: svc.loop.tick_count > ticks + 30)
+        assert page.frames_sent <= sent + 1  # (one may have been on its way)
     finally:
         svc.close()
 
