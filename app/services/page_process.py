@@ -112,7 +112,7 @@ class PageProcess:
         self._conn: multiprocessing.connection.Connection | None = None
         self._proc: Any = None
         self._ready = threading.Event()
-        self._failed = ""  # why the page could not serve (its one line), then no page is started again
+        self._failed: tuple[int | None, str] | None = None  # why the page could not serve (errno, text): no page again
         self._send_lock = threading.Lock()  # one writer at a time on the pipe (interleaved pickles corrupt it)
         self._sent_version = -1
         self._sender = LatestStatePublisher(self._send, name="page-sender")  # the newest state, never the loop's wait
@@ -132,7 +132,7 @@ class PageProcess:
         if not self._ready.wait(120.0):
             raise OSError("the page's process did not start")
         if self._failed:
-            raise OSError(self._failed)
+            raise OSError(*self._failed) if self._failed[0] else OSError(self._failed[1])
 
     @property
     def pid(self) -> int:
@@ -246,7 +246,7 @@ class PageProcess:
                 self._handlers[msg[0]](msg)
             elif msg[0] == "failed":
                 if not self._ready.is_set():  # the first page: `run` says why and ends
-                    self._failed = str(msg[1])
+                    self._failed = (msg[2] if len(msg) > 2 and isinstance(msg[2], int) else None, str(msg[1]))
                     self._ready.set()
                     return
                 log.warning("page: a new page cannot serve yet (%s); STOP stays engaged, trying again", msg[1])
@@ -295,6 +295,22 @@ class ForwardingStore(ParamsStore):
         return result
 
 
+def _tell_clients(server: Any, send: Callable[[tuple[Any, ...]], bool]) -> None:
+    """Tell the loop how many browsers the page serves whenever that changes (with none, it
+    sends no camera frame)."""
+    watching: set[int] = set()
+    lock = threading.Lock()
+
+    def watched(client: Any, on: bool) -> None:
+        with lock:
+            (watching.add if on else watching.discard)(client.client_id)
+            count = len(watching)
+        send(("clients", count))
+
+    server.on_client_connect(lambda client: watched(client, True))
+    server.on_client_disconnect(lambda client: watched(client, False))
+
+
 def page_main(conn: multiprocessing.connection.Connection, host: str, port: int, token: str | None,
               viewer_token: str | None,
               params: Params, overlay: tuple[tuple[float, float], float, float] | None,
@@ -320,7 +336,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     try:
         server, gate = serve_gated(host, port, token, viewer_token)
     except OSError as exc:  # a port in use, an address this machine does not have: said once, by `run`
-        conn.send(("failed", str(exc)))
+        conn.send(("failed", str(exc), exc.errno))  # the errno: `run` words it as in one process (app.files)
         return
 
     def send(msg: tuple[Any, ...]) -> bool:
@@ -331,17 +347,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
             except (OSError, ValueError):
                 return False  # the loop is gone: the page says so
 
-    watching: set[int] = set()  # the clients connected now: with none, the loop sends no camera frame
-    watch_lock = threading.Lock()
-
-    def watched(client: Any, on: bool) -> None:
-        with watch_lock:
-            (watching.add if on else watching.discard)(client.client_id)
-            count = len(watching)
-        send(("clients", count))
-
-    server.on_client_connect(lambda client: watched(client, True))
-    server.on_client_disconnect(lambda client: watched(client, False))
+    _tell_clients(server, send)
     bench = PageBench(send, tuning[1]) if tuning[0] else None
     dashboard = Dashboard(server, store, Overlay(*overlay) if overlay is not None else None, obstacles,
                           tuning=(lambda s: TuningPanel(s, store, bench)) if bench is not None else None)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -10,6 +11,32 @@ import numpy as np
 from app.files import load_scenario
 
 from app.cli.bench.browsers import _VIEWER
+
+
+def _render_team(frames_dir: Path, seconds: float) -> int:
+    """The synthetic rig's pictures of a team driving (experiment 1's first seconds), one PNG a
+    frame at 30 fps into ``frames_dir``; how many."""
+    import cv2
+
+    from app.files import SYNTHETIC_CAMERA, load_camera
+    from core.camera.render import Renderer
+    from core.geometry import heading_world_to_leader, world_to_leader
+    from core.sim.stepped import simulate_stepped
+
+    run = simulate_stepped(load_scenario("experiment1").replace(duration_s=min(seconds, 20.0)))  # truth: as it drives
+    model = load_camera(SYNTHETIC_CAMERA)  # the pictures; the service reads them with the calibration
+    assert model.model is not None
+    renderer = Renderer(model.model, model.render)
+    rng = np.random.default_rng(0)
+    log = run.log
+    count = min(len(log.t), int(seconds * 30) + 1)
+    for k in range(count):
+        theta = float(log.leader[k, 2])
+        p = world_to_leader(log.followers_world[k, :, :2], log.leader[k, :2], theta)
+        a = heading_world_to_leader(log.followers_world[k, :, 2], theta)
+        cv2.imwrite(str(frames_dir / f"f{k:05d}.png"),
+                    renderer.render(np.array([0.0, 0.0, np.pi / 2]), np.column_stack([p, a]), k / 30, rng))
+    return count
 
 
 def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, browsers: int = 1,
@@ -28,41 +55,23 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     import sys
     import tempfile
     import time as _time
-    from pathlib import Path
 
-    import cv2
 
     from app.backends.camera import FolderSource
     from app.backends.hardware import HardwareTeam
     from app.backends.serial_link import SerialLink
     from app.contracts import Rig
-    from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
+    from app.files import SYNTHETIC_CALIBRATED, load_camera
     from app.live.config import DEFAULT_CONFIG, load_service_config
     from app.params import MAX_FOLLOWERS
     from app.services.live import Service
     from app.services.recording import start_recording
-    from core.camera.render import Renderer
-    from core.geometry import heading_world_to_leader, world_to_leader
-    from core.sim.stepped import simulate_stepped
 
     folder = Path(tempfile.mkdtemp(prefix="omniformation-latency-"))
     frames_dir = folder / "frames"
     frames_dir.mkdir()
-    scenario = load_scenario("experiment1")
-    run = simulate_stepped(scenario.replace(duration_s=min(seconds, 20.0)))  # truth feedback: the team as it drives
-    model = load_camera(SYNTHETIC_CAMERA)  # the pictures; the service reads them with the calibration
+    count = _render_team(frames_dir, seconds)
     rig = load_camera(SYNTHETIC_CALIBRATED)
-    assert model.model is not None
-    renderer = Renderer(model.model, model.render)
-    rng = np.random.default_rng(0)
-    log = run.log
-    count = min(len(log.t), int(seconds * 30) + 1)
-    for k in range(count):
-        theta = float(log.leader[k, 2])
-        p = world_to_leader(log.followers_world[k, :, :2], log.leader[k, :2], theta)
-        a = heading_world_to_leader(log.followers_world[k, :, 2], theta)
-        cv2.imwrite(str(frames_dir / f"f{k:05d}.png"),
-                    renderer.render(np.array([0.0, 0.0, np.pi / 2]), np.column_stack([p, a]), k / 30, rng))
     print_fn(f"latency: {count} frames of the synthetic rig rendered; playing them at 30 fps"
              f" (looped) for {seconds:g} s")
     # the robots are not in the service's process on a real rig: the emulator runs in its own
