@@ -22,7 +22,6 @@ from core.camera.gamma import Gamma
 from core.config import Scenario
 from core.control.tuning import GainRange, StepScore, StepTest, check_step_test, score_step, stepped_slots
 from core.sim.profiles import Segment, SegmentsProfile
-from core.sim.stepped import simulate_stepped
 from core.types import FloatArray, Gains
 
 LEAD_S = 3.0  # the team runs this long before the step (the simulated followers start at rest: they catch up first)
@@ -70,6 +69,8 @@ def run_step_test(
 ) -> StepRun:
     """Run ``test`` with ``gains`` from ``base`` (see :func:`step_scenario`) and score it."""
     scenario = step_scenario(base.replace(gains=gains), test, twist, lead_s)
+    from core.sim.stepped import simulate_stepped  # here: the page's Tuning panel reads this module's names only
+
     run = simulate_stepped(scenario, rig, gamma)
     log = run.log
     final = scenario.switches[-1][1] if scenario.switches else scenario.slots
