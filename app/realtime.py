@@ -51,12 +51,14 @@ class CpuReservation:
     Measured here (2 CPUs, a browser on the same machine, `omniformation bench --latency`): the
     frame-to-command p99 was 8-10 ms whether the page ran in the loop's process or its own, and
     4.4 ms with no browser. In the slow ticks the loop's thread had waited 4-13 ms in the run queue
-    (its /proc schedstat), about three times a tick: a thread or process the loop wakes (the page's
-    process reading the pipe, the recorder, the page's sender) is placed on the waker's CPU and
-    runs there first, while the other CPU runs the browser. A lower nice for the page, a 1 ms
+    (its /proc schedstat), with about three involuntary switches a tick. A lower nice for the page, a 1 ms
     interpreter switch interval, a shorter scheduler slice for the loop or one OpenCV thread did
-    not change it; keeping the loop's thread on a CPU of its own and every other thread of the
-    service (and the page's process) off it did: p99 4.6 ms.
+    not change it. This kernel does not preempt kernel code (preempt=none) and a browser that
+    draws in software spends time there, so the loop is safe from it only on a CPU the browser
+    does not run on: with the loop's thread kept on a CPU of its own, every other thread of the
+    service (and the page's process) off it, and the browser started off it, p99 was 4.8-5.3 ms.
+    With the browser free to use every CPU, a loop held to one is worse (17-20 ms): it can no
+    longer move away. Hence an option (`run --reserve-cpu`), not the default.
 
     ``take`` (on the loop's thread): the highest allowed CPU not kept by another loop on this
     machine (a lock file per CPU, released when the process ends), leaving at least one CPU for

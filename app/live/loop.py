@@ -135,7 +135,7 @@ class ServiceLoop:
                                  initial_poses, camera, link, frames, hardware,
                                  pipeline_settings or PipelineSettings(), tuple(obstacles), arena, leader_base)
         self.realtime = realtime
-        self.cpu: CpuReservation | None = None  # a CPU kept for the loop's thread (the service sets it: `run`'s default)
+        self.cpu: CpuReservation | None = None  # a CPU kept for the loop's thread (the service sets it: --reserve-cpu)
         self.priority = "normal"  # how the loop's thread is scheduled, once it runs
         self.switches = tuple(switches)
         self._switch_k = 0

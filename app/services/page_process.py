@@ -15,17 +15,16 @@ The channel, one pipe, pickled messages (docs/safety.md, "The page in a process 
   pickling 900 kB on every tick cost the loop's process more than the loop itself; and only while
   a browser has the page open (several leaders on one machine, none watched, each rendered
   frames nobody saw). The page keeps the newest frame (with its tick's CAMSHIFT windows) for the
-  states between. ``lines``: the
-  texts of the status lines other parts of the loop's process show on the page (the fleet
-  bus's), read a few times a second and sent when one changed; ``skipped``: the ticks the loop
+  states between. ``lines``: the texts of the status lines other parts of the loop's process
+  show on the page (the fleet bus's), read a few times a second and sent when one changed; ``skipped``: the ticks the loop
   has skipped so far (with the loop's target rate, given at start, the page's health banner judges
   them as in one process);
 * page -> loop: ``("update", source, changes)``: every change the page's controls make, STOP
   included, applied by the loop's ParamsStore.update (the same validation as in one process;
   what it refuses is refused), ``("clients", n)`` when the number of browsers it serves
-  changes, ``("alarm", t, text)`` when the page's health rules raise an
-  alarm (the recorder writes it as an event), and ``("ready", url, viewer_url, port)`` once it
-  serves;
+  changes, ``("alarm", t, text)`` when the page's health rules raise an alarm (the recorder
+  writes it as an event), ``("failed", why, errno)`` when it cannot serve, and
+  ``("ready", url, viewer_url, port)`` once it serves;
 * the panels whose work runs on the loop's side (the Tuning panel: app.services.page_tuning) send
   and receive messages of their own kind, answered by the handler registered for it (``serve``);
   what the loop's side sends them is queued (``post``) and goes down the pipe before the next
