@@ -39,6 +39,7 @@ from app.live.loop import DEFAULT_NOISE, ServiceLoop
 from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
+from app.live.warmup import warm_up
 from app.memory import bound_native_heap, bound_python_heap
 from app.realtime import CpuReservation
 from app.recording.reader import check_ticks, read_recording
@@ -173,7 +174,13 @@ class Service:
             self.page.alarms = self.dashboard.controls.health.listeners  # the recorder's events
             if frames is not None and camera is not None:  # a real camera: the page's Calibration panel
                 self.page.calibration = (camera[0].detect, (camera[1].cx, camera[1].cy), camera[0].working_area)
-            self.page.start()
+            self.page.launch()
+            try:  # the loop's kernels warmed while the page's process starts (each takes a second or two);
+                warm_up(self.loop)  # the loop's run() then finds them warm, its clock starting as before
+                self.page.wait_ready()
+            except BaseException:  # a page that cannot serve, Ctrl-C: its process ends with the rest
+                self.page.close()
+                raise
             return
         self.server, self.gate = serve_gated(host, port, token, viewer_token)
 

@@ -38,13 +38,16 @@ followers stop on their link's watchdog (docs/follower-protocol.md).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import logging
 import math
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -126,8 +129,17 @@ class PageProcess:
 
     def start(self) -> None:
         """Start the page's process and wait until it serves."""
+        self.launch()
+        self.wait_ready()
+
+    def launch(self) -> None:
+        """Start the page's process and return at once (it takes a second or two to import and serve:
+        the loop's side warms its kernels meanwhile); wait_ready() waits for it."""
         self._start_page()
         threading.Thread(target=self._supervise, name="page-supervisor", daemon=True).start()
+
+    def wait_ready(self) -> None:
+        """Wait until the page serves; OSError if it could not (its errno, as binding here would say)."""
         if not self._ready.wait(120.0):
             raise OSError("the page's process did not start")
         if self._failed:
@@ -388,9 +400,9 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
                 dashboard.controls.status.content = ("**THE LOOP HAS ENDED: its process is gone. The followers stop"
                                                      " on their link's watchdog.**")
                 time.sleep(ORPHAN_S)
-                return
+                break
             if msg[0] == "close":
-                return
+                break
             if msg[0] == "tuning" and bench is not None:
                 bench.receive(msg)
                 continue
@@ -421,6 +433,18 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
         panel.close()
         gate.close()
         quietly(server.stop)
+    _end_now()
+
+
+def _end_now() -> None:
+    """End the page's process once it has closed what it serves: what it owns is closed above and it
+    writes no file, so the interpreter's own teardown (modules, caches: about 0.4 s) is skipped, and
+    Ctrl-C or a closing test does not wait for it."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(0)
 
 
 def _show_lines(server: Any, shown: list[Any], texts: tuple[str, ...]) -> None:
