@@ -8,7 +8,6 @@ import datetime as dt
 import json
 import os
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -18,7 +17,7 @@ import pytest
 from app.fleet.bridge import loopback_endpoint
 from app.fleet.security import load_fleet_keys
 
-from tests.helpers import ROOT, fleet_session, interrupt, main_cli, wait_for
+from tests.helpers import fleet_session, interrupt, main_cli, spawn_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -159,10 +158,6 @@ def listening_ports(pid: int) -> set[int]:
     return ports
 
 
-def _spawn(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "app.cli", *args], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-
 
 class Heard:
     """Everything a session hears of the fleet, and the newest truth."""
@@ -195,7 +190,7 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
     keys = make_keys(tmp_path / "keys")
     ep = tls_endpoint()
     summary = tmp_path / "arena.json"
-    arena = _spawn("arena", FLEET, "--keys", str(keys / "arena"), "--zenoh-listen", ep, "--status-every", "0",
+    arena = spawn_cli("arena", FLEET, "--keys", str(keys / "arena"), "--zenoh-listen", ep, "--status-every", "0",
                    "--summary", str(summary))
     procs: dict[str, subprocess.Popen] = {}
     sessions: list[zenoh.Session] = []
@@ -205,7 +200,7 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
         sessions.append(page)
         heard = Heard(page)
         for leader in ("L1", "L2"):
-            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys / leader),
+            procs[leader] = spawn_cli("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys / leader),
                                    "--zenoh-connect", ep, "--port", "0", "--no-record", "--feedback", "truth")
         wait_for(lambda: heard.truth is not None and heard.truth["alive"] == ["L1", "L2"]
                  and {"L1", "L2"} <= set(heard.states), 60, "L1 and L2 alive, their states heard")
@@ -295,7 +290,7 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
 
         # the operator's identity may: a STOP from the fleet page (its own process, the page's certificate)
         # stops L1, and the page hears and records every leader
-        fleet_page = _spawn("fleet", "--fleet", FLEET, "--keys", str(keys / "page"), "--zenoh-connect", ep, "--port", "0",
+        fleet_page = spawn_cli("fleet", "--fleet", FLEET, "--keys", str(keys / "page"), "--zenoh-connect", ep, "--port", "0",
                             "--record", str(tmp_path / "fleet.mcap"))
         procs["page"] = fleet_page
         assert fleet_page.stdout is not None and "fleet three_teams at http" in fleet_page.stdout.readline()

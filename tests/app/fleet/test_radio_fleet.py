@@ -12,14 +12,13 @@ import json
 import math
 import signal
 import subprocess
-import sys
 
 import pytest
 
 from app.fleet.bridge import loopback_endpoint
 
 from tests.app.fleet.test_arena import Watcher, team_rms_m
-from tests.helpers import ROOT, PtyRelay, interrupt, main_cli, wait_for
+from tests.helpers import PtyRelay, interrupt, main_cli, spawn_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -27,10 +26,6 @@ FLEET = "three_teams"
 LEASE_S = 1.0  # the lease a leader's radio link asks for (app.backends.serial_link.LEASE_MS)
 WATCHDOG_BOUND_S = 0.5 + 1 / 30 + 1e-3  # the watchdog's 0.5 s, and the step in which a command ages past it
 
-
-def _spawn(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "app.cli", *args], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
 
 
 def _no_robot_moved_on_an_old_command(truths: list[dict]) -> None:
@@ -64,7 +59,7 @@ def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cut
     keys = tmp_path / "keys"  # the fleet's radio key: the robots obey only L1..L3
     made = main_cli("fleet-keys", str(keys), "--fleet", "radio", "--leaders", "L1,L2,L3")
     assert made.returncode == 0, made.stderr
-    arena = _spawn("arena", FLEET, "--radio", "--radio-drop", "0.02", "--radio-delay-ms", "5",  # a lossy, late medium
+    arena = spawn_cli("arena", FLEET, "--radio", "--radio-drop", "0.02", "--radio-delay-ms", "5",  # a lossy, late medium
                    "--radio-key", str(keys / "radio" / "robots.json"),
                    "--zenoh-listen", endpoint, "--status-every", "0", "--summary", str(summary))
     procs: dict[str, subprocess.Popen] = {}
@@ -80,7 +75,7 @@ def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cut
         watch = Watcher(endpoint)
         for leader in ("L1", "L2", "L3"):
             port = relay.path if leader == "L1" else ptys[leader]
-            procs[leader] = _spawn("run", "--arena", FLEET, "--leader-id", leader, "--link", f"serial:{port}",
+            procs[leader] = spawn_cli("run", "--arena", FLEET, "--leader-id", leader, "--link", f"serial:{port}",
                                    "--radio-key", str(keys / "radio" / f"{leader}.radio"),
                                    "--zenoh-connect", endpoint, "--port", "0", "--no-record")
         w = watch
