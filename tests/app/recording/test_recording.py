@@ -133,8 +133,9 @@ def _killed_at(tmp_path: Path, feedback: str, seconds: float) -> tuple[float, fl
     """(session time of the last tick the loop ran, of the last tick the file holds) after a
     SIGKILL ``seconds`` of session time into `run --record`."""
     path = tmp_path / f"killed-{feedback}-{seconds:g}.mcap"
+    # the recorder is the loop's: its page in the same process (four of these start side by side)
     proc = subprocess.Popen([sys.executable, "-c", _TICKING_RUN, "run", "--port", "0", "--feedback", feedback,
-                             "--record", str(path)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             "--record", str(path), "--one-process"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     last = -1.0
     try:
@@ -164,12 +165,12 @@ def _killed_at(tmp_path: Path, feedback: str, seconds: float) -> tuple[float, fl
 @pytest.mark.slow
 @pytest.mark.parametrize("feedback", ["truth", "vision"])
 def test_a_session_killed_at_any_moment_keeps_all_but_its_last_second_and_a_half(tmp_path, feedback):
-    """SIGKILL at 2.3, 3.6, 4.9 and 6.2 s of session (0.3, 0.6, 0.9 and 0.2 s into a 1 s chunk:
+    """SIGKILL at 1.3, 2.6, 3.9 and 5.2 s of session (0.3, 0.6, 0.9 and 0.2 s into a 1 s chunk:
     the kill lands anywhere in one): the file holds every tick up to at most 1.5 s before the last
     one the loop ran (every chunk is flushed to the OS as it closes, at 1 s)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    times = (2.3, 3.6, 4.9, 6.2)
+    times = (1.3, 2.6, 3.9, 5.2)
     with ThreadPoolExecutor(len(times)) as pool:  # four services at once: each is judged by its own session time
         results = list(pool.map(lambda sec: _killed_at(tmp_path, feedback, sec), times))
     for ran, kept in results:
