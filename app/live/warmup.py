@@ -43,10 +43,12 @@ def kernels() -> list[Any]:
     from numba.core.dispatcher import Dispatcher
 
     found: dict[int, Any] = {}
-    for name, module in list(sys.modules.items()):
+    # copies taken in one step (dict.copy holds the interpreter lock throughout): list(d.items()) can
+    # let another thread run mid-copy, and one importing a module then broke the loop's start
+    for name, module in sys.modules.copy().items():
         if not name.startswith("core.") or module is None:
             continue
-        for value in list(vars(module).values()):
+        for value in vars(module).copy().values():
             if isinstance(value, Dispatcher):
                 found[id(value)] = value
     return list(found.values())
