@@ -75,6 +75,19 @@ def free_bytes(folder: Path) -> int:
     return shutil.disk_usage(folder).free
 
 
+def check_room(target: Path, floor_bytes: int) -> None:
+    """RecordingRefused when the disk that holds ``target`` (a recording's file, or the folder it will
+    be made in: its nearest existing folder is measured) has less than ``floor_bytes`` free. `run`
+    asks before it starts anything; the recorder asks again as it opens its file."""
+    probe = target if target.is_dir() else target.parent
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
+    free = free_bytes(probe)
+    if free < floor_bytes:
+        raise RecordingRefused(f"{target}: only {free / 1e6:.0f} MB free on its disk, below the floor of"
+                               f" {floor_bytes / 1e6:.0f} MB; free some space or record elsewhere")
+
+
 RETENTION_KEY = "retention"  # metadata: "service" on the live service's sessions, the only ones retention deletes
 RETENTION_SERVICE = "service"
 
@@ -192,10 +205,7 @@ class Recorder:
         self.on_stopped = on_stopped
         self.failure = ""  # why the recording stopped early ("" while it records or after a clean close)
         self.not_written = 0  # messages accepted but never written (the recording stopped, or closing gave up)
-        free = free_bytes(path.parent)
-        if free < free_floor_bytes:
-            raise RecordingRefused(f"{path}: only {free / 1e6:.0f} MB free on its disk, below the floor of"
-                                   f" {free_floor_bytes / 1e6:.0f} MB; free some space or record elsewhere")
+        check_room(path, free_floor_bytes)
         try:
             self._file = open(path, "xb")  # noqa: SIM115 - open for the session's life; never over an existing file
         except FileExistsError:

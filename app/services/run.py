@@ -136,6 +136,7 @@ def compose(plan: RunPlan, say: Callable[..., None]) -> Iterator[Running]:
     from app.services import ros2_node
     from app.services.foxglove_attach import attach_to_service
 
+    _check_room(plan)
     with contextlib.ExitStack() as stack:
         handed = stack.enter_context(contextlib.ExitStack())  # closed here until the service owns them
         frames = _open_camera(plan, handed)
@@ -273,6 +274,20 @@ def _serve(plan: RunPlan, frames: FrameSource | None, link: FollowerLink | None,
         say(f"omniformation: serving on {plan.host}: only browsers that open the URL below (it carries the"
             " token) may see and command the robots", err=True)
     return service
+
+
+def _check_room(plan: RunPlan) -> None:
+    """A recording the disk has no room for is refused before the camera, the page and the warm-up
+    start (the recorder checks again when it opens its file)."""
+    if not plan.record:
+        return
+    from app.files import default_recordings
+    from app.recording.writer import RecordingRefused, check_room
+
+    try:
+        check_room(plan.record_to or plan.recordings or default_recordings(), plan.config.free_floor_bytes)
+    except RecordingRefused as exc:
+        raise UserError(str(exc)) from None
 
 
 def _start_recorder(plan: RunPlan, service: Service, say: Callable[..., None]) -> Recorder | None:
