@@ -38,14 +38,14 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
         err = lambda: np.linalg.norm(svc.loop.last.p_true - svc.loop.last.p_d, axis=1)
         held_since = [None]
 
-        def held(seconds: float = 3.0) -> bool:
+        def held(seconds: float = 1.5) -> bool:
             if err().max() >= 0.03:
                 held_since[0] = None
                 return False
             held_since[0] = held_since[0] or time.monotonic()
             return time.monotonic() - held_since[0] >= seconds
 
-        wait_for(held, 90, "the team to reach and hold formation (< 3 cm for 3 s)")
+        wait_for(held, 90, "the team to reach and hold formation (< 3 cm for 1.5 s)")
         assert first and np.linalg.norm(first[0].p_true - first[0].p_d, axis=1).min() > 0.2  # they were driven there
         s = svc.loop.last
         assert s.tracked.all() and err().max() < 0.03 and s.link_state.endswith(": ok")
