@@ -90,7 +90,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             # the status names both leaders and the arena (L3 never joined: its robots stand still)
             page.get_by_text("leaders alive L1, L2", exact=False).first.wait_for(timeout=30_000)
             page.get_by_text("9 robots", exact=False).first.wait_for(timeout=30_000)
-            page.get_by_text("3/3 followers tracked", exact=False).first.wait_for(timeout=30_000)
+            page.get_by_text("3/3 followers tracked", exact=False).first.wait_for(timeout=90_000)  # a vision start-up, loaded machine
 
             page.get_by_role("button", name="STOP every leader").click()
             wait_for(lambda: l1.store.get().stop and l2.store.get().stop, 30, "every leader stopped")
