@@ -67,14 +67,12 @@ def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[
 # (`run --one-process`, the page in its loop's), half as many interpreters starting at once. An arena
 # leader and a fleet leader with the page in a process of its own, the default, are tested in
 # tests/app/services/test_loop_process.py.
-LEADER_PROCESS = ("--one-process",)
+LEADER_PROCESS = "--one-process"
 
 
 def spawn_cli(*args: str) -> subprocess.Popen[str]:
-    """`omniformation ARGS` as a child in the repository, stdout and stderr piped as text; a `run`
-    as a fleet test's leader (LEADER_PROCESS)."""
-    extra = LEADER_PROCESS if args and args[0] == "run" else ()
-    return subprocess.Popen([sys.executable, "-m", "app.cli", *args, *extra], cwd=ROOT, stdout=subprocess.PIPE,
+    """`omniformation ARGS` as a child in the repository, stdout and stderr piped as text."""
+    return subprocess.Popen([sys.executable, "-m", "app.cli", *args], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 

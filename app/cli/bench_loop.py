@@ -12,9 +12,8 @@ improve; the frame-to-command latency with one browser attached is `bench --late
 page in the loop's process: `run --one-process`, what `run` was) and `run` now (the loop in a
 process of its own). Each figure is given per side (the median of its turns) and as the ratio of
 now to before; the latency also as `run --reserve-cpu` serves, with the browser kept off the
-loop's CPU (app.realtime.CpuReservation says why). The flood and the 200 websockets
-last TURN_FLOOD_S there (the issue's 20 s is FLOOD_S, `python -m app.cli.bench_loop`), so four
-turns stay within a few minutes of `make bench`.
+loop's CPU (app.realtime.CpuReservation says why). The flood and the 200 websockets last
+FLOOD_S in every turn, as the 1 % target is stated (`python -m app.cli.bench_loop`: one side alone).
 """
 
 from __future__ import annotations
@@ -29,7 +28,6 @@ from typing import Any
 from app.cli.bench_floods import _FLOODER  # one hostile party for both benches
 
 FLOOD_S = 20.0
-TURN_FLOOD_S = FLOOD_S  # each turn's flood and websockets in `bench` (two turns a side), as the 1 % target is stated
 TURNS = 2
 STOP_WITHIN_S = 0.5  # the target: STOP seen as STOPPED this soon after the click, during a flood
 FLOODER_ADDRESS = "127.0.0.50"  # the flooder's own loopback address (its refusal is its own)
@@ -194,7 +192,7 @@ SUMMARY = (("frame_to_command_p50_ms", "frame-to-command p50 (ms, one browser)",
 
 def bench_loops(print_fn: Callable[[str], None] = print,
                 latency: Callable[..., dict[str, float]] | None = None, turns: int = TURNS,
-                seconds: float = TURN_FLOOD_S) -> dict[str, float]:
+                seconds: float = FLOOD_S) -> dict[str, float]:
     """The figures before (the page in the loop's process) and as `run` serves now (the loop in a
     process of its own), measured by turns (each side ``turns`` times, alternately); given ``latency`` (`bench
     --latency`'s), first frame-to-command latency for 10 s with one browser attached, by turns too.

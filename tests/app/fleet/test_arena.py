@@ -23,7 +23,7 @@ from core.config import ConfigError
 from core.fleet import FleetScenario, adoption_plan, initial_arena, parse_fleet, step_arena
 from core.sim.team import FollowerDynamics
 
-from tests.helpers import ROOT, fleet_session, interrupt, main_cli, spawn_cli, wait_for
+from tests.helpers import LEADER_PROCESS, ROOT, fleet_session, interrupt, main_cli, spawn_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -82,7 +82,6 @@ def team_rms_m(states: list[dict]) -> float:
     return math.sqrt(float(np.mean(np.square(errs)))) if errs else math.inf
 
 
-
 def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
     """With the fleet's keys (mutual TLS, access control by identity), as a fleet on a lab network
     runs; tests/app/fleet/test_fleet.py and the fleet page's test run the open loopback bus."""
@@ -99,7 +98,7 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         assert "arena three_teams: 3 leaders, 9 robots" in arena.stdout.readline()
         watcher = Watcher(endpoint, keys)
         for leader in ("L1", "L2", "L3"):
-            procs[leader] = spawn_cli("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys / leader), "--zenoh-connect", endpoint,
+            procs[leader] = spawn_cli("run", LEADER_PROCESS, "--arena", FLEET, "--leader-id", leader, "--keys", str(keys / leader), "--zenoh-connect", endpoint,
                                    "--port", "0", "--no-record")
         w = watcher
         wait_for(lambda: sorted(w.last_truth()["alive"]) == ["L1", "L2", "L3"] if w.truths else False, 60,
@@ -172,7 +171,7 @@ def test_three_teams_hold_formation_and_adopt_a_killed_leaders_robots(tmp_path):
         assert w.last_truth()["conflicts"] == 0 and w.last_truth()["contacts"] == 0
 
         # L2 comes back empty-handed and waits; the operator hands it R5 back; its adopter lets go
-        procs["L2"] = spawn_cli("run", "--arena", FLEET, "--leader-id", "L2", "--keys", str(keys / "L2"), "--zenoh-connect", endpoint, "--port", "0",
+        procs["L2"] = spawn_cli("run", LEADER_PROCESS, "--arena", FLEET, "--leader-id", "L2", "--keys", str(keys / "L2"), "--zenoh-connect", endpoint, "--port", "0",
                              "--no-record")
         assert procs["L2"].stdout is not None
         assert "L2 owns no robot in the arena now" in procs["L2"].stdout.readline()

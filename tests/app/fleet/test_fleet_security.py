@@ -17,7 +17,7 @@ import pytest
 from app.fleet.bridge import loopback_endpoint
 from app.fleet.security import load_fleet_keys
 
-from tests.helpers import fleet_session, interrupt, main_cli, spawn_cli, wait_for
+from tests.helpers import LEADER_PROCESS, fleet_session, interrupt, main_cli, spawn_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -158,7 +158,6 @@ def listening_ports(pid: int) -> set[int]:
     return ports
 
 
-
 class Heard:
     """Everything a session hears of the fleet, and the newest truth."""
 
@@ -200,7 +199,7 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
         sessions.append(page)
         heard = Heard(page)
         for leader in ("L1", "L2"):
-            procs[leader] = spawn_cli("run", "--arena", FLEET, "--leader-id", leader, "--keys", str(keys / leader),
+            procs[leader] = spawn_cli("run", LEADER_PROCESS, "--arena", FLEET, "--leader-id", leader, "--keys", str(keys / leader),
                                    "--zenoh-connect", ep, "--port", "0", "--no-record", "--feedback", "truth")
         wait_for(lambda: heard.truth is not None and heard.truth["alive"] == ["L1", "L2"]
                  and {"L1", "L2"} <= set(heard.states), 60, "L1 and L2 alive, their states heard")

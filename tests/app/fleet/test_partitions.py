@@ -13,14 +13,13 @@ import pytest
 from app.fleet.bridge import loopback_endpoint
 
 from tests.app.fleet.test_arena import Watcher
-from tests.helpers import TcpRelay, interrupt, spawn_cli, wait_for
+from tests.helpers import LEADER_PROCESS, TcpRelay, interrupt, spawn_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
 FLEET = "three_teams"
 BASE = f"omniformation/{FLEET}"
 WATCHDOG_BOUND_S = 0.5 + 1 / 30 + 1e-3  # the watchdog's 0.5 s, and the step in which a command ages past it
-
 
 
 def test_a_cut_leader_moves_nothing_on_old_truths_and_drops_what_was_adopted_while_it_was_gone(tmp_path):
@@ -34,9 +33,9 @@ def test_a_cut_leader_moves_nothing_on_old_truths_and_drops_what_was_adopted_whi
     try:
         assert arena.stdout is not None and "arena three_teams" in arena.stdout.readline()
         watch = Watcher(endpoint)
-        procs["L1"] = spawn_cli("run", "--arena", FLEET, "--leader-id", "L1", "--zenoh-connect",
+        procs["L1"] = spawn_cli("run", LEADER_PROCESS, "--arena", FLEET, "--leader-id", "L1", "--zenoh-connect",
                              f"tcp/127.0.0.1:{relay.port}", "--port", "0", "--no-record", "--feedback", "truth")
-        procs["L2"] = spawn_cli("run", "--arena", FLEET, "--leader-id", "L2", "--zenoh-connect", endpoint, "--port", "0",
+        procs["L2"] = spawn_cli("run", LEADER_PROCESS, "--arena", FLEET, "--leader-id", "L2", "--zenoh-connect", endpoint, "--port", "0",
                              "--no-record", "--feedback", "truth")
         w = watch
         wait_for(lambda: bool(w.truths) and w.last_truth()["alive"] == ["L1", "L2"], 60, "L1 and L2 alive")

@@ -18,14 +18,13 @@ import pytest
 from app.fleet.bridge import loopback_endpoint
 
 from tests.app.fleet.test_arena import Watcher, team_rms_m
-from tests.helpers import PtyRelay, interrupt, main_cli, spawn_cli, wait_for
+from tests.helpers import LEADER_PROCESS, PtyRelay, interrupt, main_cli, spawn_cli, wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
 FLEET = "three_teams"
 LEASE_S = 1.0  # the lease a leader's radio link asks for (app.backends.serial_link.LEASE_MS)
 WATCHDOG_BOUND_S = 0.5 + 1 / 30 + 1e-3  # the watchdog's 0.5 s, and the step in which a command ages past it
-
 
 
 def _no_robot_moved_on_an_old_command(truths: list[dict]) -> None:
@@ -75,7 +74,7 @@ def test_three_leaders_on_a_radio_adopt_a_killed_leaders_robots_and_ride_out_cut
         watch = Watcher(endpoint)
         for leader in ("L1", "L2", "L3"):
             port = relay.path if leader == "L1" else ptys[leader]
-            procs[leader] = spawn_cli("run", "--arena", FLEET, "--leader-id", leader, "--link", f"serial:{port}",
+            procs[leader] = spawn_cli("run", LEADER_PROCESS, "--arena", FLEET, "--leader-id", leader, "--link", f"serial:{port}",
                                    "--radio-key", str(keys / "radio" / f"{leader}.radio"),
                                    "--zenoh-connect", endpoint, "--port", "0", "--no-record")
         w = watch
