@@ -99,6 +99,13 @@ def test_run_on_a_full_disk_keeps_serving_says_so_and_exits_0_on_sigterm(tmp_pat
                                  cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert refused.returncode == 2 and "below the floor of 500 MB" in refused.stderr  # default.toml's floor
         assert "Traceback" not in refused.stderr and not (disk / "r.mcap").exists()
+        # a recordings folder not made yet is measured on the disk that would hold it: refused the same
+        # way, before anything starts, and the folder is not made
+        folder = disk / "not" / "yet"
+        refused = subprocess.run([sys.executable, "-m", "app.cli", "run", "--port", "0", "--recordings", str(folder)],
+                                 cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert refused.returncode == 2 and "below the floor of 500 MB" in refused.stderr, refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1 and not (disk / "not").exists()
         config = tmp_path / "floorless.toml"
         camera = ROOT / "static_config" / "camera"
         config.write_text(f'[camera]\nrig = "{camera / "synthetic.toml"}"\ncalibration = "{camera / "synthetic_calibrated.toml"}"\n'
