@@ -124,7 +124,6 @@ class Observation:
     stage_ms: dict[str, float] = field(default_factory=dict)  # camera and pipeline times
     camera_state: str = ""  # a real camera's state for people ("" for the synthetic one)
     obstacles: FloatArray | None = None  # (k, 2) leader frame: obstacle points the leader knows (scan, memory, truth)
-    scan: Scan | None = None  # this frame's free-space scan (vision)
     observed_at: float = float("nan")  # monotonic time of what this is from: a camera frame's arrival, else the observing
 
     @property
@@ -138,4 +137,9 @@ class Feedback(Protocol):
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
         """This tick's poses; ``commands`` (n, 2) and ``error_norm`` (n,) are the last tick's
         (the pipeline's heading update, eq. 34–37, and its Δs_min need them)."""
+        ...
+
+    def scan_after(self) -> Scan | None:
+        """The free-space scan of the frame just observed, when one is due, taken once the
+        tick's commands are sent (off the frame's way to the robots); None when none is due."""
         ...

@@ -381,3 +381,7 @@ class ArenaFeedback:
         if obs.obstacles is not None and len(obs.obstacles):  # the camera's own free-space scan too
             points = np.vstack([points, obs.obstacles])
         return dataclasses.replace(obs, obstacles=points if len(points) else None)
+
+    def scan_after(self) -> Any:
+        """The camera's free-space scan, when ``inner`` is a camera and one is due."""
+        return self.inner.scan_after()

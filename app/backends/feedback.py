@@ -30,7 +30,7 @@ from core.geometry import leader_displacement
 from core.obstacles import Obstacle, as_array, seen_from
 from core.sim.stepped import scan_settings_for, world_renderer
 from core.types import FloatArray, Image
-from core.vision.freespace import FreeSpaceScanner, ObstacleMemory, ScanSettings
+from core.vision.freespace import FreeSpaceScanner, ObstacleMemory, Scan, ScanSettings
 from core.vision.pipeline import PipelineSettings, VisionPipeline
 
 from app.contracts import FrameSource, Observation, Team
@@ -58,6 +58,10 @@ class TruthFeedback:
         p, a, tracked = self.team.observe()
         known = seen_from(self.boxes, self.team.state.leader, self.team.truth()[0]) if len(self.boxes) else None
         return Observation(p, a, a.copy(), tracked, "truth", obstacles=known, observed_at=at)
+
+    def scan_after(self) -> None:
+        """No camera, no free-space scan (the truth knows the boxes)."""
+        return None
 
 
 @dataclass
@@ -107,6 +111,7 @@ class VisionFeedback:
         self._last: Observation | None = None
         self._scan_due = 0
         self.memory = ObstacleMemory(self.scanner.settings if self.scanner is not None else ScanSettings())
+        self._pending: tuple[Image, FloatArray, np.ndarray, float] | None = None  # a scan due (scan_after)
 
     def _make_pipeline(self, size: tuple[int, int]) -> None:
         self.pipeline = VisionPipeline(self.team.state.n, self.gamma, self.rig.working_area, self.rig.detect,
@@ -161,24 +166,37 @@ class VisionFeedback:
         self._since_frame = 0.0
         t2 = time.perf_counter()
         self.memory.move(odometry)
-        scan = known = None
+        known = None
+        self._pending = None
         if out.manoeuvre is None and self.scanner is not None:  # not during the start-up: nobody is tracked yet
             self._scan_due -= 1
             if self._scan_due <= 0:  # a scan needs the whole ring rendered: SCAN_EVERY frames apart
-                self._scan_due = SCAN_EVERY
-                scan = self.scanner.scan(frame, out.positions, out.tracked)
-                known = self.memory.update(scan, self._t, np.where(out.tracked[:, None], out.positions, np.nan))
-            else:
-                known = self.memory.current(self._t)
+                self._scan_due = SCAN_EVERY  # done by scan_after(), once this frame's commands are sent
+                self._pending = (frame, out.positions, out.tracked, self._t)
+            known = self.memory.current(self._t)
         t3 = time.perf_counter()
         fresh = np.isfinite(out.heading_measured)
         self._a_raw[fresh] = out.heading_measured[fresh]
         raw = np.where(np.isfinite(self._a_raw), self._a_raw, out.headings)
         self._last = Observation(out.positions, out.headings, raw, out.tracked, out.phase, out.manoeuvre, frame,
                                  out.windows, out.hues_deg, out.probing,
-                                 {"camera": (t1 - t0) * 1e3, "vision": (t2 - t1) * 1e3, "scan": (t3 - t2) * 1e3},
-                                 camera_state, known, scan, observed_at)
+                                 {"camera": (t1 - t0) * 1e3, "vision": (t2 - t1) * 1e3, "obstacles": (t3 - t2) * 1e3},
+                                 camera_state, known, observed_at)
         return self._last
+
+    def scan_after(self) -> Scan | None:
+        """The free-space scan of the frame ``observe`` last stepped on, when one was due (every
+        SCAN_EVERY frames), into the obstacle memory; None when none was due. The loop calls it
+        once that frame's commands are sent: a scan renders the whole ring (2-3 ms), off the
+        frame's way to the robots. What it finds is known from the next tick on (33 ms later at
+        30 Hz, against the SCAN_EVERY frames between two scans)."""
+        pending, self._pending = self._pending, None
+        if pending is None or self.scanner is None:
+            return None
+        frame, positions, tracked, t = pending
+        scan = self.scanner.scan(frame, positions, tracked)
+        self.memory.update(scan, t, np.where(tracked[:, None], positions, np.nan))
+        return scan
 
     def _stale(self, phase: str, camera_state: str) -> Observation:
         """No usable frame: nobody is tracked and nothing moves (a zero manoeuvre keeps the

@@ -364,6 +364,9 @@ class ServiceLoop:
         sent_at = time.monotonic()
         t3 = time.perf_counter()
         stage["link"] = (t3 - t2) * 1e3
+        scan = world.feedback.scan_after()  # after the commands: off the frame's way to the robots
+        if scan is not None:
+            stage["scan"] = (time.perf_counter() - t3) * 1e3
 
         p_true, a_true = world.team.truth()
         state = TickState(
@@ -382,7 +385,7 @@ class ServiceLoop:
             safety=safety_text(safety, params.safety, self._name), safety_changed=None if safety is None else safety.changed,
             min_distance_m=(safety.min_distance_m if safety is not None  # the filter measured it already
                             else team_min_distance(p[tracked]) if tracked.any() else float("nan")),
-            safety_active=None if safety is None else safety.active, obstacles=known, scan=obs.scan,
+            safety_active=None if safety is None else safety.active, obstacles=known, scan=scan,
             goal=params.goal if params.leader_mode == "goal" else None,
             heading=self._nav_out.heading if self._nav_out is not None else float("nan"),
             formation_scale=self._nav[1], goal_reached=self._nav_out is not None and self._nav_out.reached,

@@ -422,3 +422,39 @@ def test_concurrent_toggles_are_read_modify_write_and_none_is_lost():
     values = [paused for _, paused in sorted(seen)]
     assert len(values) == 1000 and all(a != b for a, b in zip([False, *values], values))
     assert not store.get().paused
+
+
+def test_the_free_space_scan_runs_after_the_ticks_commands_are_sent_and_counts_from_the_next_tick():
+    """A scan renders the whole ring (2-3 ms): it is taken once the frame's commands are written,
+    off the frame-to-command latency, every third frame; what it finds is in the obstacles the
+    next tick's safety filter keeps clear of."""
+    from app.backends.feedback import SCAN_EVERY
+    from core.obstacles import Obstacle
+
+    config, camera = _default_camera()
+    store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]]),
+                               leader_mode="goal", goal=(0.0, 4.0), leader_speed_mps=0.05, safety=True))
+    loop = ServiceLoop(store, rate_hz=30.0, seed=3, dynamics=config.dynamics, camera=camera,
+                       obstacles=(Obstacle(1.2, 1.5, 0.3, 0.3),))
+    for _ in range(30 * 15):
+        if loop.tick().phase == "tracking":
+            break
+    world = loop._world
+    events: list[str] = []
+    send, scan = world.team.send, world.feedback.scanner.scan
+    world.team.send = lambda commands: (events.append("send"), send(commands))[1]
+    world.feedback.scanner.scan = lambda *a: (events.append("scan"), scan(*a))[1]
+    states = []
+    for _ in range(12 * SCAN_EVERY):
+        events.append("tick")
+        states.append(loop.tick())
+    ticks = "".join({"tick": "T", "send": "s", "scan": "c"}[e] for e in events)
+    assert ticks.count("c") == 12 and "cs" not in ticks and all(part.startswith("s") for part in ticks.split("T")[1:]), ticks
+    scanned = [k for k, s in enumerate(states) if s.scan is not None]
+    assert scanned == [k for k, s in enumerate(states) if "scan" in s.stage_ms] and len(scanned) == 12
+    assert np.diff(scanned).tolist() == [SCAN_EVERY] * 11
+    seen = [k for k in scanned if np.isfinite(states[k].scan.ranges).any()]
+    assert seen, "the box is in view"
+    k = seen[0]
+    if k + 1 < len(states):  # the box the scan found is an obstacle from the next tick on
+        assert states[k + 1].obstacles is not None and len(states[k + 1].obstacles) > 0
