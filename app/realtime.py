@@ -2,9 +2,10 @@
 
 On a shared machine the operating system may keep the loop off the CPU for several
 milliseconds while other programs run (a browser, a compiler): measured here, the
-frame-to-command latency's p99 is 10-15 ms at normal priority with a browser attached and
-4-5 ms with the camera and loop threads on SCHED_FIFO and a 1 ms GIL switch interval
-(``omniformation bench --latency``). Linux keeps 5 % of every second for other tasks however busy a real-time
+frame-to-command latency's p99 was 10-20 ms at normal priority with a browser drawing on the
+same two CPUs as an equal (its own session, hence its own autogroup, sched(7)), 3-7 ms with that
+browser on idle CPU only, and 4-5 ms with the camera and loop threads on SCHED_FIFO and a 1 ms
+GIL switch interval (``omniformation bench --latency``). Linux keeps 5 % of every second for other tasks however busy a real-time
 thread is (``kernel.sched_rt_runtime_us``), and both threads sleep between frames.
 
 Asking needs the right to (root, CAP_SYS_NICE, or an ``rtprio`` limit): refused, the thread
@@ -49,16 +50,18 @@ class CpuReservation:
     """One CPU kept for the loop's thread, at normal priority and without any privilege.
 
     Measured here (2 CPUs, a browser on the same machine, `omniformation bench --latency`): the
-    frame-to-command p99 was 8-10 ms whether the page ran in the loop's process or its own, and
+    frame-to-command p99 was 8-20 ms whether the page ran in the loop's process or its own, and
     4.4 ms with no browser. In the slow ticks the loop's thread had waited 4-13 ms in the run queue
-    (its /proc schedstat), with about three involuntary switches a tick. A lower nice for the page, a 1 ms
-    interpreter switch interval, a shorter scheduler slice for the loop or one OpenCV thread did
-    not change it. This kernel does not preempt kernel code (preempt=none) and a browser that
-    draws in software spends time there, so the loop is safe from it only on a CPU the browser
-    does not run on: with the loop's thread kept on a CPU of its own, every other thread of the
-    service (and the page's process) off it, and the browser started off it, p99 was 4.8-5.3 ms.
-    With the browser free to use every CPU, a loop held to one is worse (17-20 ms): it can no
-    longer move away. Hence an option (`run --reserve-cpu`), not the default.
+    while the browser's threads ran (a kernel trace of the scheduler's switches): the browser, in a
+    session of its own, was an autogroup of its own, which the kernel shares CPU with as an equal
+    of the service's whatever its threads' policy. With that browser held to idle CPU (as the
+    bench now holds it, as if on the operator's own machine) p99 was 3-7 ms. A lower nice for the
+    page, a 1 ms interpreter switch interval, a shorter scheduler slice for the loop or one OpenCV
+    thread did not change it. A browser beside the service as an equal is kept off the loop only
+    on a CPU the browser does not run on: with the loop's thread kept on a CPU of its own, every
+    other thread of the service (and the page's process) off it, and the browser started off it,
+    p99 was 3.6-5.3 ms. With the browser free to use every CPU, a loop held to one is worse
+    (17-20 ms): it can no longer move away. Hence an option (`run --reserve-cpu`), not the default.
 
     ``take`` (on the loop's thread): the highest allowed CPU not kept by another loop on this
     machine (a lock file per CPU, released when the process ends), leaving at least one CPU for

@@ -11,8 +11,10 @@ improve; the frame-to-command latency with one browser attached is `bench --late
 `bench` measures two sides by turns, since the machine is shared and its load moves: before (the
 page in the loop's process: `run --one-process`, what `run` was) and `run` now (the loop in a
 process of its own). Each figure is given per side (the median of its turns) and as the ratio of
-now to before; the latency also as `run --reserve-cpu` serves, with the browser kept off the
-loop's CPU (app.realtime.CpuReservation says why). The flood and the 200 websockets last
+now to before. The browser renders on this machine's idle CPU, as if on the operator's own
+machine (app.cli.bench.browsers._VIEWER); the latency is also given as `run --reserve-cpu` serves,
+with the browser kept off the loop's CPU (app.realtime.CpuReservation says why), and with the
+browser's session an equal of the service's, as a browser beside the service on one desktop is. The flood and the 200 websockets last
 FLOOD_S in every turn, as the 1 % target is stated (`python -m app.cli.bench_loop`: one side alone).
 """
 
@@ -182,6 +184,8 @@ SIDES = (("before (one process)", False), ("run now (the loop's own process)", T
 SUMMARY = (("frame_to_command_p50_ms", "frame-to-command p50 (ms, one browser)", False),
            ("frame_to_command_p99_ms", "frame-to-command p99 (ms, one browser; target <= 5)", False),
            ("frame_to_command_p99_kept_ms", "  the same, run --reserve-cpu and the browser off the loop's CPU", False),
+           ("frame_to_command_p99_equal_ms", "  the same, the browser's session an equal of the service's (one desktop)",
+            False),
            ("loop_hz_alone", "loop rate alone (Hz)", True),
            ("loop_hz_refused_pct", "loop rate during a flood (% of alone; target within 1 %)", True),
            ("loop_hz_sockets_pct", "loop rate with 200 open websockets (% of alone; target within 1 %)", True),
@@ -209,6 +213,8 @@ def bench_loops(print_fn: Callable[[str], None] = print,
                 figures["frame_to_command_p50_ms"], figures["frame_to_command_p99_ms"] = lat["p50_ms"], lat["p99_ms"]
                 lat = latency(10.0, print_fn, browsers=1, page_process=page_process, reserve_cpu=True)
                 figures["frame_to_command_p99_kept_ms"] = lat["p99_ms"]
+                lat = latency(10.0, print_fn, browsers=1, page_process=page_process, idle_browser=False)
+                figures["frame_to_command_p99_equal_ms"] = lat["p99_ms"]
             figures.update(bench_loop(print_fn, seconds=seconds, page_process=page_process))
             runs[page_process].append(figures)
     results: dict[str, float] = {}

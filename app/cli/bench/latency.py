@@ -40,7 +40,8 @@ def _render_team(frames_dir: Path, seconds: float) -> int:
 
 
 def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, browsers: int = 1,
-                  realtime: bool = False, page_process: bool = False, reserve_cpu: bool = False) -> dict[str, float]:
+                  realtime: bool = False, page_process: bool = False, reserve_cpu: bool = False,
+                  idle_browser: bool = True) -> dict[str, float]:
     """Frame-to-command latency on a real rig's path: a folder of the synthetic rig's pictures of a
     team driving (experiment 1's first seconds, rendered) played at 30 fps, the vision pipeline,
     the serial link to emulated followers on a pty, recording on, ``browsers`` Chromium pages
@@ -48,7 +49,10 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     arrival to its commands written to the link. ``realtime``: as ``run --realtime`` (the loop's and
     the camera's threads on SCHED_FIFO, app.realtime). ``page_process``: as `run` serves now, the
     page in a process of its own (False: `run --one-process`). ``reserve_cpu``: as `run
-    --reserve-cpu`, a CPU kept for the loop's thread, and the browser started off it."""
+    --reserve-cpu`, a CPU kept for the loop's thread, and the browser started off it.
+    ``idle_browser``: the browser's rendering on this machine's idle CPU only, as if on the
+    operator's own machine (app.cli.bench.browsers._VIEWER); False: its session an equal of the
+    service's, as a browser beside the service on one desktop is."""
     import os
     import shutil
     import subprocess
@@ -77,16 +81,22 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     # the robots are not in the service's process on a real rig: the emulator runs in its own
     emu = subprocess.Popen([sys.executable, "-m", "app.cli", "emulate-follower", "--pty", "--followers", "2",
                             "--seed", "3"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    assert emu.stdout is not None
-    pty_path = emu.stdout.readline().split(" on ", 1)[1].strip()
-    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
-    link = SerialLink(pty_path, 2)
-    source = FolderSource(frames_dir, fps=30.0, loop=True)
-    camera = Rig(rig, rig.require_gamma())
-    svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0, camera=camera, frames=source,
-                  hardware=HardwareTeam(2, link), realtime=realtime, page_process=page_process,
-                  reserve_cpu=reserve_cpu)
-    recorder = start_recording(svc, config, None, None, camera, 10.0, folder / "latency.mcap")
+    try:
+        assert emu.stdout is not None
+        pty_path = emu.stdout.readline().split(" on ", 1)[1].strip()
+        config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+        link = SerialLink(pty_path, 2)
+        source = FolderSource(frames_dir, fps=30.0, loop=True)
+        camera = Rig(rig, rig.require_gamma())
+        svc = Service(host="127.0.0.1", port=0, n_followers=2, rate_hz=30.0, camera=camera, frames=source,
+                      hardware=HardwareTeam(2, link), realtime=realtime, page_process=page_process,
+                      reserve_cpu=reserve_cpu)
+        recorder = start_recording(svc, config, None, None, camera, 10.0, folder / "latency.mcap")
+    except BaseException:  # a service that did not come up leaves no robot emulator behind
+        emu.terminate()
+        emu.communicate(timeout=10)
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
     latencies: list[float] = []
     phases: list[str] = []
     fresh: list[bool] = []
@@ -111,7 +121,8 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
                 cpus = ",".join(map(str, sorted(svc.loop.cpu.others)))
                 for tid in os.listdir(f"/proc/{emu.pid}/task"):  # the robots are not on a real rig's computer
                     os.sched_setaffinity(int(tid), svc.loop.cpu.others)
-            viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers), cpus],
+            viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers), cpus,
+                                       "" if idle_browser else "equal"],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             assert viewer.stdout is not None
             viewer.stdout.readline()  # "ready": the page is up
@@ -138,6 +149,8 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     how += ", the page in its own process" if page_process else ""
     if reserve_cpu:
         how += f", CPU {kept} kept for the loop, the browser off it" if kept is not None else ", no CPU could be kept"
+    if browsers and not idle_browser:
+        how += ", the browser's session an equal of the service's"
     print_fn(f"frame-to-command latency ({how}): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({len(values)} ticks on a"
              f" new frame, {len(values) / seconds:.1f} Hz; target p99 <= 5 ms)")
     if len(tracking):
