@@ -288,8 +288,10 @@ def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> 
 
 
 def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> None:
-    """With vision, every tick's state reaches the page, and one in every ``frame_every`` ticks
-    carries the camera's frame (the camera panel's redraw rate); the page shows them."""
+    """With vision and a browser on the page, every tick's state goes to the page, and one in every
+    ``frame_every`` ticks carries the camera's frame (the camera panel's redraw rate); the page
+    shows them. With nobody on the page: one state in UNWATCHED_EVERY, and no frame."""
+    from app.services.page_process import UNWATCHED_EVERY
     from app.live.config import DEFAULT_CONFIG, load_service_config
     from app.params import MAX_FOLLOWERS
     from app.services.live import Service
@@ -303,6 +305,9 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
         assert page is not None and page.frame_every == 3  # 30 Hz ticks, the panel redraws every 0.1 s
         assert _until(lambda: svc.loop.tick_count > 30)
         assert page.frames_sent == 0 and page.states_sent > 0  # nobody has the page open: no frame rendered
+        handed, ticks = page.handed, svc.loop.tick_count
+        assert _until(lambda: svc.loop.tick_count > ticks + 30)
+        assert page.handed - handed <= (svc.loop.tick_count - ticks) // UNWATCHED_EVERY + 2  # and one state in three
         client = _Page(page.port)
         image, shown = "", 0
         for msg in client.messages(60.0):
@@ -317,6 +322,9 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
         ticks = svc.loop.tick_count  # read after the count: the ticks it may have come from are all in
         assert page.frames_sent <= ticks // page.frame_every + 1  # never more than one in frame_every ticks
         assert page.states_sent > page.frames_sent  # the states between went without a frame
+        handed, ticks = page.handed, svc.loop.tick_count
+        assert _until(lambda: svc.loop.tick_count > ticks + 30)
+        assert page.handed - handed >= svc.loop.tick_count - ticks - 2  # watched: every tick's state
         client.close()  # the page closed: no frame is rendered or sent again
         assert _until(lambda: page.clients == 0)
         sent, ticks = page.frames_sent, svc.loop.tick_count
