@@ -140,17 +140,24 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
         emu.terminate()
         emu.communicate(timeout=10)
         shutil.rmtree(folder, ignore_errors=True)
-    n = min(len(latencies), len(phases), len(fresh))
-    values = np.array([latencies[k] for k in range(n) if fresh[k] and np.isfinite(latencies[k])])
-    stale = np.array([latencies[k] for k in range(n) if not fresh[k] and np.isfinite(latencies[k])])
-    tracking = np.array([latencies[k] for k in range(n) if fresh[k] and phases[k] == "tracking"])
-    p50, p99 = (float(np.percentile(values, q)) for q in (50, 99)) if len(values) else (float("nan"),) * 2
     how = f"the loop {svc.loop.priority}" if realtime else "normal priority"
     how += ", the page in its own process" if page_process else ""
     if reserve_cpu:
         how += f", CPU {kept} kept for the loop, the browser off it" if kept is not None else ", no CPU could be kept"
     if browsers and not idle_browser:
         how += ", the browser's session an equal of the service's"
+    return _report(latencies, phases, fresh, seconds, how, print_fn)
+
+
+def _report(latencies: list[float], phases: list[str], fresh: list[bool], seconds: float, how: str,
+            print_fn: Callable[[str], None]) -> dict[str, float]:
+    """The latency's p50 and p99 over the ticks on a new frame, said in one line (and while tracking,
+    and the ticks on a late camera)."""
+    n = min(len(latencies), len(phases), len(fresh))
+    values = np.array([latencies[k] for k in range(n) if fresh[k] and np.isfinite(latencies[k])])
+    stale = np.array([latencies[k] for k in range(n) if not fresh[k] and np.isfinite(latencies[k])])
+    tracking = np.array([latencies[k] for k in range(n) if fresh[k] and phases[k] == "tracking"])
+    p50, p99 = (float(np.percentile(values, q)) for q in (50, 99)) if len(values) else (float("nan"),) * 2
     print_fn(f"frame-to-command latency ({how}): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({len(values)} ticks on a"
              f" new frame, {len(values) / seconds:.1f} Hz; target p99 <= 5 ms)")
     if len(tracking):
