@@ -2,13 +2,15 @@
 it stops the leader as well as the followers (and the recording says so tick by tick), and no
 message a client sent before can take it away from a page opened afterwards.
 
-The first test runs the service as `run` does by default, the page in a process of its own: it
-reads the page only through the browser, and the loop, its store and its recording here. The
-hostile client's and the viewer's tests read the gate's refusal counts and viser's handles, the
-page's own objects, so they serve the same page from the loop's process (`run --one-process`)."""
+The first two tests run the service as `run` does by default, the page in a process of its own:
+they read the page only as its clients do (a browser, or a raw client that reads the controls off
+the wire), and the loop, its store and its recording here. The viewer's test reads the gate's
+refusal counts, the page's own objects, so it serves the same page from the loop's process
+(`run --one-process`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import msgspec
 import numpy as np
 import pytest
@@ -147,30 +149,53 @@ def _raw(conn, message: dict) -> None:
     conn.send(msgspec.msgpack.encode(message))
 
 
-def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(service):
-    controls = service.dashboard.controls
-    stop_uuid = controls.stop_button._impl.uuid
-    trial = next(h for h in service.server.gui._gui_input_handle_from_uuid.values() if h.label == "Trial #")
+def _controls(client, labels: set[str]) -> dict[str, str]:
+    """The uuids of the page's controls by label, as a client reads them off what the page sends it."""
+    for _ in client.messages(60.0):
+        if labels <= set(client.controls):
+            break
+    assert labels <= set(client.controls), labels - set(client.controls)
+    return {label: client.controls[label] for label in labels}
+
+
+def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(page_process_service):
+    """A client that reads the page's controls off the wire, as any browser can, and sends what no
+    page sends: nothing changes what STOP does, nor any value beyond its bounds."""
+    from core.bounds import PARAMETERS
+    from tests.app.services.test_loop_process import _Page
+
+    service = page_process_service
+    gains = {name: PARAMETERS[name].label for name in ("k_w1", "k_f1", "a")}
     gains_before = service.store.get().gains
-    conn = as_a_browser(ws_connect(service.gate.port))
+    client = _Page(service.page.port)
     try:
-        _raw(conn, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"update_cb": []}})
-        _raw(conn, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"disabled": True, "visible": False}})
-        _raw(conn, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"label": "go", "value": True}})
-        _raw(conn, {"type": "GuiUpdateMessage", "uuid": trial._impl.uuid, "updates": {"value": 2**64 - 1}})
-        _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["k_w1"]._impl.uuid, "updates": {"value": 50.0}})
-        _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["k_f1"]._impl.uuid, "updates": {"value": "0.2"}})
-        _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.gains["a"]._impl.uuid, "updates": {"value": 5e-324}})
-        _raw(conn, {"type": "ShareUrlRequest"})
-        conn.send(b"\xc1 not msgpack")
-        wait_for(lambda: service.gate.refused.messages >= 9, 10, "the gate to refuse all nine")
+        ids = _controls(client, {"STOP", "Trial #", *gains.values()})
+        stop_uuid = ids["STOP"]
+        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"update_cb": []}})
+        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"disabled": True, "visible": False}})
+        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"label": "go", "value": True}})
+        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": ids["Trial #"], "updates": {"value": 2**64 - 1}})
+        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": ids[gains["k_w1"]], "updates": {"value": 50.0}})
+        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": ids[gains["k_f1"]], "updates": {"value": "0.2"}})
+        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": ids[gains["a"]], "updates": {"value": 5e-324}})
+        _raw(client.ws, {"type": "ShareUrlRequest"})
+        client.ws.send(b"\xc1 not msgpack")
+        client.set(gains["k_f1"], 0.12)  # a change any page may make, handled after all of the above
+        wait_for(lambda: service.store.get().gains.k_f1 == 0.12, 10, "the client's valid change")
+        assert service.store.get().gains == dataclasses.replace(gains_before, k_f1=0.12), "nothing else changed"
+        assert not service.store.get().stop, "a STOP message with a label and a value of its own is no click"
+        client.click("STOP")  # the same client's plain click: STOP still stops
+        wait_for(lambda: service.store.get().stop, 10, "STOP from the client that tried to take it away")
     finally:
-        conn.close()
-    assert controls.stop_button._impl.update_cb, "STOP keeps what it does"
-    assert not controls.stop_button.disabled and controls.stop_button.visible and controls.stop_button.label == "STOP"
-    assert trial.value == 1 and service.store.get().gains == gains_before
+        client.close()
+    service.store.update("test", stop=False, leader_hold=False)
     with chromium_browser() as browser:
         page = open_page(browser, service.url)  # a new page loads (the huge number never reached viser)
+        stop = page.get_by_role("button", name="STOP", exact=True)
+        assert stop.is_visible() and stop.is_enabled(), "STOP keeps its place, its name and what it does"
+        page.get_by_text("Tuning", exact=True).first.click(timeout=PAGE_MS)
+        trial = page.locator(f'[id="{control_id(page, "Trial #")}"] input, input[id="{control_id(page, "Trial #")}"]')
+        wait_for(lambda: trial.first.input_value() == "1", 10, "Trial # still 1 on a new page")
         # Escape with a dropdown open closes it and stops nothing; with nothing open it is STOP
         page.locator(f'[id="{control_id(page, "3D camera")}"]').first.click()
         page.get_by_role("option", name="above the leader").wait_for(timeout=PAGE_MS)
@@ -185,7 +210,7 @@ def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(se
         for s in [s for s in list(service.seen) if s.params_version >= version]:
             assert s.leader_twist == (0.0, 0.0) and np.all(s.commands == 0.0)
         service.store.update("test", stop=False, leader_hold=False)
-        page.get_by_role("button", name="STOP", exact=True).click()  # and the panel's own button
+        stop.click()  # and the panel's own button
         wait_for(lambda: service.store.get().stop, 10, "the STOP button on a fresh page")
 
 

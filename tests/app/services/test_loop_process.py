@@ -123,12 +123,12 @@ def test_a_cache_cold_for_one_module_is_warmed_before_the_clock_and_no_tick_is_s
 class _Page:
     """A raw client of the page (docs/page-access.md): viser's websocket, as a browser opens it."""
 
-    def __init__(self, port: int, source: str = "127.0.0.1", timeout: float = 60.0) -> None:
+    def __init__(self, port: int, source: str = "127.0.0.1", timeout: float = 60.0, path: str = "/") -> None:
         import viser
         import websockets.sync.client as wsc
 
         sock = socket.create_connection(("127.0.0.1", port), timeout=timeout, source_address=(source, 0))
-        self.ws = wsc.connect(f"ws://127.0.0.1:{port}/", sock=sock, subprotocols=[f"viser-v{viser.__version__}"],
+        self.ws = wsc.connect(f"ws://127.0.0.1:{port}{path}", sock=sock, subprotocols=[f"viser-v{viser.__version__}"],
                               additional_headers={"Origin": f"http://127.0.0.1:{port}"}, open_timeout=timeout,
                               max_queue=None)
         self.send_camera()  # as a browser does at once (viser counts a client connected from then)
