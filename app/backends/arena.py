@@ -26,6 +26,7 @@ from core.fleet import slot_for_newcomer
 from core.geometry import heading_world_to_leader, world_to_leader
 from core.sim.team import TeamState, measure_followers
 from core.types import BoolArray, Commands, FloatArray
+from core.vision.freespace import Scan
 
 from app.contracts import Observation
 
@@ -382,6 +383,6 @@ class ArenaFeedback:
             points = np.vstack([points, obs.obstacles])
         return dataclasses.replace(obs, obstacles=points if len(points) else None)
 
-    def scan_after(self) -> Any:
+    def scan_after(self) -> Scan | None:
         """The camera's free-space scan, when ``inner`` is a camera and one is due."""
         return self.inner.scan_after()

@@ -14,8 +14,9 @@ process of its own). Each figure is given per side (the median of its turns) and
 now to before. The browser renders on this machine's idle CPU, as if on the operator's own
 machine (app.cli.bench.browsers._VIEWER); the latency is also given as `run --reserve-cpu` serves,
 with the browser kept off the loop's CPU (app.realtime.CpuReservation says why), and with the
-browser's session an equal of the service's, as a browser beside the service on one desktop is. The flood and the 200 websockets last
-FLOOD_S in every turn, as the 1 % target is stated (`python -m app.cli.bench_loop`: one side alone).
+browser's session an equal of the service's, as a browser beside the service on one desktop is.
+The flood and the 200 websockets last FLOOD_S in every turn, as the 1 % target is stated
+(`python -m app.cli.bench_loop`: one side alone).
 """
 
 from __future__ import annotations

@@ -80,7 +80,8 @@ def bench_loop_with_browsers(seconds: float = 6.0, browsers: int = 3) -> tuple[f
 # own autogroup's priority): idle CPU is what it gets.
 _VIEWER = """
 import os, sys
-if (sys.argv[5] if len(sys.argv) > 5 else "") != "equal":
+idle = (sys.argv[5] if len(sys.argv) > 5 else "") != "equal"  # "equal": a browser beside the service on a desktop
+if idle:
     os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 def descendants():
@@ -119,7 +120,6 @@ cpus = sys.argv[4] if len(sys.argv) > 4 else ""
 os.sched_setaffinity(0, [int(c) for c in cpus.split(",")] if cpus else range(os.cpu_count() or 1))
 with sync_playwright() as p:
     browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
-    idle = (sys.argv[5] if len(sys.argv) > 5 else "") != "equal"  # "equal": a browser beside the service on a desktop
     if idle:
         idle_autogroups()
     pages = [browser.new_context().new_page() for _ in range(n)]
