@@ -335,6 +335,8 @@ class FleetBridge:
         ``on_twin``: called once if another leader with this id started first (this one must
         stop its robots and end; :attr:`twin` says why). ``presence``: this process's, when it
         was on the bus already (waiting for robots); ``t_start``: the session time it reached."""
+        import zenoh
+
         self.presence = presence or Presence.new()  # this process among leaders that share an id by mistake
         self.twin: str | None = None
         self._on_twin = on_twin
@@ -356,7 +358,9 @@ class FleetBridge:
             self.session.liveliness().declare_token(f"{root(fleet)}/alive/{leader_id}")
         self._subs = [self.session.declare_subscriber(f"{self.base}/cmd", self._on_command),
                       self.session.declare_subscriber(f"{root(fleet)}/all/cmd", self._on_fleet_command),
-                      self.session.declare_subscriber(f"{self.base}/state", self._on_own_id_state)]
+                      # a twin's states only: its own (30 a second) would be read and dropped
+                      self.session.declare_subscriber(f"{self.base}/state", self._on_own_id_state,
+                                                      allowed_origin=zenoh.Locality.REMOTE)]
         self._last_params = store.get()
         self._t = 0.0
         self._clock = SessionClock(t_start)

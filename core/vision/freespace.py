@@ -183,12 +183,31 @@ class FreeSpaceScanner:
         self._kernel = np.ones((3, 5), np.uint8)  # 3 rows (degrees) by 5 samples outward
         self._by_bin = np.argsort(self.row_bin, kind="stable")  # rows grouped by bin, for reduceat
         self._bins_present, self._bin_starts = np.unique(self.row_bin[self._by_bin], return_index=True)
+        self._crops: dict[tuple[int, ...], tuple[slice, slice, np.ndarray, np.ndarray]] = {}
+
+    def _crop(self, shape: tuple[int, ...]) -> tuple[slice, slice, np.ndarray, np.ndarray]:
+        """(rows, columns, map_x, map_y) for a frame of ``shape``: the rectangle of the image
+        the grid samples (the working ring's square, about half a 640 x 480 frame: an image
+        that makes its pixels when looked at makes only those) and the maps moved onto it. Every
+        sample inside the image lies inside the rectangle (2 pixels spare for the remap's
+        rounding) and every one outside it stays outside, so the polar grid is the whole frame's."""
+        crop = self._crops.get(shape)
+        if crop is None:
+            h, w = int(shape[0]), int(shape[1])
+            x0 = min(max(0, int(np.floor(self.map_x.min())) - 2), w)
+            y0 = min(max(0, int(np.floor(self.map_y.min())) - 2), h)
+            x1 = max(min(w, int(np.ceil(self.map_x.max())) + 3), x0)
+            y1 = max(min(h, int(np.ceil(self.map_y.max())) + 3), y0)
+            crop = self._crops[shape] = (slice(y0, y1), slice(x0, x1), self.map_x - np.float32(x0),
+                                         self.map_y - np.float32(y0))
+        return crop
 
     def scan(self, frame: Image, followers: FloatArray | None = None, tracked: BoolArray | None = None) -> Scan:
         """The scan of one BGR frame; ``followers`` (n, 2) estimated positions (leader frame) of
         the ``tracked`` followers, whose bodies are not obstacles."""
         s = self.settings
-        polar = cv2.remap(np.asarray(frame), self.map_x, self.map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
+        rows_, cols_, map_x, map_y = self._crop(tuple(frame.shape))
+        polar = cv2.remap(np.asarray(frame[rows_, cols_]), map_x, map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
         feats = _features(polar)
         sample = feats[::4, ::4].reshape(-1, 3)
         med = np.median(sample, axis=0)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -123,3 +124,27 @@ def test_the_filter_gets_the_nearest_point_per_direction_around_each_robot():
     assert 1 <= len(picked) <= 8 and np.all(picked[:, 2] == 0.0)
     assert np.allclose(picked[np.argmin(np.hypot(*(picked[:, :2] - [0.0, 0.2]).T)), :2], [0.0, 0.5])
     assert len(obstacle_rows(wall, np.array([[0.0, -2.0]]), SafetySettings())) == 0
+
+
+def test_the_scan_looks_only_at_the_ring_and_sees_what_the_whole_frame_shows(rig, scanner):
+    """A frame that makes its pixels when looked at makes only the working ring's square for
+    the scan (about half the frame), and the polar grid it samples there is the whole frame's,
+    sample for sample, also where the grid leaves the image."""
+    rng = np.random.default_rng(5)
+    renderer = Renderer(rig.model, rig.render)
+    leader = np.array([0.0, 0.0, math.pi / 2])
+    followers = np.array([[0.6, 0.9, 0.3], [-0.8, 0.4, 1.0], [0.1, -1.2, 2.0]])
+    h, w = rig.model.height, rig.model.width
+    for k in range(3):
+        lazy = renderer.frame(leader, followers, 0.5 * k, rng)
+        scan = scanner.scan(lazy, followers[:, :2], np.ones(3, bool))
+        assert 0 < lazy.pixels_rendered <= 0.55 * h * w
+        again = scanner.scan(np.asarray(lazy), followers[:, :2], np.ones(3, bool))  # the whole frame, the same pixels
+        assert np.array_equal(scan.ranges, again.ranges) and np.array_equal(scan.hidden, again.hidden)
+    frame = np.asarray(renderer.frame(leader, followers, 0.0, rng))
+    for shape in ((h, w), (200, 260), (h + 40, w + 40)):  # the ring inside, cut by and beyond the image
+        img = np.zeros((*shape, 3), np.uint8)
+        img[:min(h, shape[0]), :min(w, shape[1])] = frame[:shape[0], :shape[1]]
+        full = cv2.remap(img, scanner.map_x, scanner.map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
+        rows, cols, map_x, map_y = scanner._crop(img.shape)
+        assert np.array_equal(cv2.remap(img[rows, cols], map_x, map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0)), full)
