@@ -123,6 +123,7 @@ PER_ADDRESS = 16  # open websockets from one address
 MAX_CONNECTIONS = 64  # open websockets in all
 OPERATOR_RESERVE = 8  # of which the last few only for operators
 VIEWER_GREY_S = 1.5  # a viewer's controls are greyed out this long after it connects (the page is there by then)
+REGISTER_WAIT_S = 10.0  # a client's messages after its first camera wait this long at most for viser to take it in
 _BIND_TIMEOUT_S = 30.0
 CLOSE_TIMEOUT_S = 1.0  # a client that does not answer a close (a flooder still sending) is cut off after this
 
@@ -249,6 +250,7 @@ class Gate:
         self.roles: dict[int, str] = {}  # viser client id -> OPERATOR or VIEWER
         self.addresses: dict[int, str] = {}  # viser client id -> the client's address (as the gate saw it)
         self._client_of: dict[str, int] = {}  # gate connection key -> viser client id
+        self._taken_in: dict[str, Callable[[], None]] = {}  # gate connection key -> tell it viser took its client in
         self._log_throttle = Throttle()
         self._notice_throttle = Throttle(NOTICE_EVERY_S)
         self._banned: dict[str, float] = {}  # address -> refused until (monotonic)
@@ -326,8 +328,15 @@ class Gate:
             for key in [k for k, v in self._client_of.items() if v == client.client_id]:
                 del self._client_of[key]
 
+        def taken_in(client: Any) -> None:  # viser counts the client connected: its clicks count from now
+            for key in [k for k, v in list(self._client_of.items()) if v == client.client_id]:
+                tell = self._taken_in.pop(key, None)
+                if tell is not None:
+                    tell()
+
         callbacks.insert(0, check)  # before viser's own handlers build anything for the client
         self.server.on_client_disconnect(forget)
+        self.server.on_client_connect(taken_in)
         self.server.on_client_connect(self._greet)
 
     def _greet(self, client: viser.ClientHandle) -> None:
@@ -505,6 +514,14 @@ class Gate:
     async def _serve(self, client: websockets.asyncio.server.ServerConnection, sub: list[Subprotocol] | None,
                      role: str, address: str) -> None:
         key = secrets.token_hex(8)
+        taken_in = asyncio.Event()  # viser has taken the client in (after its first camera)
+        loop = asyncio.get_running_loop()
+
+        def tell() -> None:  # from viser's thread
+            with contextlib.suppress(RuntimeError):  # the gate's loop closed meanwhile
+                loop.call_soon_threadsafe(taken_in.set)
+
+        self._taken_in[key] = tell
         try:
             async with websockets.asyncio.client.connect(
                 f"ws://127.0.0.1:{self._upstream}/", subprotocols=sub, max_size=MAX_MESSAGE, compression=None,
@@ -524,6 +541,7 @@ class Gate:
                     the input filter before viser sees it."""
                     budget = Budget(time.monotonic())
                     greeted = False  # its first camera: viser takes its clicks (STOP) only from then on
+                    gave_up = False  # viser did not take it in within REGISTER_WAIT_S of its first camera
                     try:
                         async for message in src:
                             if not budget.take(time.monotonic()):
@@ -534,6 +552,14 @@ class Gate:
                                 continue
                             verdict = self.filter.judge(message, role)
                             first = verdict.kind == "ViewerCameraMessage" and not greeted
+                            if greeted and not taken_in.is_set() and not gave_up:
+                                # viser has not taken the client in yet (its first camera still on its
+                                # way): a refusal could not be told to it. Its own messages wait for
+                                # that (once at most); viser handles a connection's messages in order
+                                try:
+                                    await asyncio.wait_for(taken_in.wait(), REGISTER_WAIT_S)
+                                except TimeoutError:
+                                    gave_up = True
                             greeted = greeted or first
                             if verdict.forward and not first and not self._address_allows(address, verdict):
                                 self.refused.address += 1
@@ -558,6 +584,8 @@ class Gate:
                     task.exception()  # retrieved: never an "exception was never retrieved" on stderr
         except (websockets.exceptions.ConnectionClosed, OSError):
             pass
+        finally:
+            self._taken_in.pop(key, None)  # a connection that ended before viser took it in
 
     def _address_allows(self, address: str, verdict: Verdict) -> bool:
         """Whether all of ``address``'s connections together may have one more message forwarded:

@@ -2,11 +2,9 @@
 it stops the leader as well as the followers (and the recording says so tick by tick), and no
 message a client sent before can take it away from a page opened afterwards.
 
-The first two tests run the service as `run` does by default, the page in a process of its own:
-they read the page only as its clients do (a browser, or a raw client that reads the controls off
-the wire), and the loop, its store and its recording here. The viewer's test reads the gate's
-refusal counts, the page's own objects, so it serves the same page from the loop's process
-(`run --one-process`)."""
+The tests run the service as `run` does by default, the page in a process of its own: they read
+the page only as its clients do (a browser, or a raw client that reads the controls off the wire),
+and the loop, its store and its recording here."""
 
 from __future__ import annotations
 
@@ -46,12 +44,6 @@ def _service(tmp_path, page_process: bool):
 def page_process_service(tmp_path):
     """As `run` serves it: the page in a process of its own."""
     yield from _service(tmp_path, page_process=True)
-
-
-@pytest.fixture()
-def service(tmp_path):
-    """The page in the loop's process (`run --one-process`): its objects can be read here."""
-    yield from _service(tmp_path, page_process=False)
 
 
 def open_page(browser, url: str, width: int = 1280, height: int = 720):
@@ -214,31 +206,45 @@ def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(pa
         wait_for(lambda: service.store.get().stop, 10, "the STOP button on a fresh page")
 
 
-def test_a_viewer_watches_and_may_stop_but_changes_nothing_else(service):
-    controls = service.dashboard.controls
+def test_a_viewer_watches_and_may_stop_but_changes_nothing_else(page_process_service):
+    """A viewer's page (the viewer link) greys out every control but STOP; a change it makes anyway
+    is refused (the viewer is told, its box shows the value in force again); its STOP stops; a raw
+    client with the viewer's token that sends Release (once it has the page's controls, and again
+    with its first camera, before the page reached it) is told each time it was refused, and STOP
+    stays."""
+    from tests.app.services.test_loop_process import _Page
+
+    service = page_process_service
+    updates: list[tuple[str, bool]] = []  # every change the loop's store took: who, and STOP after it
+    service.store.subscribe(lambda p, source, _: updates.append((source, bool(p.stop))))
     with chromium_browser() as browser:
-        page = open_page(browser, service.gate.viewer_url)
+        page = open_page(browser, service.page.viewer_url)
         page.get_by_text("View only").first.wait_for(timeout=PAGE_MS)
         wait_for(lambda: page.get_by_role("button", name="Reset", exact=True).is_disabled(), 10,
                  "the viewer's controls to grey out")
         ident = control_id(page, "k_f1")
         box = page.locator(f'[id="{ident}"] + div input').first
         k_f1 = service.store.get().gains.k_f1
-        refused = service.gate.refused.messages
         box.evaluate("el => { el.disabled = false; }")  # a viewer that un-greys its page is still refused
         box.fill("0.3")
         box.press("Enter")
-        wait_for(lambda: service.gate.refused.messages > refused, 10, "the gate to refuse the viewer's change")
-        assert service.store.get().gains.k_f1 == k_f1
+        page.get_by_text("Refused").first.wait_for(timeout=PAGE_MS)  # the gate judged it: it never reached the page
+        wait_for(lambda: float(box.input_value()) == k_f1, 10, "the value in force back in the viewer's box")
+        assert service.store.get().gains.k_f1 == k_f1 and not updates
         page.locator("#omni-stopbar button").click()
         wait_for(lambda: service.store.get().stop, 10, "the viewer's STOP")
-        assert controls.release_button.disabled is False
-        refused = service.gate.refused.messages
-        conn = as_a_browser(ws_connect(service.gate.port, path=f"/?token={service.gate.viewer_token}"))
+    stops = len(updates)
+    release = ""
+    for at_once in (False, True):  # after the page's controls came; with its first camera, not reading first
+        client = _Page(service.page.port, path=f"/?token={service.page.viewer_token}")
         try:
-            _raw(conn, {"type": "GuiUpdateMessage", "uuid": controls.release_button._impl.uuid,
-                        "updates": {"value": True}})
-            wait_for(lambda: service.gate.refused.messages > refused, 10, "the gate to refuse the viewer's release")
+            if not at_once:
+                release = _controls(client, {"Release STOP"})["Release STOP"]
+            _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": release, "updates": {"value": True}})
+            assert any(m["props"]["title"] == "Refused" and "Release STOP" in m["props"]["body"]
+                       for m in client.messages(30.0) if m.get("type") == "NotificationShowMessage"), \
+                f"the gate's refusal, told to that client ({'at once' if at_once else 'after the controls'})"
         finally:
-            conn.close()
-        assert service.store.get().stop, "a viewer cannot release STOP"
+            client.close()
+    assert len(updates) == stops and all(stop for _, stop in updates), updates
+    assert service.store.get().stop, "a viewer cannot release STOP"
