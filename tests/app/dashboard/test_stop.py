@@ -15,7 +15,6 @@ import pytest
 
 from app.services.live import Service
 from app.recording.reader import read_recording
-from tests.app.dashboard.test_access import as_a_browser, ws_connect
 from tests.helpers import ARTIFACTS, chromium_browser, click_3d, control_id, keep_ticks, new_page, settle, start_timer
 from tests.helpers import timed_ms, wait_for
 

@@ -1,6 +1,10 @@
 """The tuning bench in real Chromium: a step test and a 3 x 3 sweep run from the page, the best
 point applied and used on the next tick; the Lyapunov monitor shows each follower's V trend;
-what cannot run says why."""
+what cannot run says why.
+
+The page runs in a process of its own, as `run` serves it: the tests read the page as its clients
+do (the browser; a second client that reads what the page holds now, as a new tab would get it),
+and the loop's side here (its store, its step tests and sweeps)."""
 
 from __future__ import annotations
 
@@ -17,7 +21,7 @@ playwright_api = pytest.importorskip("playwright.sync_api")
 @pytest.fixture(scope="module")
 def service():
     """The built-in simulated team with truth feedback (the tuning bench is the same with vision)."""
-    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=7)
+    svc = Service(host="127.0.0.1", port=0, n_followers=3, rate_hz=30.0, seed=7, page_process=True)
     keep_ticks(svc, 3000)
     svc.start()
     yield svc
@@ -36,6 +40,27 @@ def page(service):
         yield pg
 
 
+def _held(service, label: str) -> object:
+    """The value the page holds now for the control ``label``, as a client that opens the page
+    gets it: its controls and the updates since, up to viser's end of what it replays to a new client."""
+    from tests.app.services.test_loop_process import _Page
+
+    client = _Page(service.page.port)
+    try:
+        uuid, value = None, None
+        for msg in client.messages(20.0):
+            props = msg.get("props")
+            if isinstance(props, dict) and props.get("label") == label:
+                uuid, value = msg.get("uuid"), props.get("value")
+            elif uuid is not None and msg.get("type") == "GuiUpdateMessage" and msg.get("uuid") == uuid:
+                value = msg["updates"].get("value", value)
+            elif msg.get("type") == "ReplayDoneMessage":
+                return value
+        raise AssertionError(f"no end of the page's replay within 20 s (looking for {label!r})")
+    finally:
+        client.close()
+
+
 def _type(page, label: str, text: str) -> None:
     ident = control_id(page, label)
     box = page.locator(f'input[id="{ident}"], [id="{ident}"] input').first
@@ -48,7 +73,7 @@ def _type(page, label: str, text: str) -> None:
 def test_a_step_test_from_the_page_adds_a_scored_row(page, service):
     wait_for(lambda: service.loop.last is not None and service.loop.last.t > 6.0, 60.0, "the team to settle")
     _type(page, "Measure for (s)", "6")
-    wait_for(lambda: service.dashboard.tuning.window.value == 6.0, what="the window on the server")
+    wait_for(lambda: _held(service, "Measure for (s)") == 6.0, what="the window on the page's server")
     page.get_by_role("button", name="Run test").click()
     wait_for(lambda: len(service.tests.trials) == 1, 60.0, "the trial's row")
     trial = service.tests.trials[0]
@@ -65,20 +90,23 @@ def test_a_step_test_from_the_page_adds_a_scored_row(page, service):
 def test_a_sweep_from_the_page_applies_its_best_point_on_the_next_tick(page, service):
     _type(page, "Range 1", "1:4:3")
     _type(page, "Range 2", "0.05:0.2:3")
-    tuning = service.dashboard.tuning
-    wait_for(lambda: tuning.range1.value == "1:4:3" and tuning.range2.value == "0.05:0.2:3", what="the ranges")
+    wait_for(lambda: _held(service, "Range 1") == "1:4:3" and _held(service, "Range 2") == "0.05:0.2:3",
+             what="the ranges")
     page.get_by_role("button", name="Run sweep").click()
-    wait_for(lambda: tuning.result is not None, 240.0, "the sweep's result")
-    result = tuning.result
+    sweeps = service.bench.sweeps
+    wait_for(lambda: sweeps.last is not None, 240.0, "the sweep's result")
+    result = sweeps.last
     assert result is not None and len(result.gains) == 9 and all(s is not None for s in result.scores)
     page.get_by_text("sweep: done, 9 of 9 points").first.wait_for(timeout=30_000)
     # every grid value is one the gain's slider shows exactly (0.125 would show as 0.13): 0.05, 0.13, 0.2
     assert list(result.ranges[1].values) == [0.05, 0.13, 0.2] and list(result.ranges[0].values) == [1.0, 2.5, 4.0]
     # the heat map's numbers: at least 11 px as shown (the figure is scaled to the panel's width)
     from app.dashboard.tuning_panel import PANEL_CELL_PT
-    from app.figures import excluded_points
+    from app.figures import excluded_points, figure_rgb, sweep_figure
 
-    shape = tuning.figure.image.shape
+    page.get_by_role("button", name="Enlarge heat map").wait_for(timeout=30_000)
+    # the panel's figure, made here as the page makes it (its shape finds its image on the page)
+    shape = figure_rgb(sweep_figure(result, width_in=4.6, stacked=True, metric="settling", cell_pt=PANEL_CELL_PT)).shape
     sizes = page.evaluate("""([w, h]) => [...document.querySelectorAll('img')]
         .filter(i => i.naturalWidth === w && i.naturalHeight === h).map(i => i.getBoundingClientRect().width)""",
                           [shape[1], shape[0]])
@@ -128,11 +156,11 @@ def test_a_sweep_from_the_page_applies_its_best_point_on_the_next_tick(page, ser
 
 def test_what_cannot_run_says_why_and_runs_nothing(page, service):
     _type(page, "Range 1", "4:1:3")
-    wait_for(lambda: service.dashboard.tuning.range1.value == "4:1:3", what="the reversed range")
+    wait_for(lambda: _held(service, "Range 1") == "4:1:3", what="the reversed range")
     page.get_by_role("button", name="Run sweep").click()
     page.get_by_text("reversed", exact=False).first.wait_for(timeout=30_000)
     _type(page, "Range 1", "1:40:3")
-    wait_for(lambda: service.dashboard.tuning.range1.value == "1:40:3", what="the range beyond the bound")
+    wait_for(lambda: _held(service, "Range 1") == "1:40:3", what="the range beyond the bound")
     page.get_by_role("button", name="Run sweep").click()
     page.get_by_text("(0, 20]", exact=False).first.wait_for(timeout=30_000)
     trials = len(service.tests.trials)
