@@ -198,6 +198,9 @@ class FreeSpaceScanner:
             y0 = min(max(0, int(np.floor(self.map_y.min())) - 2), h)
             x1 = max(min(w, int(np.ceil(self.map_x.max())) + 3), x0)
             y1 = max(min(h, int(np.ceil(self.map_y.max())) + 3), y0)
+            if x1 <= x0 or y1 <= y0:  # the ring wholly outside the image: every sample is the border's
+                x0 = y0 = 0
+                x1, y1 = w, h
             crop = self._crops[shape] = (slice(y0, y1), slice(x0, x1), self.map_x - np.float32(x0),
                                          self.map_y - np.float32(y0))
         return crop

@@ -142,7 +142,7 @@ def test_the_scan_looks_only_at_the_ring_and_sees_what_the_whole_frame_shows(rig
         again = scanner.scan(np.asarray(lazy), followers[:, :2], np.ones(3, bool))  # the whole frame, the same pixels
         assert np.array_equal(scan.ranges, again.ranges) and np.array_equal(scan.hidden, again.hidden)
     frame = np.asarray(renderer.frame(leader, followers, 0.0, rng))
-    for shape in ((h, w), (200, 260), (h + 40, w + 40)):  # the ring inside, cut by and beyond the image
+    for shape in ((h, w), (200, 260), (h + 40, w + 40), (100, 100)):  # the ring inside, cut by, beyond, outside
         img = np.zeros((*shape, 3), np.uint8)
         img[:min(h, shape[0]), :min(w, shape[1])] = frame[:shape[0], :shape[1]]
         full = cv2.remap(img, scanner.map_x, scanner.map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
