@@ -123,7 +123,7 @@ PER_ADDRESS = 16  # open websockets from one address
 MAX_CONNECTIONS = 64  # open websockets in all
 OPERATOR_RESERVE = 8  # of which the last few only for operators
 VIEWER_GREY_S = 1.5  # a viewer's controls are greyed out this long after it connects (the page is there by then)
-REGISTER_WAIT_S = 10.0  # a client's messages after its first camera wait this long at most for viser to take it in
+REGISTER_WAIT_S = 10.0  # a refusal waits this long at most to be told to a client viser has not taken in yet
 _BIND_TIMEOUT_S = 30.0
 CLOSE_TIMEOUT_S = 1.0  # a client that does not answer a close (a flooder still sending) is cut off after this
 
@@ -251,6 +251,7 @@ class Gate:
         self.addresses: dict[int, str] = {}  # viser client id -> the client's address (as the gate saw it)
         self._client_of: dict[str, int] = {}  # gate connection key -> viser client id
         self._taken_in: dict[str, Callable[[], None]] = {}  # gate connection key -> tell it viser took its client in
+        self._telling: dict[str, asyncio.Task[None]] = {}  # gate connection key -> its refusal waiting for its client
         self._log_throttle = Throttle()
         self._notice_throttle = Throttle(NOTICE_EVERY_S)
         self._banned: dict[str, float] = {}  # address -> refused until (monotonic)
@@ -541,7 +542,6 @@ class Gate:
                     the input filter before viser sees it."""
                     budget = Budget(time.monotonic())
                     greeted = False  # its first camera: viser takes its clicks (STOP) only from then on
-                    gave_up = False  # viser did not take it in within REGISTER_WAIT_S of its first camera
                     try:
                         async for message in src:
                             if not budget.take(time.monotonic()):
@@ -552,14 +552,6 @@ class Gate:
                                 continue
                             verdict = self.filter.judge(message, role)
                             first = verdict.kind == "ViewerCameraMessage" and not greeted
-                            if greeted and not taken_in.is_set() and not gave_up:
-                                # viser has not taken the client in yet (its first camera still on its
-                                # way): a refusal could not be told to it. Its own messages wait for
-                                # that (once at most); viser handles a connection's messages in order
-                                try:
-                                    await asyncio.wait_for(taken_in.wait(), REGISTER_WAIT_S)
-                                except TimeoutError:
-                                    gave_up = True
                             greeted = greeted or first
                             if verdict.forward and not first and not self._address_allows(address, verdict):
                                 self.refused.address += 1
@@ -571,8 +563,10 @@ class Gate:
                                 continue
                             if verdict.forward:
                                 await dst.send(message)
-                            elif not verdict.quiet:
-                                self._refused_message(key, role, address, verdict)
+                            elif not verdict.quiet and not self._refused_message(key, role, address, verdict):
+                                # viser has not taken the client in yet (its first camera still on its
+                                # way): it is told once viser has (counted and logged already)
+                                self._tell_later(taken_in, key, verdict)
                     except websockets.exceptions.ConnectionClosed:
                         pass
 
@@ -614,22 +608,43 @@ class Gate:
             log.warning("dashboard: %s (%s) sends more than %g messages a second: %s%s", address, role, RATE, what,
                         f" ({max(held, 0)} more dropped since the last line)" if held > 0 else "")
 
-    def _refused_message(self, key: str, role: str, address: str, verdict: Verdict) -> None:
-        """Count it, log it (briefly, per address), and tell that client alone what is in force."""
+    def _refused_message(self, key: str, role: str, address: str, verdict: Verdict) -> bool:
+        """Count it, log it (briefly, per address), and tell that client alone what is in force;
+        False: there was no client to tell yet."""
         self.refused.messages += 1
         held = self._log_throttle.due(("client", address))
         if held >= 0:
             log.warning("dashboard: refused from %s (%s): %s%s", address, role, one_line(verdict.why),
                         f" (and {held} more refused since the last line)" if held else "")
+        return self._tell(key, verdict)
+
+    def _tell_later(self, taken_in: asyncio.Event, key: str, verdict: Verdict) -> None:
+        """Tell the refusal once viser has taken the client in (one waits per connection: the
+        notices are throttled to one a second anyway)."""
+        if key in self._telling:
+            return
+
+        async def later() -> None:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(taken_in.wait(), REGISTER_WAIT_S)
+                self._tell(key, verdict)
+
+        task = self._telling[key] = asyncio.get_running_loop().create_task(later())  # kept: tasks are held weakly
+        task.add_done_callback(lambda _: self._telling.pop(key, None))
+
+    def _tell(self, key: str, verdict: Verdict) -> bool:
+        """Tell the client of gate connection ``key`` of a refusal (the value in force, a notice),
+        within the notice throttles; False if viser has no such client (yet)."""
         client = self.server.get_clients().get(self._client_of.get(key, -1))
         if client is None:
-            return
+            return False
         handle = self.filter.handle(verdict.uuid) if verdict.uuid else None
         if handle is not None and self._notice_throttle.due(("value", key, verdict.uuid)) >= 0:
             # the browser shows the value it sent: put it back (once a second per control is enough)
             viser_private.send_to(client, GuiUpdateMessage(verdict.uuid, {"value": handle.value}))
         if self._notice_throttle.due(("notice", key)) >= 0:
             client.add_notification("Refused", one_line(verdict.why, 300), auto_close_seconds=6.0, color="yellow")
+        return True
 
     def _run(self, port: int) -> None:
         loop = asyncio.new_event_loop()
