@@ -30,7 +30,7 @@ A refused update is answered (to that client alone) with the value in force (at 
 per control) and a notice; the log says so at most once a second per remote address (reconnecting
 buys no line), in one line, and refused requests likewise at most once a second per reason.
 
-How much (docs/page-access.md): each connection has a budget (:class:`Budget`: ``RATE`` messages a
+How much (docs/page-access.md): each connection has a budget (app.dashboard.allowance.Budget: ``RATE`` messages a
 second, ``BURST`` at once); what is over it is dropped before it is decoded, a connection that stays
 over it is closed and its address refused for ``BAN_S``; all of an address's connections together
 have ``ADDRESS_RATE`` of messages forwarded (STOP always passes); at most ``PER_ADDRESS`` websockets per
@@ -56,7 +56,6 @@ import io
 import ipaddress
 import logging
 import secrets
-import math
 import socket
 import threading
 import time
@@ -74,6 +73,7 @@ from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 from websockets.typing import Subprotocol
 
+from app.dashboard.allowance import RATE, Budget, Throttle, one_line
 from app.dashboard import viser_private
 from app.dashboard.input_filter import OPERATOR, VIEWER, InputFilter, Verdict
 from app.dashboard.viser_private import GuiUpdateMessage
@@ -110,12 +110,7 @@ MAX_CLIENT_MESSAGE = 1024 * 1024  # what a client may send in one message (the p
 CONN_HEADER = "X-Omniformation-Connection"  # which gate connection an upstream websocket serves
 ROLE_HEADER = "X-Omniformation-Role"
 ADDRESS_HEADER = "X-Omniformation-Address"  # the client's address, for "STOP by viewer 10.0.0.7"
-LOG_EVERY_S = 1.0  # an address's refused messages (and refused requests of one kind) are logged this often at most
 NOTICE_EVERY_S = 1.0  # a client is told of refused updates this often at most (and sent a control's value back)
-RATE = 100.0  # messages a second a connection may send (viser's page sends its camera at most 50 a second, a
-# control's value at most 20, a click or a drag at most 50 and 20: a person uses one or two at once)
-BURST = 300  # and at once
-STRIKES = 3  # messages dropped in this many consecutive seconds: the connection is closed
 BAN_S = 30.0  # and its address refused this long
 ADDRESS_RATE = 200.0  # messages a second all connections from one address may have forwarded to viser (STOP always)
 ADDRESS_BURST = 600
@@ -174,61 +169,6 @@ class GateCounts:
     banned: int = 0  # requests from an address refused for a while
     full: int = 0  # websockets refused: too many from the address, or in all
     address: int = 0  # messages dropped over their address's budget (all its connections together)
-
-
-class Budget:
-    """One connection's allowance (a token bucket: ``rate`` a second, ``burst`` at once), and
-    whether it stays over it: messages dropped in ``strikes`` consecutive seconds."""
-
-    def __init__(self, now: float, rate: float = RATE, burst: int = BURST, strikes: int = STRIKES) -> None:
-        self.rate, self.burst, self.strikes = rate, float(burst), strikes
-        self.tokens, self.at, self.start = float(burst), now, now
-        self._second, self._streak = -2, 0
-
-    def take(self, now: float) -> bool:
-        """Whether one more message fits now (if not, it counts towards staying over)."""
-        self.tokens = min(self.burst, self.tokens + max(0.0, now - self.at) * self.rate)
-        self.at = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        second = int(now - self.start)
-        if second != self._second:
-            self._streak = self._streak + 1 if second == self._second + 1 else 1
-            self._second = second
-        return False
-
-    @property
-    def over(self) -> bool:
-        return self._streak >= self.strikes
-
-
-class Throttle:
-    """At most one log line per key every ``every_s``; the line says how many were not logged."""
-
-    def __init__(self, every_s: float = LOG_EVERY_S) -> None:
-        self.every_s = every_s
-        self._last: dict[object, tuple[float, int]] = {}
-        self._lock = threading.Lock()
-
-    def due(self, key: object) -> int:
-        """-1: stay quiet; else how many were held back since the last line for this key."""
-        now = time.monotonic()
-        with self._lock:
-            last, held = self._last.get(key, (-math.inf, 0))
-            if now - last < self.every_s:
-                self._last[key] = (last, held + 1)
-                return -1
-            if len(self._last) > 4096:  # keys come and go with clients: forget the old ones
-                self._last = {k: v for k, v in self._last.items() if now - v[0] < self.every_s}
-            self._last[key] = (now, 0)
-            return held
-
-
-def one_line(text: str, limit: int = 200) -> str:
-    """Anything a client sent, safe for one log line."""
-    flat = " ".join(str(text).split())
-    return flat if len(flat) <= limit else flat[:limit - 3] + "..."
 
 
 class Gate:

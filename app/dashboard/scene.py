@@ -18,7 +18,7 @@ from core.obstacles import Obstacle
 
 from core.camera.render.looks import follower_rgb
 from app.dashboard.controls import CARD_HINT, Controls
-from app.dashboard.gate import Throttle
+from app.dashboard.allowance import Throttle
 from app.tick import TickState
 from app.params import ParamsStore
 from core.camera.guide import WORKING_RING_M
