@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -407,3 +408,88 @@ def sealed(frame: Any, counter: int, sender: int = 1, key: bytes | None = None) 
     from core.link import protocol as p
 
     return p.encode_frame(p.seal(frame, key if key is not None else p.OPEN_KEY, sender, counter))
+
+
+class RawPage:
+    """A raw client of the page (docs/page-access.md): viser's websocket, as a browser opens it."""
+
+    def __init__(self, port: int, source: str = "127.0.0.1", timeout: float = 60.0, path: str = "/") -> None:
+        import viser
+        import websockets.sync.client as wsc
+
+        sock = socket.create_connection(("127.0.0.1", port), timeout=timeout, source_address=(source, 0))
+        self.ws = wsc.connect(f"ws://127.0.0.1:{port}{path}", sock=sock, subprotocols=[f"viser-v{viser.__version__}"],
+                              additional_headers={"Origin": f"http://127.0.0.1:{port}"}, open_timeout=timeout,
+                              max_queue=None)
+        self.send_camera()  # as a browser does at once (viser counts a client connected from then)
+        self.buttons: dict[str, str] = {}  # label -> uuid
+        self.controls: dict[str, str] = {}  # every control's label -> uuid
+
+    def messages(self, timeout: float) -> Iterator[dict[str, Any]]:
+        import msgspec
+        import zstandard
+
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            frame = self.ws.recv(timeout=max(0.05, end - time.monotonic()))
+            if not isinstance(frame, bytes) or len(frame) < 16:
+                continue
+            inner, packed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+            body = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + packed],
+                                                                                  max_output_size=inner))
+            for msg in body.get("messages", []):
+                if msg.get("type") == "GuiButtonMessage":
+                    self.buttons[msg["props"]["label"]] = msg["uuid"]
+                if isinstance(msg.get("props"), dict) and "label" in msg["props"] and "uuid" in msg:
+                    self.controls[msg["props"]["label"]] = msg["uuid"]
+                yield msg
+
+    def uuids(self, labels: set[str], timeout: float = 60.0) -> dict[str, str]:
+        """The uuids of the page's controls by label, as a client reads them off what the page sends it."""
+        for _ in self.messages(timeout):
+            if labels <= set(self.controls):
+                break
+        assert labels <= set(self.controls), labels - set(self.controls)
+        return {label: self.controls[label] for label in labels}
+
+    def held(self, label: str, timeout: float = 20.0) -> object:
+        """The value the page holds for the control ``label``, on a client that just connected: its
+        controls and the updates since, up to viser's end of what it replays to a new client."""
+        uuid, value = None, None
+        for msg in self.messages(timeout):
+            props = msg.get("props")
+            if isinstance(props, dict) and props.get("label") == label:
+                uuid, value = msg.get("uuid"), props.get("value")
+            elif uuid is not None and msg.get("type") == "GuiUpdateMessage" and msg.get("uuid") == uuid:
+                value = msg["updates"].get("value", value)
+            elif msg.get("type") == "ReplayDoneMessage":
+                return value
+        raise AssertionError(f"no end of the page's replay within {timeout:g} s (looking for {label!r})")
+
+    def wait_for(self, text: str, timeout: float = 60.0) -> bool:
+        return any(text in str(msg) for msg in self.messages(timeout))
+
+    def click(self, label: str) -> None:
+        import msgspec
+
+        self.send_camera()
+        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.buttons[label],
+                                            "updates": {"value": True}}))
+
+    def send_camera(self) -> None:
+        import msgspec
+
+        camera = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0],
+                  "fov": 1.0, "near": 0.01, "far": 100.0, "image_height": 720, "image_width": 1280,
+                  "look_at": [0.0, 0.0, 0.0], "up_direction": [0.0, 0.0, 1.0]}
+        self.ws.send(msgspec.msgpack.encode(camera))  # a page sends its camera first
+
+    def set(self, label: str, value: Any) -> None:
+        """A control's new value, as a browser sends it."""
+        import msgspec
+
+        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.controls[label],
+                                            "updates": {"value": value}}))
+
+    def close(self) -> None:
+        self.ws.close()

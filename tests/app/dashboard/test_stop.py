@@ -16,7 +16,7 @@ import pytest
 from app.services.live import Service
 from app.recording.reader import read_recording
 from tests.helpers import ARTIFACTS, chromium_browser, click_3d, control_id, keep_ticks, new_page, settle, start_timer
-from tests.helpers import timed_ms, wait_for
+from tests.helpers import RawPage, timed_ms, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 PAGE_MS = 30_000
@@ -140,27 +140,17 @@ def _raw(conn, message: dict) -> None:
     conn.send(msgspec.msgpack.encode(message))
 
 
-def _controls(client, labels: set[str]) -> dict[str, str]:
-    """The uuids of the page's controls by label, as a client reads them off what the page sends it."""
-    for _ in client.messages(60.0):
-        if labels <= set(client.controls):
-            break
-    assert labels <= set(client.controls), labels - set(client.controls)
-    return {label: client.controls[label] for label in labels}
-
-
 def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(page_process_service):
     """A client that reads the page's controls off the wire, as any browser can, and sends what no
     page sends: nothing changes what STOP does, nor any value beyond its bounds."""
     from core.bounds import PARAMETERS
-    from tests.app.services.test_loop_process import _Page
 
     service = page_process_service
     gains = {name: PARAMETERS[name].label for name in ("k_w1", "k_f1", "a")}
     gains_before = service.store.get().gains
-    client = _Page(service.page.port)
+    client = RawPage(service.page.port)
     try:
-        ids = _controls(client, {"STOP", "Trial #", *gains.values()})
+        ids = client.uuids({"STOP", "Trial #", *gains.values()})
         stop_uuid = ids["STOP"]
         _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"update_cb": []}})
         _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"disabled": True, "visible": False}})
@@ -211,7 +201,6 @@ def test_a_viewer_watches_and_may_stop_but_changes_nothing_else(page_process_ser
     client with the viewer's token that sends Release (once it has the page's controls, and again
     with its first camera, before the page reached it) is told each time it was refused, and STOP
     stays."""
-    from tests.app.services.test_loop_process import _Page
 
     service = page_process_service
     updates: list[tuple[str, bool]] = []  # every change the loop's store took: who, and STOP after it
@@ -235,10 +224,10 @@ def test_a_viewer_watches_and_may_stop_but_changes_nothing_else(page_process_ser
     stops = len(updates)
     release = ""
     for at_once in (False, True):  # after the page's controls came; with its first camera, not reading first
-        client = _Page(service.page.port, path=f"/?token={service.page.viewer_token}")
+        client = RawPage(service.page.port, path=f"/?token={service.page.viewer_token}")
         try:
             if not at_once:
-                release = _controls(client, {"Release STOP"})["Release STOP"]
+                release = client.uuids({"Release STOP"})["Release STOP"]
             _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": release, "updates": {"value": True}})
             assert any(m["props"]["title"] == "Refused" and "Release STOP" in m["props"]["body"]
                        for m in client.messages(30.0) if m.get("type") == "NotificationShowMessage"), \

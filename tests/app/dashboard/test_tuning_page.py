@@ -13,7 +13,7 @@ import pytest
 
 from app.services.live import Service
 
-from tests.helpers import ARTIFACTS, chromium_browser, control_id, keep_ticks, new_page, settle, wait_for
+from tests.helpers import ARTIFACTS, RawPage, chromium_browser, control_id, keep_ticks, new_page, settle, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 
@@ -41,22 +41,10 @@ def page(service):
 
 
 def _held(service, label: str) -> object:
-    """The value the page holds now for the control ``label``, as a client that opens the page
-    gets it: its controls and the updates since, up to viser's end of what it replays to a new client."""
-    from tests.app.services.test_loop_process import _Page
-
-    client = _Page(service.page.port)
+    """The value the page holds now for the control ``label``, as a client that opens the page gets it."""
+    client = RawPage(service.page.port)
     try:
-        uuid, value = None, None
-        for msg in client.messages(20.0):
-            props = msg.get("props")
-            if isinstance(props, dict) and props.get("label") == label:
-                uuid, value = msg.get("uuid"), props.get("value")
-            elif uuid is not None and msg.get("type") == "GuiUpdateMessage" and msg.get("uuid") == uuid:
-                value = msg["updates"].get("value", value)
-            elif msg.get("type") == "ReplayDoneMessage":
-                return value
-        raise AssertionError(f"no end of the page's replay within 20 s (looking for {label!r})")
+        return client.held(label)
     finally:
         client.close()
 

@@ -453,8 +453,7 @@ def test_the_free_space_scan_runs_after_the_ticks_commands_are_sent_and_counts_f
     scanned = [k for k, s in enumerate(states) if s.scan is not None]
     assert scanned == [k for k, s in enumerate(states) if "scan" in s.stage_ms] and len(scanned) == 12
     assert np.diff(scanned).tolist() == [SCAN_EVERY] * 11
-    seen = [k for k in scanned if np.isfinite(states[k].scan.ranges).any()]
+    seen = [k for k in scanned if np.isfinite(states[k].scan.ranges).any() and k + 1 < len(states)]
     assert seen, "the box is in view"
-    k = seen[0]
-    if k + 1 < len(states):  # the box the scan found is an obstacle from the next tick on
-        assert states[k + 1].obstacles is not None and len(states[k + 1].obstacles) > 0
+    k = seen[0]  # the box the scan found is an obstacle from the next tick on
+    assert states[k + 1].obstacles is not None and len(states[k + 1].obstacles) > 0

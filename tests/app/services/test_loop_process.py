@@ -6,7 +6,6 @@ import contextlib
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -16,6 +15,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
+
+from tests.helpers import RawPage
 
 if TYPE_CHECKING:
     from app.services.live import Service
@@ -120,69 +121,6 @@ def test_a_cache_cold_for_one_module_is_warmed_before_the_clock_and_no_tick_is_s
 
 # -- the page in a process of its own (docs/safety.md, "The page in a process of its own") ---------------
 
-class _Page:
-    """A raw client of the page (docs/page-access.md): viser's websocket, as a browser opens it."""
-
-    def __init__(self, port: int, source: str = "127.0.0.1", timeout: float = 60.0, path: str = "/") -> None:
-        import viser
-        import websockets.sync.client as wsc
-
-        sock = socket.create_connection(("127.0.0.1", port), timeout=timeout, source_address=(source, 0))
-        self.ws = wsc.connect(f"ws://127.0.0.1:{port}{path}", sock=sock, subprotocols=[f"viser-v{viser.__version__}"],
-                              additional_headers={"Origin": f"http://127.0.0.1:{port}"}, open_timeout=timeout,
-                              max_queue=None)
-        self.send_camera()  # as a browser does at once (viser counts a client connected from then)
-        self.buttons: dict[str, str] = {}  # label -> uuid
-        self.controls: dict[str, str] = {}  # every control's label -> uuid
-
-    def messages(self, timeout: float) -> Iterator[dict[str, Any]]:
-        import msgspec
-        import zstandard
-
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            frame = self.ws.recv(timeout=max(0.05, end - time.monotonic()))
-            if not isinstance(frame, bytes) or len(frame) < 16:
-                continue
-            inner, packed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
-            body = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + packed],
-                                                                                  max_output_size=inner))
-            for msg in body.get("messages", []):
-                if msg.get("type") == "GuiButtonMessage":
-                    self.buttons[msg["props"]["label"]] = msg["uuid"]
-                if isinstance(msg.get("props"), dict) and "label" in msg["props"] and "uuid" in msg:
-                    self.controls[msg["props"]["label"]] = msg["uuid"]
-                yield msg
-
-    def wait_for(self, text: str, timeout: float = 60.0) -> bool:
-        return any(text in str(msg) for msg in self.messages(timeout))
-
-    def click(self, label: str) -> None:
-        import msgspec
-
-        self.send_camera()
-        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.buttons[label],
-                                            "updates": {"value": True}}))
-
-    def send_camera(self) -> None:
-        import msgspec
-
-        camera = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0],
-                  "fov": 1.0, "near": 0.01, "far": 100.0, "image_height": 720, "image_width": 1280,
-                  "look_at": [0.0, 0.0, 0.0], "up_direction": [0.0, 0.0, 1.0]}
-        self.ws.send(msgspec.msgpack.encode(camera))  # a page sends its camera first
-
-    def set(self, label: str, value: Any) -> None:
-        """A control's new value, as a browser sends it."""
-        import msgspec
-
-        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.controls[label],
-                                            "updates": {"value": value}}))
-
-    def close(self) -> None:
-        self.ws.close()
-
-
 def _until(what: Callable[[], bool], timeout: float = 120.0) -> bool:
     end = time.monotonic() + timeout
     while not what():
@@ -207,7 +145,7 @@ def test_killing_the_page_process_stops_the_robots_until_released_on_the_new_pag
     assert page is not None
     port, first = page.port, page.pid
     assert _until(lambda: service.loop.tick_count > 3)
-    client = _Page(port)
+    client = RawPage(port)
     assert client.wait_for("STOP")  # the page serves the loop's state
     client.close()
     assert not service.store.get().stop
@@ -215,7 +153,7 @@ def test_killing_the_page_process_stops_the_robots_until_released_on_the_new_pag
     assert _until(lambda: service.store.get().stop)  # the dead man's switch
     ticks = service.loop.tick_count
     assert _until(lambda: page.restarts == 1 and page.served == 2)
-    newcomer = _Page(port)  # the same address and port
+    newcomer = RawPage(port)  # the same address and port
     assert newcomer.wait_for("STOPPED")  # the new page shows the hold
     assert service.loop.tick_count > ticks  # the loop went on observing all along
     last = service.loop.last
@@ -237,7 +175,7 @@ def test_stop_from_a_second_client_reaches_the_loop_during_a_flood(service: Serv
     try:
         assert flooder.stdout is not None
         flooder.stdout.readline()  # flooding
-        operator = _Page(page.port, source="127.0.0.61")
+        operator = RawPage(page.port, source="127.0.0.61")
         assert operator.wait_for("STOP")
         time.sleep(1.0)  # well into the flood
         ticks = service.loop.tick_count
@@ -280,7 +218,7 @@ def _served(*args: str, pattern: str = r"dashboard at http://127\.0\.0\.1:(\d+)/
 
 def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> None:
     with _served("--no-record", "--feedback", "truth") as (proc, port):
-        page = _Page(port)
+        page = RawPage(port)
         assert page.wait_for("running")  # the loop's state on the page
         proc.kill()  # the loop's process, at once (SIGKILL: no goodbye)
         assert page.wait_for("THE LOOP HAS ENDED", timeout=30.0)
@@ -308,7 +246,7 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
         handed, ticks = page.handed, svc.loop.tick_count
         assert _until(lambda: svc.loop.tick_count > ticks + 30)
         assert page.handed - handed <= (svc.loop.tick_count - ticks) // UNWATCHED_EVERY + 2  # and one state in three
-        client = _Page(page.port)
+        client = RawPage(page.port)
         image, shown = "", 0
         for msg in client.messages(60.0):
             if (msg.get("props") or {}).get("label") == "leader's camera":
@@ -352,7 +290,7 @@ def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page
     with _served("--camera", str(video), "--link", "none", "--followers", "3", "--record", str(tmp_path / "run.mcap"),
                  pattern=r"dashboard at http://127\.0\.0\.1:(\d+)/ .*vision pipeline on camera",
                  stderr=subprocess.PIPE) as (proc, port):
-        page = _Page(port)
+        page = RawPage(port)
         image, shown, recording = "", 0, False
         for msg in page.messages(60.0):
             recording = recording or "Recording now: " in str(msg)  # the file being written, told by the loop
@@ -393,7 +331,7 @@ def test_a_fleet_leader_with_the_page_in_its_own_process_shows_the_bus_on_the_pa
         proc, port = stack.enter_context(_served("--feedback", "truth", "--no-record", "--fleet", "lp", "--leader-id", "L1",
                                                  "--zenoh-connect", endpoint))
         stack.callback(lambda: session.close() if session is not None else None)
-        page = _Page(port)
+        page = RawPage(port)
         assert page.wait_for("fleet lp/L1: disconnected")  # no peer yet: said on the page
         c = zenoh.Config()
         c.insert_json5("mode", '"peer"')
@@ -433,7 +371,7 @@ def test_an_arena_leader_with_the_page_in_its_own_process_drives_its_robots_and_
                                          lambda s: states.append(json.loads(s.payload.to_bytes())))
         with _served("--arena", "three_teams", "--leader-id", "L1", "--zenoh-connect", endpoint,
                      "--no-record") as (proc, port):
-            page = _Page(port)
+            page = RawPage(port)
             assert page.wait_for("running")  # the loop's state, drawn by the page's process
             assert _until(lambda: len(states) > 5)  # the loop's states on the bus
             assert _until(lambda: any(s.get("robots") and not s["stopped"] and _moving(s["commands"])
@@ -479,7 +417,7 @@ def test_the_tuning_panel_runs_its_step_tests_and_sweeps_on_the_loops_side(servi
     and show again on the page started after a crash."""
     page = service.page
     assert page is not None
-    client = _Page(page.port)
+    client = RawPage(page.port)
     assert client.wait_for("Run sweep")  # the panel is served
     client.set("Measure for (s)", 3.0)
     client.set("Range 1", "1:4:2")
@@ -495,7 +433,7 @@ def test_the_tuning_panel_runs_its_step_tests_and_sweeps_on_the_loops_side(servi
     client.close()
     os.kill(page.pid, signal.SIGKILL)  # a new page is told the rows and the last sweep
     assert _until(lambda: page.restarts == 1 and page.served == 2)
-    newcomer = _Page(page.port)
+    newcomer = RawPage(page.port)
     seen = {"row": False, "sweep": False}
     for msg in newcomer.messages(60.0):
         seen["row"] = seen["row"] or "step test: trial 1 done" in str(msg)
