@@ -47,12 +47,18 @@ class Dashboard:
         self._extra_at = 0.0
         self._scene_at = 0.0
         self._shadows_off = False
+        # None: always drawn. Else drawn only while it says someone watches; otherwise only what
+        # the page must not miss is kept (_keep). The page in its own process sets it (app.services.page_process).
+        self.watched: Callable[[], bool] | None = None
 
     def publish(self, state: TickState) -> bool:
         """Draw ``state``, on viser's own thread (widgets.on_page_thread); whether it was drawn."""
         return on_page_thread(self.server, lambda: self._draw(state))
 
     def _draw(self, state: TickState) -> None:
+        if self.watched is not None and not self.watched():
+            self._keep(state)
+            return
         now = time.monotonic()
         light = bool(self.controls.light.value)  # a slow browser asked for less (page.js turns it on)
         if light != self._shadows_off:  # light mode: no shadows (a software frame took 13 times as long with them)
@@ -75,3 +81,16 @@ class Dashboard:
             self._extra_at = now
             for fn in self.extra:
                 fn()
+
+    def _keep(self, state: TickState) -> None:
+        """A tick nobody watches: what the page must not miss (its health rules, which raise the
+        alarms the recording keeps; the charts' and the monitor's history; the Tuning panel's
+        team), none of the drawing. A page that connects is drawn whole by the next tick: every
+        part's redraw is due by then. Measured: an arena leader's page, no browser, took 3.1 % of
+        a CPU drawing for nobody."""
+        if not self.controls.replay:
+            self.controls.health.check(state)
+        self.plots.add(state)
+        self.monitor.add(state)
+        if self.tuning is not None:
+            self.tuning.update(state)

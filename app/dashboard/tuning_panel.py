@@ -98,13 +98,17 @@ class LyapunovMonitor:
     def reset(self) -> None:
         self._hist.clear()
 
-    def update(self, s: TickState) -> None:
+    def add(self, s: TickState) -> None:
+        """One tick into the strip's history, without drawing."""
         limits = s.limits if s.limits is not None else np.zeros(s.n, dtype=np.int64)
         if self._hist and (s.t < self._hist[-1][0] or len(self._hist[-1][1]) != s.n):
             self._hist.clear()
         self._hist.append((s.t, np.asarray(limits, dtype=np.int64)))
         while self._hist and self._hist[0][0] < s.t - STRIP_S:
             self._hist.popleft()
+
+    def update(self, s: TickState) -> None:
+        self.add(s)
         now = time.monotonic()
         if now - self._last < REDRAW_S:
             return

@@ -388,6 +388,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
                              viewer_token=new_token())
 
     panel = RecordingsPanel(server, replay, recordings, role_of=gate.role_of)
+    dashboard.watched = lambda: gate.open_connections > 0  # nobody connected: nothing drawn, history kept
     publisher = LatestStatePublisher(dashboard.publish)
 
     def alarm(t: float, text: str) -> None:

@@ -122,3 +122,33 @@ def test_light_mode_draws_what_the_operator_asked_for_on_the_next_tick(tmp_path)
         assert dash.controls.status.content.startswith("**STOPPED"), dash.controls.status.content
     finally:
         svc.close()
+
+
+def test_a_page_nobody_watches_draws_nothing_and_keeps_what_it_must(server):
+    """With ``watched`` saying nobody is there (the page in its own process sets it from the gate's
+    open connections), a tick draws nothing but the health rules still judge it (their alarms go to
+    the recording) and the charts' history keeps it; the first tick watched draws the page whole."""
+    from app.dashboard import Dashboard
+    from app.params import Params, ParamsStore, default_slots
+    from tests.app.dashboard.test_health import tick
+
+    store = ParamsStore(Params(n_followers=2, slots=default_slots(2)))
+    dashboard = Dashboard(server, store)
+    dashboard.controls.health.target_hz = 30.0
+    heard: list[str] = []
+    dashboard.controls.health.listeners.append(lambda _t, text: heard.append(text))
+    watching = [False]
+    dashboard.watched = lambda: watching[0]
+    status = dashboard.controls.status.content
+    for k in range(90):  # 3 s at 28 Hz: below 95 % of 30 for more than 2 s
+        assert dashboard.publish(tick(k / 30, rate_hz=28.0))
+    assert len(heard) == 1 and "28.0 Hz" in heard[0]  # judged though nobody watched
+    assert dashboard.controls.status.content == status  # and nothing drawn
+    assert dashboard.plots.charts and all(max(chart.data[0]) == 0.0 for chart in dashboard.plots.charts.values())
+    assert not dashboard.controls.alarm.visible
+    watching[0] = True
+    assert dashboard.publish(tick(3.0, rate_hz=28.0))
+    assert "t = 3.0 s" in dashboard.controls.status.content and dashboard.controls.alarm.visible
+    t = dashboard.plots.charts["ex"].data[0]
+    assert t[0] == 0.0 and t[-1] == 3.0  # the ticks nobody watched are on the charts
+    assert dashboard.monitor._hist[0][0] == 0.0  # and in the monitor's strip
