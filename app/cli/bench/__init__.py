@@ -85,8 +85,8 @@ def cmd_soak(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.latency is not None:  # as `run` does by default, then as `run --realtime`
-        bench_latency(args.latency)
-        bench_latency(args.latency, realtime=True)
+        bench_latency(args.latency, page_process=True)  # the page in its own process, as `run` serves it
+        bench_latency(args.latency, realtime=True, page_process=True)
     elif args.long_recording is not None:
         bench_long_recording(args.long_recording)
     else:
