@@ -74,7 +74,8 @@ def test_lost_replies_and_crc_errors_are_counted_per_follower():
         assert "lost" in link.detail()
 
         # every command written is answered, late, lost or still pending: the counts add up
-        assert sent == sum(s.answered + s.late + s.lost for s in link.stats) + link.pending
+        sent_now, settled, pending = link.tally()
+        assert sent_now == sent == settled + pending
 
         def answered() -> bool:  # the loop keeps sending at 30 Hz; replies come back after the pause
             link.send(Commands.zeros(3))
