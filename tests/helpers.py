@@ -469,27 +469,25 @@ class RawPage:
     def wait_for(self, text: str, timeout: float = 60.0) -> bool:
         return any(text in str(msg) for msg in self.messages(timeout))
 
-    def click(self, label: str) -> None:
+    def send(self, message: dict[str, Any]) -> None:
+        """Any message, as viser's wire carries it (what a page would send, or not)."""
         import msgspec
 
+        self.ws.send(msgspec.msgpack.encode(message))
+
+    def click(self, label: str) -> None:
         self.send_camera()
-        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.buttons[label],
-                                            "updates": {"value": True}}))
+        self.send({"type": "GuiUpdateMessage", "uuid": self.buttons[label], "updates": {"value": True}})
 
     def send_camera(self) -> None:
-        import msgspec
-
         camera = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0],
                   "fov": 1.0, "near": 0.01, "far": 100.0, "image_height": 720, "image_width": 1280,
                   "look_at": [0.0, 0.0, 0.0], "up_direction": [0.0, 0.0, 1.0]}
-        self.ws.send(msgspec.msgpack.encode(camera))  # a page sends its camera first
+        self.send(camera)  # a page sends its camera first
 
     def set(self, label: str, value: Any) -> None:
         """A control's new value, as a browser sends it."""
-        import msgspec
-
-        self.ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": self.controls[label],
-                                            "updates": {"value": value}}))
+        self.send({"type": "GuiUpdateMessage", "uuid": self.controls[label], "updates": {"value": value}})
 
     def close(self) -> None:
         self.ws.close()

@@ -169,14 +169,18 @@ class SerialLink:
     @property
     def pending(self) -> int:
         with self._lock:
-            return sum(1 for key in self._pending if key[2] in MOTION)
+            return self._motion_pending()
 
     def tally(self) -> tuple[int, int, int]:
         """(sent, answered + late + lost, pending) at one moment: ``sent`` is always the other two's
         sum. Read one by one, the reader's thread may settle a frame in between (a loaded machine)."""
         with self._lock:
             return (sum(s.sent for s in self.stats), sum(s.answered + s.late + s.lost for s in self.stats),
-                    sum(1 for key in self._pending if key[2] in MOTION))
+                    self._motion_pending())
+
+    def _motion_pending(self) -> int:
+        """Motion frames written and not yet settled (the lock held)."""
+        return sum(1 for key in self._pending if key[2] in MOTION)
 
     def quality(self) -> list[str]:
         """Per follower: "" when it answers well, else why not ("silent 1.2 s", "37 % lost")."""

@@ -88,8 +88,7 @@ class Dashboard:
         team), none of the drawing. A page that connects is drawn whole by the next tick: every
         part's redraw is due by then. Measured: an arena leader's page, no browser, took 3.1 % of
         a CPU drawing for nobody."""
-        if not self.controls.replay:
-            self.controls.health.check(state)
+        self.controls.judge(state)
         self.plots.add(state)
         self.monitor.add(state)
         if self.tuning is not None:

@@ -336,11 +336,16 @@ class Controls:
         if notices:
             self.notice = "; ".join(n.message for n in notices)
 
+    def judge(self, s: TickState) -> None:
+        """The health rules on a live tick (a replay's ticks are history: not judged again)."""
+        if not self.replay:
+            self.health.check(s)
+
     def update_status(self, s: TickState) -> None:
         self._tracked = [bool(t) for t in s.tracked]
         self._names = [s.name(i) for i in range(s.n)]
+        self.judge(s)
         if not self.replay:
-            self.health.check(s)
             alarms = self.health.alarms
             text = "**ALARM** · " + " · ".join(as_text(a) for a in alarms)
             if alarms and text != self.alarm.content:

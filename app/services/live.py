@@ -41,7 +41,6 @@ from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
 from app.live.warmup import warm_up
-
 from app.memory import bound_native_heap, bound_python_heap
 from app.realtime import CpuReservation
 from app.recording.reader import check_ticks, read_recording

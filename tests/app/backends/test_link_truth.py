@@ -157,7 +157,6 @@ def test_late_replies_are_late_not_answered_and_the_counts_add_up():
         for _ in range(20):
             link.send(Commands(np.full(2, 0.1), np.zeros(2)))
             time.sleep(0.1)
-            s = link.stats
             sent, settled, pending = link.tally()  # at one moment
             assert sent == settled + pending
         time.sleep(1.0)

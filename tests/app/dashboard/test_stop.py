@@ -9,7 +9,6 @@ and the loop, its store and its recording here."""
 from __future__ import annotations
 
 import dataclasses
-import msgspec
 import numpy as np
 import pytest
 
@@ -136,10 +135,6 @@ def test_stop_stays_in_view_and_stops_the_leader_tick_by_tick_in_the_recording(p
     assert [e["detail"] for e in rec.events if e["kind"] == "stop_by"] == ["STOP pressed by operator 127.0.0.1"]
 
 
-def _raw(conn, message: dict) -> None:
-    conn.send(msgspec.msgpack.encode(message))
-
-
 def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(page_process_service):
     """A client that reads the page's controls off the wire, as any browser can, and sends what no
     page sends: nothing changes what STOP does, nor any value beyond its bounds."""
@@ -152,14 +147,14 @@ def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(pa
     try:
         ids = client.uuids({"STOP", "Trial #", *gains.values()})
         stop_uuid = ids["STOP"]
-        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"update_cb": []}})
-        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"disabled": True, "visible": False}})
-        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"label": "go", "value": True}})
-        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": ids["Trial #"], "updates": {"value": 2**64 - 1}})
-        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": ids[gains["k_w1"]], "updates": {"value": 50.0}})
-        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": ids[gains["k_f1"]], "updates": {"value": "0.2"}})
-        _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": ids[gains["a"]], "updates": {"value": 5e-324}})
-        _raw(client.ws, {"type": "ShareUrlRequest"})
+        client.send({"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"update_cb": []}})
+        client.send({"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"disabled": True, "visible": False}})
+        client.send({"type": "GuiUpdateMessage", "uuid": stop_uuid, "updates": {"label": "go", "value": True}})
+        client.send({"type": "GuiUpdateMessage", "uuid": ids["Trial #"], "updates": {"value": 2**64 - 1}})
+        client.send({"type": "GuiUpdateMessage", "uuid": ids[gains["k_w1"]], "updates": {"value": 50.0}})
+        client.send({"type": "GuiUpdateMessage", "uuid": ids[gains["k_f1"]], "updates": {"value": "0.2"}})
+        client.send({"type": "GuiUpdateMessage", "uuid": ids[gains["a"]], "updates": {"value": 5e-324}})
+        client.send({"type": "ShareUrlRequest"})
         client.ws.send(b"\xc1 not msgpack")
         client.set(gains["k_f1"], 0.12)  # a change any page may make, handled after all of the above
         wait_for(lambda: service.store.get().gains.k_f1 == 0.12, 10, "the client's valid change")
@@ -228,7 +223,7 @@ def test_a_viewer_watches_and_may_stop_but_changes_nothing_else(page_process_ser
         try:
             if not at_once:
                 release = client.uuids({"Release STOP"})["Release STOP"]
-            _raw(client.ws, {"type": "GuiUpdateMessage", "uuid": release, "updates": {"value": True}})
+            client.send({"type": "GuiUpdateMessage", "uuid": release, "updates": {"value": True}})
             assert any(m["props"]["title"] == "Refused" and "Release STOP" in m["props"]["body"]
                        for m in client.messages(30.0) if m.get("type") == "NotificationShowMessage"), \
                 f"the gate's refusal, told to that client ({'at once' if at_once else 'after the controls'})"
