@@ -51,7 +51,7 @@ class HardwareTeam:
         """How long a command takes to reach a follower: half the link's mean round trip (0 with
         no link, or before any answer)."""
         rtts = [s.rtt_mean_ms for s in getattr(self.link, "stats", []) if math.isfinite(s.rtt_mean_ms)]
-        return float(np.mean(rtts)) / 2e3 if rtts else 0.0
+        return sum(rtts) / len(rtts) / 2e3 if rtts else 0.0  # on the frame's way: no numpy call
 
     def link_detail(self) -> str:
         parts = [x.detail() for x in (self.link, self.leader_link) if x is not None]

@@ -25,7 +25,7 @@ from core.control.formation import ControlOutput
 from core.control.navigation import NavOutput, NavSettings, goal_in_leader_frame, navigate
 from core.control.prediction import predict_poses
 from core.control.safety import SafetyResult, SafetySettings, team_min_distance
-from core.control.step import TeamMemory, due, keep_out_m, team_step
+from core.control.step import TeamMemory, TeamStep, due, keep_out_m, step_limits, team_step
 from core.control.tuning import RATE_WINDOW_S, lyapunov_rate
 from core.config import MeasurementNoise
 from core.obstacles import Obstacle
@@ -351,12 +351,6 @@ class ServiceLoop:
         out, flags, safety, p, a = self._commands(params, obs, p, a, tracked, answering, known, motion, advance)
         world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
         self._sent.append((world.last_cmd, motion))
-        if advance:  # eq. 21's V per follower, and its slope over the last RATE_WINDOW_S
-            world.v_hist.append((self.t, out.v_lyap))
-            while world.v_hist and world.v_hist[0][0] < self.t - RATE_WINDOW_S:
-                world.v_hist.popleft()
-        v_rate = lyapunov_rate([h[0] for h in world.v_hist], [h[1] for h in world.v_hist]) \
-            if len(world.v_hist) >= 2 else np.zeros(len(a))
         t2 = time.perf_counter()
         stage["control"] = (t2 - t1) * 1e3
 
@@ -364,6 +358,16 @@ class ServiceLoop:
         sent_at = time.monotonic()
         t3 = time.perf_counter()
         stage["link"] = (t3 - t2) * 1e3
+        # what only the page needs, once the commands are on their way: the limits that bound
+        # them, and eq. 21's V per follower with its slope over the last RATE_WINDOW_S
+        if isinstance(flags, TeamStep):
+            flags = step_limits(flags, params.gains)
+        if advance:
+            world.v_hist.append((self.t, out.v_lyap))
+            while world.v_hist and world.v_hist[0][0] < self.t - RATE_WINDOW_S:
+                world.v_hist.popleft()
+        v_rate = lyapunov_rate([h[0] for h in world.v_hist], [h[1] for h in world.v_hist]) \
+            if len(world.v_hist) >= 2 else np.zeros(len(a))
         scan = world.feedback.scan_after()  # after the commands: off the frame's way to the robots
         if scan is not None:
             stage["scan"] = (time.perf_counter() - t3) * 1e3
@@ -402,13 +406,15 @@ class ServiceLoop:
 
     def _commands(self, params: Params, obs: Observation, p: FloatArray, a: FloatArray, tracked: BoolArray,
                   answering: BoolArray, known: FloatArray, twist: tuple[float, float], advance: bool,
-                  ) -> tuple[ControlOutput, IntArray, SafetyResult | None, FloatArray, FloatArray]:
+                  ) -> tuple[ControlOutput, IntArray | TeamStep, SafetyResult | None, FloatArray, FloatArray]:
         """This tick's commands: the start-up's manoeuvres, or the team's control step
         (core.control.step); zero for a robot that does not answer. Also where each follower
-        is taken to be (predicted over a real rig's latency)."""
+        is taken to be (predicted over a real rig's latency). The limit flags: the step itself
+        when it took one (step_limits names them once the commands are sent)."""
         world = self._world
         settings = self._safety_settings(params) if params.safety else None
         safety = None
+        flags: IntArray | TeamStep
         if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
             if world.ready:
                 world.memory = world.memory.slots_on(p, params.slots, self._nav[1], self.dt, keep_out_m(settings),
@@ -425,9 +431,9 @@ class ServiceLoop:
             step = team_step(world.memory, p, a, tracked, params.slots, twist, params.gains, self.dt,
                              active=tracked & (not params.stop) & advance, obstacles=known, safety=settings,
                              filter_now=not params.stop, scale=self._nav[1], advance=advance and world.ready,
-                             acting=acting)
-            world.memory, out, flags, safety, world.err_norm = step.memory, step.control, step.flags, step.safety, \
-                step.err_norm
+                             acting=acting, limits=False)
+            world.memory, out, safety, world.err_norm = step.memory, step.control, step.safety, step.err_norm
+            flags = step
             if acting is not None:
                 p, a = acting
         if world.team.link_lost:  # nobody answers: no command but zero until the robots do

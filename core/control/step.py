@@ -27,7 +27,7 @@ from core.control.formation import ControlOutput, ControllerState, compute_comma
 from core.control.safety import SafetyResult, SafetySettings, filter_commands, obstacle_rows
 from core.control.targets import SlotMotion, step_slots
 from core.control.tuning import FILTER, limit_flags
-from core.types import BoolArray, FloatArray, Gains, IntArray
+from core.types import BoolArray, Commands, FloatArray, Gains, IntArray
 
 REASSIGN_MARGIN_M2 = 0.05  # eq. 33 re-solved for new slots keeps the old assignment unless this much cheaper
 KEEP_OUT_MARGIN_M = 0.2  # moving slots go round the leader at the safety distance plus this
@@ -102,6 +102,10 @@ class TeamStep:
     flags: IntArray  # (n,) limit bits (core.control.tuning), FILTER where the filter changed a command
     safety: SafetyResult | None  # None: the filter was not run
     err_norm: FloatArray  # (n,) |p_d - p|, what the next tick's navigator and pipeline see
+    nominal: Commands  # the controller's commands, before the filter (what limit_flags judges)
+    drive: BoolArray  # (n,) who may be driven this tick
+    acting: FloatArray  # (n, 2) where each follower was taken to be (the commands' p)
+    w_l: float  # the leader's turn rate this tick
 
 
 def team_step(
@@ -142,8 +146,9 @@ def team_step(
     pa, aa = acting if acting is not None else (p, a)
     drive = tracked if active is None else active
     out = compute_commands(pa, aa, p_d, v_d, twist[0], twist[1], gains, memory.controller, dt, drive)
+    nominal = out.commands
     flags = (limit_flags(pa, p_d, out.a_err, out.zeta_r, out.a_r_dot, twist[1],
-                         np.column_stack([out.commands.v, out.commands.w]), gains, drive)
+                         np.column_stack([nominal.v, nominal.w]), gains, drive)
              if limits else np.zeros(len(drive), dtype=np.int64))
     result = None
     if safety is not None and filter_now:
@@ -155,4 +160,15 @@ def team_step(
         flags = flags | np.where(result.active, FILTER, 0)
     memory = dataclasses.replace(memory, controller=out.state)
     err_norm = np.hypot(p_d[:, 0] - pa[:, 0], p_d[:, 1] - pa[:, 1])
-    return TeamStep(out, memory, np.asarray(flags), result, err_norm)
+    return TeamStep(out, memory, np.asarray(flags), result, err_norm, nominal, np.asarray(drive, dtype=bool), pa,
+                    float(twist[1]))
+
+
+def step_limits(step: TeamStep, gains: Gains) -> IntArray:
+    """The flags of a step taken with ``limits=False`` as ``limits=True`` gives them: what bound
+    each command (core.control.tuning) and where the filter changed one. Only the page needs
+    them, so the live loop asks once the step's commands are on their way."""
+    out = step.control
+    return np.asarray(step.flags | limit_flags(step.acting, step.memory.slots.p_d, out.a_err, out.zeta_r,
+                                               out.a_r_dot, step.w_l,
+                                               np.column_stack([step.nominal.v, step.nominal.w]), gains, step.drive))

@@ -169,3 +169,34 @@ def test_the_best_sweep_point_settles_fast_without_giving_up_steady_error():
     assert result.best() == 2  # 0.26 cm is within 1.5 x 0.19 + 0.05; it settles sooner than the 0.19 one
     assert result.order() == [2, 1, 0, 3, 4]  # then the slow precise one, the fast sloppy one, the unsettled, not run
     assert "steady error" in BEST_RULE
+
+
+def test_the_limits_named_after_the_send_are_the_steps_own():
+    """The live loop takes its step with limits=False and names the limits once the commands are
+    sent (core.control.step.step_limits): the very flags team_step gives with limits=True, the
+    filter's bits included, over many ticks where each limit and the filter act."""
+    from core.control.safety import SafetySettings
+    from core.control.step import TeamMemory, step_limits, team_step
+
+    rng = np.random.default_rng(4)
+    gains = Gains(v_max=0.15, w_max=0.8)
+    formation = np.array([[-0.6, -0.5], [0.6, -0.5], [0.0, -1.1]])
+    p = np.array([[-0.3, -0.5], [1.5, 0.2], [-0.12, -0.5]])  # one far (saturates), two close together
+    a = np.array([0.0, -2.0, math.pi])
+    memory = TeamMemory.start(p, formation)
+    seen = np.zeros(5, dtype=np.int64)
+    for k in range(60):
+        tracked = np.array([True, True, k % 7 != 0])
+        twist = (0.1, 0.3 * math.sin(k / 9))
+        obstacles = np.array([[-0.5, -0.5]]) if k % 2 else None  # in the way to a slot
+        kw = dict(obstacles=obstacles, safety=SafetySettings(), acting=(p + 0.01, a) if k % 3 == 0 else None)
+        full = team_step(memory, p, a, tracked, formation, twist, gains, 1 / 30, **kw)
+        later = team_step(memory, p, a, tracked, formation, twist, gains, 1 / 30, limits=False, **kw)
+        assert np.array_equal(step_limits(later, gains), full.flags)
+        assert np.array_equal(later.control.commands.v, full.control.commands.v)
+        for bit, flag in enumerate((EQ4, EQ12, V_LIMIT, W_LIMIT, FILTER)):
+            seen[bit] += int(np.any(full.flags & flag))
+        memory = full.memory
+        p = p + 0.02 * rng.standard_normal(p.shape)
+        a = a + 0.05 * rng.standard_normal(a.shape)
+    assert (seen > 0).all(), seen  # every limit and the filter acted in some tick
