@@ -4,7 +4,7 @@ Along each bearing, from the edge of the leader's body outward to the working ar
 radius (paper fig. 8), the scan finds the first pixel that is not floor and is not a tracked
 follower, and turns its image radius into a ground distance through Γ. The image is sampled
 once on a polar grid (rows: image angles, columns: radii; one ``cv2.remap`` with maps made at
-construction), so a frame costs a remap of about 100,000 pixels, a colour conversion, a
+construction), so a frame costs a remap of about 50,000 samples, two passes over them, a
 morphological opening and a few array passes.
 
 Floor. The floor is what most of the working ring shows: each frame, the median of the
@@ -87,29 +87,76 @@ class Scan:
 
 
 @kernel
-def _features(bgr: np.ndarray) -> np.ndarray:
-    """(rows, J, 3) float32 per sample: lightness (B + G + R) / 3 and two chroma axes R − G, B − G."""
+def _floor_model(bgr: np.ndarray, step: int) -> np.ndarray:
+    """The floor's colour and spread from every ``step``-th sample of the polar grid, each way:
+    (6,) the medians of lightness (B + G + R) / 3 and of the chroma axes R − G and B − G, then
+    their median absolute deviations. Exact, from counts: each feature is a whole number of
+    sixths (lightness) or halves (chroma) once doubled, so a histogram gives every median."""
     rows, cols = bgr.shape[0], bgr.shape[1]
-    out = np.empty((rows, cols, 3), np.float32)
-    for i in range(rows):
-        for j in range(cols):
-            b, g, r = float(bgr[i, j, 0]), float(bgr[i, j, 1]), float(bgr[i, j, 2])
-            out[i, j, 0] = (b + g + r) / 3.0
-            out[i, j, 1] = r - g
-            out[i, j, 2] = b - g
+    hs = np.zeros(766, np.int64)  # B + G + R
+    hr = np.zeros(511, np.int64)  # R − G + 255
+    hb = np.zeros(511, np.int64)  # B − G + 255
+    n = 0
+    for i in range(0, rows, step):
+        for j in range(0, cols, step):
+            b, g, r = np.int64(bgr[i, j, 0]), np.int64(bgr[i, j, 1]), np.int64(bgr[i, j, 2])
+            hs[b + g + r] += 1
+            hr[r - g + 255] += 1
+            hb[b - g + 255] += 1
+            n += 1
+    out = np.zeros(6)
+    if n == 0:
+        return out
+    m2 = np.zeros(3, np.int64)  # twice each median, in the feature's units (sum; difference + 255)
+    m2[0] = _twice_median(hs, n)
+    m2[1] = _twice_median(hr, n)
+    m2[2] = _twice_median(hb, n)
+    ds = np.zeros(2 * 766, np.int64)  # |2 x − 2 median|
+    dr = np.zeros(2 * 511, np.int64)
+    db = np.zeros(2 * 511, np.int64)
+    for i in range(0, rows, step):
+        for j in range(0, cols, step):
+            b, g, r = np.int64(bgr[i, j, 0]), np.int64(bgr[i, j, 1]), np.int64(bgr[i, j, 2])
+            ds[abs(2 * (b + g + r) - m2[0])] += 1
+            dr[abs(2 * (r - g + 255) - m2[1])] += 1
+            db[abs(2 * (b - g + 255) - m2[2])] += 1
+    out[0] = m2[0] / 6.0
+    out[1] = m2[1] / 2.0 - 255.0
+    out[2] = m2[2] / 2.0 - 255.0
+    out[3] = _twice_median(ds, n) / 12.0
+    out[4] = _twice_median(dr, n) / 4.0
+    out[5] = _twice_median(db, n) / 4.0
     return out
 
 
 @kernel
-def _not_floor(feats: np.ndarray, l0: float, a0: float, b0: float, light: float, chroma2: float) -> np.ndarray:
+def _twice_median(hist: np.ndarray, n: int) -> int:
+    """Twice the median of ``n`` whole numbers given as counts per value (the two middle ones
+    added when ``n`` is even)."""
+    lo = (n - 1) // 2  # the middle ranks, 0-based
+    hi = n // 2
+    seen = 0
+    a = -1
+    for v in range(hist.shape[0]):
+        seen += hist[v]
+        if a < 0 and seen > lo:
+            a = v
+        if seen > hi:
+            return a + v
+    return 2 * a
+
+
+@kernel
+def _not_floor(bgr: np.ndarray, l0: float, a0: float, b0: float, light: float, chroma2: float) -> np.ndarray:
     """uint8 (rows, J): 1 where the sample's lightness or chroma is far from the floor's."""
-    rows, cols = feats.shape[0], feats.shape[1]
+    rows, cols = bgr.shape[0], bgr.shape[1]
     out = np.zeros((rows, cols), np.uint8)
     for i in range(rows):
         for j in range(cols):
-            da = feats[i, j, 1] - a0
-            db = feats[i, j, 2] - b0
-            if abs(feats[i, j, 0] - l0) > light or da * da + db * db > chroma2:
+            b, g, r = float(bgr[i, j, 0]), float(bgr[i, j, 1]), float(bgr[i, j, 2])
+            da = r - g - a0
+            db = b - g - b0
+            if abs((b + g + r) / 3.0 - l0) > light or da * da + db * db > chroma2:
                 out[i, j] = 1
     return out
 
@@ -211,13 +258,11 @@ class FreeSpaceScanner:
         s = self.settings
         rows_, cols_, map_x, map_y = self._crop(tuple(frame.shape))
         polar = cv2.remap(np.asarray(frame[rows_, cols_]), map_x, map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
-        feats = _features(polar)
-        sample = feats[::4, ::4].reshape(-1, 3)
-        med = np.median(sample, axis=0)
-        spread = np.median(np.abs(sample - med), axis=0) * 1.4826
+        model = _floor_model(polar, 4)  # the floor's colour: medians; its spread: their MADs
+        spread = model[3:] * 1.4826
         sl = max(s.min_lightness, s.lightness_k * float(spread[0]))
         sc = max(s.min_chroma, s.chroma_k * float(spread[1] + spread[2]))
-        not_floor_u8 = _not_floor(feats, float(med[0]), float(med[1]), float(med[2]), sl, sc * sc)
+        not_floor_u8 = _not_floor(polar, float(model[0]), float(model[1]), float(model[2]), sl, sc * sc)
         # thin lines (tile grout along a ray) and single pixels are not obstacles: an opening
         # three samples wide in angle and in radius removes them
         opened = cv2.morphologyEx(not_floor_u8, cv2.MORPH_OPEN, self._kernel)

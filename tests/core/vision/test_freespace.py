@@ -148,3 +148,30 @@ def test_the_scan_looks_only_at_the_ring_and_sees_what_the_whole_frame_shows(rig
         full = cv2.remap(img, scanner.map_x, scanner.map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
         rows, cols, map_x, map_y = scanner._crop(img.shape)
         assert np.array_equal(cv2.remap(img[rows, cols], map_x, map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0)), full)
+
+
+def test_the_floor_model_is_the_medians_and_mads_numpy_gives():
+    """The floor's colour and spread come from counts (core.vision.freespace._floor_model): the
+    very medians and median absolute deviations of the sampled features that numpy computes, on
+    random images, a near-uniform floor, a single colour and every sampling step."""
+    from core.vision.freespace import _floor_model
+
+    rng = np.random.default_rng(7)
+    for trial in range(120):
+        h, w = (int(v) for v in rng.integers(1, 50, 2))
+        kind = trial % 3
+        if kind == 0:
+            img = rng.integers(0, 256, (h, w, 3))
+        elif kind == 1:
+            img = np.clip(rng.normal(120, 8, (h, w, 3)), 0, 255)
+        else:
+            img = np.full((h, w, 3), rng.integers(0, 256, 3))
+        img = img.astype(np.uint8)
+        step = int(rng.integers(1, 5))
+        x = img[::step, ::step].reshape(-1, 3).astype(np.float64)
+        feats = np.column_stack([(x[:, 0] + x[:, 1] + x[:, 2]) / 3, x[:, 2] - x[:, 1], x[:, 0] - x[:, 1]])
+        med = np.median(feats, axis=0)
+        mad = np.median(np.abs(feats - med), axis=0)
+        got = _floor_model(img, step)
+        np.testing.assert_allclose(got[:3], med, atol=1e-9)
+        np.testing.assert_allclose(got[3:], mad, atol=1e-9)
