@@ -90,8 +90,9 @@ class Scan:
 def _floor_model(bgr: np.ndarray, step: int) -> np.ndarray:
     """The floor's colour and spread from every ``step``-th sample of the polar grid, each way:
     (6,) the medians of lightness (B + G + R) / 3 and of the chroma axes R − G and B − G, then
-    their median absolute deviations. Exact, from counts: each feature is a whole number of
-    sixths (lightness) or halves (chroma) once doubled, so a histogram gives every median."""
+    their median absolute deviations. Exact, from counts: every feature, and every median and
+    deviation of them, is a whole number of sixths (lightness) or halves (chroma), so histograms
+    of whole numbers give them all without sorting."""
     rows, cols = bgr.shape[0], bgr.shape[1]
     hs = np.zeros(766, np.int64)  # B + G + R
     hr = np.zeros(511, np.int64)  # R − G + 255
