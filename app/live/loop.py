@@ -32,7 +32,7 @@ from core.obstacles import Obstacle
 from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
 from core.vision.pipeline import PipelineSettings
-from core.types import BoolArray, Commands, FloatArray, IntArray
+from core.types import BoolArray, Commands, FloatArray
 
 from app.backends.hardware import HardwareTeam
 from app.backends.arena import ArenaTeam
@@ -348,7 +348,7 @@ class ServiceLoop:
         if source != self.leader_motion[1] and "odometry" in (source, self.leader_motion[1]):  # it came, or went stale
             (log.info if source == "odometry" else log.warning)("loop: eq. 5 compensates the leader's %s", source)
         self.leader_motion = (motion, source)
-        out, flags, safety, p, a = self._commands(params, obs, p, a, tracked, answering, known, motion, advance)
+        out, step, safety, p, a = self._commands(params, obs, p, a, tracked, answering, known, motion, advance)
         world.last_cmd = np.column_stack([out.commands.v, out.commands.w])
         self._sent.append((world.last_cmd, motion))
         t2 = time.perf_counter()
@@ -360,8 +360,8 @@ class ServiceLoop:
         stage["link"] = (t3 - t2) * 1e3
         # what only the page needs, once the commands are on their way: the limits that bound
         # them, and eq. 21's V per follower with its slope over the last RATE_WINDOW_S
-        if isinstance(flags, TeamStep):
-            flags = step_limits(flags, params.gains)
+        flags = step_limits(step, params.gains) if step is not None \
+            else np.zeros(params.n_followers, dtype=np.int64)
         if advance:
             world.v_hist.append((self.t, out.v_lyap))
             while world.v_hist and world.v_hist[0][0] < self.t - RATE_WINDOW_S:
@@ -406,15 +406,15 @@ class ServiceLoop:
 
     def _commands(self, params: Params, obs: Observation, p: FloatArray, a: FloatArray, tracked: BoolArray,
                   answering: BoolArray, known: FloatArray, twist: tuple[float, float], advance: bool,
-                  ) -> tuple[ControlOutput, IntArray | TeamStep, SafetyResult | None, FloatArray, FloatArray]:
+                  ) -> tuple[ControlOutput, TeamStep | None, SafetyResult | None, FloatArray, FloatArray]:
         """This tick's commands: the start-up's manoeuvres, or the team's control step
         (core.control.step); zero for a robot that does not answer. Also where each follower
-        is taken to be (predicted over a real rig's latency). The limit flags: the step itself
-        when it took one (step_limits names them once the commands are sent)."""
+        is taken to be (predicted over a real rig's latency). The control step, when one was taken
+        (None during the start-up): step_limits names its limit flags once the commands are sent."""
         world = self._world
         settings = self._safety_settings(params) if params.safety else None
         safety = None
-        flags: IntArray | TeamStep
+        step: TeamStep | None = None
         if obs.manoeuvre is not None:  # start-up (paper §3.1-3.2): the pipeline drives, the leader waits
             if world.ready:
                 world.memory = world.memory.slots_on(p, params.slots, self._nav[1], self.dt, keep_out_m(settings),
@@ -422,7 +422,6 @@ class ServiceLoop:
             move = advance and not params.stop
             manoeuvre = obs.manoeuvre * answering[:, None] if move else np.zeros((params.n_followers, 2))
             out = ControlOutput.idle(manoeuvre)
-            flags = np.zeros(params.n_followers, dtype=np.int64)
             world.err_norm = np.linalg.norm(world.memory.slots.p_d - p, axis=1)
         else:
             acting = None
@@ -433,7 +432,6 @@ class ServiceLoop:
                              filter_now=not params.stop, scale=self._nav[1], advance=advance and world.ready,
                              acting=acting, limits=False)
             world.memory, out, safety, world.err_norm = step.memory, step.control, step.safety, step.err_norm
-            flags = step
             if acting is not None:
                 p, a = acting
         if world.team.link_lost:  # nobody answers: no command but zero until the robots do
@@ -442,7 +440,7 @@ class ServiceLoop:
         elif not answering.all():  # and a robot that does not answer gets zero until it does
             out = dataclasses.replace(out, commands=Commands(np.where(answering, out.commands.v, 0.0),
                                                              np.where(answering, out.commands.w, 0.0)))
-        return out, flags, safety, p, a
+        return out, step, safety, p, a
 
     def _publish(self, state: TickState) -> None:
         """Every subscriber sees the tick; one that fails is logged and the loop goes on."""

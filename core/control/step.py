@@ -147,9 +147,7 @@ def team_step(
     drive = tracked if active is None else active
     out = compute_commands(pa, aa, p_d, v_d, twist[0], twist[1], gains, memory.controller, dt, drive)
     nominal = out.commands
-    flags = (limit_flags(pa, p_d, out.a_err, out.zeta_r, out.a_r_dot, twist[1],
-                         np.column_stack([nominal.v, nominal.w]), gains, drive)
-             if limits else np.zeros(len(drive), dtype=np.int64))
+    flags = np.zeros(len(drive), dtype=np.int64)  # the filter's bits; the limits' by step_limits
     result = None
     if safety is not None and filter_now:
         pts = obstacles if obstacles is not None else np.zeros((0, 2))
@@ -160,14 +158,15 @@ def team_step(
         flags = flags | np.where(result.active, FILTER, 0)
     memory = dataclasses.replace(memory, controller=out.state)
     err_norm = np.hypot(p_d[:, 0] - pa[:, 0], p_d[:, 1] - pa[:, 1])
-    return TeamStep(out, memory, np.asarray(flags), result, err_norm, nominal, np.asarray(drive, dtype=bool), pa,
+    step = TeamStep(out, memory, np.asarray(flags), result, err_norm, nominal, np.asarray(drive, dtype=bool), pa,
                     float(twist[1]))
+    return dataclasses.replace(step, flags=step_limits(step, gains)) if limits else step
 
 
 def step_limits(step: TeamStep, gains: Gains) -> IntArray:
-    """The flags of a step taken with ``limits=False`` as ``limits=True`` gives them: what bound
-    each command (core.control.tuning) and where the filter changed one. Only the page needs
-    them, so the live loop asks once the step's commands are on their way."""
+    """The flags of a step taken with ``limits=False`` as ``limits=True`` gives them (team_step
+    asks this too): what bound each command (core.control.tuning) and where the filter changed
+    one. Only the page needs them, so the live loop asks once the step's commands are on their way."""
     out = step.control
     return np.asarray(step.flags | limit_flags(step.acting, step.memory.slots.p_d, out.a_err, out.zeta_r,
                                                out.a_r_dot, step.w_l,
