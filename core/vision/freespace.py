@@ -94,39 +94,33 @@ def _floor_model(bgr: np.ndarray, step: int) -> np.ndarray:
     deviation of them, is a whole number of sixths (lightness) or halves (chroma), so histograms
     of whole numbers give them all without sorting."""
     rows, cols = bgr.shape[0], bgr.shape[1]
-    hs = np.zeros(766, np.int64)  # B + G + R
-    hr = np.zeros(511, np.int64)  # R − G + 255
-    hb = np.zeros(511, np.int64)  # B − G + 255
-    n = 0
-    for i in range(0, rows, step):
-        for j in range(0, cols, step):
-            b, g, r = np.int64(bgr[i, j, 0]), np.int64(bgr[i, j, 1]), np.int64(bgr[i, j, 2])
-            hs[b + g + r] += 1
-            hr[r - g + 255] += 1
-            hb[b - g + 255] += 1
-            n += 1
+    ys = range(0, rows, step)
+    xs = range(0, cols, step)
+    n = len(ys) * len(xs)
     out = np.zeros(6)
     if n == 0:
         return out
-    m2 = np.zeros(3, np.int64)  # twice each median, in the feature's units (sum; difference + 255)
-    m2[0] = _twice_median(hs, n)
-    m2[1] = _twice_median(hr, n)
-    m2[2] = _twice_median(hb, n)
-    ds = np.zeros(2 * 766, np.int64)  # |2 x − 2 median|
-    dr = np.zeros(2 * 511, np.int64)
-    db = np.zeros(2 * 511, np.int64)
-    for i in range(0, rows, step):
-        for j in range(0, cols, step):
+    whole = np.empty((3, n), np.int64)  # per feature, the whole number counted: B + G + R, R − G + 255, B − G + 255
+    k = 0
+    for i in ys:
+        for j in xs:
             b, g, r = np.int64(bgr[i, j, 0]), np.int64(bgr[i, j, 1]), np.int64(bgr[i, j, 2])
-            ds[abs(2 * (b + g + r) - m2[0])] += 1
-            dr[abs(2 * (r - g + 255) - m2[1])] += 1
-            db[abs(2 * (b - g + 255) - m2[2])] += 1
-    out[0] = m2[0] / 6.0
-    out[1] = m2[1] / 2.0 - 255.0
-    out[2] = m2[2] / 2.0 - 255.0
-    out[3] = _twice_median(ds, n) / 12.0
-    out[4] = _twice_median(dr, n) / 4.0
-    out[5] = _twice_median(db, n) / 4.0
+            whole[0, k] = b + g + r
+            whole[1, k] = r - g + 255
+            whole[2, k] = b - g + 255
+            k += 1
+    scale = (3.0, 1.0, 1.0)  # lightness is the sum / 3
+    offset = (0.0, 255.0, 255.0)
+    for f in range(3):
+        hist = np.zeros(766, np.int64)
+        for v in whole[f]:
+            hist[v] += 1
+        m2 = _twice_median(hist, n)  # twice the median, in whole numbers
+        dev = np.zeros(2 * 766, np.int64)  # |2 x − 2 median|
+        for v in whole[f]:
+            dev[abs(2 * v - m2)] += 1
+        out[f] = m2 / (2.0 * scale[f]) - offset[f]
+        out[3 + f] = _twice_median(dev, n) / (4.0 * scale[f])
     return out
 
 
