@@ -97,14 +97,18 @@ def bench_arena_tick(leaders: int, followers: int, ticks: int = 300) -> float:
     return float(np.median(times[20:]) * 1e3)
 
 
-def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0,
+FLEET_TEAMS = 8  # teams of 3 per fleet in the bench (a fleet's hues, 12 degrees apart, hold 10 at most)
+
+
+def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
                            extra: tuple[str, ...] = ()) -> tuple[int, list[float]]:
-    """Start an arena for ``max_processes`` teams of 3 (side by side, every robot in its
-    fleet-wide hue), then leader processes one more at a time (`run --arena`, each rendering
-    its camera from the arena with the other teams in view, the vision pipeline in the loop,
-    its page served, no browser) and read every one's loop rate from the bus; how many run at
-    once with every loop within 1 % of 30 Hz, and the slowest rate at each count. The arena
-    steps every team, joined or not, all along. ``extra``: more `run` arguments (``--one-process``:
+    """Start arenas for ``max_processes`` teams of 3 (side by side, every robot in its fleet-wide
+    hue; fleets of FLEET_TEAMS teams, each its own arena on its own loopback bus, as two fleets on
+    one machine are), then leader processes one more at a time, the fleets in turn (`run --arena`,
+    each rendering its camera from its arena with the other teams in view, the vision pipeline in
+    the loop, its page served, no browser) and read every one's loop rate from the buses; how many
+    run at once with every loop within 1 % of 30 Hz, and the slowest rate at each count. The arenas
+    step every team, joined or not, all along. ``extra``: more `run` arguments (``--one-process``:
     each leader's page in its loop's process, as `run` was before its loop had a process of its own)."""
     import subprocess
     import sys
@@ -114,33 +118,40 @@ def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0,
     from pathlib import Path
 
     from app.fleet.bridge import loopback_endpoint, open_session
+    from app.keys import root
 
-    endpoint = loopback_endpoint()
+    n_fleets = -(-max_processes // FLEET_TEAMS)
     tmp = tempfile.TemporaryDirectory(prefix="omniformation-bench-")
-    fleet = Path(tmp.name) / "bench_fleet.toml"
-    fleet.write_text('name = "bench"\nrate_hz = 30\n' + "".join(
-        f'[[leaders]]\nid = "L{k + 1}"\nstart = [{2.2 * k:.1f}, 0.0]\nheading_deg = 90\nfollowers = 3\n'
-        f'mode = "straight"\nspeed_mps = 0.03\n' for k in range(max_processes)))
-    session = open_session([], [endpoint])
+    fleets: list[tuple[Path, str]] = []  # (fleet file, its bus)
+    for f in range(n_fleets):
+        teams = -(-max_processes // n_fleets)
+        fleets.append((Path(tmp.name) / f"bench{f}.toml", loopback_endpoint()))
+        fleets[-1][0].write_text(f'name = "bench{f}"\nrate_hz = 30\n' + "".join(
+            f'[[leaders]]\nid = "L{k + 1}"\nstart = [{2.2 * k:.1f}, 0.0]\nheading_deg = 90\nfollowers = 3\n'
+            f'mode = "straight"\nspeed_mps = 0.03\n' for k in range(teams)))
+    session = open_session([], [bus for _, bus in fleets])
     rates: dict[str, list[tuple[float, float]]] = {}
     lock = threading.Lock()
 
     def on_state(sample: Any) -> None:
         msg = json.loads(sample.payload.to_bytes())
+        who = f"{str(sample.key_expr).split('/')[1]}/{msg['leader_id']}"  # its fleet's and its own name
         with lock:
-            rates.setdefault(msg["leader_id"], []).append((_time.monotonic(), float(msg.get("rate_hz") or 0.0)))
+            rates.setdefault(who, []).append((_time.monotonic(), float(msg.get("rate_hz") or 0.0)))
 
-    sub = session.declare_subscriber("omniformation/bench/leader/*/state", on_state)
-    arena = subprocess.Popen([sys.executable, "-m", "app.cli", "arena", str(fleet), "--zenoh-listen", endpoint,
-                              "--status-every", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    sub = session.declare_subscriber(f"{root('*')}/leader/*/state", on_state)
+    arenas = [subprocess.Popen([sys.executable, "-m", "app.cli", "arena", str(path), "--zenoh-listen", bus,
+                                "--status-every", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+              for path, bus in fleets]
     procs: list[subprocess.Popen[bytes]] = []
     slowest: list[float] = []
     held = 0
     try:
         for k in range(1, max_processes + 1):
+            path, bus = fleets[(k - 1) % n_fleets]
             procs.append(subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record",
-                                           "--arena", str(fleet), "--leader-id", f"L{k}", "--feedback", "vision",
-                                           "--zenoh-connect", endpoint, *extra],
+                                           "--arena", str(path), "--leader-id", f"L{(k - 1) // n_fleets + 1}",
+                                           "--feedback", "vision", "--zenoh-connect", bus, *extra],
                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             deadline = _time.monotonic() + 120
             while _time.monotonic() < deadline:  # every leader past its start-up (compiling, first frames)
@@ -160,7 +171,7 @@ def bench_leader_processes(max_processes: int = 8, seconds: float = 12.0,
             held = k
     finally:
         interrupt(*procs)
-        interrupt(arena)
+        interrupt(*arenas)
         sub.undeclare()
         session.close()
         tmp.cleanup()
@@ -188,7 +199,7 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     for name, extra in (("before (run --one-process)", ("--one-process",)), ("run now (the loop's own process)", ())):
         held, slowest = bench_leader_processes(extra=extra)
         results["leader_processes_at_30hz" + ("_one_process" if extra else "")] = held
-        print_fn(f"fleet: leader processes of 3 followers in one arena (vision in the loop, each camera rendered from"
-                 f" the arena), {name}: this machine holds {held} at 30 Hz (within 1 %); slowest loop with"
+        print_fn(f"fleet: leader processes of 3 followers (vision in the loop, each camera rendered from its arena;"
+                 f" fleets of {FLEET_TEAMS}, each its own arena and bus), {name}: this machine holds {held} at 30 Hz (within 1 %); slowest loop with"
                  f" 1..{len(slowest)} running: {', '.join(f'{r:.2f}' for r in slowest)} Hz")
     return results
