@@ -122,13 +122,14 @@ def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
 
     n_fleets = -(-max_processes // FLEET_TEAMS)
     tmp = tempfile.TemporaryDirectory(prefix="omniformation-bench-")
+    teams = -(-max_processes // n_fleets)  # per fleet: the leaders spread evenly
+    leaders = "".join(f'[[leaders]]\nid = "L{k + 1}"\nstart = [{2.2 * k:.1f}, 0.0]\nheading_deg = 90\nfollowers = 3\n'
+                      f'mode = "straight"\nspeed_mps = 0.03\n' for k in range(teams))
     fleets: list[tuple[Path, str]] = []  # (fleet file, its bus)
     for f in range(n_fleets):
-        teams = -(-max_processes // n_fleets)
-        fleets.append((Path(tmp.name) / f"bench{f}.toml", loopback_endpoint()))
-        fleets[-1][0].write_text(f'name = "bench{f}"\nrate_hz = 30\n' + "".join(
-            f'[[leaders]]\nid = "L{k + 1}"\nstart = [{2.2 * k:.1f}, 0.0]\nheading_deg = 90\nfollowers = 3\n'
-            f'mode = "straight"\nspeed_mps = 0.03\n' for k in range(teams)))
+        path = Path(tmp.name) / f"bench{f}.toml"
+        path.write_text(f'name = "bench{f}"\nrate_hz = 30\n' + leaders)
+        fleets.append((path, loopback_endpoint()))
     session = open_session([], [bus for _, bus in fleets])
     rates: dict[str, list[tuple[float, float]]] = {}
     lock = threading.Lock()
