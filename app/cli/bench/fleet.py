@@ -97,7 +97,18 @@ def bench_arena_tick(leaders: int, followers: int, ticks: int = 300) -> float:
     return float(np.median(times[20:]) * 1e3)
 
 
-FLEET_TEAMS = 8  # teams of 3 per fleet in the bench (a fleet's hues, 12 degrees apart, hold 10 at most)
+# teams of 3 per fleet in the bench: every robot of a fleet wears its own hue, at least
+# MIN_HUE_SEPARATION_DEG (core.camera.config) from the next, so a fleet holds 360 / that / 3 teams at most
+# (tests/app/cli/test_bench_fleet.py parses bench_fleet_file(FLEET_TEAMS) as `arena` does)
+FLEET_TEAMS = 8
+
+
+def bench_fleet_file(teams: int, name: str = "bench") -> str:
+    """The fleet file of the leader bench: ``teams`` leaders of 3 followers side by side, 2.2 m
+    apart, driving straight on slowly (every robot's hue spread fleet-wide by core.fleet)."""
+    leaders = "".join(f'[[leaders]]\nid = "L{k + 1}"\nstart = [{2.2 * k:.1f}, 0.0]\nheading_deg = 90\nfollowers = 3\n'
+                      f'mode = "straight"\nspeed_mps = 0.03\n' for k in range(teams))
+    return f'name = "{name}"\nrate_hz = 30\n' + leaders
 
 
 def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
@@ -123,12 +134,10 @@ def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
     n_fleets = -(-max_processes // FLEET_TEAMS)
     tmp = tempfile.TemporaryDirectory(prefix="omniformation-bench-")
     teams = -(-max_processes // n_fleets)  # per fleet: the leaders spread evenly
-    leaders = "".join(f'[[leaders]]\nid = "L{k + 1}"\nstart = [{2.2 * k:.1f}, 0.0]\nheading_deg = 90\nfollowers = 3\n'
-                      f'mode = "straight"\nspeed_mps = 0.03\n' for k in range(teams))
     fleets: list[tuple[Path, str]] = []  # (fleet file, its bus)
     for f in range(n_fleets):
         path = Path(tmp.name) / f"bench{f}.toml"
-        path.write_text(f'name = "bench{f}"\nrate_hz = 30\n' + leaders)
+        path.write_text(bench_fleet_file(teams, f"bench{f}"))
         fleets.append((path, loopback_endpoint()))
     session = open_session([], [bus for _, bus in fleets])
     rates: dict[str, list[tuple[float, float]]] = {}
