@@ -48,6 +48,7 @@ already clamps), NaN becomes 0, and ``close`` sends STOP to every follower.
 
 from __future__ import annotations
 
+import errno
 import math
 import threading
 import time
@@ -127,7 +128,7 @@ class SerialLink:
         self._by_addr = {s.address: s for s in self.stats}
         self.parser = p.FrameParser()
         self._clock = clock
-        self._opener = opener or (lambda: serial.serial_for_url(port, baudrate=baud, timeout=0.02, write_timeout=0.05))
+        self._opener = opener or (lambda: open_port(port, baud))
         self._port: Any = None
         self._lock = threading.Lock()  # guards _port, _pending, stats
         self._pending: dict[tuple[int, int, int], float] = {}  # (address, sequence, request type) -> time written
@@ -472,8 +473,9 @@ class SerialLink:
                 try:
                     port = self._opener()
                 except Exception as exc:  # noqa: BLE001 - a missing device raises SerialException / OSError
+                    why = HELD_ELSEWHERE if getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK) else _short(exc)
                     with self._lock:
-                        self.reason = f"cannot open {self.port_name}: {_short(exc)}; retrying in {backoff:.2g} s"
+                        self.reason = f"cannot open {self.port_name}: {why}; retrying in {backoff:.2g} s"
                     self._stop.wait(backoff)
                     backoff = min(backoff * 2, BACKOFF_S[1])
                     continue
@@ -593,6 +595,18 @@ def _alive(s: FollowerLinkStats, now: float, within: float) -> bool:
 
 def _name(address: int) -> str:
     return f"F{address}" if address != p.LEADER_ADDRESS else "leader base"
+
+
+HELD_ELSEWHERE = "another program holds it (one program drives a port's robots)"
+
+
+def open_port(port: str, baud: int) -> Any:
+    """``port`` opened for this link alone: pyserial's ``exclusive`` takes an flock on the device,
+    so while this link holds it another program's open (a second service on the same dongle, a
+    link retrying a device path that now names another program's pseudo-terminal, its number
+    reused) is refused and says so (HELD_ELSEWHERE), and a robot on it is never commanded by two
+    programs. The lock ends with the port's close (or the process)."""
+    return serial.serial_for_url(port, baudrate=baud, timeout=0.02, write_timeout=0.05, exclusive=True)
 
 
 def _short(exc: BaseException) -> str:

@@ -154,6 +154,57 @@ def test_a_missing_port_never_blocks_the_loop():
         link.close()
 
 
+_SECOND_PROGRAM = """
+import json, sys, time
+import numpy as np
+from app.backends.serial_link import SerialLink
+from core.types import Commands
+link = SerialLink(sys.argv[1], 3)
+try:
+    for _ in range(45):  # 1.5 s at 30 Hz, every robot at 0.2 m/s if it could
+        link.send(Commands(np.full(3, 0.2), np.zeros(3)))
+        time.sleep(1 / 30)
+    print(json.dumps({"connects": link.connects, "state": link.link_state}))
+finally:
+    link.close()
+"""
+
+
+def test_a_port_one_link_holds_is_refused_to_a_second_program_until_the_first_lets_it_go(emulated):
+    """Two programs never drive through one port: while a link holds it, a second program's link
+    on the same path never opens it, writes nothing and says why; once the first closes, a link
+    opens it at its next try."""
+    import json
+    import subprocess
+    import sys
+
+    from app.backends.serial_link import HELD_ELSEWHERE
+
+    first = SerialLink(emulated.path, 3)
+    try:
+        wait_for(lambda: first.connects == 1, 5, "the port to open")
+        second = subprocess.Popen([sys.executable, "-c", _SECOND_PROGRAM, emulated.path], stdout=subprocess.PIPE,
+                                  text=True)
+        while second.poll() is None:
+            first.send(Commands(np.full(3, 0.1), np.zeros(3)))
+            time.sleep(1 / 30)
+        out = json.loads(second.communicate(timeout=10)[0])
+        assert out["connects"] == 0 and HELD_ELSEWHERE in out["state"], out
+        for _ in range(5):  # the robots heard the first link only, to the last frame
+            first.send(Commands(np.full(3, 0.1), np.zeros(3)))
+            time.sleep(1 / 30)
+        robots = emulated.emulator.snapshot()
+        assert all(robots[a].target_l_mps == pytest.approx(0.1) for a in (1, 2, 3))
+        assert first.answering().all() and first.connects == 1
+    finally:
+        first.close()
+    after = SerialLink(emulated.path, 3)
+    try:
+        wait_for(lambda: after.connects == 1, 5, "the port to open once the first link let it go")
+    finally:
+        after.close()
+
+
 def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated, tmp_path):
     """SIGTERM stops every robot on the wire, an older one (protocol 2, driven as the operator
     allowed) too; every recorded tick's link state says the radio was unauthenticated by choice."""
