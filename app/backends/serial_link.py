@@ -597,15 +597,15 @@ def _name(address: int) -> str:
     return f"F{address}" if address != p.LEADER_ADDRESS else "leader base"
 
 
-HELD_ELSEWHERE = "another program holds it (one program drives a port's robots)"
+HELD_ELSEWHERE = "another link holds it, in this program or another (one link drives a port's robots)"
 
 
 def open_port(port: str, baud: int) -> Any:
     """``port`` opened for this link alone: pyserial's ``exclusive`` takes an flock on the device,
-    so while this link holds it another program's open (a second service on the same dongle, a
-    link retrying a device path that now names another program's pseudo-terminal, its number
-    reused) is refused and says so (HELD_ELSEWHERE), and a robot on it is never commanded by two
-    programs. The lock ends with the port's close (or the process)."""
+    so while this link holds it any other open that asks for the lock (another link: a second
+    service on the same dongle, a link retrying a device path that now names another program's
+    pseudo-terminal, its number reused) is refused and says so (HELD_ELSEWHERE), and a robot on it
+    is never commanded by two programs. The lock ends with the port's close (or the process's end)."""
     return serial.serial_for_url(port, baudrate=baud, timeout=0.02, write_timeout=0.05, exclusive=True)
 
 

@@ -179,6 +179,9 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
         raise UserError(str(exc)) from None
     if leader_port == "" and args.leader is not None:
         raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
+    if leader_port and leader_port in link_port.split(","):
+        raise UserError(f"--leader serial:{leader_port}: the followers' link (--link) has that port, and a port is"
+                        " one link's alone: give the leader base a port of its own")
     if args.radio_id is not None and not link_port and not getattr(args, "arena_radio", ""):
         raise UserError("--radio-id goes with --link serial:PATH (the radio this leader shares with others)")
     _check_radio_key(args, bool(link_port or getattr(args, "arena_radio", "")))
