@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -179,7 +180,7 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
         raise UserError(str(exc)) from None
     if leader_port == "" and args.leader is not None:
         raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
-    if leader_port and leader_port in link_port.split(","):
+    if leader_port and os.path.realpath(leader_port) in {os.path.realpath(x) for x in link_port.split(",") if x}:
         raise UserError(f"--leader serial:{leader_port}: the followers' link (--link) has that port, and a port is"
                         " one link's alone: give the leader base a port of its own")
     if args.radio_id is not None and not link_port and not getattr(args, "arena_radio", ""):

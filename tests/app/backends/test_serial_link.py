@@ -239,6 +239,9 @@ def test_bad_link_arguments_exit_2():
                    "--leader", "serial:/dev/ttyUSB1", "--no-record")
     assert out.returncode == 2 and "the followers' link (--link) has that port" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
+    out = main_cli("run", "--port", "0", "--camera", "frames", "--link", "serial:/dev/ttyUSB0",
+                   "--leader", "serial:/dev/../dev/ttyUSB0", "--no-record")  # the same device by another name
+    assert out.returncode == 2 and "the followers' link (--link) has that port" in out.stderr
     out = main_cli("emulate-follower", "--port", "/nonexistent/tty")
     assert out.returncode == 2 and "cannot open serial port /nonexistent/tty" in out.stderr
     out = main_cli("emulate-follower", "--protocol", "2", "--radio-key", "/nonexistent/robots.json")
