@@ -14,7 +14,7 @@ from app.backends.emulator import PtyEndpoint
 from core.link import protocol as p
 from core.types import Commands
 
-from tests.helpers import EmulatorThread, plain, sealed, wait_for
+from tests.helpers import ROOT, EmulatorThread, plain, sealed, wait_for
 
 
 def test_link_spec_is_checked_in_one_line():
@@ -184,7 +184,7 @@ def test_a_port_one_link_holds_is_refused_to_a_second_program_until_the_first_le
     try:
         wait_for(lambda: first.connects == 1, 5, "the port to open")
         second = subprocess.Popen([sys.executable, "-c", _SECOND_PROGRAM, emulated.path], stdout=subprocess.PIPE,
-                                  text=True)
+                                  text=True, cwd=ROOT)
         while second.poll() is None:
             first.send(Commands(np.full(3, 0.1), np.zeros(3)))
             time.sleep(1 / 30)
