@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import errno
 import math
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -601,11 +602,9 @@ HELD_ELSEWHERE = "another link holds it, in this program or another (one link dr
 
 
 def open_port(port: str, baud: int) -> Any:
-    """``port`` opened for this link alone: pyserial's ``exclusive`` takes an flock on the device,
-    so while this link holds it any other open that asks for the lock (another link: a second
-    service on the same dongle, a link retrying a device path that now names another program's
-    pseudo-terminal, its number reused) is refused and says so (HELD_ELSEWHERE), and a robot on it
-    is never commanded by two programs. The lock ends with the port's close (or the process's end)."""
+    """``port`` for this link alone (pyserial's ``exclusive``: an flock, gone with the port's close or
+    the process): another link's open (a second service on the dongle, a retried path that names a
+    reused pseudo-terminal now) is refused (HELD_ELSEWHERE), so no robot hears two programs."""
     return serial.serial_for_url(port, baudrate=baud, timeout=0.02, write_timeout=0.05, exclusive=True)
 
 
@@ -663,6 +662,19 @@ class PortPerFollowerLink:
             link.close()
 
 
+def link_ports(port_spec: str) -> list[str]:
+    """The ports of ``--link serial:PORT[,PORT...]``; ValueError (one line) for an empty name."""
+    ports = [p_.strip() for p_ in port_spec.split(",")]
+    if any(not p_ for p_ in ports):
+        raise ValueError(f"--link serial:{port_spec}: an empty port name in the list")
+    return ports
+
+
+def same_device(a: str, b: str) -> bool:
+    """Whether two port names name one device (through a symlink, ``..``)."""
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
 def make_link(port_spec: str, n: int, baud: int = 115200, v_max: float = 0.3,
               w_max: float = 2.0, radio_id: int | None = None, radio_key: bytes | None = None,
               sender_id: int | None = None, allow_unauthenticated: bool = False,
@@ -670,10 +682,11 @@ def make_link(port_spec: str, n: int, baud: int = 115200, v_max: float = 0.3,
     """One port for the whole team, or a comma-separated list: one port per follower.
     ``radio_id``: this leader's number on a shared radio (protocol 2; one port only).
 
-    ValueError (one line) when the number of ports is neither 1 nor n."""
-    ports = [p_.strip() for p_ in port_spec.split(",")]
-    if any(not p_ for p_ in ports):
-        raise ValueError(f"--link serial:{port_spec}: an empty port name in the list")
+    ValueError (one line) when the number of ports is neither 1 nor n, or a port is named twice."""
+    ports = link_ports(port_spec)
+    for k, port in enumerate(ports):
+        if any(same_device(port, earlier) for earlier in ports[:k]):
+            raise ValueError(f"--link serial:{port_spec}: {port} is named twice (one device): one port per follower")
     if radio_id is not None and len(ports) != 1:
         raise ValueError("--radio-id: a radio is one port that every leader shares; give one (serial:PATH)")
     if len(ports) == 1:

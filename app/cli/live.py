@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -171,16 +170,17 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
         raise UserError("--link none and --leader need --camera: the simulated team has its own leader and link")
     if args.calibration is not None and not real:
         raise UserError("--calibration goes with --camera (the synthetic camera's is set in the config)")
-    from app.backends.serial_link import parse_link_spec
+    from app.backends.serial_link import link_ports, parse_link_spec, same_device
 
     try:
         link_port = "" if link_spec == "none" else parse_link_spec(link_spec)
         leader_port = parse_link_spec(args.leader) if args.leader is not None else ""
+        followers_ports = link_ports(link_port) if link_port else []
     except ValueError as exc:
         raise UserError(str(exc)) from None
     if leader_port == "" and args.leader is not None:
         raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
-    if leader_port and os.path.realpath(leader_port) in {os.path.realpath(x) for x in link_port.split(",") if x}:
+    if leader_port and any(same_device(leader_port, port) for port in followers_ports):
         raise UserError(f"--leader serial:{leader_port}: the followers' link (--link) has that port, and a port is"
                         " one link's alone: give the leader base a port of its own")
     if args.radio_id is not None and not link_port and not getattr(args, "arena_radio", ""):

@@ -229,7 +229,7 @@ def test_run_on_sigterm_stops_the_followers_on_the_wire(emulated, tmp_path):
     assert all(abs(r.measured(hw)[0]) < 1e-3 for r in emulated.emulator.snapshot().values())
 
 
-def test_bad_link_arguments_exit_2():
+def test_bad_link_arguments_exit_2(tmp_path):
     from tests.helpers import main_cli
 
     out = main_cli("run", "--port", "0", "--link", "tcp:9", "--no-record")
@@ -242,6 +242,10 @@ def test_bad_link_arguments_exit_2():
     out = main_cli("run", "--port", "0", "--camera", "frames", "--link", "serial:/dev/ttyUSB0",
                    "--leader", "serial:/dev/../dev/ttyUSB0", "--no-record")  # the same device by another name
     assert out.returncode == 2 and "the followers' link (--link) has that port" in out.stderr
+    out = main_cli("run", "--port", "0", "--camera", str(tmp_path), "--followers", "2", "--link",
+                   "serial:/dev/ttyUSB0, /dev/ttyUSB0", "--no-record")
+    assert out.returncode == 2 and "/dev/ttyUSB0 is named twice" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
     out = main_cli("emulate-follower", "--port", "/nonexistent/tty")
     assert out.returncode == 2 and "cannot open serial port /nonexistent/tty" in out.stderr
     out = main_cli("emulate-follower", "--protocol", "2", "--radio-key", "/nonexistent/robots.json")
@@ -278,6 +282,8 @@ def test_one_port_per_follower():
         robots[0].close()
     with pytest.raises(ValueError, match="3 ports for 2 followers"):
         make_link("a,b,c", 2)
+    with pytest.raises(ValueError, match="/dev/../dev/ttyUSB0 is named twice"):  # one device under two names
+        make_link("/dev/ttyUSB0,/dev/../dev/ttyUSB0", 2)
 
 
 def test_the_host_numbers_frames_per_line_and_tick_and_broadcasts_only_stop():
