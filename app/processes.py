@@ -1,9 +1,12 @@
-"""Stopping child processes as a person stops them: one helper for every command and test that starts some."""
+"""Stopping child processes as a person stops them: one helper for every command and test that starts some;
+and what a process and its children cost in CPU (the benches' figures)."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
+from collections.abc import Iterable
 
 
 def interrupt(*procs: subprocess.Popen, grace_s: float = 30.0) -> None:  # type: ignore[type-arg]
@@ -18,3 +21,50 @@ def interrupt(*procs: subprocess.Popen, grace_s: float = 30.0) -> None:  # type:
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait(10)
+
+
+def read_stat(path: str) -> tuple[int, float]:
+    """(parent pid, CPU seconds used: user and system) from a /proc stat file of a process or a
+    thread (proc(5)); OSError when it has ended."""
+    with open(path) as f:
+        fields = f.read().rsplit(")", 1)[1].split()  # after the command's name, which may hold spaces
+    try:
+        return int(fields[1]), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (IndexError, ValueError) as exc:
+        raise OSError(f"{path}: not a stat file") from exc
+
+
+def cpu_seconds(roots: Iterable[int]) -> dict[int, float]:
+    """CPU seconds (user and system, from /proc) each process of ``roots`` has used, with every
+    live process it started and theirs (a leader's page process): its children's CPU counts as
+    its own. A process that is gone (or a system without /proc) counts 0.0. What a process's
+    children used before they ended is not counted, so take the difference of two calls over a
+    window in which its children live."""
+    parent: dict[int, int] = {}
+    used: dict[int, float] = {}
+    try:
+        names = os.listdir("/proc")
+    except OSError:
+        names = []
+    for name in names:
+        if not name.isdigit():
+            continue
+        try:
+            parent[int(name)], used[int(name)] = read_stat(f"/proc/{name}/stat")
+        except OSError:
+            continue  # ended meanwhile
+    children: dict[int, list[int]] = {}
+    for pid, ppid in parent.items():
+        children.setdefault(ppid, []).append(pid)
+    out: dict[int, float] = {}
+    for root in roots:
+        total, todo, seen = 0.0, [root], set()
+        while todo:
+            pid = todo.pop()
+            if pid in seen:
+                continue
+            seen.add(pid)
+            total += used.get(pid, 0.0)
+            todo.extend(children.get(pid, ()))
+        out[root] = total
+    return out

@@ -39,11 +39,9 @@ FLOODER_ADDRESS = "127.0.0.50"  # the flooder's own loopback address (its refusa
 
 def _thread_cpu_s(native_id: int) -> float:
     """CPU seconds (user + system) one thread of this process has used."""
-    import os
+    from app.processes import read_stat
 
-    with open(f"/proc/self/task/{native_id}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return read_stat(f"/proc/self/task/{native_id}/stat")[1]
 
 
 def _frames(ws: Any, until: float) -> Any:

@@ -112,7 +112,7 @@ def bench_fleet_file(teams: int, name: str = "bench") -> str:
 
 
 def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
-                           extra: tuple[str, ...] = ()) -> tuple[int, list[float]]:
+                           extra: tuple[str, ...] = ()) -> tuple[int, list[float], list[tuple[float, float]]]:
     """Start arenas for ``max_processes`` teams of 3 (side by side, every robot in its fleet-wide
     hue; fleets of FLEET_TEAMS teams, each its own arena on its own loopback bus, as two fleets on
     one machine are), then leader processes one more at a time, the fleets in turn (`run --arena`,
@@ -120,7 +120,9 @@ def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
     the loop, its page served, no browser) and read every one's loop rate from the buses; how many
     run at once with every loop within 1 % of 30 Hz, and the slowest rate at each count. The arenas
     step every team, joined or not, all along. ``extra``: more `run` arguments (``--one-process``:
-    each leader's page in its loop's process, as `run` was before its loop had a process of its own)."""
+    each leader's page in its loop's process, as `run` was before its loop had a process of its own).
+    And at each count, what the machine's CPU went to over the window (app.processes.cpu_seconds):
+    (% of one CPU per leader, its process and its page's; % the arenas took together)."""
     import subprocess
     import sys
     import tempfile
@@ -130,6 +132,7 @@ def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
 
     from app.fleet.bridge import loopback_endpoint, open_session
     from app.keys import root
+    from app.processes import cpu_seconds
 
     n_fleets = -(-max_processes // FLEET_TEAMS)
     tmp = tempfile.TemporaryDirectory(prefix="omniformation-bench-")
@@ -155,6 +158,7 @@ def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
               for path, bus in fleets]
     procs: list[subprocess.Popen[bytes]] = []
     slowest: list[float] = []
+    cpu: list[tuple[float, float]] = []
     held = 0
     try:
         for k in range(1, max_processes + 1):
@@ -170,12 +174,16 @@ def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
                 if ready:
                     break
                 _time.sleep(0.5)
-            t0 = _time.monotonic()
+            pids = [p.pid for p in procs + arenas]
+            t0, used0 = _time.monotonic(), cpu_seconds(pids)
             _time.sleep(seconds)
+            used1, elapsed = cpu_seconds(pids), _time.monotonic() - t0
             with lock:
                 window = [min(r for t, r in v if t >= t0) for v in rates.values() if any(t >= t0 for t, _ in v)]
             low = min(window) if len(window) == k else 0.0
             slowest.append(low)
+            share = {pid: max(0.0, used1[pid] - used0[pid]) / elapsed * 100 for pid in pids}  # 0: one that ended
+            cpu.append((sum(share[p.pid] for p in procs) / k, sum(share[p.pid] for p in arenas)))
             if low < 29.7:
                 break
             held = k
@@ -185,7 +193,7 @@ def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
         sub.undeclare()
         session.close()
         tmp.cleanup()
-    return held, slowest
+    return held, slowest, cpu
 
 
 def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
@@ -207,9 +215,13 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     print_fn(f"fleet: arena step for 10 leaders x 10 followers (dynamics, truth, publish): {tick_ms:.2f} ms per tick"
              f" ({tick_ms / (1000 / 30) * 100:.0f} % of a 30 Hz tick)")
     for name, extra in (("before (run --one-process)", ("--one-process",)), ("run now (the loop's own process)", ())):
-        held, slowest = bench_leader_processes(extra=extra)
+        held, slowest, cpu = bench_leader_processes(extra=extra)
         results["leader_processes_at_30hz" + ("_one_process" if extra else "")] = held
+        at = max(held, 1)  # the CPU at the most it held (at one, where it held none)
+        results["leader_cpu_percent" + ("_one_process" if extra else "")] = cpu[at - 1][0]
         print_fn(f"fleet: leader processes of 3 followers (vision in the loop, each camera rendered from its arena;"
                  f" fleets of {FLEET_TEAMS}, each its own arena and bus), {name}: this machine holds {held} at 30 Hz (within 1 %); slowest loop with"
-                 f" 1..{len(slowest)} running: {', '.join(f'{r:.2f}' for r in slowest)} Hz")
+                 f" 1..{len(slowest)} running: {', '.join(f'{r:.2f}' for r in slowest)} Hz; with {at} running, each"
+                 f" leader (its process and its page) took {cpu[at - 1][0]:.1f} % of one CPU, the arenas"
+                 f" {cpu[at - 1][1]:.1f} % together")
     return results

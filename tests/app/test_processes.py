@@ -1,0 +1,50 @@
+"""app.processes.cpu_seconds: what a process and the processes it started cost, read from /proc
+(the leader bench's CPU per leader: its loop's process and its page process)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from app.processes import cpu_seconds, interrupt, read_stat
+
+# a parent that starts a child; the child burns about BURN_S of CPU, says so, and both then sleep
+BURN_S = 0.6
+_PARENT = f"""
+import subprocess, sys, time
+child = subprocess.Popen([sys.executable, "-c",
+    "import time, sys\\nend = time.process_time() + {BURN_S}\\nwhile time.process_time() < end: pass\\n"
+    "print('burnt', flush=True)\\ntime.sleep(120)"], stdout=subprocess.PIPE, text=True)
+print(child.pid, flush=True)
+print(child.stdout.readline().strip(), flush=True)
+time.sleep(120)
+"""
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs /proc")
+def test_a_process_is_charged_what_its_children_use_and_an_ended_one_nothing() -> None:
+    parent = subprocess.Popen([sys.executable, "-c", _PARENT], stdout=subprocess.PIPE, text=True)
+    child: int | None = None
+    try:
+        assert parent.stdout is not None
+        child = int(parent.stdout.readline())
+        assert parent.stdout.readline().strip() == "burnt"
+        used = cpu_seconds([parent.pid, child])
+        own = read_stat(f"/proc/{parent.pid}/stat")[1]
+        assert used[child] >= BURN_S * 0.9  # the child's own CPU (clock ticks round down)
+        assert used[parent.pid] >= used[child] + own - 0.02  # the parent: its own and its child's
+        assert own < used[child]  # the parent itself only started the child and waited
+        assert read_stat(f"/proc/{child}/stat")[0] == parent.pid
+    finally:
+        if child is not None:
+            try:
+                os.kill(child, 9)  # the child first: the parent's Ctrl-C does not reach it
+            except ProcessLookupError:
+                pass
+        interrupt(parent, grace_s=5)
+    assert cpu_seconds([parent.pid]) == {parent.pid: 0.0}  # ended: nothing, and no error
+    with pytest.raises(OSError):
+        read_stat(f"/proc/{parent.pid}/stat")
