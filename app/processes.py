@@ -27,8 +27,9 @@ def read_stat(path: str) -> tuple[int, float]:
     """(parent pid, CPU seconds used: user and system) from a /proc stat file of a process or a
     thread (proc(5)); OSError when it has ended."""
     with open(path) as f:
-        fields = f.read().rsplit(")", 1)[1].split()  # after the command's name, which may hold spaces
+        text = f.read()
     try:
+        fields = text.rsplit(")", 1)[1].split()  # after the command's name, which may hold spaces
         return int(fields[1]), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (IndexError, ValueError) as exc:
         raise OSError(f"{path}: not a stat file") from exc

@@ -48,3 +48,13 @@ def test_a_process_is_charged_what_its_children_use_and_an_ended_one_nothing() -
     assert cpu_seconds([parent.pid]) == {parent.pid: 0.0}  # ended: nothing, and no error
     with pytest.raises(OSError):
         read_stat(f"/proc/{parent.pid}/stat")
+
+
+def test_a_file_that_is_not_a_stat_file_is_refused_as_one(tmp_path):
+    """read_stat's one error, whatever the file holds: no command name, too few fields, text for numbers."""
+    for k, text in enumerate(("no command name here", "12 (cat) S 1 2", "12 (a) b) S x 1 1 1 1 1 1 1 1 1 1 1 1",
+                              "12 (cat) S 1 1 1 1 1 1 1 1 1 1 u s")):
+        bad = tmp_path / f"stat{k}"
+        bad.write_text(text)
+        with pytest.raises(OSError, match="not a stat file"):
+            read_stat(str(bad))
