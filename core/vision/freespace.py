@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -46,6 +47,9 @@ from core.camera.config import WorkingArea
 from core.camera.gamma import Gamma
 from core.jit import kernel
 from core.types import BoolArray, FloatArray, Image
+
+if TYPE_CHECKING:
+    from core.camera.render.renderer import Scratch
 
 
 @dataclass(frozen=True)
@@ -226,6 +230,7 @@ class FreeSpaceScanner:
         self._by_bin = np.argsort(self.row_bin, kind="stable")  # rows grouped by bin, for reduceat
         self._bins_present, self._bin_starts = np.unique(self.row_bin[self._by_bin], return_index=True)
         self._crops: dict[tuple[int, ...], tuple[slice, slice, np.ndarray, np.ndarray]] = {}
+        self._scratch: Scratch | None = None  # the arrays a synthetic frame's ring is rendered in (renderer.Scratch)
 
     def _crop(self, shape: tuple[int, ...]) -> tuple[slice, slice, np.ndarray, np.ndarray]:
         """(rows, columns, map_x, map_y) for a frame of ``shape``: the rectangle of the image
@@ -252,7 +257,17 @@ class FreeSpaceScanner:
         the ``tracked`` followers, whose bodies are not obstacles."""
         s = self.settings
         rows_, cols_, map_x, map_y = self._crop(tuple(frame.shape))
-        polar = cv2.remap(np.asarray(frame[rows_, cols_]), map_x, map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
+        region = getattr(frame, "region", None)  # a synthetic frame renders the ring into this scanner's arrays
+        if region is not None:
+            if self._scratch is None:
+                from core.camera.render.renderer import Scratch  # loaded already: the frame is one of its
+
+                self._scratch = Scratch()
+            crop = region(rows_, cols_, self._scratch)
+            polar = cv2.remap(crop, map_x, map_y, cv2.INTER_NEAREST, dst=self._scratch.array("polar", map_x.shape + (3,)),
+                              borderValue=(0, 0, 0))
+        else:
+            polar = cv2.remap(np.asarray(frame[rows_, cols_]), map_x, map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
         model = _floor_model(polar, 4)  # the floor's colour: medians; its spread: their MADs
         spread = model[3:] * 1.4826
         sl = max(s.min_lightness, s.lightness_k * float(spread[0]))

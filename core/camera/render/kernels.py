@@ -17,6 +17,19 @@ def background_rect(
     y0: int, y1: int, x0: int, x1: int, leader_x: float, leader_y: float, phi: float,
     floor_tex: np.ndarray, wall_tex: np.ndarray, colours: np.ndarray, ppm: float, lut: np.ndarray,
 ) -> np.ndarray:
+    """:func:`background_into` a new (y1 - y0, x1 - x0, 3) array."""
+    out = np.empty((y1 - y0) * (x1 - x0) * 3, np.uint8)
+    background_into(out, spans, row_spans, pa, pb, width, y0, y1, x0, x1, leader_x, leader_y, phi, floor_tex,
+                    wall_tex, colours, ppm, lut)
+    return out.reshape(y1 - y0, x1 - x0, 3)
+
+
+@kernel
+def background_into(
+    out: np.ndarray, spans: np.ndarray, row_spans: np.ndarray, pa: np.ndarray, pb: np.ndarray, width: int,
+    y0: int, y1: int, x0: int, x1: int, leader_x: float, leader_y: float, phi: float,
+    floor_tex: np.ndarray, wall_tex: np.ndarray, colours: np.ndarray, ppm: float, lut: np.ndarray,
+) -> None:
     """The pixels of rows y0..y1, columns x0..x1 before any box is drawn: floor texture under
     the leader's pose, distant walls, the leader's body, black beyond the mirror's rim.
 
@@ -27,10 +40,10 @@ def background_rect(
     texture columns, pb: texture row); pa and pb are flat (row-major, ``width`` per row).
     The floor texture's side is a power of two, so wrapping is a bit mask; texel coordinates
     are kept positive so truncation is floor. Flat unsigned indices spare the compiled loop
-    numpy's negative-index checks.
+    numpy's negative-index checks. ``out``: flat uint8, (y1 - y0) * (x1 - x0) * 3 of them, every
+    one written (a caller may lend the same array again and again).
     """
     ow = x1 - x0
-    out = np.empty((y1 - y0) * ow * 3, np.uint8)
     tw = floor_tex.shape[0]
     mask = np.int64(tw - 1)
     ftex = floor_tex.reshape(-1)
@@ -94,7 +107,6 @@ def background_rect(
                     out[o] = c0
                     out[o + one] = c1
                     out[o + two] = c2
-    return out.reshape(y1 - y0, ow, 3)
 
 
 @kernel

@@ -4,6 +4,7 @@ import math
 import cv2
 import numpy as np
 from core.camera.render import Renderer, RenderSettings
+from core.camera.render.renderer import Scratch
 
 
 def _hue_pixels(img, hue_deg, tol=12):
@@ -82,5 +83,10 @@ def test_a_frame_rendered_by_rectangles_is_the_whole_frame_bit_for_bit(camera_co
             y0, x0 = max(0, y0), max(0, x0)
             assert np.array_equal(lazy[y0:y1, x0:x1], whole[y0:y1, x0:x1]), (k, y0, y1, x0, x1)
         assert lazy.pixels_rendered < h * w  # only the rectangles were made
+        # into arrays lent again and again (the scan's ring): the same pixels, whatever the last use left there
+        lent, scratch = r.frame(pose, followers, 2.0 * k, np.random.default_rng(k)), Scratch()
+        for y0, y1, x0, x1 in rects[:12] + [(0, h, 0, w)] + rects[:12]:
+            y0, x0 = max(0, y0), max(0, x0)
+            assert np.array_equal(lent.region(slice(y0, y1), slice(x0, x1), scratch), whole[y0:y1, x0:x1]), (k, y0, x0)
         assert np.array_equal(np.asarray(lazy), whole)
         assert np.array_equal(lazy[5:9, 7:600:3], whole[5:9, 7:600:3])  # any other index: the whole frame's
