@@ -51,19 +51,22 @@ def read_truth(msg: Any) -> dict[str, Any]:
     if not isinstance(truth["leaders"], dict):
         raise wire.BadMessage("leaders must be an object {ID: [x, y, theta]}")
     for lid, pose in truth["leaders"].items():
-        wire.numbers(pose, 3, f"leaders.{str(lid)[:32]}")
+        wire.check_numbers(pose, 3, f"leaders.{str(lid)[:32]}")
     robots = truth["robots"]
     if not isinstance(robots, list):
         raise wire.BadMessage("robots must be a list of [x, y, theta]")
     for pose in robots:
-        wire.numbers(pose, 3, "robots")
+        wire.check_numbers(pose, 3, "robots")
     for name, width in (("velocities", 2), ("leases", 0)):
         if name in truth:
             values = truth[name]
             if not isinstance(values, list) or len(values) != len(robots):
                 raise wire.BadMessage(f"{name} must be a list with one entry per robot")
-            for v in values:
-                wire.numbers(v, width, name) if width else wire.number(v, name)
+            if width:
+                for v in values:
+                    wire.check_numbers(v, width, name)
+            else:
+                wire.check_numbers(values, len(values), name)
     owners = truth["owners"]
     if not isinstance(owners, list) or len(owners) != len(robots) or \
             not all(o is None or isinstance(o, str) for o in owners):

@@ -331,6 +331,39 @@ def test_a_state_s_robots_are_robot_names_or_the_state_is_refused():
             read_state(dict(base, robots=bad))
 
 
+def test_the_bus_reader_refuses_deep_nesting_and_numbers_that_are_not_finite_wherever_they_sit():
+    """docs/fleet-protocol.md, "Payloads": at most MAX_DEPTH levels of nesting and only finite
+    numbers, in a list or an object at any level (a float too large for a double reads as
+    infinity); everything else JSON holds comes back as json.loads reads it. And a truth's poses
+    are numbers of their exact type, three each, or the truth is refused."""
+    from app import wire
+    from app.backends.arena import read_truth
+
+    deep = b"[" * wire.MAX_DEPTH + b"1" + b"]" * wire.MAX_DEPTH
+    assert wire.decode(deep) == json.loads(deep)
+    for bad in (b"[" + deep + b"]", b'{"a":' + deep + b"}", b'{"a":[{"b":' + b"[" * (wire.MAX_DEPTH - 2) + b"]" * (wire.MAX_DEPTH - 2) + b"}]}"):
+        with pytest.raises(wire.BadMessage, match=f"nested deeper than {wire.MAX_DEPTH}"):
+            wire.decode(bad)
+    for bad in (b"1e999", b"[1.5, -1e999]", b'{"a":{"b":[0, 2e308]}}', b'{"t":1e400,"x":"y"}', b"[[1, [2.0, 1E+999]]]"):
+        with pytest.raises(wire.BadMessage, match="is not a finite number"):
+            wire.decode(bad)
+    for bad in (b"[NaN]", b'{"a":Infinity}', b"-Infinity"):
+        with pytest.raises(wire.BadMessage, match="is not a number JSON allows"):
+            wire.decode(bad)
+    fine = b'{"a":{"b":[1.5,2,"x",null,true,-0.0,1e308]},"c":[],"d":{}}'
+    assert wire.decode(fine) == json.loads(fine)
+    truth = {"tick": 3, "t": 0.1, "leaders": {"L1": [0.0, 1, 2.5]}, "robots": [[0.5, 0.0, 1.0], [1, 2, 3]],
+             "velocities": [[0.0, 0.1], [0, 0]], "leases": [0.5, 1], "owners": ["L1", None]}
+    assert read_truth(truth) is truth
+    for key, bad, what in (("robots", [[0.5, 0.0, True], [1, 2, 3]], "robots must be a number"),
+                           ("robots", [[0.5, 0.0], [1, 2, 3]], "robots must be a list of 3 numbers"),
+                           ("leaders", {"L1": [0.0, "1", 2.5]}, "leaders.L1 must be a number"),
+                           ("velocities", [[0.0, 0.1], [0, None]], "velocities must be a number"),
+                           ("leases", [0.5, False], "leases must be a number")):
+        with pytest.raises(wire.BadMessage, match=what):
+            read_truth(dict(truth, **{key: bad}))
+
+
 def test_a_robot_has_one_name_the_fleet_s_with_its_leader_s_slot():
     """docs/page-access.md, "One name per robot": R3 (F1) on its leader's page, R3 · L1 F1 on the
     fleet page, F1 for a team of no arena."""
