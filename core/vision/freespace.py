@@ -231,6 +231,7 @@ class FreeSpaceScanner:
         self._bins_present, self._bin_starts = np.unique(self.row_bin[self._by_bin], return_index=True)
         self._crops: dict[tuple[int, ...], tuple[slice, slice, np.ndarray, np.ndarray]] = {}
         self._scratch: Scratch | None = None  # the arrays a synthetic frame's ring is rendered in (renderer.Scratch)
+        self._polar: np.ndarray | None = None  # the polar grid's samples, kept from scan to scan
 
     def _crop(self, shape: tuple[int, ...]) -> tuple[slice, slice, np.ndarray, np.ndarray]:
         """(rows, columns, map_x, map_y) for a frame of ``shape``: the rectangle of the image
@@ -258,16 +259,15 @@ class FreeSpaceScanner:
         s = self.settings
         rows_, cols_, map_x, map_y = self._crop(tuple(frame.shape))
         region = getattr(frame, "region", None)  # a synthetic frame renders the ring into this scanner's arrays
-        if region is not None:
-            if self._scratch is None:
-                from core.camera.render.renderer import Scratch  # loaded already: the frame is one of its
+        if region is not None and self._scratch is None:
+            from core.camera.render.renderer import Scratch  # loaded already: the frame is one of its
 
-                self._scratch = Scratch()
-            crop = region(rows_, cols_, self._scratch)
-            polar = cv2.remap(crop, map_x, map_y, cv2.INTER_NEAREST, dst=self._scratch.array("polar", map_x.shape + (3,)),
-                              borderValue=(0, 0, 0))
-        else:
-            polar = cv2.remap(np.asarray(frame[rows_, cols_]), map_x, map_y, cv2.INTER_NEAREST, borderValue=(0, 0, 0))
+            self._scratch = Scratch()
+        crop = region(rows_, cols_, self._scratch) if region is not None else np.asarray(frame[rows_, cols_])
+        if self._polar is None or self._polar.shape != map_x.shape + (3,):
+            self._polar = np.empty(map_x.shape + (3,), np.uint8)
+        # into the scanner's own grid, whatever the camera (a fresh one each scan came page by page from the system)
+        polar = cv2.remap(crop, map_x, map_y, cv2.INTER_NEAREST, dst=self._polar, borderValue=(0, 0, 0))
         model = _floor_model(polar, 4)  # the floor's colour: medians; its spread: their MADs
         spread = model[3:] * 1.4826
         sl = max(s.min_lightness, s.lightness_k * float(spread[0]))

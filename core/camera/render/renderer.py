@@ -116,27 +116,28 @@ class SyntheticFrame:
         return full if dtype is None else full.astype(dtype)
 
     def __getitem__(self, key: object) -> np.ndarray:
-        rows = cols = None
-        if type(key) is tuple and len(key) == 2:
-            rows, cols = key
-        if self._full is None and type(rows) is slice and type(cols) is slice and rows.step in (None, 1) \
-                and cols.step in (None, 1) and self._renderer.settings.jpeg_quality <= 0:
-            y0, y1, _ = rows.indices(self.shape[0])
-            x0, x1, _ = cols.indices(self.shape[1])
-            if y1 <= y0 or x1 <= x0:
-                return np.empty((max(0, y1 - y0), max(0, x1 - x0), 3), np.uint8)
-            self.pixels_rendered += (y1 - y0) * (x1 - x0)
-            return self._renderer._render_rect(self._scene, y0, y1, x0, x1)
+        if type(key) is tuple and len(key) == 2 and type(key[0]) is slice and type(key[1]) is slice:
+            rect = self._rect(key[0], key[1], None)
+            if rect is not None:
+                return rect
         return np.asarray(self)[key]  # type: ignore[call-overload]  # any numpy index, as for an array
 
     def region(self, rows: slice, cols: slice, scratch: Scratch) -> np.ndarray:
         """``self[rows, cols]`` (plain slices), rendered in ``scratch``'s arrays: the same pixels,
         valid until ``scratch`` is used again."""
-        y0, y1, ystep = rows.indices(self.shape[0])
-        x0, x1, xstep = cols.indices(self.shape[1])
-        if self._full is not None or self._renderer.settings.jpeg_quality > 0 or (ystep, xstep) != (1, 1) \
-                or y1 <= y0 or x1 <= x0:
-            return np.asarray(self[rows, cols])
+        rect = self._rect(rows, cols, scratch)
+        return rect if rect is not None else np.asarray(self)[rows, cols]
+
+    def _rect(self, rows: slice, cols: slice, scratch: Scratch | None) -> np.ndarray | None:
+        """The rectangle ``rows`` x ``cols`` made alone (in ``scratch``'s arrays when given); None
+        where it cannot be: the whole frame made already, JPEG on (it mixes whole 8x8 blocks), a step."""
+        if self._full is not None or rows.step not in (None, 1) or cols.step not in (None, 1) \
+                or self._renderer.settings.jpeg_quality > 0:
+            return None
+        y0, y1, _ = rows.indices(self.shape[0])
+        x0, x1, _ = cols.indices(self.shape[1])
+        if y1 <= y0 or x1 <= x0:
+            return np.empty((max(0, y1 - y0), max(0, x1 - x0), 3), np.uint8)
         self.pixels_rendered += (y1 - y0) * (x1 - x0)
         return self._renderer._render_rect(self._scene, y0, y1, x0, x1, scratch)
 
