@@ -33,7 +33,8 @@ from numpy.typing import ArrayLike
 
 from core.control.formation import heading_saturation, saturate_position_error
 from core.control.presets import FORMATION_PRESETS, formation_preset
-from core.types import GAIN_BOUNDS, FloatArray, Gains, IntArray
+from core.jit import kernel
+from core.types import GAIN_BOUNDS, BoolArray, FloatArray, Gains, IntArray
 
 LIMIT_NAMES = ("eq. 4 saturated", "eq. 12 saturated", "v limit", "ω limit", "safety filter")
 EQ4, EQ12, V_LIMIT, W_LIMIT, FILTER = (1 << k for k in range(len(LIMIT_NAMES)))
@@ -53,6 +54,39 @@ OFFSET_M = (0.01, 0.5)  # allowed offset sizes (m, either sign)
 TURN_RPS = (math.radians(1.0), math.radians(30.0))  # allowed turn steps (either sign)
 
 
+@kernel
+def _limit_flags_kernel(err: FloatArray, a_err: FloatArray, zeta_r: FloatArray, a_r_dot: FloatArray, w_l: float,
+                        commands: FloatArray, k_f1: float, k_f2: float, a: float, k_w1: float, k_w2: float,
+                        active: BoolArray, filter_active: BoolArray, out: IntArray) -> None:
+    small_gain = k_f1 / a
+    for i in range(err.shape[0]):
+        flags = 0
+        for j in range(2):
+            e = err[i, j]
+            den = small_gain * e
+            f = saturate_position_error(e, k_f1, k_f2, a)
+            if den != 0.0:
+                ratio = f / den
+            elif f == 0.0 or math.isnan(f):  # 0/0, NaN: not saturated
+                ratio = math.nan
+            else:  # as IEEE division by a signed zero gives it
+                ratio = math.copysign(math.inf, f) * math.copysign(1.0, den)
+            if ratio < SATURATED_RATIO:
+                flags |= EQ4
+        heading = heading_saturation(a_err[i], k_w1, k_w2)  # eq. 12, as the controller computed it
+        if abs(heading) > SATURATED_RATIO * k_w1:
+            flags |= EQ12
+        v_raw = math.hypot(zeta_r[i, 0], zeta_r[i, 1]) * math.cos(a_err[i])
+        w_raw = a_r_dot[i] + heading + w_l
+        if abs(commands[i, 0] - v_raw) > CLAMP_EPS:
+            flags |= V_LIMIT
+        if abs(commands[i, 1] - w_raw) > CLAMP_EPS:
+            flags |= W_LIMIT
+        if filter_active[i]:
+            flags |= FILTER
+        out[i] = flags if active[i] else 0
+
+
 def limit_flags(
     p: ArrayLike,
     p_d: ArrayLike,
@@ -69,26 +103,21 @@ def limit_flags(
 
     ``commands`` (n, 2) are the controller's (before the safety filter); the unclamped
     command is rebuilt from eq. 10-11 (v = |ζ_r| cos ã, ω = ȧ_r + f(ã) + ω_l). A follower
-    that may not move (``active`` false) has no flags."""
-    err = np.asarray(p_d, dtype=np.float64) - np.asarray(p, dtype=np.float64)
+    that may not move (``active`` false) has no flags. Eq. 4 is saturated where its term is
+    under SATURATED_RATIO of the small-error gain's (NaN, at e = 0: not saturated). One
+    compiled pass: the live loop asks this every tick, for the page."""
+    f64, c = np.float64, np.ascontiguousarray  # one layout, hence one compiled signature (app.live.warmup)
+    ae = c(np.asarray(a_err, dtype=f64).reshape(-1))
+    n = ae.shape[0]
+    err = c((np.asarray(p_d, dtype=f64) - np.asarray(p, dtype=f64)).reshape(n, 2))
+    act = np.ones(n, dtype=np.bool_) if active is None else c(np.asarray(active, dtype=np.bool_).reshape(n))
+    filt = np.zeros(n, dtype=np.bool_) if filter_active is None else c(np.asarray(filter_active, dtype=np.bool_).reshape(n))
+    out = np.empty(n, dtype=np.int64)
     g = gains
-    with np.errstate(invalid="ignore", divide="ignore"):  # at e = 0 the ratio is NaN: not saturated
-        ratio = saturate_position_error(err, g.k_f1, g.k_f2, g.a) / (g.k_f1 / g.a * err)
-    flags = np.where(np.any(ratio < SATURATED_RATIO, axis=1), EQ4, 0)
-    ae = np.asarray(a_err, dtype=np.float64)
-    heading = heading_saturation(ae, g.k_w1, g.k_w2)  # eq. 12, as the controller computed it
-    flags |= np.where(np.abs(heading) > SATURATED_RATIO * g.k_w1, EQ12, 0)
-    z = np.atleast_2d(np.asarray(zeta_r, dtype=np.float64))
-    v_raw = np.hypot(z[:, 0], z[:, 1]) * np.cos(ae)
-    w_raw = np.asarray(a_r_dot, dtype=np.float64) + heading + w_l
-    c = np.atleast_2d(np.asarray(commands, dtype=np.float64))
-    flags |= np.where(np.abs(c[:, 0] - v_raw) > CLAMP_EPS, V_LIMIT, 0)
-    flags |= np.where(np.abs(c[:, 1] - w_raw) > CLAMP_EPS, W_LIMIT, 0)
-    if filter_active is not None:
-        flags |= np.where(np.asarray(filter_active, dtype=bool), FILTER, 0)
-    if active is not None:
-        flags = np.where(np.asarray(active, dtype=bool), flags, 0)
-    return flags.astype(np.int64)
+    _limit_flags_kernel(err, ae, c(np.asarray(zeta_r, dtype=f64).reshape(n, 2)), c(np.asarray(a_r_dot, dtype=f64).reshape(n)),
+                        float(w_l), c(np.asarray(commands, dtype=f64).reshape(n, 2)), float(g.k_f1), float(g.k_f2),
+                        float(g.a), float(g.k_w1), float(g.k_w2), act, filt, out)
+    return out
 
 
 def flag_names(flags: int) -> list[str]:
@@ -96,8 +125,29 @@ def flag_names(flags: int) -> list[str]:
     return [name for k, name in enumerate(LIMIT_NAMES) if int(flags) & (1 << k)]
 
 
+@kernel
+def _slopes_kernel(tc: FloatArray, v: FloatArray, den: float, out: FloatArray) -> None:
+    # per column: NaN-skipping mean, then the NaN-skipping sum of tc * (v - mean), each summed row
+    # by row (the order numpy's nanmean and nansum along axis 0 add in)
+    for j in range(v.shape[1]):
+        total = 0.0
+        count = 0
+        for k in range(v.shape[0]):
+            if not math.isnan(v[k, j]):
+                total += v[k, j]
+                count += 1
+        mean = total / count if count else math.nan
+        acc = 0.0
+        for k in range(v.shape[0]):
+            term = tc[k] * (v[k, j] - mean)
+            if not math.isnan(term):
+                acc += term
+        out[j] = acc / den
+
+
 def lyapunov_rate(t: ArrayLike, v: ArrayLike) -> FloatArray:
-    """dV/dt per follower (m²/s): the least-squares slope of V (K, n) over times t (K,)."""
+    """dV/dt per follower (m²/s): the least-squares slope of V (K, n) over times t (K,), NaNs
+    skipped (a follower with no V at all: 0)."""
     tt = np.asarray(t, dtype=np.float64)
     vv = np.asarray(v, dtype=np.float64)
     if tt.size < 2 or vv.ndim != 2:
@@ -106,7 +156,9 @@ def lyapunov_rate(t: ArrayLike, v: ArrayLike) -> FloatArray:
     den = float(np.sum(tc * tc))
     if den <= 0.0:
         return np.zeros(vv.shape[1])
-    return np.asarray(np.nansum(tc[:, None] * (vv - np.nanmean(vv, axis=0)), axis=0) / den)
+    out = np.empty(vv.shape[1])
+    _slopes_kernel(np.ascontiguousarray(tc), np.ascontiguousarray(vv), den, out)
+    return out
 
 
 def lyapunov_trend(rate: ArrayLike, v: ArrayLike | None = None, flat: float = RATE_FLAT) -> IntArray:

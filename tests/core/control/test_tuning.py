@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -49,6 +50,51 @@ def test_each_saturation_and_limit_is_named_where_it_acts():
     assert _flags([[0.0, 0.0]], [[0.0, 0.005]], [math.pi / 2], prev=np.array([[0.005, 0.0]]), filt=[True])[0] == FILTER
     assert flag_names(EQ4 | W_LIMIT) == ["eq. 4 saturated", "ω limit"]
 
+
+
+def test_the_compiled_flags_and_slopes_follow_the_documented_rules_on_awkward_input():
+    """limit_flags and lyapunov_rate are compiled loops: against the rules written out in numpy
+    (eq. 4's ratio NaN at e = 0, NaN poses, ±inf errors; V's mean and sum skipping NaNs, a
+    follower with no V at all flat) on random teams."""
+    from core.control.formation import heading_saturation, saturate_position_error
+
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        n = int(rng.integers(1, 7))
+        p = rng.normal(scale=float(rng.choice([0.01, 0.1, 1.0])), size=(n, 2))
+        p_d = rng.normal(scale=0.3, size=(n, 2))
+        j = int(rng.integers(2))
+        p_d[0, j] = p[0, j] if rng.random() < 0.5 else p_d[0, j]  # no error in one component: eq. 4's ratio is NaN
+        p_d[0] = p[0] if rng.random() < 0.2 else p_d[0]
+        if rng.random() < 0.3:
+            p[int(rng.integers(n)), int(rng.integers(2))] = rng.choice([np.nan, np.inf, -np.inf])
+        a_err, zeta, a_r_dot, w_l = rng.uniform(-4, 4, n), rng.normal(scale=0.2, size=(n, 2)), rng.normal(size=n), 0.3
+        g = Gains(k_f1=float(rng.uniform(0.05, 1.0)), a=float(rng.uniform(0.02, 1.0)))
+        v_raw = np.hypot(zeta[:, 0], zeta[:, 1]) * np.cos(a_err)
+        cmd = rng.normal(size=(n, 2))
+        keep = rng.random(n) < 0.5
+        cmd[keep, 0] = v_raw[keep]
+        active, filt = rng.random(n) < 0.8, rng.random(n) < 0.3
+        err = p_d - p
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = saturate_position_error(err, g.k_f1, g.k_f2, g.a) / (g.k_f1 / g.a * err)
+        heading = heading_saturation(a_err, g.k_w1, g.k_w2)
+        want = (np.where(np.any(ratio < 0.5, axis=1), EQ4, 0) | np.where(np.abs(heading) > 0.5 * g.k_w1, EQ12, 0)
+                | np.where(np.abs(cmd[:, 0] - v_raw) > 1e-9, V_LIMIT, 0)
+                | np.where(np.abs(cmd[:, 1] - (a_r_dot + heading + w_l)) > 1e-9, W_LIMIT, 0) | np.where(filt, FILTER, 0))
+        got = limit_flags(p, p_d, a_err, zeta, a_r_dot, w_l, cmd, g, active, filt)
+        assert got.tolist() == np.where(active, want, 0).tolist()
+
+        k = int(rng.integers(2, 40))
+        t, v = np.sort(rng.uniform(0.0, 0.5, k)), rng.normal(scale=1e-3, size=(k, n))
+        v[rng.random((k, n)) < 0.3] = np.nan
+        v[:, 0] = np.nan if rng.random() < 0.3 else v[:, 0]
+        tc = t - t.mean()
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # nanmean of a column with no V
+            ref = np.nansum(tc[:, None] * (v - np.nanmean(v, axis=0)), axis=0) / np.sum(tc * tc)
+        np.testing.assert_allclose(lyapunov_rate(t, v), ref, rtol=1e-9, atol=1e-15)
+    assert lyapunov_rate([0.0, 0.1, 0.2], [[np.nan], [np.nan], [np.nan]]).tolist() == [0.0]
 
 def test_lyapunov_rate_is_the_slope_and_the_trend_has_a_dead_band():
     t = np.linspace(0.0, 0.5, 16)
