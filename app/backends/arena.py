@@ -98,6 +98,7 @@ class ArenaTeam:
         self.rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self._truth: dict[str, Any] | None = None
+        self._arrays: tuple[dict[str, Any], tuple[FloatArray, FloatArray, FloatArray, FloatArray]] | None = None  # (a truth, _read's arrays of it)
         self._truth_at = -math.inf
         self.rate_hz = rate_hz
         self.truths_refused = 0  # truths not of the protocol's shape, or whose tick the arena's clock cannot have reached
@@ -177,12 +178,32 @@ class ArenaTeam:
         with self._lock:
             return self._truth
 
-    def _state_from(self, truth: dict[str, Any]) -> TeamState:
-        leader = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
+    def _read(self, truth: dict[str, Any]) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Of ``truth``, as arrays: this leader's pose (3,), every robot (R, 3) and their velocities
+        (R, 2) in the arena's frame, and every robot then every other leader (R + L - 1, 3) in this
+        leader's frame. Made once per truth (the state, the camera's scene and the filter's other
+        bodies all read it each tick), read-only."""
+        cached = self._arrays
+        if cached is not None and cached[0] is truth:
+            return cached[1]
+        me = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
         robots = np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3)
         vel = np.asarray(truth.get("velocities", np.zeros((robots.shape[0], 2))), dtype=np.float64).reshape(-1, 2)
+        leaders = np.array([pose for lid, pose in truth["leaders"].items() if lid != self.leader_id],
+                           dtype=np.float64).reshape(-1, 3)
+        bodies = np.vstack([robots, leaders])
+        xy = np.asarray(world_to_leader(bodies[:, :2], me[:2], float(me[2]))).reshape(-1, 2)
+        here = np.column_stack([xy, heading_world_to_leader(bodies[:, 2], float(me[2]))])
+        arrays = (me, robots, vel, here)
+        for a in arrays:
+            a.flags.writeable = False
+        self._arrays = (truth, arrays)  # one assignment: a reader on another thread sees the old pair or this one
+        return arrays
+
+    def _state_from(self, truth: dict[str, Any]) -> TeamState:
+        me, robots, vel, _ = self._read(truth)
         idx = np.asarray(self.active, dtype=np.int64)
-        return TeamState(leader, robots[idx].copy(), vel[idx].copy())
+        return TeamState(me.copy(), robots[idx], vel[idx])  # (fancy indexing copies)
 
     def resize(self, n: int) -> None:
         """Drive the first ``n`` robots this leader owns (the loop's team size)."""
@@ -208,13 +229,8 @@ class ArenaTeam:
 
     def _bodies_here(self, truth: dict[str, Any]) -> tuple[FloatArray, FloatArray]:
         """(every robot (R, 3), every other leader (L - 1, 3)) as poses (x, y, a) in this
-        leader's frame, from ``truth``."""
-        me = np.asarray(truth["leaders"][self.leader_id], dtype=np.float64)
-        bodies = np.vstack([np.asarray(truth["robots"], dtype=np.float64).reshape(-1, 3),
-                            np.array([pose for lid, pose in truth["leaders"].items() if lid != self.leader_id],
-                                     dtype=np.float64).reshape(-1, 3)])
-        xy = np.asarray(world_to_leader(bodies[:, :2], me[:2], float(me[2]))).reshape(-1, 2)
-        here = np.column_stack([xy, heading_world_to_leader(bodies[:, 2], float(me[2]))])
+        leader's frame, from ``truth`` (read-only: made once per truth)."""
+        here = self._read(truth)[3]
         r = len(truth["robots"])
         return here[:r], here[r:]
 
@@ -227,7 +243,7 @@ class ArenaTeam:
         robots, leaders = self._bodies_here(truth)
         keep = np.ones(robots.shape[0], dtype=bool)
         keep[[r for r in self.active if r < robots.shape[0]]] = False
-        return robots[keep, :2], leaders[:, :2]
+        return robots[keep, :2], leaders[:, :2].copy()
 
     # -- what this leader's camera sees (vision in the arena) --------------------------------
     def scene(self) -> FloatArray:

@@ -21,7 +21,6 @@ never waits on the network), the events from the parameter store's listeners.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -249,11 +248,12 @@ def on_the_wire(payload: dict[str, Any], presence: Presence) -> str:
             f'"sent":{time.time():.6f}}}')
 
 
-def state_payload(s: TickState, leader_id: str, takes: str = "stop") -> dict[str, Any]:
+def state_payload(s: TickState, leader_id: str, takes: str = "stop", t: float | None = None) -> dict[str, Any]:
     """What a leader publishes each tick (docs/fleet-protocol.md): compact, SI units. ``takes``:
-    what it obeys from the bus ("stop", or "all" with --fleet-control)."""
+    what it obeys from the bus ("stop", or "all" with --fleet-control); ``t``: the time said (default
+    the state's)."""
     return {
-        "leader_id": leader_id, "tick": s.tick, "t": _num(s.t), "leader": _num(s.leader),
+        "leader_id": leader_id, "tick": s.tick, "t": _num(s.t if t is None else t), "leader": _num(s.leader),
         "leader_twist": _num(list(s.leader_twist)), "p_est": _num(s.p_est), "a_est": _num(s.a_est),
         "tracked": _num(s.tracked.astype(bool)), "p_d": _num(s.p_d), "error_m": _num(np.linalg.norm(s.p_d - s.p_est, axis=1)),
         "p_true": _num(s.p_true),
@@ -365,7 +365,8 @@ class FleetBridge:
         self._t = 0.0
         self._clock = SessionClock(t_start)
         store.subscribe(self._on_params)
-        self._publisher = LatestStatePublisher(self._publish_state)
+        # (a state, its session time): the state itself is every subscriber's, and a copy of it costs more
+        self._publisher: LatestStatePublisher[tuple[TickState, float]] = LatestStatePublisher(self._publish_state)
         self.empty: Callable[[], bool] = lambda: False  # set by an arena leader: it owns no robot now
         self.truths_refused: Callable[[], int] = lambda: 0  # set by an arena leader: truths it did not take
 
@@ -395,14 +396,15 @@ class FleetBridge:
         """Every tick of the loop. The state's ``t`` on the bus is this process's session time,
         which never goes back (the loop's own restarts at 0 when the team changes)."""
         self._t = self._clock(s.t)
-        self._publisher(dataclasses.replace(s, t=self._t))
+        self._publisher((s, self._t))
 
-    def _publish_state(self, s: TickState) -> None:
+    def _publish_state(self, stamped: tuple[TickState, float]) -> None:
+        s, t = stamped
         refused = {"commands": self.commands_refused, "states": self.states_refused, "truths": self.truths_refused()}
         if self.empty():  # every robot it had is another's now: its loop holds none of them
-            payload = waiting_payload(self.leader_id, s.t, takes(self.allow_control), s.tick, refused)
+            payload = waiting_payload(self.leader_id, t, takes(self.allow_control), s.tick, refused)
         else:
-            payload = state_payload(s, self.leader_id, takes(self.allow_control))
+            payload = state_payload(s, self.leader_id, takes(self.allow_control), t)
             payload["refused"] = refused
         self._state_pub.put(on_the_wire(payload, self.presence))
 

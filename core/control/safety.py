@@ -35,13 +35,14 @@ sizes the live service drives (up to 8).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
 from core.bounds import number_default
-from core.types import BoolArray, Commands, FloatArray
+from core.types import BoolArray, Commands, FloatArray, IntArray
 
 SolveStatus = Literal["inactive", "filtered", "infeasible", "no solver"]
 
@@ -109,6 +110,15 @@ def team_min_distance(p: FloatArray) -> float:
     return float(d.min()) if len(pts) > 1 else float("inf")
 
 
+@functools.lru_cache(maxsize=32)
+def _pairs(n: int) -> tuple[IntArray, IntArray]:
+    """Every pair i < j of n followers (numpy's triu_indices, made once per team size: the
+    filter asks each tick), read-only."""
+    i, j = np.triu_indices(n, 1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
+
+
 def barrier_constraints(
     p: FloatArray, a: FloatArray, leader_twist: tuple[float, float], obstacles: FloatArray, s: SafetySettings,
     known: BoolArray | None = None,
@@ -125,7 +135,7 @@ def barrier_constraints(
     d2, d2_leader, reach2 = (s.min_distance_m + 2 * ahead) ** 2, (s.min_distance_m + ahead) ** 2, s.activity_m ** 2
     blocks: list[tuple[FloatArray, FloatArray]] = []  # (rows (k, 2n), right-hand sides (k,))
     # every pair of known followers within reach: -2e·uᵢ + 2e·uⱼ ≤ γh³
-    i, j = np.triu_indices(n, 1)
+    i, j = _pairs(n)
     e = q[i] - q[j]
     near = known[i] & known[j] & (np.einsum("kd,kd->k", e, e) <= reach2)
     i, j, e = i[near], j[near], e[near]
