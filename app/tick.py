@@ -8,7 +8,6 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
 
 import numpy as np
 
@@ -104,10 +103,7 @@ class SessionClock:
         return self.last
 
 
-S = TypeVar("S")
-
-
-class LatestStatePublisher(Generic[S]):
+class LatestStatePublisher:
     """Publishes on its own thread, always the newest state; the loop only hands states over.
 
     The robots' loop must never wait for the page server: drawing the scene, encoding the
@@ -115,19 +111,19 @@ class LatestStatePublisher(Generic[S]):
     that is superseded before it could be drawn is skipped (the plots keep their time axis).
     """
 
-    def __init__(self, publish: Callable[[S], bool | None], name: str = "omniformation-dashboard") -> None:
+    def __init__(self, publish: Callable[[TickState], bool | None], name: str = "omniformation-dashboard") -> None:
         """``publish`` returns False for a state it could not draw (counted as skipped); ``name``
         names the thread (the page's, the ROS 2 bridge's)."""
         self._publish = publish
         self._cv = threading.Condition()
-        self._state: S | None = None
+        self._state: TickState | None = None
         self._closed = False
         self.published = 0
         self.skipped = 0
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
-    def __call__(self, state: S) -> None:
+    def __call__(self, state: TickState) -> None:
         with self._cv:
             if self._state is not None:
                 self.skipped += 1
