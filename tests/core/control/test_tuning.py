@@ -51,7 +51,6 @@ def test_each_saturation_and_limit_is_named_where_it_acts():
     assert flag_names(EQ4 | W_LIMIT) == ["eq. 4 saturated", "ω limit"]
 
 
-
 def test_the_compiled_flags_and_slopes_follow_the_documented_rules_on_awkward_input():
     """limit_flags and lyapunov_rate are compiled loops: against the rules written out in numpy
     (eq. 4's ratio NaN at e = 0, NaN poses, ±inf errors; V's mean and sum skipping NaNs, a
@@ -95,6 +94,7 @@ def test_the_compiled_flags_and_slopes_follow_the_documented_rules_on_awkward_in
             ref = np.nansum(tc[:, None] * (v - np.nanmean(v, axis=0)), axis=0) / np.sum(tc * tc)
         np.testing.assert_allclose(lyapunov_rate(t, v), ref, rtol=1e-9, atol=1e-15)
     assert lyapunov_rate([0.0, 0.1, 0.2], [[np.nan], [np.nan], [np.nan]]).tolist() == [0.0]
+
 
 def test_lyapunov_rate_is_the_slope_and_the_trend_has_a_dead_band():
     t = np.linspace(0.0, 0.5, 16)
