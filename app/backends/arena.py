@@ -253,7 +253,7 @@ class ArenaTeam:
         truth = self.latest_truth()
         assert truth is not None
         self.state = self._state_from(truth)
-        return np.vstack(self._bodies_here(truth))
+        return self._read(truth)[3].copy()  # the truth's bodies here, already in scene order
 
     def scene_hues(self) -> tuple[float, ...]:
         """The marker hue of each body of :meth:`scene` (NaN: a leader, no marker)."""
