@@ -190,6 +190,7 @@ def test_a_reopened_port_gets_stop_for_everyone_before_anything_else():
     try:
         wait_for(lambda: link.connects == 1, 5, "the port to open")
         run_at_30hz(link, 0.3)
+        wait_for(lambda: len(line.frames) >= 4, 10, "the far end to read the first frames")
         assert line.frames[0].msg_type == p.MSG_STOP and line.frames[0].address == 1
         first = [f for f in line.frames[:4]]
         assert [f.msg_type for f in first] == [p.MSG_STOP] * 4 and {f.address for f in first} == {1, 2, 3, p.BROADCAST}
@@ -197,6 +198,7 @@ def test_a_reopened_port_gets_stop_for_everyone_before_anything_else():
         wait_for(lambda: link.connects == 2, 5, "the port to reopen")
         count = len(line.frames)
         run_at_30hz(link, 0.3)
+        wait_for(lambda: len(line.frames) >= count + 4, 10, "the far end to read the reopened port's frames")
         after = line.frames[count:]
         assert [f.msg_type for f in after[:4]] == [p.MSG_STOP] * 4
     finally:
@@ -219,7 +221,9 @@ def test_while_the_link_is_lost_the_loop_commands_zero():
         states = [loop.tick() for _ in range(60)]
         assert all(s.link_state.startswith("link lost") for s in states)
         assert all(np.all(s.commands == 0.0) for s in states)
-        written = [p.decode_velocity(f) for f in line.frames if f.msg_type == p.MSG_SET_VELOCITY]
+        # the writes are done; the far end reads them on its own thread, when it gets the CPU
+        wait_for(lambda: any(f.msg_type == p.MSG_SET_VELOCITY for f in list(line.frames)), 10, "the far end to read")
+        written = [p.decode_velocity(f) for f in list(line.frames) if f.msg_type == p.MSG_SET_VELOCITY]
         assert written and all(v == (0.0, 0.0) for v in written)
     finally:
         loop.halt_followers()
