@@ -144,7 +144,9 @@ class ArenaTeam:
     def _on_truth(self, sample: Any) -> None:
         """The arena's word, if it is a truth and its tick one the arena's clock can have reached
         since the last one (ahead by at most the time gone, 25 % and TICK_SLACK_S more, at the
-        scenario's rate); anything else is counted and dropped (docs/fleet-protocol.md, "truth")."""
+        scenario's rate), naming this leader and as many robots as the first one did (an arena's
+        leaders and robots are its fleet file's); anything else is counted and dropped
+        (docs/fleet-protocol.md, "truth"). The first truth is checked for this leader at start."""
         from app import wire
 
         truth: dict[str, Any] | None
@@ -160,6 +162,12 @@ class ArenaTeam:
                 ahead = self.rate_hz * (1.25 * (now - self._truth_at) + TICK_SLACK_S)
                 if not last["tick"] < truth["tick"] <= last["tick"] + ahead:
                     why = f"tick {truth['tick']} after {last['tick']} {now - self._truth_at:.2f} s ago"
+                    truth = None
+                elif self.leader_id not in truth["leaders"]:  # the arena's leaders are its fleet file's
+                    why = f"it names no leader {self.leader_id!r}"
+                    truth = None
+                elif len(truth["robots"]) != len(last["robots"]):  # and so are its robots
+                    why = f"{len(truth['robots'])} robots where the arena has {len(last['robots'])}"
                     truth = None
             if truth is not None:
                 self._truth = truth

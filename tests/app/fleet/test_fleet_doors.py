@@ -178,6 +178,25 @@ def test_payloads_built_to_break_a_parser_are_refused_counted_and_answered():
         time.sleep(0.2)
         taken = team.latest_truth()
         assert taken is not None and taken["owners"][:3] == ["L1"] * 3 and taken["tick"] < real["tick"] + 1000
+        # the arena stopped, so that only the hostile party speaks: truths with the next tick that
+        # name no L1, or fewer robots than the arena has (a tick on either would not know where this
+        # leader or its robots are), are refused one by one; the next tick as the arena gives it is taken
+        stop.set()
+        stepper.join(5)
+        time.sleep(0.3)
+        last = team.latest_truth()
+        assert last is not None
+        n0, nxt = team.truths_refused, last["tick"] + 1
+        others = {lid: pose for lid, pose in last["leaders"].items() if lid != "L1"}
+        short = {k: (v[:-1] if isinstance(v, list) and len(v) == len(last["robots"]) else v) for k, v in last.items()}
+        for k, t in enumerate((dict(last, tick=nxt, leaders=others), dict(short, tick=nxt))):
+            hostile.put(f"{BASE}/arena/truth", json.dumps(t).encode())
+            wait_for(lambda k=k: team.truths_refused == n0 + k + 1, 10, f"hostile truth {k + 1} refused")
+            assert team.latest_truth() is last
+        hostile.put(f"{BASE}/arena/truth", json.dumps(dict(last, tick=nxt)).encode())
+        wait_for(lambda: team.latest_truth()["tick"] == nxt, 10, "the next tick taken")
+        assert team.truths_refused == n0 + 2
+        assert team.scene().shape == (len(last["robots"]) + len(last["leaders"]) - 1, 3)
     finally:
         for s in subs:
             s.undeclare()
