@@ -32,6 +32,7 @@ def test_commands_reach_the_robots_and_odometry_comes_back(emulated):
         for _ in range(30):  # 1 s at 30 Hz
             link.send(Commands(np.array([0.1, 5.0, math.nan]), np.array([0.5, 0.0, 0.0])))
             time.sleep(1 / 30)
+        wait_for(lambda: link.stats[0].answered >= 29, 10, "the replies on their way")  # read on the link's thread
         robots = emulated.emulator.snapshot()
         v1, w1 = robots[1].measured(emulated.emulator.hw)
         assert v1 == pytest.approx(0.1, abs=0.01) and w1 == pytest.approx(0.5, abs=0.05)

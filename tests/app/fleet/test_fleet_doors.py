@@ -183,8 +183,12 @@ def test_payloads_built_to_break_a_parser_are_refused_counted_and_answered():
         # leader or its robots are), are refused one by one; the next tick as the arena gives it is taken
         stop.set()
         stepper.join(5)
-        time.sleep(0.3)
         last = team.latest_truth()
+        for _ in range(50):  # until the truths already on their way are in: none for 0.3 s
+            time.sleep(0.3)
+            if team.latest_truth() is last:
+                break
+            last = team.latest_truth()
         assert last is not None
         n0, nxt = team.truths_refused, last["tick"] + 1
         others = {lid: pose for lid, pose in last["leaders"].items() if lid != "L1"}
