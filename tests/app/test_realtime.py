@@ -72,11 +72,12 @@ def test_a_kept_cpu_runs_the_loop_alone_and_a_second_loop_finds_none_free():
         others = set(os.sched_getaffinity(0)) - {cpu}
         pages = _pages(first.pid)
         assert pages, "the page's process"
-        time.sleep(1.5)  # the loop moves threads made since off its CPU once a second
-
         def on_cpu(pid: int) -> list[int]:
             return [tid for tid, cpus in _affinities(pid).items() if cpu in cpus]
 
+        # the loop moves threads made since off its CPU once a second (later on a loaded machine)
+        wait_for(lambda: len(on_cpu(first.pid)) == 1 and all(on_cpu(page) == [] for page in pages), 20,
+                 "the kept CPU to hold the loop's thread alone")
         mine = on_cpu(first.pid)
         assert len(mine) == 1 and _affinities(first.pid)[mine[0]] == {cpu}, _affinities(first.pid)
         for page in pages:

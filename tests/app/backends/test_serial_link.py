@@ -273,9 +273,10 @@ def test_one_port_per_follower():
         hw = robots[0].emulator.hw
         assert robots[0].emulator.snapshot()[1].measured(hw)[0] == pytest.approx(0.1, abs=0.01)
         assert robots[1].emulator.snapshot()[2].measured(hw)[1] == pytest.approx(0.3, abs=0.03)
+        # the replies come back on each port's own reader thread
+        wait_for(lambda: link.link_state == "serial 2 ports: ok" and link.detail().count("rtt") == 2, 10, "both ports ok")
         v, w = link.measured()
         assert v == pytest.approx([0.1, -0.05], abs=0.01) and w[1] == pytest.approx(0.3, abs=0.03)
-        assert link.link_state == "serial 2 ports: ok" and link.detail().count("rtt") == 2
         robots[1].close()
         wait_for(lambda: link.link_state.startswith("F2 link lost"), 3, "F2's port to be reported lost")
     finally:
