@@ -235,20 +235,14 @@ class ArenaTeam:
         if self.link is not None:
             self.link.let_go(robot + 1)
 
-    def _bodies_here(self, truth: dict[str, Any]) -> tuple[FloatArray, FloatArray]:
-        """(every robot (R, 3), every other leader (L - 1, 3)) as poses (x, y, a) in this
-        leader's frame, from ``truth`` (read-only: made once per truth)."""
-        here = self._read(truth)[3]
-        r = len(truth["robots"])
-        return here[:r], here[r:]
-
     def others(self) -> tuple[FloatArray, FloatArray]:
         """(robots (k, 2), leaders (m, 2)) in this leader's frame: every body of the arena that
         is not this leader or one of the robots it drives."""
         truth = self.latest_truth()
         if truth is None:
             return np.zeros((0, 2)), np.zeros((0, 2))
-        robots, leaders = self._bodies_here(truth)
+        here, r = self._read(truth)[3], len(truth["robots"])  # every robot, then every other leader
+        robots, leaders = here[:r], here[r:]
         keep = np.ones(robots.shape[0], dtype=bool)
         keep[[r for r in self.active if r < robots.shape[0]]] = False
         return robots[keep, :2], leaders[:, :2].copy()
