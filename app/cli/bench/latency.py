@@ -100,10 +100,13 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     latencies: list[float] = []
     phases: list[str] = []
     fresh: list[bool] = []
+    ran: list[float] = []  # each tick's own time from its start to its commands written (ms)
+
     def keep(state: Any) -> None:
         latencies.append(state.latency_ms)
         phases.append(state.phase)
         fresh.append(state.fresh)
+        ran.append(sum(state.stage_ms.get(k, 0.0) for k in TICK_STAGES))
 
     svc.loop.subscribe(keep)
     svc.start()
@@ -128,9 +131,8 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
             viewer.stdout.readline()  # "ready": the page is up
         else:
             print_fn("latency: no browser attached (needs Debian's chromium and playwright: make test installs both)")
-        latencies.clear()
-        phases.clear()
-        fresh.clear()
+        for series in (latencies, phases, fresh, ran):
+            series.clear()
         _time.sleep(seconds)
     finally:
         if viewer is not None:
@@ -146,15 +148,23 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
         how += f", CPU {kept} kept for the loop, the browser off it" if kept is not None else ", no CPU could be kept"
     if browsers and not idle_browser:
         how += ", the browser's session an equal of the service's"
-    return _report(latencies, phases, fresh, seconds, how, print_fn)
+    return _report(latencies, phases, fresh, ran, seconds, how, print_fn)
 
 
-def _report(latencies: list[float], phases: list[str], fresh: list[bool], seconds: float, how: str,
-            print_fn: Callable[[str], None]) -> dict[str, float]:
+# The stages of a tick from its start to its commands written (app.live.loop, TickState.stage_ms):
+# what a tick's latency is beyond them is the wait from the frame's arrival to the tick's start.
+TICK_STAGES = ("observe", "control", "link")
+
+
+def _report(latencies: list[float], phases: list[str], fresh: list[bool], ran: list[float], seconds: float,
+            how: str, print_fn: Callable[[str], None]) -> dict[str, float]:
     """The latency's p50 and p99 over the ticks on a new frame, said in one line (and while tracking,
-    and the ticks on a late camera)."""
-    n = min(len(latencies), len(phases), len(fresh))
-    values = np.array([latencies[k] for k in range(n) if fresh[k] and np.isfinite(latencies[k])])
+    and the ticks on a late camera). Where the slowest one percent spent their time: waiting from the
+    frame's arrival for the loop's thread to start the tick (another program or thread had the CPU
+    or the interpreter), or in the tick itself (its own work, or a tick interrupted)."""
+    n = min(len(latencies), len(phases), len(fresh), len(ran))
+    on_new = [k for k in range(n) if fresh[k] and np.isfinite(latencies[k])]
+    values = np.array([latencies[k] for k in on_new])
     stale = np.array([latencies[k] for k in range(n) if not fresh[k] and np.isfinite(latencies[k])])
     tracking = np.array([latencies[k] for k in range(n) if fresh[k] and phases[k] == "tracking"])
     p50, p99 = (float(np.percentile(values, q)) for q in (50, 99)) if len(values) else (float("nan"),) * 2
@@ -166,5 +176,16 @@ def _report(latencies: list[float], phases: list[str], fresh: list[bool], second
     if len(stale):
         print_fn(f"  {len(stale)} ticks ran on a late camera (no new frame within 1.5 periods): the observation they"
                  f" acted on was {np.median(stale):.0f} ms old (median)")
-    return {"p50_ms": p50, "p99_ms": p99, "ticks": float(len(values)), "late_ticks": float(len(stale))}
+    out = {"p50_ms": p50, "p99_ms": p99, "ticks": float(len(values)), "late_ticks": float(len(stale))}
+    slow = [k for k in on_new if latencies[k] >= p99]
+    if slow:
+        lat = np.array([latencies[k] for k in slow])
+        work = np.minimum(np.array([ran[k] for k in slow]), lat)
+        wait = lat - work
+        out.update(slow_ticks=float(len(slow)), slow_latency_ms=float(lat.mean()), slow_wait_ms=float(wait.mean()),
+                   slow_tick_ms=float(work.mean()))
+        print_fn(f"  the slowest {len(slow)} (at or over p99): {lat.mean():.2f} ms on average, of which"
+                 f" {wait.mean():.2f} ms from the frame's arrival to the tick's start (the loop's thread"
+                 f" waiting to run) and {work.mean():.2f} ms in the tick (its work, or the tick interrupted)")
+    return out
 

@@ -106,7 +106,8 @@ def test_the_latency_is_recorded_and_reported(tmp_path):
 def test_the_latency_bench_measures_ticks_on_new_frames_over_the_serial_link():
     """bench --latency's own path, short and without a browser: frames from a folder, the serial
     link to emulated robots (their own process), recording on, as `run --realtime`; it prints the
-    latency line the README quotes, saying how the loop was scheduled."""
+    latency line the README quotes, saying how the loop was scheduled, and where the slowest ticks
+    spent their time (the wait before the tick and the tick itself add up to their latency)."""
     from app.cli.bench import bench_latency
 
     lines: list[str] = []
@@ -114,6 +115,12 @@ def test_the_latency_bench_measures_ticks_on_new_frames_over_the_serial_link():
     line = next(ln for ln in lines if ln.startswith("frame-to-command latency (the loop "))
     assert "real-time (FIFO 10)" in line or "real-time refused" in line, line
     assert " ms, p99 " in line and out["ticks"] > 30 and out["p50_ms"] <= out["p99_ms"]
+    slow = next(ln for ln in lines if ln.startswith("  the slowest "))
+    assert "from the frame's arrival to the tick's start" in slow, slow
+    assert 1 <= out["slow_ticks"] <= 0.05 * out["ticks"] + 1
+    assert out["slow_wait_ms"] >= 0 and out["slow_tick_ms"] > 0
+    assert out["slow_wait_ms"] + out["slow_tick_ms"] == pytest.approx(out["slow_latency_ms"])
+    assert out["slow_latency_ms"] >= out["p99_ms"]
 
 
 def test_realtime_is_asked_for_one_thread_and_said_when_refused():
