@@ -69,8 +69,6 @@ class FleetView:
         self._zenoh = zenoh
         self._lock = threading.Lock()
         self.truth: dict[str, Any] | None = None
-        # the page's own token (with the fleet's keys the page writes this, commands and handovers only)
-        self._token = session.liveliness().declare_token(f"{root(fleet)}/page/alive")
         self.states: dict[str, tuple[float, dict[str, Any]]] = {}  # id -> (monotonic time received, state)
         self.alive: set[str] = set()
         self.events: deque[str] = deque(maxlen=12)
@@ -87,6 +85,9 @@ class FleetView:
             session.declare_subscriber(f"{root(fleet)}/arena/events", self._on_event),
             session.liveliness().declare_subscriber(f"{root(fleet)}/alive/*", self._on_alive, history=True),
         ]
+        # the page's own token, once it hears the fleet: whoever sees it knows the page's subscribers are
+        # declared (with the fleet's keys the page writes this, commands and handovers only)
+        self._token = session.liveliness().declare_token(f"{root(fleet)}/page/alive")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._refresh_loop, name="omniformation-fleet-page", daemon=True)
         self._thread.start()

@@ -293,6 +293,9 @@ def test_with_keys_no_one_without_a_certificate_or_with_another_leaders_can_take
                             "--record", str(tmp_path / "fleet.mcap"))
         procs["page"] = fleet_page
         assert fleet_page.stdout is not None and "fleet three_teams at http" in fleet_page.stdout.readline()
+        # its token says its subscribers are declared: the second below is one it records
+        wait_for(lambda: any(r.ok is not None for r in page.liveliness().get(f"{BASE}/page/alive", timeout=1.0)),
+                 30, "the fleet page's token")
         page.put(f"{BASE}/leader/L1/cmd", json.dumps({"set": {"stop": True}, "from": "test"}))
         wait_for(lambda: heard.states["L1"]["stopped"], 20, "L1 stopped by the page")
         time.sleep(1.0)  # the page records a second of the fleet
