@@ -241,8 +241,8 @@ class ArenaTeam:
         truth = self.latest_truth()
         if truth is None:
             return np.zeros((0, 2)), np.zeros((0, 2))
-        here, r = self._read(truth)[3], len(truth["robots"])  # every robot, then every other leader
-        robots, leaders = here[:r], here[r:]
+        here, n_robots = self._read(truth)[3], len(truth["robots"])  # every robot, then every other leader
+        robots, leaders = here[:n_robots], here[n_robots:]
         keep = np.ones(robots.shape[0], dtype=bool)
         keep[[r for r in self.active if r < robots.shape[0]]] = False
         return robots[keep, :2], leaders[:, :2].copy()
