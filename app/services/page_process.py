@@ -11,7 +11,8 @@ The channel, one pipe, pickled messages (docs/safety.md, "The page in a process 
 * loop -> page: ``("tick", TickState, Params | None, lines | None, skipped)``, the newest tick only (a slow page
   skips ticks, the loop never waits for it), with the parameters in force whenever they changed;
   with no browser on the page, one tick in ``UNWATCHED_EVERY`` (its charts and health rules need no
-  more, and several unwatched leaders share a machine).
+  more, and several unwatched leaders share a machine), carrying the longest frame-to-command of
+  the ticks it stands for (the health rule's per-tick alarm misses none of them).
   The camera's frame travels only at the rate the page's camera panel draws it (one state in
   every ``frame_every`` ticks carries it, as plain pixels; the others carry none): rendering and
   pickling 900 kB on every tick cost the loop's process more than the loop itself; and only while
@@ -69,7 +70,7 @@ RESTART_PAUSE_S = 0.5  # between a dead page process and its successor (a crash 
 LINES_EVERY_S = 0.25  # how often the status lines' texts are read (the page's other panels redraw as often)
 RETRY_S = 5.0  # a new page that could not serve (its port taken meanwhile) is tried again this often
 ORPHAN_S = 3.0  # how long a page whose loop died keeps saying so before it ends
-UNWATCHED_EVERY = 3  # with no browser on the page, one state in this many goes to it
+UNWATCHED_EVERY = 10  # with no browser on the page, one state in this many goes to it (3 a second at 30 Hz)
 
 
 class PageProcess:
@@ -92,6 +93,7 @@ class PageProcess:
         self.clients = 0  # browsers the page serves now (it says when this changes)
         self.states_sent = 0
         self.handed = 0  # states handed to the sender (it skips one superseded before it went)
+        self._worst_latency_ms = -math.inf  # the longest frame-to-command of the ticks not handed since the last
         self._frame_tick = -(10**9)  # the tick of the last state sent with its frame
         self.alarms: list[Callable[[float, str], None]] = []  # told of each alarm the page raises
         self._lines: list[Callable[[], str]] = []  # status lines shown on the page (add_line)
@@ -184,10 +186,21 @@ class PageProcess:
     def on_tick(self, state: TickState) -> None:
         """A loop subscriber: keep the newest state for the sender (never blocks the loop). With
         no browser on the page, one state in UNWATCHED_EVERY: its charts' history and health rules
-        go on at 10 a second (at 30 Hz) and its process idles, as several unwatched leaders on one
-        machine need; every state again from the tick after a browser comes."""
-        if self.clients == 0 and state.tick % UNWATCHED_EVERY:
-            return
+        go on at 3 a second (at 30 Hz) and its process idles, as several unwatched leaders on one
+        machine need (the page's process wakes for each state, and a vision leader's page took
+        about a third as much CPU at one in 10 as at one in 3). That state's frame-to-command is the longest of the ticks since the last one went,
+        so the health rule's alarm for a tick longer than a period sees every tick. Every state
+        again from the tick after a browser comes."""
+        if self.clients == 0:
+            worst = self._worst_latency_ms
+            if math.isfinite(state.latency_ms) and not state.latency_ms <= worst:
+                worst = state.latency_ms
+            if state.tick % UNWATCHED_EVERY:
+                self._worst_latency_ms = worst
+                return
+            if math.isfinite(worst) and not worst <= state.latency_ms:  # (a tick that observed nothing: NaN)
+                state = dataclasses.replace(state, latency_ms=worst)
+        self._worst_latency_ms = -math.inf
         self.handed += 1
         self._sender(state)
 

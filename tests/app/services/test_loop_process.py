@@ -245,7 +245,7 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
         assert page.frames_sent == 0 and page.states_sent > 0  # nobody has the page open: no frame rendered
         handed, ticks = page.handed, svc.loop.tick_count
         assert _until(lambda: svc.loop.tick_count > ticks + 30)
-        assert page.handed - handed <= (svc.loop.tick_count - ticks) // UNWATCHED_EVERY + 2  # and one state in three
+        assert page.handed - handed <= (svc.loop.tick_count - ticks) // UNWATCHED_EVERY + 2  # and one state in ten
         client = RawPage(page.port)
         image, shown = "", 0
         for msg in client.messages(60.0):
@@ -270,6 +270,36 @@ def test_camera_frames_travel_to_the_page_at_its_camera_panels_rate_only() -> No
         assert page.frames_sent <= sent + 1  # (one may have been on its way)
     finally:
         svc.close()
+
+
+def test_an_unwatched_pages_state_carries_the_longest_frame_to_command_of_the_ticks_it_stands_for() -> None:
+    """With no browser on the page, one state in UNWATCHED_EVERY goes to it; the page's health rule
+    raises an alarm for a tick longer than a period, so the state that goes carries the longest
+    frame-to-command of the ticks since the last one went (one long tick among the skipped ones
+    is not lost), and its own when it is the longest or when none of them observed anything."""
+    import dataclasses
+
+    from app.params import Params, ParamsStore
+    from app.services.page_process import UNWATCHED_EVERY, PageProcess
+    from tests.app.dashboard.test_health import tick as state_at
+
+    page = PageProcess(ParamsStore(Params()), "127.0.0.1", 0, None, None)
+    handed: list[Any] = []
+    page._sender.close()
+    page._sender = handed.append  # what goes to the page's process, in order
+    every = UNWATCHED_EVERY
+    latencies = [5.0] * (3 * every)
+    latencies[every + 3] = 80.0  # a long tick among the second window's skipped ones
+    latencies[2 * every + 2] = float("nan")  # in the third: one that observed nothing, then a short one
+    for k, ms in enumerate(latencies):
+        page.on_tick(dataclasses.replace(state_at(k / 30), tick=k, latency_ms=ms))
+    assert [s.tick for s in handed] == [0, every, 2 * every]
+    assert [s.latency_ms for s in handed] == [5.0, 5.0, 80.0]
+    page.on_tick(dataclasses.replace(state_at(1.0), tick=3 * every, latency_ms=float("nan")))  # its own: none
+    assert handed[-1].latency_ms == 5.0
+    page.clients = 1  # a browser: every state as it is
+    page.on_tick(dataclasses.replace(state_at(1.0), tick=3 * every + 1, latency_ms=float("nan")))
+    assert handed[-1].tick == 3 * every + 1 and handed[-1].latency_ms != handed[-1].latency_ms
 
 
 def test_a_real_camera_runs_in_the_loops_process_and_its_frames_show_on_the_page(tmp_path: Path) -> None:
