@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 
 STALE_TRUTH_S = 0.3  # no truth for this long: the arena (the robots' channel) is lost
 TICK_SLACK_S = 1.0  # a truth's tick runs ahead of the arena's clock by at most this (and 25 %) since the last
+TRUTH_QUEUE = 64  # truths held for the leader between two reads (2 s at 30 Hz); the oldest go first when it is full
 
 
 def read_truth(msg: Any) -> dict[str, Any]:
@@ -101,18 +102,24 @@ class ArenaTeam:
         self._arrays: tuple[dict[str, Any], tuple[FloatArray, FloatArray, FloatArray, FloatArray]] | None = None  # (a truth, _read's arrays of it)
         self._truth_at = -math.inf
         self.rate_hz = rate_hz
-        self.truths_refused = 0  # truths not of the protocol's shape, or whose tick the arena's clock cannot have reached
-        self._got = threading.Event()
-        self._sub = session.declare_subscriber(f"{root(fleet)}/arena/truth", self._on_truth)
+        self._refused = 0  # truths not of the protocol's shape, or whose tick the arena's clock cannot have reached
+        self._got = False
+        self._reading = threading.Lock()  # one reader at a time takes the queued truths, so they are taken in order
+        # the truths wait in zenoh's queue until they are read (each tick), not in a callback of ours: a
+        # callback is a thread woken and the interpreter's lock taken 30 times a second, which cost a
+        # vision leader more CPU than reading the truths (and took the lock from its loop mid-tick)
+        import zenoh
+
+        self._sub = session.declare_subscriber(f"{root(fleet)}/arena/truth", zenoh.handlers.RingChannel(TRUTH_QUEUE))
         self._drive: Any = None  # declared at the first command: a leader refused at start-up never drives
         # no truth at once: is an arena alive at all (its token)? None: say so now, not after wait_s
-        if not self._got.wait(min(wait_s, 2.0)) and not any(
+        if not self._wait_truth(min(wait_s, 2.0)) and not any(
                 getattr(r, "ok", None) is not None
                 for r in session.liveliness().get(f"{root(fleet)}/arena/alive", timeout=1.0)):
             self._sub.undeclare()
             raise NoArena(f"no arena is alive on fleet {fleet}'s bus (its token {root(fleet)}/arena/alive): start"
                           f" `omniformation arena` first, and connect to it (--zenoh-connect)")
-        if not self._got.wait(wait_s):
+        if not self._wait_truth(wait_s):
             self._sub.undeclare()
             raise NoArena(f"no arena publishes {root(fleet)}/arena/truth (waited {wait_s:g} s): start"
                           f" `omniformation arena` first, and connect to it (--zenoh-connect)")
@@ -141,6 +148,28 @@ class ArenaTeam:
         self.link = SerialLink(port, 0, baud, addresses=[r + 1 for r in self.owned], radio_id=radio_id, **auth)
 
     # -- truth in --------------------------------------------------------------------------
+    def _read_queued(self) -> None:
+        """Take or refuse, in their order, the truths that came since the last read."""
+        with self._reading:
+            while (sample := self._sub.try_recv()) is not None:
+                self._on_truth(sample)
+
+    def _wait_truth(self, wait_s: float) -> bool:
+        """Whether a truth was taken within ``wait_s`` (start-up)."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            self._read_queued()
+            if self._got or time.monotonic() >= deadline:
+                return self._got
+            time.sleep(0.01)
+
+    @property
+    def truths_refused(self) -> int:
+        """Messages on the truth key not taken (not of the protocol's shape, or naming a tick the
+        arena's clock cannot have reached, ...), the queued ones read first."""
+        self._read_queued()
+        return self._refused
+
     def _on_truth(self, sample: Any) -> None:
         """The arena's word, if it is a truth and its tick one the arena's clock can have reached
         since the last one (ahead by at most the time gone, 25 % and TICK_SLACK_S more, at the
@@ -175,14 +204,16 @@ class ArenaTeam:
         if truth is None:
             self._refuse_truth(why)
             return
-        self._got.set()
+        self._got = True
 
     def _refuse_truth(self, why: str) -> None:
-        self.truths_refused += 1
-        if self.truths_refused in (1, 10, 100, 1000):
-            log.warning("%d message(s) on the arena's truth key refused (%s)", self.truths_refused, why)
+        self._refused += 1
+        if self._refused in (1, 10, 100, 1000):
+            log.warning("%d message(s) on the arena's truth key refused (%s)", self._refused, why)
 
     def latest_truth(self) -> dict[str, Any] | None:
+        """The newest truth taken, the queued ones read first."""
+        self._read_queued()
         with self._lock:
             return self._truth
 

@@ -342,6 +342,39 @@ def _l1_in_an_arena():
         session.close()
 
 
+def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_and_refuses_none():
+    """docs/fleet-protocol.md, "truth": a leader reads the truths queued for it, in their order,
+    whenever its loop looks at the world; the queue holds the last TRUTH_QUEUE. After a stall
+    longer than that (nobody read the truths for three seconds) the first read takes the newest
+    truth the arena has published, and refuses none of those read on the way."""
+    from app.backends.arena import TRUTH_QUEUE, ArenaTeam
+    from app.fleet.arena import Arena
+    from app.fleet.bridge import open_session
+
+    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
+    session = open_session([], [])
+    arena = Arena(scenario, session)
+    stop = threading.Event()
+    stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
+    stepper.start()
+    team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
+    try:
+        first = team.latest_truth()
+        assert first is not None and team.truths_refused == 0
+        wait_for(lambda: arena.counts.steps > first["tick"] + TRUTH_QUEUE + scenario.rate_hz, 30,
+                 "a second more than the queue holds")  # the arena's count: the team is not read meanwhile
+        stop.set()
+        stepper.join(5)  # the arena's last truth is out
+        newest = arena.counts.steps
+        wait_for(lambda: (t := team.latest_truth()) is not None and t["tick"] == newest, 10, "the newest truth")
+        assert team.truths_refused == 0
+    finally:
+        stop.set()
+        team.close()
+        arena.close()
+        session.close()
+
+
 def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned():
     """The adopter acts on the newest truth it holds, which may be older than its own grant: a
     robot it took already is no orphan (claimed again it would be granted -- it is the
