@@ -220,7 +220,8 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
         at = max(held, 1)  # the CPU at the most it held (at one, where it held none)
         results["leader_cpu_percent" + ("_one_process" if extra else "")] = cpu[at - 1][0]
         print_fn(f"fleet: leader processes of 3 followers (vision in the loop, each camera rendered from its arena;"
-                 f" fleets of {FLEET_TEAMS}, each its own arena and bus), {name}: this machine holds {held} at 30 Hz (within 1 %); slowest loop with"
+                 f" fleets of {FLEET_TEAMS}, each its own arena and bus), {name}: this machine holds {held} at 30 Hz (within 1 %)"
+                 f"{' (every one the bench starts: it may hold more)' if held == len(slowest) else ''}; slowest loop with"
                  f" 1..{len(slowest)} running: {', '.join(f'{r:.2f}' for r in slowest)} Hz; with {at} running, each"
                  f" leader (its process and its page) took {cpu[at - 1][0]:.1f} % of one CPU, the arenas"
                  f" {cpu[at - 1][1]:.1f} % together")
