@@ -100,7 +100,8 @@ class ArenaTeam:
         self._lock = threading.Lock()
         self._truth: dict[str, Any] | None = None
         self._arrays: tuple[dict[str, Any], tuple[FloatArray, FloatArray, FloatArray, FloatArray]] | None = None  # (a truth, _read's arrays of it)
-        self._truth_at = -math.inf
+        self._truth_at = -math.inf  # the truth taken last came after this (its age)
+        self._taken_at = -math.inf  # and was read then (the next one's allowance)
         self.rate_hz = rate_hz
         self._refused = 0  # truths not of the protocol's shape, or whose tick the arena's clock cannot have reached
         self._got = False
@@ -110,6 +111,7 @@ class ArenaTeam:
         # vision leader more CPU than reading the truths (and took the lock from its loop mid-tick)
         import zenoh
 
+        self._emptied_at = time.monotonic()  # when the queue was last found empty (see _read_queued)
         self._sub = session.declare_subscriber(f"{root(fleet)}/arena/truth", zenoh.handlers.RingChannel(TRUTH_QUEUE))
         self._drive: Any = None  # declared at the first command: a leader refused at start-up never drives
         # no truth at once: is an arena alive at all (its token)? None: say so now, not after wait_s
@@ -149,10 +151,17 @@ class ArenaTeam:
 
     # -- truth in --------------------------------------------------------------------------
     def _read_queued(self) -> None:
-        """Take or refuse, in their order, the truths that came since the last read."""
+        """Take or refuse, in their order, the truths that came since the last read. Each came
+        after the queue was last found empty: its age counts from then, so a truth that waited
+        in the queue is never taken for younger than it is."""
         with self._reading:
-            while (sample := self._sub.try_recv()) is not None:
-                self._on_truth(sample)
+            while True:
+                checked = time.monotonic()
+                sample = self._sub.try_recv()
+                if sample is None:
+                    self._emptied_at = checked  # whatever is queued next came after this
+                    return
+                self._on_truth(sample, self._emptied_at)
 
     def _wait_truth(self, wait_s: float) -> bool:
         """Whether a truth was taken within ``wait_s`` (start-up)."""
@@ -170,12 +179,14 @@ class ArenaTeam:
         self._read_queued()
         return self._refused
 
-    def _on_truth(self, sample: Any) -> None:
+    def _on_truth(self, sample: Any, came_after: float) -> None:
         """The arena's word, if it is a truth and its tick one the arena's clock can have reached
         since the last one (ahead by at most the time gone, 25 % and TICK_SLACK_S more, at the
         scenario's rate), naming this leader and as many robots as the first one did (an arena's
         leaders and robots are its fleet file's); anything else is counted and dropped
-        (docs/fleet-protocol.md, "truth"). The first truth is checked for this leader at start."""
+        (docs/fleet-protocol.md, "truth"). The first truth is checked for this leader at start.
+        It came after ``came_after`` and by now: the allowance counts the time to now (the most
+        the arena's clock can have gone), its age from ``came_after`` (never less than it is)."""
         from app import wire
 
         truth: dict[str, Any] | None
@@ -188,9 +199,9 @@ class ArenaTeam:
         with self._lock:
             last = self._truth
             if last is not None and truth is not None:
-                ahead = self.rate_hz * (1.25 * (now - self._truth_at) + TICK_SLACK_S)
+                ahead = self.rate_hz * (1.25 * (now - self._taken_at) + TICK_SLACK_S)
                 if not last["tick"] < truth["tick"] <= last["tick"] + ahead:
-                    why = f"tick {truth['tick']} after {last['tick']} {now - self._truth_at:.2f} s ago"
+                    why = f"tick {truth['tick']} after {last['tick']} {now - self._taken_at:.2f} s ago"
                     truth = None
                 elif self.leader_id not in truth["leaders"]:  # the arena's leaders are its fleet file's
                     why = f"it names no leader {self.leader_id!r}"
@@ -200,7 +211,8 @@ class ArenaTeam:
                     truth = None
             if truth is not None:
                 self._truth = truth
-                self._truth_at = now
+                self._taken_at = now  # read: the next truth's allowance counts from here
+                self._truth_at = came_after  # came: its age counts from here
         if truth is None:
             self._refuse_truth(why)
             return
@@ -334,6 +346,7 @@ class ArenaTeam:
     # -- the Team contract ----------------------------------------------------------------
     @property
     def link_state(self) -> str:
+        self._read_queued()  # a truth that came is not missing
         age = time.monotonic() - self._truth_at
         if age > STALE_TRUTH_S:
             return f"arena: no truth for {age:.1f} s"
@@ -341,6 +354,7 @@ class ArenaTeam:
 
     @property
     def link_lost(self) -> bool:
+        self._read_queued()
         return time.monotonic() - self._truth_at > STALE_TRUTH_S or (self.link is not None and self.link.lost)
 
     def answering(self) -> BoolArray:

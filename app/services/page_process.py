@@ -187,10 +187,10 @@ class PageProcess:
         """A loop subscriber: keep the newest state for the sender (never blocks the loop). With
         no browser on the page, one state in UNWATCHED_EVERY: its charts' history and health rules
         go on at 3 a second (at 30 Hz) and its process idles, as several unwatched leaders on one
-        machine need (the page's process wakes for each state, and a vision leader's page took
-        about a third as much CPU at one in 10 as at one in 3). That state's frame-to-command is the longest of the ticks since the last one went,
-        so the health rule's alarm for a tick longer than a period sees every tick. Every state
-        again from the tick after a browser comes."""
+        machine need (the page's process wakes for each state: a vision leader's page took about a
+        third as much CPU at one in 10 as at one in 3). That state's frame-to-command is the
+        longest of the ticks since the last one went, so the health rule's alarm for a tick longer
+        than a period sees every tick. Every state again from the tick after a browser comes."""
         if self.clients == 0:
             worst = self._worst_latency_ms
             if math.isfinite(state.latency_ms) and not state.latency_ms <= worst:

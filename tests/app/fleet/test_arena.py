@@ -13,6 +13,7 @@ import math
 import signal
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -346,8 +347,10 @@ def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_
     """docs/fleet-protocol.md, "truth": a leader reads the truths queued for it, in their order,
     whenever its loop looks at the world; the queue holds the last TRUTH_QUEUE. After a stall
     longer than that (nobody read the truths for three seconds) the first read takes the newest
-    truth the arena has published, and refuses none of those read on the way."""
-    from app.backends.arena import TRUTH_QUEUE, ArenaTeam
+    truth the arena has published, and refuses none of those read on the way; and a truth that
+    waited in the queue is not taken for younger than it is: the arena stopped, the newest truth
+    read STALE_TRUTH_S after it came is a lost link."""
+    from app.backends.arena import STALE_TRUTH_S, TRUTH_QUEUE, ArenaTeam
     from app.fleet.arena import Arena
     from app.fleet.bridge import open_session
 
@@ -366,8 +369,11 @@ def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_
         stop.set()
         stepper.join(5)  # the arena's last truth is out
         newest = arena.counts.steps
-        wait_for(lambda: (t := team.latest_truth()) is not None and t["tick"] == newest, 10, "the newest truth")
+        time.sleep(STALE_TRUTH_S + 0.1)
+        taken = team.latest_truth()
+        assert taken is not None and taken["tick"] == newest
         assert team.truths_refused == 0
+        assert team.link_lost and "no truth for" in team.link_state
     finally:
         stop.set()
         team.close()
