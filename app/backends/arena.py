@@ -104,7 +104,6 @@ class ArenaTeam:
         self._taken_at = -math.inf  # and was read then (the next one's allowance)
         self.rate_hz = rate_hz
         self._refused = 0  # truths not of the protocol's shape, or whose tick the arena's clock cannot have reached
-        self._got = False
         self._reading = threading.Lock()  # one reader at a time takes the queued truths, so they are taken in order
         # the truths wait in zenoh's queue until they are read (each tick), not in a callback of ours: a
         # callback is a thread woken and the interpreter's lock taken 30 times a second, which cost a
@@ -167,9 +166,9 @@ class ArenaTeam:
         """Whether a truth was taken within ``wait_s`` (start-up)."""
         deadline = time.monotonic() + wait_s
         while True:
-            self._read_queued()
-            if self._got or time.monotonic() >= deadline:
-                return self._got
+            taken = self.latest_truth() is not None  # (the queued ones read first)
+            if taken or time.monotonic() >= deadline:
+                return taken
             time.sleep(0.01)
 
     @property
@@ -215,8 +214,6 @@ class ArenaTeam:
                 self._truth_at = came_after  # came: its age counts from here
         if truth is None:
             self._refuse_truth(why)
-            return
-        self._got = True
 
     def _refuse_truth(self, why: str) -> None:
         self._refused += 1
