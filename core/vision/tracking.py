@@ -64,10 +64,17 @@ def back_projection(bgr: Image, lut: np.ndarray, area_mask: np.ndarray, detect: 
     """The CAMSHIFT input of a BGR region in one pass: the hue histogram's back-projection
     (``lut`` from :func:`hue_lookup`) where saturation and value pass ``detect``'s floors,
     ANDed with the working-area mask. Byte for byte what cvtColor → calcBackProject →
-    inRange → bitwise_and gives, without the four intermediate images."""
-    a = np.asarray(bgr)
+    inRange → bitwise_and gives, without the four intermediate images.
+
+    Both regions are handed to the kernel contiguous, whatever they were: a window cut from a
+    camera's frame is a strided view, a rectangle the synthetic camera rendered alone is not, and
+    numba compiles the kernel once for each layout it meets. The loop's warm-up (app.live.warmup)
+    runs the synthetic camera, so a real rig's strided windows met an uncompiled kernel in a paced
+    tick, which stalled while it compiled; copying a window costs microseconds."""
+    a = np.ascontiguousarray(bgr)
     out = np.empty(a.shape[:2], np.uint8)
-    _backproject_kernel(a, area_mask, lut, int(detect.min_saturation), int(detect.min_value), _SDIV, _HDIV, out)
+    _backproject_kernel(a, np.ascontiguousarray(area_mask), lut, int(detect.min_saturation), int(detect.min_value),
+                        _SDIV, _HDIV, out)
     return out
 
 
