@@ -111,6 +111,7 @@ class ArenaTeam:
         import zenoh
 
         self._emptied_at = time.monotonic()  # when the queue was last found empty (see _read_queued)
+        self._closed = False
         self._sub = session.declare_subscriber(f"{root(fleet)}/arena/truth", zenoh.handlers.RingChannel(TRUTH_QUEUE))
         self._drive: Any = None  # declared at the first command: a leader refused at start-up never drives
         # no truth at once: is an arena alive at all (its token)? None: say so now, not after wait_s
@@ -154,7 +155,7 @@ class ArenaTeam:
         after the queue was last found empty: its age counts from then, so a truth that waited
         in the queue is never taken for younger than it is."""
         with self._reading:
-            while True:
+            while not self._closed:  # (closed: its subscriber is gone, and the last truth taken stands)
                 checked = time.monotonic()
                 sample = self._sub.try_recv()
                 if sample is None:
@@ -404,13 +405,17 @@ class ArenaTeam:
         self._twist = (float(leader_twist[0]), float(leader_twist[1]))  # goes with the next tick's commands
 
     def close(self) -> None:
+        if self._closed:
+            return
         if self._drive is not None:  # it drove: its robots and itself to zero, as the last word
             self._twist = (0.0, 0.0)
             self.send(Commands.zeros(len(self.active)))
             self._drive.undeclare()
         if self.link is not None:
             self.link.close()  # STOP to the robots it owns
-        self._sub.undeclare()
+        with self._reading:  # a reader on another thread (the adopter's) finishes first, and none reads after
+            self._closed = True
+            self._sub.undeclare()
 
 
 OTHER_ROBOT_RING_M = 0.10  # another team's robot, as the filter sees it: a ring of points this far out

@@ -381,6 +381,55 @@ def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_
         session.close()
 
 
+def test_a_leader_closed_while_another_thread_reads_its_truths_answers_from_the_last_one():
+    """The adopter's thread reads the team's truths while the loop's thread closes the team at the
+    end of a run: no read fails on the subscriber that close takes away (a traceback at every
+    leader's shutdown), the last truth taken stands, and a closed team's link is lost once it is
+    older than STALE_TRUTH_S."""
+    from app.backends.arena import STALE_TRUTH_S, ArenaTeam
+    from app.fleet.arena import Arena
+    from app.fleet.bridge import open_session
+
+    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
+    session = open_session([], [])
+    arena = Arena(scenario, session)
+    stop = threading.Event()
+    stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
+    stepper.start()
+    team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
+    failures: list[BaseException] = []
+    reads = [0]
+
+    def reader() -> None:
+        while not stop.is_set():
+            try:
+                team.latest_truth(), team.link_state, team.truths_refused, team.link_lost
+                reads[0] += 1
+            except BaseException as exc:  # noqa: BLE001 - what the test looks for
+                failures.append(exc)
+                return
+
+    other = threading.Thread(target=reader, daemon=True)
+    try:
+        other.start()
+        wait_for(lambda: reads[0] > 100, 30, "the reader reading")
+        team.close()
+        at_close = team.latest_truth()
+        done = reads[0]
+        wait_for(lambda: reads[0] > done + 100, 30, "the reader reading after close")
+        assert not failures, failures
+        assert at_close is not None and team.latest_truth() is at_close  # the last truth taken stands
+        time.sleep(STALE_TRUTH_S + 0.1)
+        assert team.link_lost and "no truth for" in team.link_state
+        team.close()  # a second close is nothing
+    finally:
+        stop.set()
+        other.join(5)
+        team.close()
+        arena.close()
+        session.close()
+
+
 def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned():
     """The adopter acts on the newest truth it holds, which may be older than its own grant: a
     robot it took already is no orphan (claimed again it would be granted -- it is the
