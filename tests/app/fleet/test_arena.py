@@ -14,7 +14,9 @@ import signal
 import subprocess
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -343,14 +345,11 @@ def _l1_in_an_arena():
         session.close()
 
 
-def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_and_refuses_none():
-    """docs/fleet-protocol.md, "truth": a leader reads the truths queued for it, in their order,
-    whenever its loop looks at the world; the queue holds the last TRUTH_QUEUE. After a stall
-    longer than that (nobody read the truths for three seconds) the first read takes the newest
-    truth the arena has published, and refuses none of those read on the way; and a truth that
-    waited in the queue is not taken for younger than it is: the arena stopped, the newest truth
-    read STALE_TRUTH_S after it came is a lost link."""
-    from app.backends.arena import STALE_TRUTH_S, TRUTH_QUEUE, ArenaTeam
+@contextlib.contextmanager
+def _stepping_arena_and_l1() -> Iterator[tuple[Any, threading.Event, threading.Thread, Any]]:
+    """A real arena stepping on its own thread (until the event is set) and leader L1's team on it,
+    both on one in-process Zenoh session; everything closed after."""
+    from app.backends.arena import ArenaTeam
     from app.fleet.arena import Arena
     from app.fleet.bridge import open_session
 
@@ -360,11 +359,32 @@ def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_
     stop = threading.Event()
     stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
     stepper.start()
-    team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
     try:
+        team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
+        try:
+            yield arena, stop, stepper, team
+        finally:
+            stop.set()
+            team.close()
+    finally:
+        stop.set()
+        arena.close()
+        session.close()
+
+
+def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_and_refuses_none():
+    """docs/fleet-protocol.md, "truth": a leader reads the truths queued for it, in their order,
+    whenever its loop looks at the world; the queue holds the last TRUTH_QUEUE. After a stall
+    longer than that (nobody read the truths for three seconds) the first read takes the newest
+    truth the arena has published, and refuses none of those read on the way; and a truth that
+    waited in the queue is not taken for younger than it is: the arena stopped, the newest truth
+    read STALE_TRUTH_S after it came is a lost link."""
+    from app.backends.arena import STALE_TRUTH_S, TRUTH_QUEUE
+
+    with _stepping_arena_and_l1() as (arena, stop, stepper, team):
         first = team.latest_truth()
         assert first is not None and team.truths_refused == 0
-        wait_for(lambda: arena.counts.steps > first["tick"] + TRUTH_QUEUE + scenario.rate_hz, 30,
+        wait_for(lambda: arena.counts.steps > first["tick"] + TRUTH_QUEUE + arena.scenario.rate_hz, 30,
                  "a second more than the queue holds")  # the arena's count: the team is not read meanwhile
         stop.set()
         stepper.join(5)  # the arena's last truth is out
@@ -374,11 +394,6 @@ def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_
         assert taken is not None and taken["tick"] == newest
         assert team.truths_refused == 0
         assert team.link_lost and "no truth for" in team.link_state
-    finally:
-        stop.set()
-        team.close()
-        arena.close()
-        session.close()
 
 
 def test_a_leader_closed_while_another_thread_reads_its_truths_answers_from_the_last_one():
@@ -386,48 +401,37 @@ def test_a_leader_closed_while_another_thread_reads_its_truths_answers_from_the_
     end of a run: no read fails on the subscriber that close takes away (a traceback at every
     leader's shutdown), the last truth taken stands, and a closed team's link is lost once it is
     older than STALE_TRUTH_S."""
-    from app.backends.arena import STALE_TRUTH_S, ArenaTeam
-    from app.fleet.arena import Arena
-    from app.fleet.bridge import open_session
+    from app.backends.arena import STALE_TRUTH_S
 
-    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
-    session = open_session([], [])
-    arena = Arena(scenario, session)
-    stop = threading.Event()
-    stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
-    stepper.start()
-    team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
     failures: list[BaseException] = []
     reads = [0]
+    with _stepping_arena_and_l1() as (_arena, stop, _stepper, team):
 
-    def reader() -> None:
-        while not stop.is_set():
-            try:
-                team.latest_truth(), team.link_state, team.truths_refused, team.link_lost
-                reads[0] += 1
-            except BaseException as exc:  # noqa: BLE001 - what the test looks for
-                failures.append(exc)
-                return
+        def reader() -> None:
+            while not stop.is_set():
+                try:
+                    team.latest_truth(), team.link_state, team.truths_refused, team.link_lost
+                    reads[0] += 1
+                except BaseException as exc:  # noqa: BLE001 - what the test looks for
+                    failures.append(exc)
+                    return
 
-    other = threading.Thread(target=reader, daemon=True)
-    try:
+        other = threading.Thread(target=reader, daemon=True)
         other.start()
-        wait_for(lambda: reads[0] > 100, 30, "the reader reading")
-        team.close()
-        at_close = team.latest_truth()
-        done = reads[0]
-        wait_for(lambda: reads[0] > done + 100, 30, "the reader reading after close")
-        assert not failures, failures
-        assert at_close is not None and team.latest_truth() is at_close  # the last truth taken stands
-        time.sleep(STALE_TRUTH_S + 0.1)
-        assert team.link_lost and "no truth for" in team.link_state
-        team.close()  # a second close is nothing
-    finally:
-        stop.set()
-        other.join(5)
-        team.close()
-        arena.close()
-        session.close()
+        try:
+            wait_for(lambda: reads[0] > 100, 30, "the reader reading")
+            team.close()
+            at_close = team.latest_truth()
+            done = reads[0]
+            wait_for(lambda: reads[0] > done + 100, 30, "the reader reading after close")
+            assert not failures, failures
+            assert at_close is not None and team.latest_truth() is at_close  # the last truth taken stands
+            time.sleep(STALE_TRUTH_S + 0.1)
+            assert team.link_lost and "no truth for" in team.link_state
+            team.close()  # a second close is nothing
+        finally:
+            stop.set()
+            other.join(5)
 
 
 def test_a_leader_never_claims_twice_what_an_old_truth_still_shows_as_orphaned():
