@@ -456,3 +456,35 @@ def test_the_free_space_scan_runs_after_the_ticks_commands_are_sent_and_counts_f
     assert seen, "the box is in view"
     k = seen[0]  # the box the scan found is an obstacle from the next tick on
     assert states[k + 1].obstacles is not None and len(states[k + 1].obstacles) > 0
+
+
+# A fresh interpreter's warm-up, then the barrier QP on two followers about to collide: what the
+# first solve in a paced tick would have imported, and its status.
+_FIRST_SOLVE = """
+import json, sys
+from app.live import warmup
+from app.live.loop import ServiceLoop
+from app.params import Params, ParamsStore, default_slots
+from core.control.safety import filter_commands
+loop = ServiceLoop(ParamsStore(Params(n_followers=2, slots=default_slots(2))), rate_hz=30.0)
+warmup.warm_up(loop, say=False)
+before = set(sys.modules)
+p, a, commands = warmup.warm_up_solver_case()
+result = filter_commands(p, a, commands, (0.0, 0.0), settings=loop._safety_settings(loop.store.get()))
+print(json.dumps({"status": result.status, "imported": sorted(set(sys.modules) - before)}))
+"""
+
+
+def test_the_warm_up_leaves_the_safety_filters_first_solve_nothing_to_import():
+    """The throwaway world's followers may never come close enough for the barrier QP, and the QP
+    library and its solver are imported at the first solve (about 40 ms, seen inside a paced tick
+    of the latency bench): the warm-up solves one, so the loop's first solve imports nothing."""
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _FIRST_SOLVE], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    assert got["status"] == "filtered", got  # the case does reach the solver
+    assert got["imported"] == [], got
