@@ -74,8 +74,8 @@ def warm_up_solver_case() -> tuple[Any, Any, Any]:
 def warm_solver(settings: Any) -> None:
     """Solve one barrier QP (core.control.safety) with the loop's solver. The throwaway world's
     commands may keep every barrier (its followers never come close), and the QP library and
-    its solver are imported at the first solve: about 40 ms, measured inside a paced tick of the
-    latency bench, the first time two followers came close."""
+    its solver are imported at the first solve: 20-50 ms of the paced tick in which two followers
+    first came close (the latency bench's 'control' stage)."""
     from core.control.safety import filter_commands
 
     p, a, commands = warm_up_solver_case()

@@ -477,8 +477,8 @@ print(json.dumps({"status": result.status, "imported": sorted(set(sys.modules) -
 
 def test_the_warm_up_leaves_the_safety_filters_first_solve_nothing_to_import():
     """The throwaway world's followers may never come close enough for the barrier QP, and the QP
-    library and its solver are imported at the first solve (about 40 ms, seen inside a paced tick
-    of the latency bench): the warm-up solves one, so the loop's first solve imports nothing."""
+    library and its solver are imported at the first solve (20-50 ms of a paced tick in the
+    latency bench): the warm-up solves one, so the loop's first solve imports nothing."""
     import json
     import subprocess
     import sys
