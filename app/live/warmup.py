@@ -60,33 +60,12 @@ def compiled() -> int:
     return sum(sum(fn.stats.cache_misses.values()) for fn in kernels())
 
 
-def warm_up_solver_case() -> tuple[Any, Any, Any]:
-    """Two followers 0.3 m apart heading for each other: (p, a, commands) that no safety
-    distance lets through unfiltered, so the barrier QP goes to the solver."""
-    import numpy as np
-
-    from core.types import Commands
-
-    return (np.array([[-0.15, 0.0], [0.15, 0.0]]), np.array([0.0, np.pi]),
-            Commands(np.array([0.3, 0.3]), np.zeros(2)))
-
-
-def warm_solver(settings: Any) -> None:
-    """Solve one barrier QP (core.control.safety) with the loop's solver. The throwaway world's
-    commands may keep every barrier (its followers never come close), and the QP library and
-    its solver are imported at the first solve: 20-50 ms of the paced tick in which two followers
-    first came close (the latency bench's 'control' stage)."""
-    from core.control.safety import filter_commands
-
-    p, a, commands = warm_up_solver_case()
-    filter_commands(p, a, commands, (0.0, 0.0), settings=settings)
-
-
 def warm_up(loop: ServiceLoop, say: bool = True) -> float:
     """Step a throwaway world like ``loop``'s until every kernel it reaches has run once; returns the
     seconds it took (0.0 when this process had warmed such a world already). On a cold cache, one
     line says so and how long it took."""
     from app.live.loop import ServiceLoop
+    from core.control.safety import load_solver
 
     camera = loop.backends.camera
     kind = "vision" if camera is not None else "truth"
@@ -120,7 +99,9 @@ def warm_up(loop: ServiceLoop, say: bool = True) -> float:
                     break
     finally:
         shadow.close_team()
-    warm_solver(shadow._safety_settings(store.get()))
+    # the throwaway world's followers may never come close enough for the barrier QP, whose library
+    # and solver are imported at the first solve
+    load_solver(shadow._safety_settings(store.get()).solver)
     took = time.perf_counter() - t0
     made = compiled() - before  # compiled, not loaded from numba's cache
     _warmed.add(kind)

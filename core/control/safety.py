@@ -223,6 +223,14 @@ def _solve(u_nom: FloatArray, G: FloatArray, h: FloatArray, solver: str) -> tupl
     return np.asarray(u, dtype=np.float64), "filtered", ""
 
 
+def load_solver(solver: str) -> SolveStatus:
+    """Import the QP library and ``solver`` now, by solving a two-variable QP whose one constraint
+    binds: the first solve imports them (20-50 ms of a tick, measured in the live loop), so the
+    loop's warm-up calls this before its clock starts (app.live.warmup). The solve's status."""
+    _, status, _ = _solve(np.zeros(2), np.array([[1.0, 0.0]]), np.array([-1.0]), solver)
+    return status
+
+
 def filter_commands(
     p: FloatArray, a: FloatArray, commands: Commands, leader_twist: tuple[float, float],
     obstacles: FloatArray | None = None, settings: SafetySettings = SafetySettings(),

@@ -466,11 +466,15 @@ from app.live import warmup
 from app.live.loop import ServiceLoop
 from app.params import Params, ParamsStore, default_slots
 from core.control.safety import filter_commands
+from core.types import Commands
+import numpy as np
 loop = ServiceLoop(ParamsStore(Params(n_followers=2, slots=default_slots(2))), rate_hz=30.0)
 warmup.warm_up(loop, say=False)
 before = set(sys.modules)
-p, a, commands = warmup.warm_up_solver_case()
-result = filter_commands(p, a, commands, (0.0, 0.0), settings=loop._safety_settings(loop.store.get()))
+# two followers 0.3 m apart heading for each other: no safety distance lets that through unfiltered
+result = filter_commands(np.array([[-0.15, 0.0], [0.15, 0.0]]), np.array([0.0, np.pi]),
+                         Commands(np.array([0.3, 0.3]), np.zeros(2)), (0.0, 0.0),
+                         settings=loop._safety_settings(loop.store.get()))
 print(json.dumps({"status": result.status, "imported": sorted(set(sys.modules) - before)}))
 """
 
