@@ -312,31 +312,30 @@ def test_an_adopted_robot_joins_on_the_side_it_comes_from():
 
 
 @contextlib.contextmanager
-def _l1_in_an_arena():
-    """A real arena stepping in-process on a real Zenoh session, the three leaders' tokens (the
-    test's to undeclare), and L1's team and adopter: (arena, tokens, team, store, adopter)."""
-    from app.fleet.arena import Arena
+def _stepping_arena_and_l1(alive: tuple[str, ...] = ()) -> Iterator[tuple[Any, threading.Event, threading.Thread,
+                                                                      Any, dict[str, Any]]]:
+    """A real arena stepping on its own thread (until the event is set) and leader L1's team on it,
+    both on one in-process Zenoh session, with liveliness tokens for the leaders ``alive`` declared
+    before the arena's first step (the test's to undeclare early): (arena, stop, stepper, team,
+    tokens). Everything closed after, the team first."""
     from app.backends.arena import ArenaTeam
-    from app.fleet.adopter import Adopter
+    from app.fleet.arena import Arena
     from app.fleet.bridge import open_session
-    from app.params import ParamsStore
 
     scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
     session = open_session([], [])
     arena = Arena(scenario, session)
-    tokens = {lid: session.liveliness().declare_token(f"omniformation/{FLEET}/alive/{lid}") for lid in ("L1", "L2", "L3")}
+    tokens = {lid: session.liveliness().declare_token(f"omniformation/{FLEET}/alive/{lid}") for lid in alive}
     stop = threading.Event()
     stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
     stepper.start()
-    team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
-    store = ParamsStore(fixed_followers=len(team.owned))
-    adopter = Adopter(session, FLEET, "L1", team, store)
+    team = None
     try:
-        wait_for(lambda: arena.alive == {"L1", "L2", "L3"} and adopter.alive >= {"L1", "L2", "L3"}, 10, "three alive")
-        yield arena, tokens, team, store, adopter
+        team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
+        yield arena, stop, stepper, team, tokens
     finally:
-        adopter.close()
-        team.close()
+        if team is not None:
+            team.close()
         stop.set()
         stepper.join(5)
         for tok in tokens.values():
@@ -346,30 +345,21 @@ def _l1_in_an_arena():
 
 
 @contextlib.contextmanager
-def _stepping_arena_and_l1() -> Iterator[tuple[Any, threading.Event, threading.Thread, Any]]:
-    """A real arena stepping on its own thread (until the event is set) and leader L1's team on it,
-    both on one in-process Zenoh session; everything closed after."""
-    from app.backends.arena import ArenaTeam
-    from app.fleet.arena import Arena
-    from app.fleet.bridge import open_session
+def _l1_in_an_arena():
+    """A real arena stepping in-process on a real Zenoh session, the three leaders' tokens (the
+    test's to undeclare), and L1's team and adopter: (arena, tokens, team, store, adopter)."""
+    from app.fleet.adopter import Adopter
+    from app.params import ParamsStore
 
-    scenario = parse_fleet((ROOT / "static_config" / "fleets" / f"{FLEET}.toml").read_text(), FLEET)
-    session = open_session([], [])
-    arena = Arena(scenario, session)
-    stop = threading.Event()
-    stepper = threading.Thread(target=arena.run, args=(stop,), daemon=True)
-    stepper.start()
-    try:
-        team = ArenaTeam(session, FLEET, "L1", 0.0, 0.0, 0, wait_s=5.0, hues_deg=scenario.hues_deg)
+    with _stepping_arena_and_l1(("L1", "L2", "L3")) as (arena, _stop, _stepper, team, tokens):
+        store = ParamsStore(fixed_followers=len(team.owned))
+        adopter = Adopter(team.session, FLEET, "L1", team, store)
         try:
-            yield arena, stop, stepper, team
+            wait_for(lambda: arena.alive == {"L1", "L2", "L3"} and adopter.alive >= {"L1", "L2", "L3"}, 10,
+                     "three alive")
+            yield arena, tokens, team, store, adopter
         finally:
-            stop.set()
-            team.close()
-    finally:
-        stop.set()
-        arena.close()
-        session.close()
+            adopter.close()
 
 
 def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_and_refuses_none():
@@ -381,7 +371,7 @@ def test_a_leader_that_read_no_truth_for_longer_than_its_queue_takes_the_newest_
     read STALE_TRUTH_S after it came is a lost link."""
     from app.backends.arena import STALE_TRUTH_S, TRUTH_QUEUE
 
-    with _stepping_arena_and_l1() as (arena, stop, stepper, team):
+    with _stepping_arena_and_l1() as (arena, stop, stepper, team, _tokens):
         first = team.latest_truth()
         assert first is not None and team.truths_refused == 0
         wait_for(lambda: arena.counts.steps > first["tick"] + TRUTH_QUEUE + arena.scenario.rate_hz, 30,
@@ -405,7 +395,7 @@ def test_a_leader_closed_while_another_thread_reads_its_truths_answers_from_the_
 
     failures: list[BaseException] = []
     reads = [0]
-    with _stepping_arena_and_l1() as (_arena, stop, _stepper, team):
+    with _stepping_arena_and_l1() as (_arena, stop, _stepper, team, _tokens):
 
         def reader() -> None:
             while not stop.is_set():
