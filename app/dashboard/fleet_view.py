@@ -198,6 +198,11 @@ class FleetPage:
         self._scene: dict[str, Any] = {}
         self.labels: dict[int, tuple[Any, str]] = {}  # robot -> (its 3D label, the text it shows)
         server.scene.add_grid("/grid", width=20, height=20, cell_size=0.5, plane="xy")
+        # No shadows: an overview of where the robots are needs none, and a browser without a GPU
+        # redraws every shadow map each time a robot moves. With them, such a browser drew this page
+        # at 0.5-2 frames a second once the leaders drove, and a click waited 8-12 s for it
+        # (docs/page-access.md).
+        server.scene.configure_default_lights(enabled=True, cast_shadow=False)
 
     def send(self, leader_id: str, changes: dict[str, Any]) -> None:
         self._send(leader_id, changes)

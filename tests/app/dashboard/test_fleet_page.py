@@ -29,6 +29,11 @@ pytest.importorskip("playwright.sync_api")
 pytest.importorskip("zenoh")
 
 
+# every light of the page's three.js scene, [type, casts a shadow], found from a node viser named
+SCENE_LIGHTS = """() => { let o = window.__viserMutable.nodeRefFromName['/grid']; while (o.parent) o = o.parent;
+    const out = []; o.traverse(x => { if (x.isLight) out.push([x.type, x.castShadow]); }); return out; }"""
+
+
 class Leader:
     """A leader as `run --arena` makes one, without its own page: loop, arena team, bridge."""
 
@@ -91,6 +96,10 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             page.get_by_text("leaders alive L1, L2", exact=False).first.wait_for(timeout=30_000)
             page.get_by_text("9 robots", exact=False).first.wait_for(timeout=30_000)
             page.get_by_text("3/3 followers tracked", exact=False).first.wait_for(timeout=90_000)  # a vision start-up, loaded machine
+            # no light of the page's 3D view casts a shadow (a browser without a GPU drew this page at
+            # 0.5-2 frames a second with them once the robots moved, and every click waited for a frame)
+            lights = page.evaluate(SCENE_LIGHTS)
+            assert lights and not any(casts for _, casts in lights), lights
 
             page.get_by_role("button", name="STOP every leader").click()
             wait_for(lambda: l1.store.get().stop and l2.store.get().stop, 30, "every leader stopped")
