@@ -1,4 +1,4 @@
-"""The tuning bench in real Chromium: a step test and a 3 x 3 sweep run from the page, the best
+"""The tuning bench in real Chromium: a step test and a 2 x 3 sweep run from the page, the best
 point applied and used on the next tick; the Lyapunov monitor shows each follower's V trend;
 what cannot run says why.
 
@@ -76,18 +76,18 @@ def test_a_step_test_from_the_page_adds_a_scored_row(page, service):
 
 
 def test_a_sweep_from_the_page_applies_its_best_point_on_the_next_tick(page, service):
-    _type(page, "Range 1", "1:4:3")
+    _type(page, "Range 1", "1:4:2")  # 2 x 3 points: the sweep's worker is the test's slowest part on a loaded machine
     _type(page, "Range 2", "0.05:0.2:3")
-    wait_for(lambda: _held(service, "Range 1") == "1:4:3" and _held(service, "Range 2") == "0.05:0.2:3",
+    wait_for(lambda: _held(service, "Range 1") == "1:4:2" and _held(service, "Range 2") == "0.05:0.2:3",
              what="the ranges")
     page.get_by_role("button", name="Run sweep").click()
     sweeps = service.bench.sweeps
     wait_for(lambda: sweeps.last is not None, 240.0, "the sweep's result")
     result = sweeps.last
-    assert result is not None and len(result.gains) == 9 and all(s is not None for s in result.scores)
-    page.get_by_text("sweep: done, 9 of 9 points").first.wait_for(timeout=30_000)
+    assert result is not None and len(result.gains) == 6 and all(s is not None for s in result.scores)
+    page.get_by_text("sweep: done, 6 of 6 points").first.wait_for(timeout=30_000)
     # every grid value is one the gain's slider shows exactly (0.125 would show as 0.13): 0.05, 0.13, 0.2
-    assert list(result.ranges[1].values) == [0.05, 0.13, 0.2] and list(result.ranges[0].values) == [1.0, 2.5, 4.0]
+    assert list(result.ranges[1].values) == [0.05, 0.13, 0.2] and list(result.ranges[0].values) == [1.0, 4.0]
     # the heat map's numbers: at least 11 px as shown (the figure is scaled to the panel's width)
     from app.dashboard.tuning_panel import PANEL_CELL_PT
     from app.figures import excluded_points, figure_rgb, sweep_figure
