@@ -77,7 +77,14 @@ def test_ticks_follow_the_cameras_frames(rig_and_frame, hz):
           f" {np.nanmedian([t.latency_ms for t in ticks]):.2f} ms")
     assert len(handed) == len(ticks) and handed == sorted(handed)
     assert repeats <= loop.late_frames  # a frame is used again only when the camera was late
-    assert all(np.isfinite(t.latency_ms) and t.latency_ms >= 0 for t in ticks)
+    # a tick has a frame-to-command time, or had no fresh frame (a loaded machine kept the camera's
+    # thread off the CPU for STALE_FRAME_S, seen in CI): then it says so and moves nothing
+    for t in ticks:
+        if np.isfinite(t.latency_ms):
+            assert t.latency_ms >= 0, t.latency_ms
+        else:
+            assert t.phase.startswith("camera: ") and not t.commands.any(), (t.phase, t.commands)
+    assert sum(np.isfinite(t.latency_ms) for t in ticks) >= len(ticks) // 2
 
 
 def test_the_latency_is_recorded_and_reported(tmp_path):
