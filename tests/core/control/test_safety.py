@@ -115,3 +115,12 @@ def test_the_filtered_commands_keep_every_barrier_and_the_limits(n, seed):
                          np.sin(a) * res.commands.v + ahead * np.cos(a) * res.commands.w]).reshape(-1)
     assert np.all(G @ u <= h + 1e-6 * np.maximum(1.0, np.abs(h)))
     assert np.all(np.abs(res.commands.v) <= 0.3 + 1e-6) and np.all(np.abs(res.commands.w) <= 2.0 + 1e-6)
+
+
+def test_load_solver_solves_a_binding_qp_and_names_a_missing_solver():
+    """The warm-up's solve (app.live.warmup) goes to the solver and is solved ("filtered"); a
+    solver that is not installed is said, not raised."""
+    from core.control.safety import load_solver
+
+    assert load_solver(SafetySettings().solver) == "filtered"
+    assert load_solver("no-such-solver") == "no solver"
