@@ -12,8 +12,8 @@ PING). Our own frames coming back (an echoing line or a loopback plug) are recog
 echoes, and a well-formed reply that answers nothing we sent is counted as unmatched; neither
 makes the link "ok". Per follower, every SET_VELOCITY written is exactly one of: answered
 (in time), late (answered after ``REPLY_TIMEOUT_S``), lost (never answered) or still pending,
-so ``sent == answered + late + lost + pending`` at every moment. A frame that could not be
-written is not sent.
+so ``sent == answered + late + lost + pending`` at every moment. A frame that could not be written
+is not sent; one answered before its write's timeout fired was written.
 
 A robot is alive only while it answers in time: a reply counts as an answer when it matches a
 frame sent within ``REPLY_TIMEOUT_S`` and arrives within it. Late replies, replies to frames whose
@@ -121,8 +121,7 @@ class SerialLink:
         self.allow_unauthenticated = allow_unauthenticated
         self._counter = counter or FrameCounter()
         self.on_owned: Callable[[int], None] | None = None  # told (in the reader) of each robot granted to us
-        self.port_name = port
-        self.baud = baud
+        self.port_name, self.baud = port, baud
         self.v_max, self.w_max = v_max, w_max
         self.addresses = list(addresses) if addresses is not None else list(range(1, n + 1))
         self.stats = [FollowerLinkStats(a) for a in self.addresses]
@@ -139,8 +138,7 @@ class SerialLink:
         self._auth = ReplyAuth(self.radio_id, self.sender_id, self.radio_key, self._tags)  # whose a reply is
         self._seq = 0
         self._stop_first = True  # a fresh port gets STOP for everyone before anything else
-        self._next_ping = 0.0
-        self._ping_index = 0
+        self._next_ping, self._ping_index = 0.0, 0
         self._stop = threading.Event()
         self._opened_at = -math.inf
         self.reason = "connecting"
@@ -358,7 +356,9 @@ class SerialLink:
         else:
             with self._lock:
                 for key in keys:
-                    self._pending.pop(key, None)
+                    if self._pending.pop(key, None) is None:  # answered before the timeout fired: it went out,
+                        self._by_addr[key[0]].sent += key[2] in MOTION  # so sent (tally: the other two's sum)
+                        continue
                     # a timed-out write may still have gone out: its reply is ours, not a stranger's
                     self._unsent[key] = now
                 while len(self._unsent) > EXPIRED_KEPT:
