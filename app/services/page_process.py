@@ -428,6 +428,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
             try:
                 msg = conn.recv()
             except (EOFError, OSError):  # the loop's process is gone
+                publisher.close()  # first: a tick still queued would draw its status over what follows
                 dashboard.controls.status.content = ("**THE LOOP HAS ENDED: its process is gone. The followers stop"
                                                      " on their link's watchdog.**")
                 time.sleep(ORPHAN_S)

@@ -15,7 +15,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
+from websockets.exceptions import ConnectionClosed
 
+from app.services.page_process import ORPHAN_S
 from tests.helpers import RawPage
 
 if TYPE_CHECKING:
@@ -222,6 +224,13 @@ def test_when_the_loop_process_dies_the_page_says_so_at_once(tmp_path: Path) -> 
         assert page.wait_for("running")  # the loop's state on the page
         proc.kill()  # the loop's process, at once (SIGKILL: no goodbye)
         assert page.wait_for("THE LOOP HAS ENDED", timeout=30.0)
+        # and it stays said until the page ends (ORPHAN_S): no tick queued before the loop died is
+        # drawn over it (one fresh-clone run saw the page close without the notice ever arriving)
+        after: list[str] = []
+        with contextlib.suppress(ConnectionClosed, TimeoutError):
+            for msg in page.messages(ORPHAN_S + 30.0):
+                after.append(str(msg))
+        assert not [m for m in after if "**running**" in m or "**STOPPED" in m]
         page.close()
 
 
