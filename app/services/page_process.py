@@ -346,8 +346,7 @@ def _tell_clients(server: Any, send: Callable[[tuple[Any, ...]], bool]) -> None:
 
 
 def page_main(conn: multiprocessing.connection.Connection, host: str, port: int, token: str | None,
-              viewer_token: str | None,
-              params: Params, overlay: tuple[tuple[float, float], float, float] | None,
+              viewer_token: str | None, params: Params, overlay: tuple[tuple[float, float], float, float] | None,
               obstacles: tuple[Any, ...], recordings: Path | None = None, rate_hz: float = 0.0,
               tuning: tuple[bool, bool] = (False, False),
               calibration: tuple[Any, tuple[float, float], Any] | None = None) -> None:
