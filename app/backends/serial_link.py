@@ -121,7 +121,8 @@ class SerialLink:
         self.allow_unauthenticated = allow_unauthenticated
         self._counter = counter or FrameCounter()
         self.on_owned: Callable[[int], None] | None = None  # told (in the reader) of each robot granted to us
-        self.port_name, self.baud = port, baud
+        self.port_name = port
+        self.baud = baud
         self.v_max, self.w_max = v_max, w_max
         self.addresses = list(addresses) if addresses is not None else list(range(1, n + 1))
         self.stats = [FollowerLinkStats(a) for a in self.addresses]
@@ -138,7 +139,8 @@ class SerialLink:
         self._auth = ReplyAuth(self.radio_id, self.sender_id, self.radio_key, self._tags)  # whose a reply is
         self._seq = 0
         self._stop_first = True  # a fresh port gets STOP for everyone before anything else
-        self._next_ping, self._ping_index = 0.0, 0
+        self._next_ping = 0.0
+        self._ping_index = 0
         self._stop = threading.Event()
         self._opened_at = -math.inf
         self.reason = "connecting"
@@ -348,21 +350,16 @@ class SerialLink:
             for key in keys:  # registered before the write: a reply can beat the write's return
                 self._pending[key] = now
             self._expire(now)
-        if self._write(port, bytes(out)):
-            with self._lock:
-                for key in keys:
-                    if key[2] in MOTION:
-                        self._by_addr[key[0]].sent += 1
-        else:
-            with self._lock:
-                for key in keys:
-                    if self._pending.pop(key, None) is None:  # answered before the timeout fired: it went out,
-                        self._by_addr[key[0]].sent += key[2] in MOTION  # so sent (tally: the other two's sum)
-                        continue
+        written = self._write(port, bytes(out))
+        with self._lock:
+            for key in keys:
+                if not written and self._pending.pop(key, None) is not None:
                     # a timed-out write may still have gone out: its reply is ours, not a stranger's
                     self._unsent[key] = now
-                while len(self._unsent) > EXPIRED_KEPT:
-                    self._unsent.popitem(last=False)
+                elif key[2] in MOTION:  # written, or answered before the write's timeout fired: it went out
+                    self._by_addr[key[0]].sent += 1
+            while len(self._unsent) > EXPIRED_KEPT:
+                self._unsent.popitem(last=False)
 
     def _put(self, out: bytearray, keys: list[tuple[int, int, int]], s: FollowerLinkStats, frame: p.Frame) -> None:
         """Append one request for robot ``s``, authenticated (plain only to a robot known to speak
