@@ -161,7 +161,12 @@ def start_emulator_process(link_path: Path, *extra: str) -> subprocess.Popen:
 
 @contextlib.contextmanager
 def chromium_browser() -> Iterator[Any]:
-    """Debian's Chromium driven by Playwright (Playwright cannot download its own browsers here)."""
+    """Debian's Chromium driven by Playwright (Playwright cannot download its own browsers here).
+
+    One a test: launching takes about a second; loading the dashboard took 6-18 s and 9-27 s of
+    Chromium's CPU here (its renderer about 5 s, its GPU process, software WebGL, most of the rest),
+    alike with a new browser for each of three loads, one browser for all three, and a profile
+    kept with its GPU cache. Sharing one browser would save little."""
     from playwright.sync_api import sync_playwright
 
     chromium = shutil.which("chromium")
