@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 from app.cli import bench, camera, emulator, export, fleet, live, ros2, sessions, simulate
 from app.cli.args import EXIT_USAGE, Parser
+from app.console import whole_lines
 from app.files import UserError
 
 FAMILIES = (simulate, live, fleet, camera, emulator, ros2, sessions, export, bench)
@@ -36,7 +37,8 @@ def build_parser() -> Parser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args))
+        with whole_lines():  # the loop's thread and the command's print lines at once (app.console)
+            return int(args.func(args))
     except UserError as exc:
         print(f"omniformation: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

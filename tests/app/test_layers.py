@@ -123,5 +123,5 @@ def test_the_tests_mirror_the_package():
                 strays.append(f"tests/{pkg}/{rel} has no package app/core folder {pkg}/{rel}")
     assert not strays, strays
     flat = sorted(f.name for f in (ROOT / "tests" / "app").glob("test_*.py"))
-    assert flat == ["test_layers.py", "test_memory.py", "test_parameter_table.py", "test_params.py", "test_processes.py",
+    assert flat == ["test_console.py", "test_layers.py", "test_memory.py", "test_parameter_table.py", "test_params.py", "test_processes.py",
                     "test_realtime.py"], flat
