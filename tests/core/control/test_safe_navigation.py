@@ -91,7 +91,10 @@ def _preset_swaps(seed: int, switches: int) -> Scenario:
     return parse_scenario(text, f"preset_swaps (seed {seed})")
 
 
-@pytest.mark.parametrize("feedback, seed, switches", [("truth", 9, 12), ("truth", 24, 12), ("vision", 9, 6)])
+# with vision, five switches (each run twice, with and without the filter, every frame rendered and
+# read): without the filter seed 9 brings robots under 0.25 m in 4 of them (closest 15.0 cm), with it in
+# none (34.1 cm); four switches would leave 3, the least the test accepts
+@pytest.mark.parametrize("feedback, seed, switches", [("truth", 9, 12), ("truth", 24, 12), ("vision", 9, 5)])
 def test_preset_swaps_keep_every_pair_apart(feedback, seed, switches, rig, gamma):
     s = _preset_swaps(seed, switches)
     cam = (rig, gamma) if feedback == "vision" else (None, None)
