@@ -166,7 +166,13 @@ def chromium_browser() -> Iterator[Any]:
     One a test: launching takes about a second; loading the dashboard took 6-18 s and 9-27 s of
     Chromium's CPU here (its renderer about 5 s, its GPU process, software WebGL, most of the rest),
     alike with a new browser for each of three loads, one browser for all three, and a profile
-    kept with its GPU cache. Sharing one browser would save little."""
+    kept with its GPU cache. Sharing one browser would save little.
+
+    While a page is open, Chromium's GPU process runs every WebGL frame's shaders on the CPU
+    (SwiftShader) and draws as many frames as the CPU allows, 9-12 a second here, about one CPU.
+    Capping the page's animation frames at 4 a second cut that to 63-68 % in one browser, but
+    viser applies what it receives once a frame: with the cap the replay tests took 1.4-2.3 times as
+    long in each of three runs, and the suite was no shorter in fresh-clone CI, so it was dropped."""
     from playwright.sync_api import sync_playwright
 
     chromium = shutil.which("chromium")
@@ -179,44 +185,13 @@ def chromium_browser() -> Iterator[Any]:
             browser.close()
 
 
-# The page's animation frames, at most one every FRAME_CAP_MS in the browser tests (an init script
-# in front of the page's requestAnimationFrame; Playwright's own checks run in a world of their own
-# and are not held). With no GPU, Chromium's GPU process runs every WebGL frame's shaders on the CPU
-# (SwiftShader: its two worker threads, 58 % of its samples in the shaders' compiled code), and draws
-# as many frames as the CPU gives it: 9-12 a second here, about one CPU while a dashboard is open
-# (100-108 %). The same page in the same browser, the cap switched between 10 s windows: 63-68 % at
-# 4 frames a second, 30-35 % at 1. Viser applies the messages it received once a frame, so what a
-# test waits for shows at most FRAME_CAP_MS later; start_timer lifts the cap while it times a click.
-FRAME_CAP_MS = 250
-FRAME_CAP = """(() => {
-  const raf = window.requestAnimationFrame.bind(window);
-  let queue = new Map(), next = 1, scheduled = false, last = 0;
-  window.omniFrameCapMs = FRAME_CAP_MS;
-  function flush(t) {
-    scheduled = false; last = performance.now();
-    const q = queue; queue = new Map();
-    q.forEach(cb => { try { cb(t); } catch (e) { setTimeout(() => { throw e; }); } });
-  }
-  function schedule() {
-    if (scheduled) return;
-    scheduled = true;
-    const wait = window.omniFrameCapMs - (performance.now() - last);
-    if (wait > 1) setTimeout(() => raf(flush), wait); else raf(flush);
-  }
-  window.requestAnimationFrame = cb => { const id = next++; queue.set(id, cb); schedule(); return id; };
-  window.cancelAnimationFrame = id => { queue.delete(id); };
-})();""".replace("FRAME_CAP_MS", str(FRAME_CAP_MS))
-
-
 def new_page(browser: Any, width: int, height: int) -> Any:
-    """A page of ``width`` x ``height`` CSS pixels at half the device pixels, its frames capped
-    (FRAME_CAP_MS). These machines have no GPU: Chromium renders the 3D scene and the charts on
-    the CPU every frame, and a page busy drawing answers clicks seconds late. Half the device
-    pixels (the layout, every box and every click position unchanged) is a quarter of that work:
-    the browser tests ran about a third faster (the tuning page's three: 86 s -> 56 s)."""
-    page = browser.new_page(viewport={"width": width, "height": height}, device_scale_factor=0.5)
-    page.context.add_init_script(FRAME_CAP)  # and every tab it opens (a recording opened from the page)
-    return page
+    """A page of ``width`` x ``height`` CSS pixels at half the device pixels. These machines
+    have no GPU: Chromium renders the 3D scene and the charts on the CPU every frame, and a
+    page busy drawing answers clicks seconds late. Half the device pixels (the layout, every
+    box and every click position unchanged) is a quarter of that work: the browser tests ran
+    about a third faster (the tuning page's three: 86 s -> 56 s)."""
+    return browser.new_page(viewport={"width": width, "height": height}, device_scale_factor=0.5)
 
 
 def settle(page) -> None:
@@ -240,14 +215,12 @@ SHOWN = {
 
 
 def start_timer(page, shown: str, arg: Any) -> None:
-    """Time the next click on ``page`` until ``SHOWN[shown](arg)`` holds and a frame is drawn
-    (timed_ms); the page's frames uncapped (FRAME_CAP) until then, as a browser draws them."""
-    page.evaluate("""([test, arg]) => { const shown = eval(test); const cap = window.omniFrameCapMs;
-      window.omniFrameCapMs = 0;
+    """Time the next click on ``page`` until ``SHOWN[shown](arg)`` holds and a frame is drawn (timed_ms)."""
+    page.evaluate("""([test, arg]) => { const shown = eval(test);
       window.omniTimer = new Promise(res => { let down = null, done = false;
         document.addEventListener('pointerdown', e => { down = e.timeStamp; }, {capture: true, once: true});
         const check = () => { if (done || down === null || !shown(arg)) return; done = true; ob.disconnect();
-          clearInterval(poll); requestAnimationFrame(() => { window.omniFrameCapMs = cap; res(performance.now() - down); }); };
+          clearInterval(poll); requestAnimationFrame(() => res(performance.now() - down)); };
         const ob = new MutationObserver(check);
         ob.observe(document.body, {subtree: true, childList: true, characterData: true, attributes: true});
         const poll = setInterval(check, 10); }); }""", [SHOWN[shown], arg])
