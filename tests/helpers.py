@@ -170,9 +170,13 @@ def chromium_browser() -> Iterator[Any]:
 
     While a page is open, Chromium's GPU process runs every WebGL frame's shaders on the CPU
     (SwiftShader) and draws as many frames as the CPU allows, 9-12 a second here, about one CPU.
-    Capping the page's animation frames at 4 a second cut that to 63-68 % in one browser, but
-    viser applies what it receives once a frame: with the cap the replay tests took 1.4-2.3 times as
-    long in each of three runs, and the suite was no shorter in fresh-clone CI, so it was dropped."""
+    Capping the page's animation frames at 4 a second cut that to 63-68 % in one browser (and
+    test_stop.py with test_calibration_page.py, by turns: 167 and 225 CPU-s against 289 and 235),
+    but viser applies what it receives once a frame, so every wait on the page got longer. The
+    replay tests took 1.4-2.3 times as long with it (two runs at different times; by turns, the
+    file took 142 and 133 s with it against 105 and 165 s without) and fresh-clone CI was no
+    shorter (1170 s against 1079 s the day before), so it was dropped: a cap that gains needs the
+    page to apply messages between frames."""
     from playwright.sync_api import sync_playwright
 
     chromium = shutil.which("chromium")
