@@ -170,13 +170,12 @@ def chromium_browser() -> Iterator[Any]:
 
     While a page is open, Chromium's GPU process runs every WebGL frame's shaders on the CPU
     (SwiftShader) and draws as many frames as the CPU allows, 9-12 a second here, about one CPU.
-    Capping the page's animation frames at 4 a second cut that to 63-68 % in one browser (and
-    test_stop.py with test_calibration_page.py, by turns: 167 and 225 CPU-s against 289 and 235),
-    but viser applies what it receives once a frame, so every wait on the page got longer. The
-    replay tests took 1.4-2.3 times as long with it (two runs at different times; by turns, the
-    file took 142 and 133 s with it against 105 and 165 s without) and fresh-clone CI was no
-    shorter (1170 s against 1079 s the day before), so it was dropped: a cap that gains needs the
-    page to apply messages between frames."""
+    Capping the page's animation frames at 4 a second cut that to 63-68 % in one browser, and
+    test_stop.py with test_calibration_page.py, by turns, took 167 and 225 CPU-s against 289 and
+    235. But viser applies what it receives once a frame, so every wait on the page got up to
+    250 ms longer, and fresh-clone CI the same day took 1170 s with the cap and 1187 s without:
+    no shorter (its replay and tuning tests 0.7-3.2 times as long with it). Dropped: a cap that
+    gains would need the page to apply messages between frames."""
     from playwright.sync_api import sync_playwright
 
     chromium = shutil.which("chromium")
