@@ -22,7 +22,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.polynomial import polynomial as npoly
-from scipy.optimize import least_squares
 
 from core.camera.model import bearing_range_to_xy, image_bearing
 from core.jit import kernel
@@ -241,6 +240,8 @@ def estimate_center(table: MatchingTable, start: tuple[float, float] | None = No
 
     r0 = np.hypot(uv[:, 0] - c0[0], uv[:, 1] - c0[1])
     coef0 = np.linalg.lstsq(basis, r0, rcond=None)[0]
+    from scipy.optimize import least_squares  # here: scipy.optimize takes ~0.7 s to import, only fits need it
+
     sol = least_squares(residual, np.concatenate([c0, coef0]), method="lm")
     return float(sol.x[0]), float(sol.x[1])
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import linear_sum_assignment
 
 from core.types import FloatArray, IntArray
 
@@ -40,6 +39,10 @@ def assign_slots(
     n, m = cost.shape
     if m < n:
         raise ValueError(f"{n} followers need at least {n} slots, got {m}")
+    # imported at the first call (the loop's warm-up, before its clock), not by every process that
+    # imports the control step (the page's): scipy.optimize takes ~0.7 s of CPU to import
+    from scipy.optimize import linear_sum_assignment
+
     rows, cols = linear_sum_assignment(cost)
     best = np.empty(n, dtype=np.intp)
     best[rows] = cols

@@ -22,8 +22,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import predict as kf_predict
-from filterpy.kalman import update as kf_update
 
 from core.geometry import reexpress_in_new_frame, wrap_angle
 from core.types import FloatArray
@@ -101,6 +99,11 @@ class HeadingBank:
     """
 
     def __init__(self, n: int, process_rad_per_sqrt_s: float, measurement_rad: float) -> None:
+        # imported by the first bank, not by every process that imports the pipeline (the page's,
+        # a run on true poses): filterpy's package imports scipy.stats, over half a second of CPU
+        from filterpy.kalman import predict, update
+
+        self._kf_predict, self._kf_update = predict, update
         self.x = np.full(n, np.nan)
         self.var = np.zeros(n)
         self.active = np.zeros(n, dtype=bool)
@@ -129,7 +132,7 @@ class HeadingBank:
         a = self.active
         if not a.any():
             return
-        x, var = kf_predict(self.x[a], self.var[a], F=1.0, Q=self._q * dt, u=np.asarray(turns, dtype=np.float64)[a], B=1.0)
+        x, var = self._kf_predict(self.x[a], self.var[a], F=1.0, Q=self._q * dt, u=np.asarray(turns, dtype=np.float64)[a], B=1.0)
         self.x[a] = wrap_angle(x)
         self.var[a] = var
 
@@ -153,7 +156,7 @@ class HeadingBank:
         m = len(ok)
         if m:
             eye = np.eye(m)
-            x, cov = kf_update(self.x[ok].reshape(m, 1), np.diag(self.var[ok]),
+            x, cov = self._kf_update(self.x[ok].reshape(m, 1), np.diag(self.var[ok]),
                                (self.x[ok] + residual[~reject]).reshape(m, 1), self._r * eye, eye)
             self.x[ok] = wrap_angle(np.asarray(x).reshape(m))
             self.var[ok] = np.diag(cov)
