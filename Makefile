@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test checks chromium bench bench-radio samples venv clean
+.PHONY: run test checks chromium kernels bench bench-radio samples venv clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -21,8 +21,11 @@ run: $(STAMP)
 # lint and type checks first: a finding fails the run before the long suite starts. Chromium's
 # install (apt-get, on a fresh machine) goes on beside the venv's and the checks (pip, mypy): one
 # does not need the other, and a fresh clone waits for the longer of the two, not for both.
+# numba's kernels go into its cache beside them too: on a fresh clone the suite's first processes
+# (both halves' pytest and the services they start) would otherwise compile the same kernels side
+# by side (a `run` start on an empty cache took 34 CPU-s here, on a full one 6-9).
 test:
-	@$(MAKE) --no-print-directory -j2 checks chromium
+	@$(MAKE) --no-print-directory -j3 checks chromium kernels
 	scripts/run-suite
 
 checks: $(STAMP)
@@ -31,6 +34,9 @@ checks: $(STAMP)
 
 chromium:
 	scripts/ensure-chromium
+
+kernels: $(STAMP)
+	$(BIN)/python -m app.live.warmup
 
 bench: $(STAMP) bench-radio
 	$(BIN)/omniformation bench

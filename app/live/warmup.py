@@ -109,3 +109,31 @@ def warm_up(loop: ServiceLoop, say: bool = True) -> float:
         print(f"omniformation: {WARM_LINE} ({made} compiled) in {took:.1f} s, before the loop's clock started"
               " (numba's cache keeps them)", flush=True)
     return took
+
+
+def warm_all() -> int:
+    """Warm both kinds of world `run` can make (the synthetic camera's, the simulator's poses) with
+    the default config, each once; how many kernel signatures were compiled, not loaded."""
+    from app.files import DEFAULT_CONFIG
+    from app.live.config import load_service_config
+    from app.live.loop import ServiceLoop
+    from app.params import MAX_FOLLOWERS
+
+    config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
+    before = compiled()
+    for camera in (config.camera(), None):
+        n = 3  # run's default team; a kernel's compiled code does not depend on the team's size
+        loop = ServiceLoop(ParamsStore(Params(n_followers=n, slots=default_slots(n))), dynamics=config.dynamics,
+                           camera=camera)
+        try:
+            warm_up(loop, say=False)
+        finally:
+            loop.close_team()
+    return compiled() - before
+
+
+if __name__ == "__main__":  # `python -m app.live.warmup`: fill numba's cache once, e.g. before a test suite
+    t0 = time.perf_counter()
+    made = warm_all()
+    print(f"omniformation: {made} kernel signatures compiled into numba's cache in {time.perf_counter() - t0:.1f} s"
+          if made else "omniformation: numba's cache already holds every kernel the loop reaches", flush=True)
