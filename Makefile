@@ -23,7 +23,7 @@ run: $(STAMP)
 # does not need the other, and a fresh clone waits for the longer of the two, not for both.
 # numba's kernels go into its cache beside them too: on a fresh clone the suite's first processes
 # (both halves' pytest and the services they start) would otherwise compile the same kernels side
-# by side (a `run` start on an empty cache took 34 CPU-s here, on a full one 6-9).
+# by side (a `run` start on an empty cache took 34 CPU-s here, on a full one 5-9).
 test:
 	@$(MAKE) --no-print-directory -j3 checks chromium kernels
 	scripts/run-suite
