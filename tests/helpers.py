@@ -169,7 +169,9 @@ def chromium_browser() -> Iterator[Any]:
     kept with its GPU cache. Sharing one browser would save little.
 
     While a page is open, Chromium's GPU process runs every WebGL frame's shaders on the CPU
-    (SwiftShader) and draws as many frames as the CPU allows, 9-12 a second here, about one CPU.
+    (SwiftShader), about one CPU. Each frame is that costly, not the frames many: a 4 s trace held
+    9 frames, in each of which the renderer's main thread waited about 366 ms to read the frame
+    back (the compositing is in software here); the page asked for 9-12 animation frames a second.
     Capping the page's animation frames at 4 a second cut that to 63-68 % in one browser, and
     test_stop.py with test_calibration_page.py, by turns, took 167 and 225 CPU-s against 289 and
     235. But viser applies what it receives once a frame, so every wait on the page got up to
