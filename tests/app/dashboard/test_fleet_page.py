@@ -87,7 +87,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
         view = FleetView(server, page_session, "three_teams", recorder)
         l1, l2 = leaders
         with chromium_browser() as browser:
-            page = new_page(browser, 1500, 1200)
+            page = new_page(browser, 1500, 1200, scene=False)  # the fleet's panels, not the 3D view
             page.goto(gate.url)
             page.get_by_text("Leader L1", exact=True).first.wait_for(timeout=60_000)
             page.get_by_text("Leader L2", exact=True).first.wait_for(timeout=60_000)
@@ -184,7 +184,7 @@ def test_one_page_for_the_fleet_stops_every_leader_and_commands_each_team(tmp_pa
             wait_for(lambda: view.page.labels.get(6, (None, ""))[1] == "R7 · L1 F4", 30, "R7's label in 3D")
             assert view.page.labels[0][1] == "R1 · L1 F1" and view.page.labels[3][1] == "R4 · L2 F1"
             assert view.page.labels[8][1] == "R9"  # L3's, never driven: held by no leader here
-            own = new_page(browser, 1500, 1000)
+            own = new_page(browser, 1500, 1000, scene=False)
             own.goto(l1.gate.url)
             own.get_by_text("R7 (F4)", exact=False).first.wait_for(timeout=60_000)  # the status's errors
             own.close()

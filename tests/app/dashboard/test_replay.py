@@ -29,9 +29,9 @@ def browser():
         yield b
 
 
-def _replay_page(browser, svc: ReplayService):
-    """A 1400 x 900 page on the replay, its charts drawn."""
-    page = new_page(browser, 1400, 900)
+def _replay_page(browser, svc: ReplayService, scene: bool = True):
+    """A 1400 x 900 page on the replay, its charts drawn (``scene``: as new_page)."""
+    page = new_page(browser, 1400, 900, scene)
     page.goto(svc.url)
     page.wait_for_selector(".uplot canvas", timeout=PAGE_MS)
     settle(page)
@@ -109,7 +109,7 @@ def test_the_live_dashboard_opens_a_recording_in_a_new_tab(browser, tmp_path):
     svc = Service(port=0, n_followers=2)  # truth feedback: light, this test is about the panel
     svc.start()
     try:
-        page = new_page(browser, 1400, 900)
+        page = new_page(browser, 1400, 900, scene=False)  # the panel is tested here, not the 3D view
         page.goto(svc.url)
         page.wait_for_selector(".uplot", state="attached", timeout=PAGE_MS)
         settle(page)
@@ -160,7 +160,7 @@ def test_the_replayed_page_shows_the_settings_in_force_at_the_moment_shown(brows
     svc = ReplayService(rec, port=0)
     svc.start()
     try:
-        page = _replay_page(browser, svc)
+        page = _replay_page(browser, svc, scene=False)  # the settings panel is tested here, not the 3D view
         box = page.locator(f'[id="{control_id(page, "Time (s)")}"] + div input').first
         k_f1 = page.locator(f'[id="{control_id(page, "k_f1 (m/s)")}"] + div input').first
         for k, expected in ((10, "0.1"), (40, "0.15"), (120, "0.15"), (20, "0.1")):

@@ -54,7 +54,7 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
         assert sum(st.answered for st in link.stats) > 0.95 * sent and sum(st.crc_errors for st in link.stats) == 0
 
         with chromium_browser() as browser:
-            page = new_page(browser, 1400, 900)
+            page = new_page(browser, 1400, 900, scene=False)  # the link's lines are tested here
             page.goto(svc.url)
             page.get_by_text(f"link: serial {link_path}: ok").first.wait_for(timeout=30_000)
             page.get_by_text("link detail: F1 rtt").first.wait_for(timeout=10_000)

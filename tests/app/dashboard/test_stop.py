@@ -44,8 +44,8 @@ def page_process_service(tmp_path):
     yield from _service(tmp_path, page_process=True)
 
 
-def open_page(browser, url: str, width: int = 1280, height: int = 720):
-    page = new_page(browser, width, height)
+def open_page(browser, url: str, width: int = 1280, height: int = 720, scene: bool = True):
+    page = new_page(browser, width, height, scene)
     page.goto(url)
     page.wait_for_selector('canvas[data-engine^="three.js"]', timeout=PAGE_MS)
     page.get_by_role("button", name="STOP", exact=True).wait_for(timeout=PAGE_MS)
@@ -166,7 +166,7 @@ def test_a_hostile_client_cannot_take_stop_away_from_a_page_opened_afterwards(pa
         client.close()
     service.store.update("test", stop=False, leader_hold=False)
     with chromium_browser() as browser:
-        page = open_page(browser, service.url)  # a new page loads (the huge number never reached viser)
+        page = open_page(browser, service.url, scene=False)  # a new page loads (the huge number never reached viser)
         stop = page.get_by_role("button", name="STOP", exact=True)
         assert stop.is_visible() and stop.is_enabled(), "STOP keeps its place, its name and what it does"
         page.get_by_text("Tuning", exact=True).first.click(timeout=PAGE_MS)
@@ -201,7 +201,7 @@ def test_a_viewer_watches_and_may_stop_but_changes_nothing_else(page_process_ser
     updates: list[tuple[str, bool]] = []  # every change the loop's store took: who, and STOP after it
     service.store.subscribe(lambda p, source, _: updates.append((source, bool(p.stop))))
     with chromium_browser() as browser:
-        page = open_page(browser, service.page.viewer_url)
+        page = open_page(browser, service.page.viewer_url, scene=False)  # its panels and STOP
         page.get_by_text("View only").first.wait_for(timeout=PAGE_MS)
         wait_for(lambda: page.get_by_role("button", name="Reset", exact=True).is_disabled(), 10,
                  "the viewer's controls to grey out")

@@ -31,7 +31,7 @@ def service():
 @pytest.fixture(scope="module")
 def page(service):
     with chromium_browser() as browser:
-        pg = new_page(browser, 1500, 1400)
+        pg = new_page(browser, 1500, 1400, scene=False)  # the panels are tested here, not the 3D view
         pg.goto(service.url)
         pg.wait_for_selector(".uplot canvas", timeout=30_000)
         settle(pg)
