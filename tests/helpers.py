@@ -212,23 +212,30 @@ def new_page(browser: Any, width: int, height: int, scene: bool = True) -> Any:
 
 # viser's 3D view draws only while its box is on the screen (an IntersectionObserver on the box
 # that holds the canvas: the one styled position relative, z-index 0). Moved off the screen
-# (a transform: the page's layout is unchanged) before its first frame, it is never drawn.
+# (a transform: the page's layout is unchanged), it is not drawn.
+FIND_VIEW = """() => { for (const canvas of document.querySelectorAll("canvas")) {
+    let box = canvas;
+    for (let up = 0; box && up < 5; up++, box = box.parentElement)
+      if (box.style && box.style.zIndex === "0" && box.style.position === "relative") return box; }
+  return null; }"""
+# before the first frame: as soon as the view's box is in the page, it goes off the screen
 OFF_SCREEN_VIEW = """
 window.__omniView = "looking";
 new MutationObserver((_, watch) => {
-  for (const canvas of document.querySelectorAll("canvas")) {
-    let box = canvas;
-    for (let up = 0; box && up < 5; up++, box = box.parentElement) {
-      if (box.style && box.style.zIndex === "0" && box.style.position === "relative") {
-        box.style.transform = "translateX(-300vw)";
-        window.__omniView = "off screen";
-        watch.disconnect();
-        return;
-      }
-    }
-  }
+  const box = (""" + FIND_VIEW + """)();
+  if (box) { box.style.transform = "translateX(-300vw)"; window.__omniView = "off screen"; watch.disconnect(); }
 }).observe(document, {childList: true, subtree: true});
 """
+
+
+def view_on_screen(page: Any, on: bool) -> None:
+    """Put the page's 3D view back on the screen, or take it off (as new_page's ``scene=False``
+    does from the start), for the rest of a test that no longer looks at it."""
+    found = page.evaluate("(on) => { const box = (" + FIND_VIEW + ")(); if (!box) return false;"
+                          " box.style.transform = on ? '' : 'translateX(-300vw)'; return true; }", on)
+    assert found, "the page's 3D view was not found"
+    if on:
+        settle(page)
 
 
 def settle(page) -> None:

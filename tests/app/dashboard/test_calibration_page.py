@@ -19,7 +19,7 @@ from core.camera.config import WorkingArea, parse_camera
 from core.camera.guide import find_marker
 from core.camera.model import bearing_range_to_xy
 
-from tests.helpers import ARTIFACTS, chromium_browser, main_cli, new_page, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, main_cli, new_page, settle, view_on_screen, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 
@@ -72,6 +72,7 @@ def test_from_an_empty_table_to_a_saved_calibration_in_the_browser(service, rig)
         shown_w = box["width"] * frame.shape[1] / letterbox(frame, service.aspect).shape[1]  # not stretched
         print(f"main view {box['width']:.0f} x {box['height']:.0f} px, the picture {shown_w:.0f} px wide")
         assert shown_w >= 0.5 * 1400, shown_w
+        view_on_screen(page, False)  # the rest is the panel's: the picture is not drawn until the screenshot
         page.get_by_role("button", name="Propose from image").click()
         wait_for(lambda: abs(panel.cx.value - (cam.model.cx)) < 2.0 and abs(panel.cy.value - cam.model.cy) < 2.0,
                  30.0, "the mirror's centre proposed from the picture")
@@ -122,7 +123,9 @@ def test_from_an_empty_table_to_a_saved_calibration_in_the_browser(service, rig)
 
         assert not re.search(r"-\d+(\.\d+)? ?(°|deg)", panel.quality.content), panel.quality.content
         ARTIFACTS.mkdir(exist_ok=True)
+        view_on_screen(page, True)
         page.screenshot(path=str(ARTIFACTS / "calibration.png"), full_page=True)
+        view_on_screen(page, False)
         page.get_by_role("button", name="Save camera file and table").click()
         page.get_by_text("saved", exact=False).first.wait_for(timeout=30_000)
         saved = panel.save_as.value

@@ -12,7 +12,7 @@ import pytest
 from app.recording.reader import read_recording
 from app.services.replay import ReplayService
 from core.geometry import leader_to_world
-from tests.helpers import ARTIFACTS, chromium_browser, control_id, new_page, settle, wait_for
+from tests.helpers import ARTIFACTS, chromium_browser, control_id, new_page, settle, view_on_screen, wait_for
 
 from tests.helpers import ROOT
 SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
@@ -75,6 +75,7 @@ def test_timeline_slider_shows_the_recorded_state_of_that_time(browser):
         page.get_by_text(shown).first.wait_for(timeout=PAGE_MS)
         ARTIFACTS.mkdir(exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "replay.png"), timeout=PAGE_MS)
+        view_on_screen(page, False)  # the rest is the bar's and the panel's: the 3D view is not drawn
         # a replay never looks live: at a moment that was not stopped, STOP stays disabled (panel and
         # bar), the bar has no STOP to press and says what this page is
         assert not svc.store.get().stop, "the moment shown was not stopped (else this proves nothing)"
