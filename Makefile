@@ -28,8 +28,8 @@ run: $(STAMP)
 # PYTHONDONTWRITEBYTECODE is set (as on these machines) Python never writes a .pyc, so every process
 # the suite starts (services, their page processes, emulators, the command line) compiled app/ and
 # core/ again: 0.15-0.5 CPU-s a process here (importing app.services.live took 2.28-3.01 CPU-s
-# without, 2.10-2.44 with them; three test files of the command line, by turns: 36 and 35 CPU-s of
-# the machine without, 34 and 35 with). A .pyc older than its source is not used.
+# without, 2.10-2.44 with them; test_bad_input.py, test_cli.py and test_session_truth.py, by turns:
+# 36 and 35 CPU-s of the machine without, 34 and 35 with). A .pyc older than its source is not used.
 test:
 	@$(MAKE) --no-print-directory -j3 checks chromium kernels bytecode
 	scripts/run-suite
