@@ -13,7 +13,7 @@ from app.backends.serial_link import SerialLink
 from app.params import MAX_FOLLOWERS, default_slots
 from app.services.live import Service
 from app.live.config import DEFAULT_CONFIG, load_service_config
-from tests.helpers import new_page, start_emulator_process, wait_for
+from tests.helpers import new_page, settle, start_emulator_process, wait_for
 from tests.helpers import chromium_browser
 
 
@@ -57,6 +57,7 @@ def test_full_stack_over_a_real_pty_and_link_loss_on_the_page(tmp_path):
             page = new_page(browser, 1400, 900, scene=False)  # the link's lines are tested here
             page.goto(svc.url)
             page.get_by_text(f"link: serial {link_path}: ok").first.wait_for(timeout=30_000)
+            settle(page)  # (and the 3D view found and kept off the screen)
             page.get_by_text("link detail: F1 rtt").first.wait_for(timeout=10_000)
 
             status = svc.dashboard.controls.status
