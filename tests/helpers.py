@@ -218,12 +218,13 @@ FIND_VIEW = """() => { for (const canvas of document.querySelectorAll("canvas"))
     for (let up = 0; box && up < 5; up++, box = box.parentElement)
       if (box.style && box.style.zIndex === "0" && box.style.position === "relative") return box; }
   return null; }"""
+OFF_SCREEN = "'translateX(-300vw)'"  # the view's box's CSS transform while it is off the screen (a JS string)
 # before the first frame: as soon as the view's box is in the page, it goes off the screen
 OFF_SCREEN_VIEW = """
 window.__omniView = "looking";
 new MutationObserver((_, watch) => {
   const box = (""" + FIND_VIEW + """)();
-  if (box) { box.style.transform = "translateX(-300vw)"; window.__omniView = "off screen"; watch.disconnect(); }
+  if (box) { box.style.transform = """ + OFF_SCREEN + """; window.__omniView = "off screen"; watch.disconnect(); }
 }).observe(document, {childList: true, subtree: true});
 """
 
@@ -232,7 +233,7 @@ def view_on_screen(page: Any, on: bool) -> None:
     """Put the page's 3D view back on the screen, or take it off (as new_page's ``scene=False``
     does from the start), for the rest of a test that no longer looks at it."""
     found = page.evaluate("(on) => { const box = (" + FIND_VIEW + ")(); if (!box) return false;"
-                          " box.style.transform = on ? '' : 'translateX(-300vw)'; return true; }", on)
+                          " box.style.transform = on ? '' : " + OFF_SCREEN + "; return true; }", on)
     assert found, "the page's 3D view was not found"
     if on:
         settle(page)
