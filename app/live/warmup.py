@@ -133,6 +133,11 @@ def warm_all() -> int:
 
 
 if __name__ == "__main__":  # `python -m app.live.warmup`: fill numba's cache once, e.g. before a test suite
+    import sys
+
+    if sys.argv[1:]:  # it warms what `run` reaches with the default config: there is nothing to choose
+        print(f"python -m app.live.warmup: takes no arguments (got {' '.join(sys.argv[1:])!r})", file=sys.stderr)
+        sys.exit(2)
     t0 = time.perf_counter()
     made = warm_all()
     print(f"omniformation: {made} kernel signatures compiled into numba's cache in {time.perf_counter() - t0:.1f} s"

@@ -57,6 +57,17 @@ def test_a_fresh_cache_is_compiled_before_the_clock_starts_and_only_once(tmp_pat
     assert "compiled while the loop's clock ran" not in err, err
 
 
+def test_the_warm_up_step_refuses_arguments_in_one_line(tmp_path: Path) -> None:
+    """`python -m app.live.warmup` (a step of `make test`) warms what `run` reaches with the default
+    config: an argument is a mistake, said in one line with exit code 2, before anything is compiled."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    done = subprocess.run([sys.executable, "-m", "app.live.warmup", "--config", "x.toml"], capture_output=True,
+                          text=True, env=env, timeout=120)
+    assert done.returncode == 2, done
+    assert done.stderr.strip().splitlines() == ["python -m app.live.warmup: takes no arguments (got '--config x.toml')"]
+    assert done.stdout == "" and not any(tmp_path.iterdir())  # nothing compiled into the cache
+
+
 # A vision loop as `make run` serves it, warmed and run for 90 ticks with numba's cache where the
 # environment says; prints the loop's own counts (with `list`: each kernel's cache folder and source file, after
 # the warm-up alone).
