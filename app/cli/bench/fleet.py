@@ -111,7 +111,7 @@ def bench_fleet_file(teams: int, name: str = "bench") -> str:
     return f'name = "{name}"\nrate_hz = 30\n' + leaders
 
 
-def bench_leader_processes(max_processes: int = 16, seconds: float = 12.0,
+def bench_leader_processes(max_processes: int = 24, seconds: float = 12.0,
                            extra: tuple[str, ...] = ()) -> tuple[int, list[float], list[tuple[float, float]]]:
     """Start arenas for ``max_processes`` teams of 3 (side by side, every robot in its fleet-wide
     hue; fleets of FLEET_TEAMS teams, each its own arena on its own loopback bus, as two fleets on
