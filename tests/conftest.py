@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import faulthandler
+import os
+import sys
 from collections.abc import Iterator
 
 import pytest
@@ -15,3 +18,15 @@ def emulated() -> Iterator[EmulatorThread]:
     em = EmulatorThread()
     yield em
     em.close()
+
+
+# A run whose process does not end once its report is printed (a thread that is not a daemon, a
+# library's runtime that never lets go at exit) would hold CI until its time limit with nothing to
+# say. pytest-timeout covers each test, not the exit: this does.
+EXIT_GRACE_S = float(os.environ.get("OMNIFORMATION_TEST_EXIT_GRACE_S", "120"))
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """The run is over and reported: if the process is still there EXIT_GRACE_S later, every
+    thread's stack goes to stderr and the process ends with status 1 (faulthandler)."""
+    faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True, file=sys.__stderr__)
