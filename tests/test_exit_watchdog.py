@@ -12,10 +12,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run(tmp_path: Path, body: str) -> subprocess.CompletedProcess[str]:
+def _run(tmp_path: Path, body: str, grace: str = "2") -> subprocess.CompletedProcess[str]:
     test = tmp_path / "test_exit.py"
     test.write_text(textwrap.dedent(body))
-    env = {**os.environ, "OMNIFORMATION_TEST_EXIT_GRACE_S": "2"}
+    env = {**os.environ, "OMNIFORMATION_TEST_EXIT_GRACE_S": grace}
     # tests.conftest as a plugin: the hook as the suite has it, on a file outside the suite
     return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.conftest",
                            "--rootdir", str(tmp_path), str(test)], cwd=ROOT, env=env, capture_output=True,
@@ -42,3 +42,11 @@ def test_a_run_that_ends_keeps_its_status(tmp_path: Path) -> None:
     assert passed.returncode == 0, passed.stderr[-2000:]
     failed = _run(tmp_path, "def test_wrong():\n    assert 1 == 2\n")
     assert failed.returncode == 1 and "1 failed" in failed.stdout
+
+
+def test_a_grace_that_is_not_a_time_is_refused_in_one_line_before_any_test(tmp_path: Path) -> None:
+    for bad in ("soon", "0", "-5", "nan", "1e999"):
+        run = _run(tmp_path, "def test_fine():\n    pass\n", grace=bad)
+        lines = [ln for ln in run.stderr.splitlines() if ln.strip()]
+        assert run.returncode == 4 and "passed" not in run.stdout, (bad, run.returncode, run.stdout, run.stderr)
+        assert len(lines) == 1 and "OMNIFORMATION_TEST_EXIT_GRACE_S" in lines[0] and repr(bad) in lines[0], (bad, lines)
