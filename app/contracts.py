@@ -140,6 +140,12 @@ class Feedback(Protocol):
         ...
 
     def scan_after(self) -> Scan | None:
-        """The free-space scan of the frame just observed, when one is due, taken once the
-        tick's commands are sent (off the frame's way to the robots); None when none is due."""
+        """Called once the tick's commands are sent (off the frame's way to the robots): the
+        free-space scan that was finished now, None on a tick that finished none (a camera's
+        scan is taken every few frames, in halves on two ticks: VisionFeedback.scan_after)."""
+        ...
+
+    @property
+    def scan_pending(self) -> bool:
+        """A scan's first half is done and its second is due on the next tick."""
         ...

@@ -454,3 +454,7 @@ class ArenaFeedback:
     def scan_after(self) -> Scan | None:
         """The camera's free-space scan, when ``inner`` is a camera and one is due."""
         return self.inner.scan_after()
+
+    @property
+    def scan_pending(self) -> bool:
+        return bool(self.inner.scan_pending)

@@ -63,6 +63,10 @@ class TruthFeedback:
         """No camera, no free-space scan (the truth knows the boxes)."""
         return None
 
+    @property
+    def scan_pending(self) -> bool:
+        return False
+
 
 @dataclass
 class VisionFeedback:
@@ -112,6 +116,7 @@ class VisionFeedback:
         self._scan_due = 0
         self.memory = ObstacleMemory(self.scanner.settings if self.scanner is not None else ScanSettings())
         self._pending: tuple[Image, FloatArray, np.ndarray, float] | None = None  # a scan due (scan_after)
+        self._sampled: tuple[np.ndarray, FloatArray, np.ndarray, float, FloatArray] | None = None  # its first half done
 
     def _make_pipeline(self, size: tuple[int, int]) -> None:
         self.pipeline = VisionPipeline(self.team.state.n, self.gamma, self.rig.working_area, self.rig.detect,
@@ -185,18 +190,35 @@ class VisionFeedback:
         return self._last
 
     def scan_after(self) -> Scan | None:
-        """The free-space scan of the frame ``observe`` last stepped on, when one was due (every
-        SCAN_EVERY frames), into the obstacle memory; None when none was due. The loop calls it
-        once that frame's commands are sent: a scan renders the whole ring (2-3 ms), off the
-        frame's way to the robots. What it finds is known from the next tick on (33 ms later at
-        30 Hz, against the SCAN_EVERY frames between two scans)."""
+        """The free-space scan, in two halves on two ticks, each once the tick's commands are sent
+        (off the frame's way to the robots). On the tick a scan is due (every SCAN_EVERY frames)
+        the ring of the frame ``observe`` stepped on is sampled (a synthetic camera renders it
+        then); on the next, those samples are scanned into the obstacle memory, as of that
+        frame's pose, and the scan returned. None on every other tick. What a scan finds is known
+        from the tick after its second half: 66 ms after its frame at 30 Hz, against the 100 ms
+        between two scans.
+
+        Why halves: a whole scan (3 ms of CPU, more on a loaded machine) on one tick made that
+        tick the long one of three, and the tick after it the one that started late. With
+        leaders sharing a machine, the loops' rates held 30 Hz with 6 of them on a 2-core machine
+        where they held it with 10 when no scan ran at all (`omniformation bench`, fleet line)."""
+        done = None
+        sampled, self._sampled = self._sampled, None
+        if sampled is not None and self.scanner is not None:
+            polar, positions, tracked, t, pose = sampled
+            done = self.scanner.scan_samples(polar, positions, tracked)
+            self.memory.update(done, t, np.where(tracked[:, None], positions, np.nan), pose)
         pending, self._pending = self._pending, None
-        if pending is None or self.scanner is None:
-            return None
-        frame, positions, tracked, t = pending
-        scan = self.scanner.scan(frame, positions, tracked)
-        self.memory.update(scan, t, np.where(tracked[:, None], positions, np.nan))
-        return scan
+        if pending is not None and self.scanner is not None:
+            frame, positions, tracked, t = pending
+            # the scanner's own array, kept until its next sample (SCAN_EVERY frames on)
+            self._sampled = (self.scanner.sample(frame), positions, tracked, t, self.memory.pose)
+        return done
+
+    @property
+    def scan_pending(self) -> bool:
+        """A scan's ring is sampled and its scan due on the next tick (scan_after)."""
+        return self._sampled is not None
 
     def _stale(self, phase: str, camera_state: str) -> Observation:
         """No usable frame: nobody is tracked and nothing moves (a zero manoeuvre keeps the

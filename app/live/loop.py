@@ -369,7 +369,7 @@ class ServiceLoop:
         v_rate = lyapunov_rate([h[0] for h in world.v_hist], [h[1] for h in world.v_hist]) \
             if len(world.v_hist) >= 2 else np.zeros(len(a))
         scan = world.feedback.scan_after()  # after the commands: off the frame's way to the robots
-        if scan is not None:
+        if scan is not None or world.feedback.scan_pending:  # a scan's second half, or its first
             stage["scan"] = (time.perf_counter() - t3) * 1e3
 
         p_true, a_true = world.team.truth()

@@ -256,7 +256,12 @@ class FreeSpaceScanner:
     def scan(self, frame: Image, followers: FloatArray | None = None, tracked: BoolArray | None = None) -> Scan:
         """The scan of one BGR frame; ``followers`` (n, 2) estimated positions (leader frame) of
         the ``tracked`` followers, whose bodies are not obstacles."""
-        s = self.settings
+        return self.scan_samples(self.sample(frame), followers, tracked)
+
+    def sample(self, frame: Image) -> np.ndarray:
+        """The frame's samples on the polar grid (rows: image angles, columns: radii; BGR), the
+        first half of :meth:`scan` (about half its time: a synthetic frame renders the ring
+        here). The array is the scanner's own, overwritten by its next ``sample``."""
         rows_, cols_, map_x, map_y = self._crop(tuple(frame.shape))
         region = getattr(frame, "region", None)  # a synthetic frame renders the ring into this scanner's arrays
         if region is not None and self._scratch is None:
@@ -267,7 +272,12 @@ class FreeSpaceScanner:
         if self._polar is None or self._polar.shape != map_x.shape + (3,):
             self._polar = np.empty(map_x.shape + (3,), np.uint8)
         # into the scanner's own grid, whatever the camera (a fresh one each scan came page by page from the system)
-        polar = cv2.remap(crop, map_x, map_y, cv2.INTER_NEAREST, dst=self._polar, borderValue=(0, 0, 0))
+        return np.asarray(cv2.remap(crop, map_x, map_y, cv2.INTER_NEAREST, dst=self._polar, borderValue=(0, 0, 0)))
+
+    def scan_samples(self, polar: np.ndarray, followers: FloatArray | None = None,
+                     tracked: BoolArray | None = None) -> Scan:
+        """The scan of a frame's samples on the polar grid (:meth:`sample`), the second half of :meth:`scan`."""
+        s = self.settings
         model = _floor_model(polar, 4)  # the floor's colour: medians; its spread: their MADs
         spread = model[3:] * 1.4826
         sl = max(s.min_lightness, s.lightness_k * float(spread[0]))
@@ -323,16 +333,20 @@ class ObstacleMemory:
         c, s = math.cos(phi), math.sin(phi)
         self.pose = np.array([self.pose[0] + c * dx - s * dy, self.pose[1] + s * dx + c * dy, self.pose[2] + g])
 
-    def _to_leader(self, pts: FloatArray) -> FloatArray:
-        phi = float(self.pose[2]) - math.pi / 2
+    def _to_leader(self, pts: FloatArray, pose: FloatArray | None = None) -> FloatArray:
+        """Odometry-frame points in the leader's frame at ``pose`` (its pose now when None)."""
+        pose = self.pose if pose is None else pose
+        phi = float(pose[2]) - math.pi / 2
         c, s = math.cos(phi), math.sin(phi)
-        d = pts - self.pose[:2]
+        d = pts - pose[:2]
         return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
 
-    def _to_odometry(self, pts: FloatArray) -> FloatArray:
-        phi = float(self.pose[2]) - math.pi / 2
+    def _to_odometry(self, pts: FloatArray, pose: FloatArray | None = None) -> FloatArray:
+        """Points of the leader's frame at ``pose`` (its pose now when None) in the odometry frame."""
+        pose = self.pose if pose is None else pose
+        phi = float(pose[2]) - math.pi / 2
         c, s = math.cos(phi), math.sin(phi)
-        return np.column_stack([c * pts[:, 0] - s * pts[:, 1], s * pts[:, 0] + c * pts[:, 1]]) + self.pose[:2]
+        return np.column_stack([c * pts[:, 0] - s * pts[:, 1], s * pts[:, 0] + c * pts[:, 1]]) + pose[:2]
 
     def current(self, t: float) -> FloatArray:
         """(k, 2) leader-frame points known now without a new scan (between scans: what the
@@ -340,14 +354,17 @@ class ObstacleMemory:
         fresh = self.seen_at >= t - self.settings.keep_s
         return self._to_leader(self.points[fresh]) if fresh.any() else np.zeros((0, 2))
 
-    def update(self, scan: Scan, t: float, followers: FloatArray | None = None) -> FloatArray:
-        """Take this frame's scan at time t; (k, 2) leader-frame obstacle points: the scan's
-        hits and what is remembered where the scan cannot see now. ``followers``: (n, 2)
-        positions of the tracked followers (leader frame): what was remembered where one
-        stands now was that follower (seen before it was tracked) or is hidden under it."""
+    def update(self, scan: Scan, t: float, followers: FloatArray | None = None,
+               pose: FloatArray | None = None) -> FloatArray:
+        """Take the scan of the frame of time t; (k, 2) obstacle points in the leader's frame of
+        that frame: the scan's hits and what is remembered where the scan cannot see. ``followers``:
+        (n, 2) positions of the tracked followers (that frame's leader frame): what was remembered
+        where one stands was that follower (seen before it was tracked) or is hidden under it.
+        ``pose``: the odometry pose the leader had at that frame, when the memory has moved since
+        (a scan finished a tick after its frame); None: the frame is the newest."""
         s = self.settings
         now = scan.points()
-        old = self._to_leader(self.points) if len(self.points) else np.zeros((0, 2))
+        old = self._to_leader(self.points, pose) if len(self.points) else np.zeros((0, 2))
         keep = self.seen_at >= t - s.keep_s
         if followers is not None and len(old):
             f = np.asarray(followers, dtype=np.float64).reshape(-1, 2)
@@ -365,11 +382,11 @@ class ObstacleMemory:
         merged = np.vstack([old[keep], now])
         times = np.concatenate([self.seen_at[keep], np.full(len(now), t)])
         if len(merged):  # one point per cell, the newest
-            cells = np.floor(self._to_odometry(merged) / s.cell_m).astype(np.int64)
+            cells = np.floor(self._to_odometry(merged, pose) / s.cell_m).astype(np.int64)
             order = np.argsort(-times, kind="stable")
             _, first = np.unique(cells[order], axis=0, return_index=True)
             pick = order[first]
             merged, times = merged[pick], times[pick]
-        self.points = self._to_odometry(merged) if len(merged) else np.zeros((0, 2))
+        self.points = self._to_odometry(merged, pose) if len(merged) else np.zeros((0, 2))
         self.seen_at = times
         return merged

@@ -423,10 +423,12 @@ def test_concurrent_toggles_are_read_modify_write_and_none_is_lost():
     assert not store.get().paused
 
 
-def test_the_free_space_scan_runs_after_the_ticks_commands_are_sent_and_counts_from_the_next_tick():
-    """A scan renders the whole ring (2-3 ms): it is taken once the frame's commands are written,
-    off the frame-to-command latency, every third frame; what it finds is in the obstacles the
-    next tick's safety filter keeps clear of."""
+def test_the_free_space_scan_runs_in_two_halves_after_two_ticks_commands_and_counts_from_the_tick_after():
+    """A scan renders the whole ring and scans it (3 ms of CPU): every third frame its ring is
+    sampled once that tick's commands are written, and scanned once the next tick's are, off
+    the frame-to-command latency and never all on one tick; what it finds is in the obstacles
+    the safety filter keeps clear of from the tick after, in the leader's frame of the tick it
+    is shown on."""
     from app.backends.feedback import SCAN_EVERY
     from core.obstacles import Obstacle
 
@@ -440,22 +442,35 @@ def test_the_free_space_scan_runs_after_the_ticks_commands_are_sent_and_counts_f
             break
     world = loop._world
     events: list[str] = []
-    send, scan = world.team.send, world.feedback.scanner.scan
+    scanner = world.feedback.scanner
+    send, sample, scan = world.team.send, scanner.sample, scanner.scan_samples
     world.team.send = lambda commands: (events.append("send"), send(commands))[1]
-    world.feedback.scanner.scan = lambda *a: (events.append("scan"), scan(*a))[1]
+    scanner.sample = lambda *a: (events.append("sample"), sample(*a))[1]
+    scanner.scan_samples = lambda *a: (events.append("scan"), scan(*a))[1]
     states = []
     for _ in range(12 * SCAN_EVERY):
         events.append("tick")
         states.append(loop.tick())
-    ticks = "".join({"tick": "T", "send": "s", "scan": "c"}[e] for e in events)
-    assert ticks.count("c") == 12 and "cs" not in ticks and all(part.startswith("s") for part in ticks.split("T")[1:]), ticks
-    scanned = [k for k, s in enumerate(states) if s.scan is not None]
-    assert scanned == [k for k, s in enumerate(states) if "scan" in s.stage_ms] and len(scanned) == 12
-    assert np.diff(scanned).tolist() == [SCAN_EVERY] * 11
+    ticks = "".join({"tick": "T", "send": "s", "sample": "r", "scan": "c"}[e] for e in events)
+    parts = ticks.split("T")[1:]
+    assert all(p.startswith("s") for p in parts) and ticks.count("r") == 12, ticks  # after the commands, always
+    sampled = [k for k, p in enumerate(parts) if "r" in p]
+    scanned = [k for k, p in enumerate(parts) if "c" in p]
+    assert np.diff(sampled).tolist() == [SCAN_EVERY] * 11 and scanned == [k + 1 for k in sampled if k + 1 < len(parts)]
+    assert [k for k, s in enumerate(states) if s.scan is not None] == scanned  # the scan: on its second half's tick
+    assert [k for k, s in enumerate(states) if "scan" in s.stage_ms] == sorted(sampled + scanned)  # each half's time
     seen = [k for k in scanned if np.isfinite(states[k].scan.ranges).any() and k + 1 < len(states)]
     assert seen, "the box is in view"
     k = seen[0]  # the box the scan found is an obstacle from the next tick on
     assert states[k + 1].obstacles is not None and len(states[k + 1].obstacles) > 0
+    # where the box is: what the tick after shows lies on the box's face, as the leader stands then
+    box = Obstacle(1.2, 1.5, 0.3, 0.3)
+    lx, ly, th = states[k + 1].leader
+    c, s_ = np.cos(th - np.pi / 2), np.sin(th - np.pi / 2)
+    pts = states[k + 1].obstacles
+    world_pts = np.column_stack([lx + c * pts[:, 0] - s_ * pts[:, 1], ly + s_ * pts[:, 0] + c * pts[:, 1]])
+    near = np.hypot(world_pts[:, 0] - box.x, world_pts[:, 1] - box.y)
+    assert (near < 0.35).any() and np.median(near[near < 0.6]) < 0.3
 
 
 # A fresh interpreter's warm-up, then the barrier QP on two followers about to collide: what the

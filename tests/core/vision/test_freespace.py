@@ -175,3 +175,25 @@ def test_the_floor_model_is_the_medians_and_mads_numpy_gives():
         got = _floor_model(img, step)
         np.testing.assert_allclose(got[:3], med, atol=1e-9)
         np.testing.assert_allclose(got[3:], mad, atol=1e-9)
+
+
+def test_a_scan_taken_into_the_memory_after_the_leader_moved_counts_from_its_frames_pose():
+    """A scan finished a tick after its frame (the live loop's second half) goes into the memory
+    as of the pose the leader had at that frame: the same points as had it gone in before the move."""
+    bearings = -np.pi + (np.arange(360) + 0.5) * np.pi / 180
+    ranges = np.full(360, np.inf)
+    ranges[100:110] = 0.9
+    ranges[250:255] = 1.4
+    scan = Scan(bearings, ranges, np.full(360, 2.0), np.zeros(360, dtype=bool), 0.28)
+    then, later = ObstacleMemory(), ObstacleMemory()
+    then.update(scan, 1.0)
+    then.move((0.02, 0.01, 0.03))
+    pose = later.pose
+    later.move((0.02, 0.01, 0.03))
+    later.update(scan, 1.0, pose=pose)
+    assert np.allclose(np.sort(then.points, axis=0), np.sort(later.points, axis=0))
+    assert np.allclose(np.sort(then.current(1.1), axis=0), np.sort(later.current(1.1), axis=0))
+    wrong = ObstacleMemory()
+    wrong.move((0.02, 0.01, 0.03))
+    wrong.update(scan, 1.0)  # as though the frame were the newest: 2 cm and 1.7 degrees off
+    assert np.hypot(*(then.points.mean(axis=0) - wrong.points.mean(axis=0))) > 0.01
