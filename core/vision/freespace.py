@@ -45,6 +45,7 @@ import numpy as np
 
 from core.camera.config import WorkingArea
 from core.camera.gamma import Gamma
+from core.geometry import leader_to_world, world_to_leader
 from core.jit import kernel
 from core.types import BoolArray, FloatArray, Image
 
@@ -336,17 +337,12 @@ class ObstacleMemory:
     def _to_leader(self, pts: FloatArray, pose: FloatArray | None = None) -> FloatArray:
         """Odometry-frame points in the leader's frame at ``pose`` (its pose now when None)."""
         pose = self.pose if pose is None else pose
-        phi = float(pose[2]) - math.pi / 2
-        c, s = math.cos(phi), math.sin(phi)
-        d = pts - pose[:2]
-        return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+        return world_to_leader(pts, pose[:2], float(pose[2]))
 
     def _to_odometry(self, pts: FloatArray, pose: FloatArray | None = None) -> FloatArray:
         """Points of the leader's frame at ``pose`` (its pose now when None) in the odometry frame."""
         pose = self.pose if pose is None else pose
-        phi = float(pose[2]) - math.pi / 2
-        c, s = math.cos(phi), math.sin(phi)
-        return np.column_stack([c * pts[:, 0] - s * pts[:, 1], s * pts[:, 0] + c * pts[:, 1]]) + pose[:2]
+        return leader_to_world(pts, pose[:2], float(pose[2]))
 
     def current(self, t: float) -> FloatArray:
         """(k, 2) leader-frame points known now without a new scan (between scans: what the

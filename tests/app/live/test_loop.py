@@ -465,10 +465,10 @@ def test_the_free_space_scan_runs_in_two_halves_after_two_ticks_commands_and_cou
     assert states[k + 1].obstacles is not None and len(states[k + 1].obstacles) > 0
     # where the box is: what the tick after shows lies on the box's face, as the leader stands then
     box = Obstacle(1.2, 1.5, 0.3, 0.3)
-    lx, ly, th = states[k + 1].leader
-    c, s_ = np.cos(th - np.pi / 2), np.sin(th - np.pi / 2)
-    pts = states[k + 1].obstacles
-    world_pts = np.column_stack([lx + c * pts[:, 0] - s_ * pts[:, 1], ly + s_ * pts[:, 0] + c * pts[:, 1]])
+    from core.geometry import leader_to_world
+
+    leader = states[k + 1].leader
+    world_pts = leader_to_world(states[k + 1].obstacles, leader[:2], float(leader[2]))
     near = np.hypot(world_pts[:, 0] - box.x, world_pts[:, 1] - box.y)
     assert (near < 0.35).any() and np.median(near[near < 0.6]) < 0.3
 
