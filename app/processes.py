@@ -1,5 +1,5 @@
 """Stopping child processes as a person stops them: one helper for every command and test that starts some;
-and what a process and its children cost in CPU (the benches' figures)."""
+and what a process and its children cost in CPU, and what the machine's hypervisor took (the benches' figures)."""
 
 from __future__ import annotations
 
@@ -69,3 +69,18 @@ def cpu_seconds(roots: Iterable[int]) -> dict[int, float]:
             todo.extend(children.get(pid, ()))
         out[root] = total
     return out
+
+
+def steal_seconds(path: str = "/proc/stat") -> float | None:
+    """CPU seconds this machine's CPUs wanted to run but its hypervisor ran something else
+    (``steal``, all CPUs together, from /proc/stat's first line: proc(5)); None where there is
+    no such figure (no /proc, a kernel too old to count it). Take the difference of two calls:
+    a bench tells the machine's own stalls from its code's by it."""
+    try:
+        with open(path) as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    if len(fields) < 9 or fields[0] != "cpu" or not fields[8].isdigit():
+        return None
+    return int(fields[8]) / os.sysconf("SC_CLK_TCK")

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from app.processes import cpu_seconds, interrupt, read_stat
+from app.processes import cpu_seconds, interrupt, read_stat, steal_seconds
 
 # a parent that starts a child; the child burns about BURN_S of CPU, says so, and both then sleep
 BURN_S = 0.6
@@ -58,3 +58,22 @@ def test_a_file_that_is_not_a_stat_file_is_refused_as_one(tmp_path):
         bad.write_text(text)
         with pytest.raises(OSError, match="not a stat file"):
             read_stat(str(bad))
+
+
+def test_steal_is_read_from_the_machines_cpu_line_and_nothing_is_made_up(tmp_path):
+    """steal_seconds: /proc/stat's eighth figure of the "cpu" line, in seconds; None for a file
+    without it (not guessed as 0: a bench would then say the machine stole nothing)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    good = tmp_path / "stat"
+    good.write_text(f"cpu  10 0 5 900 1 0 2 {3 * tick} 0 0\ncpu0 5 0 2 450 1 0 1 {tick} 0 0\n")
+    assert steal_seconds(str(good)) == pytest.approx(3.0)
+    for k, text in enumerate(("cpu  10 0 5 900\n", "cpu0 1 2 3 4 5 6 7 8\n", "cpu  1 2 3 4 5 6 7 x\n", "")):
+        bad = tmp_path / f"bad{k}"
+        bad.write_text(text)
+        assert steal_seconds(str(bad)) is None
+    assert steal_seconds(str(tmp_path / "missing")) is None
+    if os.path.isfile("/proc/stat"):  # this machine's: a count that never goes back
+        first = steal_seconds()
+        assert first is not None and first >= 0.0
+        second = steal_seconds()
+        assert second is not None and second >= first

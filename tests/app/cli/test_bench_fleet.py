@@ -1,9 +1,10 @@
-"""The leader bench's fleet file (``make bench``, fleet line) is one `arena` accepts: its teams
-fit one fleet's marker hues, and FLEET_TEAMS is within what a fleet holds."""
+"""The leader bench (``make bench``, fleet line): its fleet file is one `arena` accepts (its teams
+fit one fleet's marker hues, and FLEET_TEAMS is within what a fleet holds), and how it counts."""
 
 import pytest
 
-from app.cli.bench.fleet import FLEET_TEAMS, bench_fleet_file
+from app.cli.bench.fleet import (FLEET_TEAMS, HELD_HZ, LeaderCount, Window, bench_fleet_file, leader_count,
+                                 leader_line)
 from core.camera.config import MIN_HUE_SEPARATION_DEG
 from core.config import ConfigError
 from core.fleet import parse_fleet
@@ -24,3 +25,34 @@ def test_one_team_more_than_a_fleets_hues_hold_is_refused():
     parse_fleet(bench_fleet_file(most), "bench.toml")
     with pytest.raises(ConfigError, match="cannot carry hues"):
         parse_fleet(bench_fleet_file(most + 1), "bench.toml")
+
+
+def _w(count: int, hz: float) -> Window:
+    return Window(count, hz, 15.0, 20.0, 0.0)
+
+
+def test_a_count_whose_window_falls_below_is_measured_again_and_fails_only_twice():
+    """leader_count: (held, held before the first failed window, go on). A count that fell below
+    29.7 Hz once is measured again (go on at the same count); it holds if the second window does,
+    and the bench stops at the first count that fell below twice in a row."""
+    assert leader_count([_w(1, 30.0), _w(2, 29.9)]) == (2, 2, True)
+    assert leader_count([_w(1, 30.0), _w(2, 29.69)]) == (1, 1, True)  # once: measure again
+    assert leader_count([_w(1, 30.0), _w(2, 29.69), _w(2, 29.8), _w(3, 29.9)]) == (3, 1, True)
+    assert leader_count([_w(1, 30.0), _w(2, 29.69), _w(2, 29.8), _w(3, 28.0), _w(3, 29.0)]) == (2, 1, False)
+    assert leader_count([_w(1, 0.0), _w(1, 0.0)]) == (0, 0, False)  # none held at all
+    assert leader_count([]) == (0, 0, True)
+    assert _w(1, HELD_HZ).held and not _w(1, HELD_HZ - 0.01).held
+    count = LeaderCount(2, 1, (_w(1, 30.0), _w(2, 29.0), _w(2, 29.9)))
+    assert count.at(2).slowest_hz == 29.9  # the last window of that count
+
+
+def test_the_bench_line_names_both_counts_every_window_and_the_steal_where_a_window_fell_below():
+    count = LeaderCount(2, 1, (_w(1, 30.0), _w(2, 29.5), _w(2, 29.9), _w(3, 29.0), Window(3, 28.5, 16.0, 30.0, 6.25)))
+    line = leader_line("run now", count)
+    assert "holds 2 at 30 Hz" in line and "1 before the first window that fell below" in line
+    assert "1: 30.00, 2: 29.50, 2: 29.90, 3: 29.00, 3: 28.50 Hz" in line
+    assert "with 2 running, each leader (its process and its page) took 15.0 % of one CPU" in line
+    assert "took 0.0, 0.0, 6.2 % of its CPUs (steal)" in line
+    assert "it may hold more" not in line
+    every = leader_line("run now", LeaderCount(2, 2, (_w(1, 30.0), _w(2, 29.9))))
+    assert "it may hold more" in every and "steal" not in every
