@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from app.files import load_scenario
+from app.processes import steal_seconds
 
 from app.cli.bench.browsers import _VIEWER
 
@@ -50,13 +51,9 @@ class _GcPauses:
 
 def _stolen_s() -> float:
     """CPU time the hypervisor gave to others while this machine's CPUs wanted it, since boot
-    (/proc/stat's steal, all CPUs); 0 where there is no such count."""
-    try:
-        with open("/proc/stat") as f:
-            fields = f.readline().split()
-        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
+    (app.processes.steal_seconds); 0 where there is no such count."""
+    stolen = steal_seconds()
+    return 0.0 if stolen is None else stolen
 
 
 def _rss_mb() -> float:
