@@ -67,3 +67,13 @@ def test_the_bench_line_names_both_counts_every_window_and_the_steal_where_a_win
     assert "it may hold more" not in line
     every = leader_line("run now", LeaderCount(2, 2, (_w(1, 30.0), _w(2, 29.9))))
     assert "it may hold more" in every and "steal" not in every
+
+
+def test_a_count_stopped_on_the_hosts_stalls_alone_says_it_was_not_measured():
+    stolen = STEAL_LIMIT + 1.0
+    count = LeaderCount(1, 1, (_w(1, 30.0),) + (_w(2, 29.0, stolen),) * WINDOWS_PER_COUNT)
+    assert count.host_bound
+    assert "NOT MEASURED" in leader_line("run now", count) and "holds 1 at 30 Hz" in leader_line("run now", count)
+    mixed = LeaderCount(1, 1, (_w(1, 30.0), _w(2, 29.0, stolen), _w(2, 29.0), _w(2, 29.0)))
+    assert not mixed.host_bound and "NOT MEASURED" not in leader_line("run now", mixed)
+    assert not LeaderCount(2, 2, (_w(1, 30.0), _w(2, 29.9))).host_bound
