@@ -169,8 +169,9 @@ def leader_count(windows: list[Window]) -> tuple[int, int, bool]:
     (go on, at the same count), and a count fails (stop) at its second window that fell below while
     the hypervisor took less than STEAL_LIMIT % of the machine (or where the machine does not say),
     or at its WINDOWS_PER_COUNT-th window. Why: a single late tick of one loop ends a window, and
-    this 2-core machine's hypervisor took up to 13 % of it in a window, the dips right after 130 ms
-    of it; a full machine fails a second window with no steal, a stall of the host's does not."""
+    a 2-core machine's hypervisor took up to 33 % of it in a 12 s window here (one window's dips
+    came right after 130-140 ms of it); a full machine fails a second window with no steal, a
+    stall of the host's does not."""
     held = held_first = 0
     failed_once = False
     for w in windows:
