@@ -14,11 +14,13 @@ import pytest
 from app.backends.camera import CaptureSource, FolderSource, open_frame_source
 from app.backends.hardware import HardwareTeam
 from app.backends.serial_link import SerialLink
-from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
+from app.files import DEFAULT_CONFIG, SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
 from app.backends.feedback import STALE_FRAME_S
 from app.live.loop import ServiceLoop
+from app.live.config import load_service_config
+from app.live.warmup import warm_up
 from app.tick import TickState
-from app.params import Params, ParamsStore
+from app.params import MAX_FOLLOWERS, Params, ParamsStore
 from core.camera.render import Renderer
 from core.link import protocol as p
 from core.vision.pipeline import PipelineSettings
@@ -95,10 +97,16 @@ def test_real_rig_loop_drives_robots_on_the_wire_and_stops_them_when_the_camera_
     emulated robots; when the frames end, every command is zero on the first tick whose frame
     is older than STALE_FRAME_S, and the robots are told so."""
     render_frames(tmp_path, 45)  # 1.5 s: base background (8 frames), then follower 1's probe
+    calibration = load_camera(SYNTHETIC_CALIBRATED)
+    # the loop warms its kernels (about 1.5 s with a camera) before its clock starts, and the folder
+    # plays from its opening: warmed first in this process, or this test alone found the folder over
+    shadow = ServiceLoop(ParamsStore(Params(n_followers=3)), rate_hz=30.0,
+                         camera=load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS).camera())  # `make run`'s camera
+    warm_up(shadow, say=False)
+    shadow.close_team()
     emulated = EmulatorThread()
     link = SerialLink(emulated.path, 3)
     frames = FolderSource(tmp_path, fps=30.0)
-    calibration = load_camera(SYNTHETIC_CALIBRATED)
     store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]])),
                         fixed_followers=3)
     loop = ServiceLoop(store, rate_hz=30.0, camera=(calibration, calibration.gamma), frames=frames,
@@ -134,7 +142,11 @@ def test_real_rig_loop_drives_robots_on_the_wire_and_stops_them_when_the_camera_
     assert np.all(stale.commands == 0.0) and not stale.tracked.any()
     assert all(np.all(s.commands == 0.0) for s in seen[first_stale:])
     assert "end of folder" in stale.camera_state
-    assert np.all(np.isnan(stale.p_true)) and stale.link_state.endswith(": ok")
+    # the camera stopped the robots, not the link: it still reached them. "ok", or "degraded" where
+    # the emulator (a thread of this process) answered late on a loaded machine (27 % of replies
+    # once, in a CI run of the suite's three parts side by side): counted, not hidden
+    assert np.all(np.isnan(stale.p_true)) and not stale.link_state.startswith("link lost")
+    assert stale.link_state.endswith(": ok") or ": degraded (" in stale.link_state, stale.link_state
     # the robots answered; a reply later than the link's 0.25 s (a loaded machine) is counted, not hidden
     assert link_stats[0].answered > 30
     assert sent == settled + pending  # at one moment: the reader may still settle replies after the loop ends
