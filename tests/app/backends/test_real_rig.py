@@ -14,13 +14,12 @@ import pytest
 from app.backends.camera import CaptureSource, FolderSource, open_frame_source
 from app.backends.hardware import HardwareTeam
 from app.backends.serial_link import SerialLink
-from app.files import DEFAULT_CONFIG, SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
+from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
 from app.backends.feedback import STALE_FRAME_S
 from app.live.loop import ServiceLoop
-from app.live.config import load_service_config
-from app.live.warmup import warm_up
+from app.live.warmup import warm_all
 from app.tick import TickState
-from app.params import MAX_FOLLOWERS, Params, ParamsStore
+from app.params import Params, ParamsStore
 from core.camera.render import Renderer
 from core.link import protocol as p
 from core.vision.pipeline import PipelineSettings
@@ -100,10 +99,7 @@ def test_real_rig_loop_drives_robots_on_the_wire_and_stops_them_when_the_camera_
     calibration = load_camera(SYNTHETIC_CALIBRATED)
     # the loop warms its kernels (about 1.5 s with a camera) before its clock starts, and the folder
     # plays from its opening: warmed first in this process, or this test alone found the folder over
-    shadow = ServiceLoop(ParamsStore(Params(n_followers=3)), rate_hz=30.0,
-                         camera=load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS).camera())  # `make run`'s camera
-    warm_up(shadow, say=False)
-    shadow.close_team()
+    warm_all()
     emulated = EmulatorThread()
     link = SerialLink(emulated.path, 3)
     frames = FolderSource(tmp_path, fps=30.0)
