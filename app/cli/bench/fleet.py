@@ -130,6 +130,11 @@ class Window:
     def held(self) -> bool:
         return self.slowest_hz >= HELD_HZ
 
+    @property
+    def stolen(self) -> bool:
+        """The hypervisor took over STEAL_LIMIT % of the machine in it (False where it does not say)."""
+        return self.steal > STEAL_LIMIT
+
 
 @dataclass(frozen=True)
 class LeaderCount:
@@ -147,7 +152,7 @@ class LeaderCount:
         windows fell below while the hypervisor took over STEAL_LIMIT % of the machine. ``held``
         then says what the host allowed, not what the code does: measure again."""
         last = [w for w in self.windows if w.count == self.windows[-1].count] if self.windows else []
-        return bool(last) and all(not w.held and w.steal > STEAL_LIMIT for w in last)
+        return bool(last) and all(not w.held and w.stolen for w in last)
 
     def at(self, count: int) -> Window:
         """The last window measured with ``count`` leaders running."""
@@ -184,7 +189,7 @@ def leader_count(windows: list[Window]) -> tuple[int, int, bool]:
         same = [v for v in windows if v.count == w.count]
         if any(v.held for v in same):
             continue
-        counted = [v for v in same if not v.steal > STEAL_LIMIT]  # NaN (not said): counted
+        counted = [v for v in same if not v.stolen]  # NaN (not said): counted
         if len(counted) >= 2 or len(same) >= WINDOWS_PER_COUNT:
             return held, held_first, False
     return held, held_first, True
