@@ -56,18 +56,25 @@ def _leader_text(radio_id: int, key: bytes) -> str:
     return json.dumps({"radio_id": radio_id, "key": key.hex()}, indent=1) + "\n"
 
 
+def check_radio_keys_writable(directory: Path, leaders: tuple[str, ...], *, overwrite: bool = False) -> list[Path]:
+    """The files :func:`write_radio_keys` would write, checked before anything is written: at most
+    16 leaders, and (without ``overwrite``) no key there already (FileExistsError naming it)."""
+    if len(leaders) > MAX_SENDERS:
+        raise ValueError(f"--leaders: {len(leaders)} leaders; a robot keeps counters for at most {MAX_SENDERS}")
+    files = [directory / ROBOTS] + [directory / f"{name}{SUFFIX}" for name in leaders]
+    if not overwrite:
+        for f in (*files, directory / NEXT):
+            if f.exists() or f.is_symlink():
+                raise FileExistsError(f"{f}: exists; fleet-keys writes over keys only with --overwrite")
+    return files
+
+
 def write_radio_keys(directory: Path, leaders: tuple[str, ...], *, overwrite: bool = False,
                      stop: str = STOP_ANYONE) -> list[Path]:
     """A fresh radio key (32 random bytes) for the fleet: ``directory``/robots.json and one
     ``<leader>.radio`` per leader (radio id = its place among the leaders, 1..). Refuses
     (FileExistsError naming the file) to write over a key unless ``overwrite``."""
-    if len(leaders) > MAX_SENDERS:
-        raise ValueError(f"{len(leaders)} leaders: a robot keeps counters for at most {MAX_SENDERS}")
-    files = [directory / ROBOTS] + [directory / f"{name}{SUFFIX}" for name in leaders]
-    if not overwrite:
-        for f in files:
-            if f.exists():
-                raise FileExistsError(f"{f}: exists; the radio key is replaced only with --overwrite")
+    files = check_radio_keys_writable(directory, leaders, overwrite=overwrite)
     _private_dir(directory)
     key = secrets.token_bytes(p.RADIO_KEY_LEN)
     ids = {name: k + 1 for k, name in enumerate(leaders)}

@@ -122,6 +122,12 @@ def cmd_fleet_keys(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     if args.dir.exists() and not args.dir.is_dir():
         raise UserError(f"{args.dir}: not a directory")
+    from app.backends.radio_keys import check_radio_keys_writable
+
+    try:  # everything the radio needs is checked before the first file is written
+        check_radio_keys_writable(args.dir / "radio", leaders, overwrite=args.overwrite)
+    except (FileExistsError, ValueError) as exc:
+        raise UserError(str(exc)) from None
     try:
         written = make_fleet_keys(args.dir, args.fleet, leaders, overwrite=args.overwrite, days=args.days,
                                   ros2=args.ros2)

@@ -88,24 +88,39 @@ class FleetKeys:
 
 
 def _identity_ok(name: str) -> bool:
-    from app.fleet.bridge import NAME
+    """An identity's name: a letter, then up to 31 letters, digits, _ or - (a folder, a file stem
+    and a certificate's common name on every system)."""
+    import re
 
-    return bool(NAME.fullmatch(name))
+    return re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,31}", name) is not None
+
+
+# names the key folder's layout uses itself (DIR/ca/, DIR/radio/, DIR/radio/next/, the CA's
+# ca.pem and ca.key, fleet.json, robots.json): a leader so named would write over them or be
+# read as them. Compared without case: on a case-blind file system "CA" is "ca".
+LAYOUT_NAMES = ("ca", "radio", "next", "fleet", "robots")
 
 
 def parse_leaders(text: str) -> tuple[str, ...]:
-    """``L1,L2,...``: distinct leader ids, none of them a hub's name (ValueError says which)."""
+    """``L1,L2,...``: distinct leader ids (``[A-Za-z][A-Za-z0-9_-]{0,31}``), none of them a hub's
+    name nor one of the key folder's own names (ValueError says which)."""
     ids = tuple(s.strip() for s in text.split(",") if s.strip())
     if not ids:
         raise ValueError("--leaders: give at least one leader id, e.g. L1,L2,L3")
     for i in ids:
         if not _identity_ok(i):
-            raise ValueError(f"--leaders: {i!r}: 1 to 32 characters of A-Z, a-z, 0-9, _ and -")
+            raise ValueError(f"--leaders: {i!r}: 1 to 32 characters, a letter first, then letters, digits, _ or -"
+                             " (e.g. L1)")
         if i in (*HUBS, ROS2):
             raise ValueError(f"--leaders: {i!r} is taken by the {i} itself (a leader needs another id)")
-    if len(set(ids)) != len(ids):
-        dup = next(i for i in ids if ids.count(i) > 1)
-        raise ValueError(f"--leaders: {dup!r} twice (every leader has its own certificate)")
+        if i.lower() in (*LAYOUT_NAMES, *HUBS, ROS2):
+            raise ValueError(f"--leaders: {i!r} is a name the key folder uses itself ({', '.join(LAYOUT_NAMES)},"
+                             f" {', '.join(HUBS)}, {ROS2}): give the leader another id")
+    folded = [i.lower() for i in ids]
+    if len(set(folded)) != len(ids):
+        dup = next(i for i in ids if folded.count(i.lower()) > 1)
+        raise ValueError(f"--leaders: {dup!r} twice (every leader has its own certificate; case does not tell"
+                         " two apart on every file system)")
     return ids
 
 
