@@ -33,7 +33,7 @@ from app.realtime import make_realtime
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
-class _Threaded:
+class ThreadedSource:
     """The newest frame, written by one capture thread, read by the loop."""
 
     def __init__(self, name: str) -> None:
@@ -163,7 +163,7 @@ def settings_text(report: dict[str, tuple[Any, Any]], settings: CaptureSettings 
     return "camera settings: " + ", ".join(parts) + (f"; not locked: {', '.join(loose)}" if loose else "")
 
 
-class CaptureSource(_Threaded):
+class CaptureSource(ThreadedSource):
     """``cv2.VideoCapture`` on a camera (index or device path) or a video file.
 
     A camera is read as fast as it delivers and reopened (0.5 s doubling to 4 s) when it
@@ -232,7 +232,7 @@ class CaptureSource(_Threaded):
             self._set_state(f"camera {self.name} lost; reopening")
 
 
-class FolderSource(_Threaded):
+class FolderSource(ThreadedSource):
     """The images of a folder in name order, at ``fps``; says "end of folder" after the last."""
 
     def __init__(self, folder: Path, fps: float = 30.0, loop: bool = False) -> None:

@@ -161,7 +161,7 @@ class CalibrationPanel:
         if not (math.isfinite(b) and math.isfinite(d) and d > 0 and 0.0 <= b <= 360.0):
             return self._say(f"bearing {b!r}° and distance {d!r} m: give a bearing from 0 to 360° and a distance"
                              " over 0 m")
-        b = _guide_deg(b)
+        b = guide_deg(b)
         inner, outer = float(self.inner.value), float(self.outer.value)
         if not (math.isfinite(inner) and math.isfinite(outer) and 0 <= inner < outer):
             return self._say(f"working area {inner!r}..{outer!r} px: the inner radius must be under the outer")
@@ -233,7 +233,7 @@ class CalibrationPanel:
                                  for b, d, u, v in zip(t.bearing_deg, t.metres, t.u, t.v)]
                 self._refit()
                 self.show_next()
-                return self._say(f"loaded {_markers(len(self.rows))} from {path}")
+                return self._say(f"loaded {count_markers(len(self.rows))} from {path}")
             if path.suffix.lower() == ".toml":
                 cam = load_camera(path)
                 g = cam.gamma
@@ -257,7 +257,7 @@ class CalibrationPanel:
         n = len(self.rows)
         if n < 6:
             self.fit, self.held, self.warnings, self.fitted = None, None, [], n
-            self._show_quality(f"{_markers(n)}: the fit needs at least 6, and {DEGREE + 2} at each bearing it"
+            self._show_quality(f"{count_markers(n)}: the fit needs at least 6, and {DEGREE + 2} at each bearing it"
                                f" uses; {self._per_bearing()}")
             return
         table = self.table()
@@ -277,7 +277,7 @@ class CalibrationPanel:
             warnings.insert(0, f"positions may be off by more than 3 cm (held-out p95 {held.p95_cm:.1f} cm):"
                                " capture more markers")
         self.fit, self.held, self.warnings, self.fitted = fit, held, warnings, n
-        rows = "".join(f"<tr><td>{_guide_deg(s.bearing_deg):g}</td><td>{s.points}</td><td>{s.rms_cm:.2f}</td>"
+        rows = "".join(f"<tr><td>{guide_deg(s.bearing_deg):g}</td><td>{s.points}</td><td>{s.rms_cm:.2f}</td>"
                        f"<td>{s.max_cm:.2f}</td></tr>" for s in fit.sectors)
         mounted = (f"<div>the camera is turned by {offset % 360.0:.1f}°{' and mirrored' if flip else ''} (read from"
                    " the markers)</div>") if (flip or offset) else ""
@@ -297,7 +297,7 @@ class CalibrationPanel:
         """How many markers each bearing has against what the fit needs there (the guide's names)."""
         counts: dict[float, int] = {}
         for b, *_ in self.rows:
-            key = _guide_deg(b)
+            key = guide_deg(b)
             counts[key] = counts.get(key, 0) + 1
         if not counts:
             return "none captured yet"
@@ -323,7 +323,7 @@ class CalibrationPanel:
         ax.tick_params(labelsize=6)
         bx = fig.add_subplot(1, 2, 2)
         sectors = self.fit.sectors
-        bx.bar([f"{_guide_deg(s.bearing_deg):g}" for s in sectors], [s.rms_cm for s in sectors], color="tab:blue")
+        bx.bar([f"{guide_deg(s.bearing_deg):g}" for s in sectors], [s.rms_cm for s in sectors], color="tab:blue")
         bx.set_xlabel("sector (°, 0–360, as the guide names bearings)", fontsize=7)
         if self.held is not None:
             bx.axhline(self.held.p95_cm, color="tab:red", ls="--", lw=0.8, label="held-out p95")
@@ -338,7 +338,7 @@ class CalibrationPanel:
         target = next_target(self.targets, [(r[0], r[1]) for r in self.rows])
         done = len(self.rows)
         if target is None:
-            self.guide.content = (f"**{_markers(done)} captured**: the guide's {len(self.targets)} are done;"
+            self.guide.content = (f"**{count_markers(done)} captured**: the guide's {len(self.targets)} are done;"
                                   " more anywhere help.")
             return
         b, d = target
@@ -456,10 +456,10 @@ def letterbox(img: np.ndarray, aspect: float, left: float = PICTURE_SHARE) -> np
     return out
 
 
-def _markers(n: int) -> str:
+def count_markers(n: int) -> str:
     return f"{n} marker" if n == 1 else f"{n} markers"
 
 
-def _guide_deg(bearing_deg: float) -> float:
+def guide_deg(bearing_deg: float) -> float:
     """A sector's bearing as the guide names bearings: 0 to 360 degrees (not -180 to 180)."""
     return round(bearing_deg % 360.0, 6) % 360.0

@@ -39,13 +39,13 @@ from mcap.records import Metadata
 from mcap.data_stream import ReadDataStream
 
 from app.params import Params
-from app.recording.scan import (MAGIC, MAX_RECORD, OP_CHUNK, OP_HEADER, OP_METADATA, _MESSAGE_HEAD, Damage, _Scan,
+from app.recording.scan import (MAGIC, MAX_RECORD, OP_CHUNK, OP_HEADER, OP_METADATA, _MESSAGE_HEAD, Damage, McapScan,
                                 _chunk_contents, metadata_checks_out, metadata_crc)
 from app.recording.schema import CHUNK_BYTES, CHUNK_SECONDS, IMAGE_TOPIC, METADATA_NAME, TICK_TOPIC
 
 CHUNKS_KEPT = 4  # decoded chunks kept for the sequences (a few MB)
 # the walk over the records (past damage) is app.recording.scan's; its names are read from here too
-__all__ = ["MAGIC", "Damage", "Gap", "Recording", "RecordingError", "_Scan", "check_ticks", "is_session", "metadata_checks_out", "metadata_crc", "params_from_payload",
+__all__ = ["MAGIC", "Damage", "Gap", "McapScan", "Recording", "RecordingError", "check_ticks", "is_session", "metadata_checks_out", "metadata_crc", "params_from_payload",
            "params_from_recording", "params_index", "read_recording", "session_clock", "session_record"]
 
 
@@ -304,7 +304,7 @@ def read_recording(path: Path) -> Recording:
         head = f.read(8)
         if len(head) < 8 or sum(a != b for a, b in zip(head, MAGIC)) > 2:  # a damaged byte or two is still ours
             raise RecordingError(f"{path.name}: not an MCAP file")
-        scan = _Scan(f, size)
+        scan = McapScan(f, size)
         scan.run()
     if TICK_TOPIC not in scan.channels and not scan.damage:
         raise RecordingError(f"{path.name}: an MCAP file, but not an omniformation recording (no {TICK_TOPIC})")

@@ -93,7 +93,7 @@ def _records(contents: bytes) -> Iterator[tuple[int, int, int]]:
         raise ValueError("trailing bytes in a chunk")
 
 
-class _Scan:
+class McapScan:
     """One walk over the file's records, building the index."""
 
     def __init__(self, f: BinaryIO, size: int) -> None:

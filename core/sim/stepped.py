@@ -105,7 +105,7 @@ def world_renderer(rig: CameraConfig, obstacles: tuple[Obstacle, ...]) -> Render
     return Renderer(rig.model, settings, obstacles)
 
 
-class _Delays:
+class Delays:
     """A real rig's latency in the stepped simulator (core.config.Latency): observations reach the
     controller ``camera_s`` late, commands act ``radio_s`` after they are sent (each with up to
     ``jitter_s`` more, in whole ticks), the followers holding their last command in between; and
@@ -261,7 +261,7 @@ def simulate_stepped(
     prev_leader = state.leader.copy()
     last_cmd = np.zeros((n, 2))
     err_norm = np.zeros(n)
-    delay = _Delays(scenario.latency, dt, n, np.random.default_rng(scenario.seed + 7))  # its own draws: no other changes
+    delay = Delays(scenario.latency, dt, n, np.random.default_rng(scenario.seed + 7))  # its own draws: no other changes
     t_ready: float | None = None if vision else 0.0
     k = 0
     steps_after = int(round(scenario.duration_s * scenario.rate_hz)) + 1

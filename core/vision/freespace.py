@@ -92,7 +92,7 @@ class Scan:
 
 
 @kernel
-def _floor_model(bgr: np.ndarray, step: int) -> np.ndarray:
+def floor_model(bgr: np.ndarray, step: int) -> np.ndarray:
     """The floor's colour and spread from every ``step``-th sample of the polar grid, each way:
     (6,) the medians of lightness (B + G + R) / 3 and of the chroma axes R − G and B − G, then
     their median absolute deviations. Exact, from counts: every feature, and every median and
@@ -279,7 +279,7 @@ class FreeSpaceScanner:
                      tracked: BoolArray | None = None) -> Scan:
         """The scan of a frame's samples on the polar grid (:meth:`sample`), the second half of :meth:`scan`."""
         s = self.settings
-        model = _floor_model(polar, 4)  # the floor's colour: medians; its spread: their MADs
+        model = floor_model(polar, 4)  # the floor's colour: medians; its spread: their MADs
         spread = model[3:] * 1.4826
         sl = max(s.min_lightness, s.lightness_k * float(spread[0]))
         sc = max(s.min_chroma, s.chroma_k * float(spread[1] + spread[2]))

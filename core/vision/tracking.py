@@ -27,7 +27,7 @@ del _I
 
 
 @kernel
-def _backproject_kernel(bgr: np.ndarray, area: np.ndarray, lut: np.ndarray, min_s: int, min_v: int,
+def backproject_kernel(bgr: np.ndarray, area: np.ndarray, lut: np.ndarray, min_s: int, min_v: int,
                         sdiv: np.ndarray, hdiv: np.ndarray, out: np.ndarray) -> None:
     half = 1 << (_HSV_SHIFT - 1)
     for y in range(bgr.shape[0]):
@@ -73,7 +73,7 @@ def back_projection(bgr: Image, lut: np.ndarray, area_mask: np.ndarray, detect: 
     tick, which stalled while it compiled; copying a window costs microseconds."""
     a = np.ascontiguousarray(bgr)
     out = np.empty(a.shape[:2], np.uint8)
-    _backproject_kernel(a, np.ascontiguousarray(area_mask), lut, int(detect.min_saturation), int(detect.min_value),
+    backproject_kernel(a, np.ascontiguousarray(area_mask), lut, int(detect.min_saturation), int(detect.min_value),
                         _SDIV, _HDIV, out)
     return out
 

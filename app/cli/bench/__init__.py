@@ -12,48 +12,24 @@ import argparse
 from collections.abc import Callable
 
 from app.cli.args import Parser, float_in, int_in
-from app.cli.bench import browsers, fleet, speed, sweeps
+from app.cli.bench import browsers, fleet, floods, foxglove, loop, ros2, speed, sweeps
 from app.cli.bench.latency import bench_latency
 from app.cli.bench.recordings import bench_long_recording, damage_table, loss_cases, replay_probe, write_long_recording
-from app.cli.bench.soak import _GcPauses, run_soak
+from app.cli.bench.soak import GcPauses, run_soak
 
-__all__ = ["FAMILIES", "_GcPauses", "bench_latency", "bench_long_recording", "damage_table", "loss_cases", "register",
+__all__ = ["FAMILIES", "GcPauses", "bench_latency", "bench_long_recording", "damage_table", "loss_cases", "register",
            "replay_probe", "run_bench", "run_soak", "write_long_recording"]
-
-def _foxglove(print_fn: Callable[[str], None]) -> dict[str, float]:
-    from app.cli.bench_foxglove import bench_foxglove  # Foxglove live's cost (docs/foxglove.md)
-
-    return bench_foxglove(print_fn)
-
-
-def _floods(print_fn: Callable[[str], None]) -> dict[str, float]:
-    from app.cli.bench_floods import bench_floods  # the page under floods (docs/page-access.md)
-
-    return bench_floods(print_fn)
-
-
-def _loop(print_fn: Callable[[str], None]) -> dict[str, float]:
-    from app.cli.bench_loop import bench_loops  # the page's clients against the loop, the page in and out of its process
-
-    return bench_loops(print_fn, latency=bench_latency)
-
-
-def _ros2(print_fn: Callable[[str], None]) -> dict[str, float]:
-    from app.cli.bench_ros2 import bench_ros2  # the loop's rate and CPU per tick with --ros2 (docs/ros2.md)
-
-    return bench_ros2(print_fn)
-
 
 # What `omniformation bench` measures, in this order: each takes print_fn and returns its figures by name.
 FAMILIES: list[Callable[[Callable[[str], None]], dict[str, float]]] = [
     speed.run_family,
     sweeps.run_family,
     browsers.run_family,
-    _foxglove,
-    _floods,
-    _loop,
+    foxglove.run_family,
+    floods.run_family,
+    loop.run_family,
     fleet.run_family,
-    _ros2,
+    ros2.run_family,
 ]
 
 

@@ -38,12 +38,12 @@ def bench_loop_with_browsers(seconds: float = 6.0, browsers: int = 3) -> tuple[f
     try:
         _time.sleep(3.0)  # past the first ticks, which load compiled code
         alone = measure(svc)
-        # The browsers as if on the operators' own machines (_VIEWER), so the figure is what
+        # The browsers as if on the operators' own machines (VIEWER), so the figure is what
         # serving them costs the loop.
         import subprocess
         import sys
 
-        viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers)],
+        viewer = subprocess.Popen([sys.executable, "-c", VIEWER, chromium, svc.url, str(browsers)],
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         try:
             ready = viewer.stdout.readline() if viewer.stdout else ""
@@ -78,7 +78,7 @@ def bench_loop_with_browsers(seconds: float = 6.0, browsers: int = 3) -> tuple[f
 # their tasks' policies (measured: the loop then waited up to 10 ms behind Chromium's threads, p99
 # 15-20 ms against 5-6). The browser's autogroup is set to nice 19 as well (any user may lower their
 # own autogroup's priority): idle CPU is what it gets.
-_VIEWER = """
+VIEWER = """
 import os, sys
 idle = (sys.argv[5] if len(sys.argv) > 5 else "") != "equal"  # "equal": a browser beside the service on a desktop
 if idle:

@@ -25,7 +25,7 @@ NEWCOMER_ADDRESS = "127.0.0.60"  # loopback: each party an address of its own (a
 MODES = ("none", "refused", "valid", "scene", "sockets")
 
 # The hostile party: argv = port, mode, seconds, source address, the speed slider's id.
-_FLOODER = r"""
+FLOODER = r"""
 import os, socket, sys, time
 os.sched_setaffinity(0, range(os.cpu_count() or 1))  # every CPU, as a client elsewhere has (not the bench's)
 import msgspec, viser
@@ -162,7 +162,7 @@ def bench_floods(print_fn: Callable[[str], None] = print, seconds: float = FLOOD
         for k, mode in enumerate(MODES):
             flooder: subprocess.Popen[str] | None = None
             if mode != "none":
-                flooder = subprocess.Popen([sys.executable, "-c", _FLOODER, str(port), mode, str(seconds + 2.0),
+                flooder = subprocess.Popen([sys.executable, "-c", FLOODER, str(port), mode, str(seconds + 2.0),
                                             f"127.0.0.{61 + k}", speed_id], stdout=subprocess.PIPE, text=True)
                 assert flooder.stdout is not None
                 flooder.stdout.readline()  # "ready"
@@ -198,6 +198,11 @@ def _counts(svc: Any) -> str:
     refused = svc.gate.refused
     names = ("messages", "flood", "cut", "banned", "full")
     return "; gate: " + ", ".join(f"{n} {getattr(refused, n)}" for n in names if hasattr(refused, n))
+
+
+def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
+    """The page under floods (docs/page-access.md)."""
+    return bench_floods(print_fn)
 
 
 if __name__ == "__main__":

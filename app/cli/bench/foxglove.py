@@ -1,5 +1,5 @@
 """What Foxglove live costs the loop (a `make bench` line; alone:
-``python -m app.cli.bench_foxglove``): the live loop's rate (vision in the loop, 3 followers,
+``python -m app.cli.bench.foxglove``): the live loop's rate (vision in the loop, 3 followers,
 30 Hz) with no Foxglove server, then with one and a client subscribed to every channel, and the
 process CPU each tick costs more with it (the adapter's thread and the SDK's server threads).
 
@@ -107,6 +107,11 @@ def bench_foxglove(print_fn: Callable[[str], None] = print, seconds: float = 4.0
              f" tick ({alone_cpu * 1e3:.2f} -> {served_cpu * 1e3:.2f} ms); {served_ticks} ticks served, the client got"
              f" {frames} messages, {live.dropped} states dropped; median of {ROUNDS} rounds of {seconds:g} s each, alternating")
     return {"foxglove_loop_hz": served_hz, "foxglove_loop_hz_without": alone_hz, "foxglove_cpu_ms_per_tick": added_ms}
+
+
+def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
+    """Foxglove live's cost (docs/foxglove.md)."""
+    return bench_foxglove(print_fn)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import numpy as np
 
 from app.files import load_scenario
 
-from app.cli.bench.browsers import _VIEWER
+from app.cli.bench.browsers import VIEWER
 
 
 def _render_team(frames_dir: Path, seconds: float) -> int:
@@ -51,7 +51,7 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
     page in a process of its own (False: `run --one-process`). ``reserve_cpu``: as `run
     --reserve-cpu`, a CPU kept for the loop's thread, and the browser started off it.
     ``idle_browser``: the browser's rendering on this machine's idle CPU only, as if on the
-    operator's own machine (app.cli.bench.browsers._VIEWER); False: its session an equal of the
+    operator's own machine (app.cli.bench.browsers.VIEWER); False: its session an equal of the
     service's, as a browser beside the service on one desktop is."""
     import os
     import shutil
@@ -124,7 +124,7 @@ def bench_latency(seconds: float, print_fn: Callable[[str], None] = print, brows
                 cpus = ",".join(map(str, sorted(svc.loop.cpu.others)))
                 for tid in os.listdir(f"/proc/{emu.pid}/task"):  # the robots are not on a real rig's computer
                     os.sched_setaffinity(int(tid), svc.loop.cpu.others)
-            viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers), cpus,
+            viewer = subprocess.Popen([sys.executable, "-c", VIEWER, chromium, svc.url, str(browsers), cpus,
                                        "" if idle_browser else "equal"],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             assert viewer.stdout is not None

@@ -12,11 +12,11 @@ improve; the frame-to-command latency with one browser attached is `bench --late
 page in the loop's process: `run --one-process`, what `run` was) and `run` now (the loop in a
 process of its own). Each figure is given per side (the median of its turns) and as the ratio of
 now to before. The browser renders on this machine's idle CPU, as if on the operator's own
-machine (app.cli.bench.browsers._VIEWER); the latency is also given as `run --reserve-cpu` serves,
+machine (app.cli.bench.browsers.VIEWER); the latency is also given as `run --reserve-cpu` serves,
 with the browser kept off the loop's CPU (app.realtime.CpuReservation says why), and with the
 browser's session an equal of the service's, as a browser beside the service on one desktop is.
 The flood and the 200 websockets last FLOOD_S in every turn, as the 1 % target is stated
-(`python -m app.cli.bench_loop`: one side alone).
+(`python -m app.cli.bench.loop`: one side alone).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from app.cli.bench_floods import _FLOODER  # one hostile party for both benches
+from app.cli.bench.floods import FLOODER  # one hostile party for both benches
 
 FLOOD_S = 20.0
 TURNS = 2
@@ -146,7 +146,7 @@ def bench_loop(print_fn: Callable[[str], None] = print, seconds: float = FLOOD_S
         print_fn(f"loop alone ({where}; vision in the loop, 30 Hz, no client): {alone_hz:.2f} Hz, loop thread"
                  f" {alone_ms:.2f} ms CPU per tick, its process {alone_proc:.2f} ms")
         for mode in ("refused", "sockets"):
-            flooder = subprocess.Popen([sys.executable, "-c", _FLOODER, str(port), mode, str(seconds), FLOODER_ADDRESS, speed_id],
+            flooder = subprocess.Popen([sys.executable, "-c", FLOODER, str(port), mode, str(seconds), FLOODER_ADDRESS, speed_id],
                                        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
             assert flooder.stdout is not None
             flooder.stdout.readline()  # "ready"
@@ -231,5 +231,12 @@ def bench_loops(print_fn: Callable[[str], None] = print,
     return results
 
 
-if __name__ == "__main__":  # `python -m app.cli.bench_loop [--one-process]`: these figures alone
+def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
+    """The page's clients against the loop, the page in and out of its process, latency included."""
+    from app.cli.bench.latency import bench_latency
+
+    return bench_loops(print_fn, latency=bench_latency)
+
+
+if __name__ == "__main__":  # `python -m app.cli.bench.loop [--one-process]`: these figures alone
     bench_loop(page_process="--one-process" not in sys.argv)

@@ -95,13 +95,13 @@ def damage_table(path: Any, minutes: float, print_fn: Callable[[str], None] = pr
     import sys
     from pathlib import Path
 
-    from app.recording.reader import _Scan, read_recording
+    from app.recording.reader import McapScan, read_recording
 
     whole = read_recording(Path(path))
     size = Path(path).stat().st_size
     with open(path, "rb") as f:
         f.read(8)
-        scan = _Scan(f, size)
+        scan = McapScan(f, size)
         scan.run()
     chunks = len(scan.places)
     print_fn(f"writer: {chunks} chunks in {minutes:g} min ({chunks * 60 / minutes:.0f} an hour: its chunk index"
@@ -148,7 +148,7 @@ def loss_cases(path: Any, print_fn: Callable[[str], None] = print, trials: int =
     counted."""
     from pathlib import Path
 
-    from app.recording.reader import RecordingError, _Scan, read_recording
+    from app.recording.reader import RecordingError, McapScan, read_recording
 
     path = Path(path)
     whole = read_recording(path)
@@ -157,7 +157,7 @@ def loss_cases(path: Any, print_fn: Callable[[str], None] = print, trials: int =
     size = path.stat().st_size
     with open(path, "rb") as f:
         f.read(8)
-        scan = _Scan(f, size)
+        scan = McapScan(f, size)
         scan.run()
         f.seek(size - 28)
         summary_at = int.from_bytes(f.read(8), "little")

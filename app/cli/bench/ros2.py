@@ -1,7 +1,7 @@
 """The bench's ROS 2 line: the live loop's rate and CPU per tick without and with ``--ros2``
 (every topic published and received by a subscriber, the camera at 10 Hz, the leader's base
 on an emulated ROS 2 base). The router, the subscriber and the base are another process, as
-they would be: the CPU counted is the service's own. ``python -m app.cli.bench_ros2`` prints
+they would be: the CPU counted is the service's own. ``python -m app.cli.bench.ros2`` prints
 the line alone."""
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def bench_ros2(print_fn: Callable[[str], None] = print, seconds: float = 5.0, ro
     from app.ros2.session import open_ros2_session
 
     endpoint = loopback_endpoint()
-    ros_side = subprocess.Popen([sys.executable, "-m", "app.cli.bench_ros2", "--serve", endpoint],
+    ros_side = subprocess.Popen([sys.executable, "-m", "app.cli.bench.ros2", "--serve", endpoint],
                                 stdout=subprocess.PIPE, text=True)
     node = None
     alone: list[tuple[float, float]] = []
@@ -117,6 +117,11 @@ def serve_ros_side(endpoint: str) -> None:
     node.session.close()
     sub.undeclare()
     router.close()
+
+
+def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
+    """The loop's rate and CPU per tick with --ros2 (docs/ros2.md)."""
+    return bench_ros2(print_fn)
 
 
 if __name__ == "__main__":

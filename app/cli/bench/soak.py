@@ -12,10 +12,10 @@ import numpy as np
 from app.files import load_scenario
 from app.processes import steal_seconds
 
-from app.cli.bench.browsers import _VIEWER
+from app.cli.bench.browsers import VIEWER
 
 
-class _GcPauses:
+class GcPauses:
     """How long each of Python's garbage collections held the interpreter (gc.callbacks): a
     full collection walks every tracked object holding the GIL: no other Python thread runs,
     the loop's included."""
@@ -100,10 +100,10 @@ def run_soak(minutes: float, browsers: int = 1, print_fn: Callable[[str], None] 
     stalls: list[tuple[float, float, float, int]] = []  # the window's longest tick gap, steal, longest gc (s), ticks skipped
     heaps: list[tuple[float, float, float]] = []  # glibc's heap: in use, free inside, mmapped (MB)
     pythons: list[tuple[float, float, float, int]] = []  # each minute: (minutes, pymalloc's arenas MB, in objects MB, threads)
-    pauses = _GcPauses()
+    pauses = GcPauses()
     try:
         if browsers and chromium:
-            viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, chromium, svc.url, str(browsers)],
+            viewer = subprocess.Popen([sys.executable, "-c", VIEWER, chromium, svc.url, str(browsers)],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             ready = viewer.stdout.readline() if viewer.stdout else ""
             if "ready" not in ready:

@@ -10,14 +10,14 @@ import time
 import numpy as np
 import pytest
 
-from app.backends.camera import _Threaded
+from app.backends.camera import ThreadedSource
 from app.backends.hardware import HardwareTeam
 from app.live.loop import ServiceLoop
 from app.params import ParamsStore
 from tests.helpers import wait_for
 
 
-class PacedCamera(_Threaded):
+class PacedCamera(ThreadedSource):
     """A camera delivering the synthetic rig's picture at ``hz``; it remembers which frame number
     each latest() call handed out."""
 

@@ -98,9 +98,9 @@ def test_simulate_with_vision_adds_the_estimates(tmp_path):
 def test_the_soaks_gc_monitor_counts_each_collection_once_and_lets_go():
     import gc
 
-    from app.cli.bench import _GcPauses
+    from app.cli.bench import GcPauses
 
-    pauses = _GcPauses()
+    pauses = GcPauses()
     gc.disable()  # no automatic collections (a service's collector thread, app.memory, may still run one)
     try:
         before = list(pauses.counts)

@@ -154,9 +154,9 @@ def test_the_replayed_page_shows_the_settings_in_force_at_the_moment_shown(brows
     """A session where k_f1 went from 0.1 to 0.15 at tick 30 and the team was reset at tick 60:
     the replay's page shows 0.1 before the change and 0.15 after it, and the timeline reaches
     the ticks after the reset (the session's clock, which the reset does not set back)."""
-    from tests.app.recording.test_session_truth import _session_with_a_reset
+    from tests.app.recording.test_session_truth import session_with_a_reset
 
-    _session_with_a_reset(tmp_path / "s.mcap")
+    session_with_a_reset(tmp_path / "s.mcap")
     rec = read_recording(tmp_path / "s.mcap")
     svc = ReplayService(rec, port=0)
     svc.start()

@@ -248,11 +248,11 @@ SAMPLE = ROOT / "recordings" / "samples" / "experiment2-vision.mcap"
 
 
 def _scan(path: Path):
-    from app.recording.reader import _Scan
+    from app.recording.reader import McapScan
 
     with open(path, "rb") as f:
         f.read(8)
-        scan = _Scan(f, path.stat().st_size)
+        scan = McapScan(f, path.stat().st_size)
         scan.run()
     return scan
 
@@ -338,12 +338,12 @@ def test_a_file_cut_at_60_percent_keeps_all_but_its_last_second_and_a_half(tmp_p
 
 
 def test_damage_to_a_chunk_length_field_is_stepped_over(tmp_path):
-    from app.recording.reader import _Scan
+    from app.recording.reader import McapScan
 
     with open(SAMPLE, "rb") as f:
         size = SAMPLE.stat().st_size
         f.read(8)
-        scan = _Scan(f, size)
+        scan = McapScan(f, size)
         scan.run()
     ticks_in = np.frombuffer(scan.index["/omniformation/tick"][1], dtype=np.int64)
     pos, _ = scan.places[int(ticks_in[len(ticks_in) // 2])]  # a chunk of ticks in the middle

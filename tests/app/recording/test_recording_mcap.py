@@ -33,7 +33,7 @@ def test_the_doctor_finds_a_bad_chunk_crc_and_a_footer_among_the_chunks(tmp_path
     """A session's file passes; a byte flipped inside its first chunk fails the chunk's checks;
     its opcode turned into the footer's fails the record's."""
     from app.params import Params
-    from app.recording.reader import _Scan
+    from app.recording.reader import McapScan
     from app.recording.writer import Recorder
 
     good = tmp_path / "good.mcap"
@@ -42,7 +42,7 @@ def test_the_doctor_finds_a_bad_chunk_crc_and_a_footer_among_the_chunks(tmp_path
     data = good.read_bytes()
     with open(good, "rb") as f:
         f.read(8)
-        scan = _Scan(f, len(data))
+        scan = McapScan(f, len(data))
         scan.run()
     chunk_at, length = scan.places[0]
     crc = bytearray(data)

@@ -16,7 +16,7 @@ from app.recording.report import scan, summarise, write_report
 from app.recording.writer import Recorder
 
 
-def _session_with_a_reset(path):
+def session_with_a_reset(path):
     """60 ticks; k_f1 to 0.15 at tick 30; STOP at 45; a reset at tick 60 (the loop's clock back
     to 0); 90 ticks more, released."""
     store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
@@ -39,7 +39,7 @@ def _session_with_a_reset(path):
 
 
 def test_a_reset_sets_back_the_loops_clock_not_the_sessions(tmp_path):
-    loop_t = _session_with_a_reset(tmp_path / "s.mcap")
+    loop_t = session_with_a_reset(tmp_path / "s.mcap")
     assert np.any(np.diff(loop_t) < 0)  # the loop's own clock did go back
     back = read_recording(tmp_path / "s.mcap")
     assert len(back.t) == 150 and np.all(np.diff(back.t) > 0)  # the session's never does
@@ -55,7 +55,7 @@ def test_a_reset_sets_back_the_loops_clock_not_the_sessions(tmp_path):
 
 
 def test_the_report_splits_a_reset_session_and_never_steps_back_in_time(tmp_path):
-    _session_with_a_reset(tmp_path / "s.mcap")
+    session_with_a_reset(tmp_path / "s.mcap")
     back = read_recording(tmp_path / "s.mcap")
     sc = scan(back)
     t = sc.shown.t[np.isfinite(sc.shown.t)]
@@ -85,7 +85,7 @@ def test_older_recordings_that_set_time_back_read_on_one_clock():
 def test_the_replay_shows_the_settings_in_force_at_the_moment_shown(tmp_path):
     from app.services.replay import ReplayService
 
-    _session_with_a_reset(tmp_path / "s.mcap")
+    session_with_a_reset(tmp_path / "s.mcap")
     back = read_recording(tmp_path / "s.mcap")
     replay = ReplayService(back, host="127.0.0.1", port=0)
     try:

@@ -178,11 +178,11 @@ def test_killing_the_page_process_stops_the_robots_until_released_on_the_new_pag
 
 
 def test_stop_from_a_second_client_reaches_the_loop_during_a_flood(service: Service) -> None:
-    from app.cli.bench_loop import _FLOODER, FLOODER_ADDRESS
+    from app.cli.bench.loop import FLOODER, FLOODER_ADDRESS
 
     page = service.page
     assert page is not None
-    flooder = subprocess.Popen([sys.executable, "-c", _FLOODER, str(page.port), "refused", "8", FLOODER_ADDRESS,
+    flooder = subprocess.Popen([sys.executable, "-c", FLOODER, str(page.port), "refused", "8", FLOODER_ADDRESS,
                                 "no-such-control"],
                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:

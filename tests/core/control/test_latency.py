@@ -75,9 +75,9 @@ def test_with_600_ms_of_latency_the_prediction_keeps_the_formation_and_without_i
 def test_delays_are_whole_ticks_and_the_followers_hold_their_last_command(experiment1):
     """A command sent at tick k acts at tick k + radio (in ticks); in between the followers hold the
     one before: the applied commands are the sent ones, shifted."""
-    from core.sim.stepped import _Delays
+    from core.sim.stepped import Delays
 
-    d = _Delays(Latency(0.0, 0.1, 0.0), 1 / 30, 1, np.random.default_rng(0))
+    d = Delays(Latency(0.0, 0.1, 0.0), 1 / 30, 1, np.random.default_rng(0))
     sent = [np.array([[0.01 * k, 0.0]]) for k in range(10)]
     applied = [d.sent(c, (0.0, 0.0))[0, 0] for c in sent]
     assert d.radio == 3 and applied == pytest.approx([0.0, 0.0, 0.0] + [0.01 * k for k in range(7)])

@@ -151,10 +151,10 @@ def test_the_scan_looks_only_at_the_ring_and_sees_what_the_whole_frame_shows(rig
 
 
 def test_the_floor_model_is_the_medians_and_mads_numpy_gives():
-    """The floor's colour and spread come from counts (core.vision.freespace._floor_model): the
+    """The floor's colour and spread come from counts (core.vision.freespace.floor_model): the
     very medians and median absolute deviations of the sampled features that numpy computes, on
     random images, a near-uniform floor, a single colour and every sampling step."""
-    from core.vision.freespace import _floor_model
+    from core.vision.freespace import floor_model
 
     rng = np.random.default_rng(7)
     for trial in range(120):
@@ -172,7 +172,7 @@ def test_the_floor_model_is_the_medians_and_mads_numpy_gives():
         feats = np.column_stack([(x[:, 0] + x[:, 1] + x[:, 2]) / 3, x[:, 2] - x[:, 1], x[:, 0] - x[:, 1]])
         med = np.median(feats, axis=0)
         mad = np.median(np.abs(feats - med), axis=0)
-        got = _floor_model(img, step)
+        got = floor_model(img, step)
         np.testing.assert_allclose(got[:3], med, atol=1e-9)
         np.testing.assert_allclose(got[3:], mad, atol=1e-9)
 

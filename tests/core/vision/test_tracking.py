@@ -50,7 +50,7 @@ def test_a_windows_layout_never_makes_the_kernel_compile_again(rig):
     """A window cut from a camera's frame (strided) and a rectangle rendered alone (contiguous) reach
     the one compiled kernel: the loop's warm-up runs the synthetic camera, whose windows are the
     latter, and a real rig's first windows must not find the kernel uncompiled in a paced tick."""
-    from core.vision.tracking import _backproject_kernel
+    from core.vision.tracking import backproject_kernel
 
     frame = Renderer(rig.model, rig.render).render(np.zeros(3), np.array([[0.0, 0.6, 1.0]]), 0.0,
                                                    np.random.default_rng(3))
@@ -60,4 +60,4 @@ def test_a_windows_layout_never_makes_the_kernel_compile_again(rig):
     alone = back_projection(np.ascontiguousarray(frame[100:300, 150:420]), lut, area[100:300, 150:420], rig.detect)
     whole_rows = back_projection(frame[100:300], lut, area[100:300], rig.detect)  # both contiguous
     assert np.array_equal(cut, alone) and np.array_equal(cut, whole_rows[:, 150:420])
-    assert len(_backproject_kernel.signatures) == 1, _backproject_kernel.signatures
+    assert len(backproject_kernel.signatures) == 1, backproject_kernel.signatures
