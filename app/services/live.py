@@ -13,15 +13,12 @@ import threading
 from collections.abc import Callable
 
 import cv2
-import numpy as np
 import viser
 from pathlib import Path
 
 from core.config import MeasurementNoise, Scenario
 from core.sim.team import FollowerDynamics
 from core.types import FloatArray
-from core.config import LEADER_RADIUS_M
-from core.obstacles import Obstacle, as_array, surface_distance
 from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile
 
 from app.backends.hardware import HardwareTeam
@@ -33,7 +30,7 @@ from app.dashboard.camera_panel import Overlay
 from app.dashboard.tuning_panel import LiveBench, TuningPanel
 from app.dashboard.gate import new_token, quietly, serve_gated
 from app.dashboard.recordings_panel import RecordingsPanel
-from app.services.page_process import PageProcess
+from app.services.page_process import PageProcess, goal_check_for  # (both processes' stores check a goal alike)
 from app.services.page_tuning import serve_tuning
 from app.services.replay import ReplayService
 from app.live.loop import DEFAULT_NOISE, ServiceLoop
@@ -71,19 +68,6 @@ def params_for(scenario: Scenario | None, n_followers: int) -> Params:
     return Params(gains=scenario.gains, leader_mode=mode, leader_speed_mps=speed, leader_turn_deg_s=turn,
                   slots=scenario.slots.copy(), n_followers=scenario.n, goal=goal, min_scale=scenario.min_scale,
                   safety_distance_m=safety.min_distance_m if safety is not None else Params.safety_distance_m)
-
-
-def goal_check_for(obstacles: tuple[Obstacle, ...]) -> Callable[[tuple[float, float]], str | None]:
-    """Why a goal cannot be reached in a world with these boxes (None: it can)."""
-    boxes = as_array(obstacles)
-
-    def check(goal: tuple[float, float]) -> str | None:
-        gap = float(surface_distance(np.array([goal]), boxes).min())
-        if gap < LEADER_RADIUS_M:
-            return f"is {max(gap, 0.0) * 100:.0f} cm from an obstacle's surface (the leader needs {LEADER_RADIUS_M * 100:.0f})"
-        return None
-
-    return check
 
 
 class _NoPage:

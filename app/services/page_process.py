@@ -312,21 +312,53 @@ class PageProcess:
 
 class ForwardingStore(ParamsStore):
     """The page's store: its controls' changes go to the loop (and show at once here); what the
-    loop puts in force replaces them when it arrives."""
+    loop puts in force replaces them when it arrives.
+
+    Every write of the store goes through :meth:`ParamsStore.change` (``update`` is a change that
+    does not look at what is in force), so that is where the changes are sent: Pause, a change
+    decided on what is in force ("paused = not paused"), once wrote only this copy and the loop
+    never paused. What goes down the pipe is what the decision made of this copy (the parameters
+    the loop last sent, which is what the operator sees: the button said "Pause", so the loop is
+    told ``paused = True``), as an ``update`` the loop's store validates again."""
 
     def __init__(self, initial: Params, conn: multiprocessing.connection.Connection) -> None:
         super().__init__(initial)
         self._conn = conn
         self.send_lock = threading.Lock()  # one writer at a time on the pipe
 
-    def update(self, source: str = "server", **changes: Any) -> tuple[Params, tuple[Any, ...]]:
-        result = super().update(source, **changes)
-        with self.send_lock:
-            try:
-                self._conn.send(("update", source, changes))
-            except (OSError, ValueError):
-                pass  # the loop is gone: the page says so
+    def change(self, source: str, decide: Callable[[Params], dict[str, Any]]) -> tuple[Params, tuple[Any, ...]]:
+        decided: dict[str, Any] = {}
+
+        def keep(current: Params) -> dict[str, Any]:
+            changes = decide(current)
+            decided.update(changes)
+            return changes
+
+        result = super().change(source, keep)  # refused here (ValueError): nothing goes to the loop
+        if decided:
+            with self.send_lock:
+                try:
+                    self._conn.send(("update", source, decided))
+                except (OSError, ValueError):
+                    pass  # the loop is gone: the page says so
         return result
+
+
+def goal_check_for(obstacles: tuple[Any, ...]) -> Callable[[tuple[float, float]], str | None]:
+    """Why a goal cannot be reached in a world with these boxes (None: it can): the loop's store and
+    the page's (in its own process) check alike."""
+    from core.config import LEADER_RADIUS_M
+    from core.obstacles import as_array, surface_distance
+
+    boxes = as_array(obstacles)
+
+    def check(goal: tuple[float, float]) -> str | None:
+        gap = float(surface_distance(np.array([goal]), boxes).min())
+        if gap < LEADER_RADIUS_M:
+            return f"is {max(gap, 0.0) * 100:.0f} cm from an obstacle's surface (the leader needs {LEADER_RADIUS_M * 100:.0f})"
+        return None
+
+    return check
 
 
 def _tell_clients(server: Any, send: Callable[[tuple[Any, ...]], bool]) -> None:
@@ -373,6 +405,8 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     from app.services.replay import ReplayService
 
     store = ForwardingStore(params, conn)
+    if obstacles:  # a goal the loop would refuse is refused here too (Drive to goal then leaves the mode as it was)
+        store.goal_check = goal_check_for(obstacles)
     try:
         server, gate = serve_gated(host, port, token, viewer_token)
     except OSError as exc:  # a port in use, an address this machine does not have: said once, by `run`
