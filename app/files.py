@@ -111,6 +111,61 @@ def read_text(path: Path, what: str) -> str:
         raise UserError(f"{display_path(path)}: cannot read: {exc}") from None
 
 
+KEY_FILE_LIMIT = 64 * 1024  # a key, a certificate, a roster or a counter is far smaller
+
+
+def read_regular(path: Path, what: str, limit: int = KEY_FILE_LIMIT) -> bytes:
+    """The bytes of a small file people named (a key, a certificate, a counter): read only if it
+    is a regular file (a FIFO would hang the reader, /dev/zero fill its memory, a folder is not
+    one) and at most ``limit`` bytes long. A missing file is FileNotFoundError (the caller says
+    what writes it); anything else is one UserError line naming the file."""
+    import os
+    import stat
+
+    try:  # O_NONBLOCK: opening a FIFO with no writer must not wait for one
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = ("a folder" if stat.S_ISDIR(st.st_mode) else "a FIFO" if stat.S_ISFIFO(st.st_mode)
+                    else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+                    else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+            raise UserError(f"{path}: is {kind}; {what} must be a regular file")
+        if st.st_size > limit:
+            raise UserError(f"{path}: {st.st_size} bytes; {what} is at most {limit} bytes (is it the right file?)")
+        chunks, size = [], 0
+        while size <= limit:  # a file that grows while read stops at the limit too
+            chunk = os.read(fd, limit + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        if size > limit:
+            raise UserError(f"{path}: more than {limit} bytes; {what} is at most {limit} bytes (is it the right file?)")
+        return b"".join(chunks)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
+    finally:
+        os.close(fd)
+
+
+def parse_json(data: bytes, path: Path, what: str) -> object:
+    """``data`` as JSON; not JSON, not UTF-8 or nested too deep for the parser (a hostile file:
+    thousands of ``[``) is one UserError line naming ``path``."""
+    import json
+
+    try:
+        return json.loads(data)
+    except RecursionError:
+        raise UserError(f"{path}: not {what} (nested too deep)") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: not {what} ({exc})") from None
+
+
 # ---------------------------------------------------------------- scenarios
 
 

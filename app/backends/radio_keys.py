@@ -22,7 +22,7 @@ from pathlib import Path
 from core.link import protocol as p
 from core.link.follower import MAX_SENDERS, STOP_ANYONE, STOP_POLICIES, RadioAuth
 
-from app.files import UserError
+from app.files import UserError, parse_json, read_regular
 
 ROBOTS = "robots.json"
 SUFFIX = ".radio"
@@ -85,18 +85,18 @@ def write_radio_keys(directory: Path, leaders: tuple[str, ...], *, overwrite: bo
 
 
 def _read_private(path: Path, what: str) -> dict[str, object]:
+    """A key file: a regular file of at most 64 KiB (app.files.read_regular), private, JSON."""
     try:
+        raw = read_regular(path, what)
         st = path.stat()
-        text = path.read_text()
+    except FileNotFoundError:
+        raise UserError(f"{path}: cannot read {what} (no such file; `omniformation fleet-keys` writes it)") from None
     except OSError as exc:
         raise UserError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
     if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
         raise UserError(f"{path}: {what} is readable or writable by others (mode {stat.S_IMODE(st.st_mode):o});"
                         f" chmod 600 {path}")
-    try:
-        data = json.loads(text)
-    except ValueError as exc:
-        raise UserError(f"{path}: not {what} ({exc})") from None
+    data = parse_json(raw, path, what)
     if not isinstance(data, dict):
         raise UserError(f"{path}: not {what} (a JSON object expected)")
     return data

@@ -9,7 +9,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app.files import UserError
+from app.files import UserError, read_regular
 
 if TYPE_CHECKING:
     from app.services.foxglove_attach import FoxglovePlan
@@ -47,8 +47,8 @@ def _tls(args: argparse.Namespace) -> tuple[bytes, bytes] | None:
         raise UserError("--foxglove-tls-cert and --foxglove-tls-key go together (a certificate and its key)")
     out = []
     for flag, path in (("--foxglove-tls-cert", cert), ("--foxglove-tls-key", key)):
-        try:
-            data = path.read_bytes()
+        try:  # a regular file of at most 64 KiB: a FIFO or /dev/zero is one line, not a hang
+            data = read_regular(path, f"{flag}'s PEM file")
         except OSError as exc:
             raise UserError(f"{flag} {path}: cannot be read ({exc.strerror or exc})") from None
         if b"-----BEGIN " not in data:

@@ -213,18 +213,21 @@ class KeyFileError(ValueError):
 
 
 def _read(path: Path, what: str) -> bytes:
+    """A regular file of at most 64 KiB (app.files.read_regular: no FIFO, device or folder)."""
+    from app.files import UserError, read_regular
+
     try:
-        return path.read_bytes()
+        return read_regular(path, what)
     except FileNotFoundError:
         raise KeyFileError(f"{path}: missing ({what}; `omniformation fleet-keys` writes it)") from None
-    except OSError as exc:
-        raise KeyFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except UserError as exc:
+        raise KeyFileError(str(exc)) from None
 
 
 def _parse(path: Path, data: bytes, loader: Any, what: str) -> Any:
     try:
         return loader(data)
-    except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+    except (ValueError, TypeError, KeyError, UnicodeDecodeError, RecursionError):  # RecursionError: nested JSON
         raise KeyFileError(f"{path}: {what}") from None
 
 

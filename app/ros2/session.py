@@ -28,9 +28,11 @@ def ros2_keys(directory: Path) -> FleetKeys:
     if not keys and not (directory / CA_DIR).is_dir() and not (directory / CA_KEY).exists():
         raise KeyFileError(f"--keys {directory}: no identity's key (<id>.key) in it: give one identity's bundle,"
                            " fleet-keys' DIR/<id>/")
-    try:
-        fleet = json.loads((directory / ROSTER).read_bytes())["fleet"]
-    except (OSError, ValueError, KeyError, TypeError):
+    from app.files import UserError, read_regular
+
+    try:  # a regular file of at most 64 KiB, as load_fleet_keys reads it
+        fleet = json.loads(read_regular(directory / ROSTER, "the fleet's roster"))["fleet"]
+    except (OSError, ValueError, KeyError, TypeError, RecursionError, UserError):
         fleet = ""  # load_fleet_keys names what is wrong with the roster
     # a whole fleet-keys folder, a CA key or a second key beside: load_fleet_keys' bundle checks refuse it
     return load_fleet_keys(directory, keys[0] if keys else ROS2, fleet if isinstance(fleet, str) else "", ros2=True)

@@ -56,3 +56,100 @@ def test_good_names_still_make_keys(tmp_path):
     r = main_cli("fleet-keys", str(d), "--fleet", "lab", "--leaders", "L1,leader_2,Rover-3,x" + "y" * 31)
     assert r.returncode == 0, r.stderr
     assert (d / "ca" / "ca.key").is_file() and (d / "leader_2" / "leader_2.radio").is_file()
+
+
+# -- key files that are not small regular files ---------------------------------------------------
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet") / "keys"
+    made = main_cli("fleet-keys", str(d), "--fleet", "lab", "--leaders", "L1,L2")
+    assert made.returncode == 0, made.stderr
+    return d
+
+
+def _hostile_files(tmp_path) -> dict[str, str]:
+    """What a user may name by mistake (or a stranger may leave) where a key is expected."""
+    import os
+
+    fifo = tmp_path / "key.fifo"
+    os.mkfifo(fifo, 0o600)  # no writer: opening it for reading waits for one, unless told not to
+    big = tmp_path / "big.radio"
+    big.write_bytes(b" " * (2 << 20))
+    big.chmod(0o600)
+    nested = tmp_path / "nested.json"
+    nested.write_text("[" * 5000 + "]" * 5000)
+    nested.chmod(0o600)
+    deep = tmp_path / "deep.json"
+    deep.write_text('{"keys": ' + "[" * 5000 + "]" * 5000 + "}")
+    deep.chmod(0o600)
+    return {"a FIFO": str(fifo), "a device": "/dev/zero", "a folder": str(tmp_path), "bytes; ": str(big),
+            "nested too deep": str(nested), "nested too deep ": str(deep)}
+
+
+def test_a_fifo_as_the_radio_key_is_one_line_not_a_hang(tmp_path):
+    """In a process of its own, as typed, with a deadline: a reader that waited for a writer
+    would never come back."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.helpers import ROOT
+
+    fifo = tmp_path / "L1.radio"
+    os.mkfifo(fifo, 0o600)
+    r = subprocess.run([sys.executable, "-m", "app.cli", "run", "--port", "0", "--no-record", "--link",
+                        "serial:/dev/null", "--radio-key", str(fifo)], cwd=ROOT, capture_output=True, text=True,
+                       timeout=120)
+    assert f"{fifo}: is a FIFO; a leader's radio key must be a regular file" in _one_line(r)
+
+
+def test_radio_keys_and_the_robots_record_are_read_only_from_small_regular_files(tmp_path):
+    for words, path in _hostile_files(tmp_path).items():
+        r = main_cli("run", "--port", "0", "--no-record", "--link", "serial:/dev/null", "--radio-key", path)
+        assert words.strip() in _one_line(r) and path in r.stderr, (words, r.stderr)
+        for cmd in (("radio-provision", path, "--record", str(tmp_path / "r.bin")),
+                    ("emulate-follower", "--radio-key", path)):
+            r = main_cli(*cmd)
+            assert words.strip() in _one_line(r) and path in r.stderr, (cmd, r.stderr)
+        assert not (tmp_path / "r.bin").exists()
+
+
+def test_foxglove_tls_files_are_read_only_from_small_regular_files(tmp_path, fleet):
+    cert = str(fleet / "ca" / "ca.pem")
+    for words, path in _hostile_files(tmp_path).items():
+        if "nested" in words:
+            continue  # not JSON: a PEM file
+        r = main_cli("run", "--port", "0", "--no-record", "--foxglove", "127.0.0.1:0", "--foxglove-tls-cert", cert,
+                     "--foxglove-tls-key", path)
+        assert words.strip() in _one_line(r) and "--foxglove-tls-key" in r.stderr, (words, r.stderr)
+
+
+def test_certificates_keys_and_rosters_of_a_bundle_are_read_only_from_small_regular_files(tmp_path, fleet):
+    import os
+    import shutil
+
+    from app.fleet.security import KeyFileError
+    from app.ros2.session import ros2_keys
+
+    (tmp_path / "hostile").mkdir()
+    hostile = _hostile_files(tmp_path / "hostile")
+    for name in ("page.key", "page.pem", "ca.pem", "fleet.json"):
+        for words, path in hostile.items():
+            if "nested" in words and name != "fleet.json":
+                continue
+            bundle = tmp_path / f"page-{name}"
+            shutil.rmtree(bundle, ignore_errors=True)
+            shutil.copytree(fleet / "page", bundle)
+            (bundle / name).unlink()
+            if words == "a FIFO":
+                os.mkfifo(bundle / name, 0o600)
+            elif words in ("a device", "a folder"):
+                (bundle / name).symlink_to(path)  # the bundle's file names one
+            else:
+                shutil.copy(path, bundle / name)
+            r = main_cli("fleet", "--fleet", "lab", "--port", "0", "--keys", str(bundle))
+            line = _one_line(r)
+            assert str(bundle / name) in line, (name, words, line)
+            if name == "fleet.json":
+                with pytest.raises(KeyFileError, match="fleet.json"):
+                    ros2_keys(bundle)
