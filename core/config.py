@@ -336,7 +336,12 @@ def toml_document(text: str, source: str) -> Table:
 
 def parse_scenario(text: str, source: str) -> Scenario:
     """Parse a scenario TOML document; ``source`` names it in error messages."""
-    top = toml_document(text, source)
+    return parse_scenario_data(toml_loads(text, source), source)
+
+
+def parse_scenario_data(data: dict[str, Any], source: str) -> Scenario:
+    """A scenario document already read (a study writes its points into one): the same checks."""
+    top = Table(data, source, "")
     name = top.text("name")
     description = top.text("description", default="")
     duration = top.number("duration_s", 0.0, 86400.0, lo_open=True, unit="s")

@@ -15,10 +15,11 @@ from app.tick import TickState
 from app.params import Params
 from app.recording.writer import Recorder
 from core.config import Scenario
-from core.sim.run import SimulationLog, simulate
+from core.sim.run import SimulationLog
 from core.sim.profiles import GoalProfile
-from core.sim.stepped import SafetyLog, simulate_stepped
-from core.sim.vision_run import VisionLog, simulate_vision
+from core.sim.runner import run_scenario
+from core.sim.stepped import SafetyLog
+from core.sim.vision_run import VisionLog
 from core.vision.freespace import Scan
 from core.types import Image
 from core.vision.pipeline import PipelineSettings
@@ -36,10 +37,8 @@ def run_simulation(scenario: Scenario, camera: Rig | None = None,
                    settings: PipelineSettings = PipelineSettings(), frames_hz: float = 0.0,
                    jpeg_quality: int = 80) -> SimRun:
     """The scenario with ground-truth feedback, or with ``camera`` (a synthetic rig and its Γ)
-    through the vision pipeline, keeping ``frames_hz`` JPEG frames a second. A scenario with
-    obstacles, the safety filter, a goal or switches runs in the stepped simulator."""
-    if camera is None and not scenario.stepped:
-        return SimRun(simulate(scenario))
+    through the vision pipeline (core.sim.runner: the run a study makes of it too), keeping
+    ``frames_hz`` JPEG frames a second."""
     every = max(1, int(round(scenario.rate_hz / frames_hz))) if frames_hz > 0 else 0
     frames: dict[int, bytes] = {}
 
@@ -47,13 +46,9 @@ def run_simulation(scenario: Scenario, camera: Rig | None = None,
         if every and k % every == 0:  # only a kept frame is rendered whole
             frames[k] = cv2.imencode(".jpg", np.asarray(frame), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])[1].tobytes()
 
-    if scenario.stepped:
-        stepped = simulate_stepped(scenario, camera[0] if camera else None, camera[1] if camera else None, settings,
-                                   on_frame=keep)
-        return SimRun(stepped.log, stepped.vision, frames, stepped.safety)
-    assert camera is not None
-    vision = simulate_vision(scenario, camera[0], camera[1], settings, on_frame=keep)
-    return SimRun(vision.log, vision, frames)
+    run = run_scenario(scenario, camera[0] if camera else None, camera[1] if camera else None, settings,
+                       on_frame=keep if every else None)
+    return SimRun(run.log, run.vision, frames, run.safety)
 
 
 def record_run(run: SimRun, path: Path, metadata: dict[str, str], frames_hz: float) -> int:

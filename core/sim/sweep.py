@@ -8,6 +8,9 @@ and ``switch``, a step of the leader's turn rate for ``turn``) and runs the test
 motion, controller and safety filter as the live loop) with ground truth plus the scenario's
 noise, or with the vision pipeline on rendered frames, and scores it with
 :func:`~core.control.tuning.score_step` on what the controller saw.
+
+:func:`step_scenario` and :func:`settled_start` live beside the point function (core.study.point)
+and are named here too.
 """
 
 from __future__ import annotations
@@ -20,36 +23,12 @@ import numpy as np
 from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
 from core.config import Scenario
-from core.control.tuning import GainRange, StepScore, StepTest, check_step_test, score_step, stepped_slots
-from core.sim.profiles import Segment, SegmentsProfile
-from core.types import FloatArray, Gains
+from core.control.tuning import GainRange, StepScore, StepTest
+from core.study.point import LEAD_S, Step, run_point, settled_start, step_scenario
+from core.types import Gains
 
-LEAD_S = 3.0  # the team runs this long before the step (the simulated followers start at rest: they catch up first)
-
-
-def settled_start(scenario: Scenario) -> Scenario:
-    """The scenario's team at rest on its slots (follower i on slot i, aligned with the leader):
-    where a step test starts when no live state is given."""
-    n = scenario.n
-    return scenario.replace(initial_p=np.array(scenario.slots[:n], dtype=np.float64),
-                            initial_a=np.full(n, np.pi / 2), slots=np.array(scenario.slots[:n], dtype=np.float64),
-                            switches=(), disturbances=())
-
-
-def step_scenario(base: Scenario, test: StepTest, twist: tuple[float, float], lead_s: float = LEAD_S) -> Scenario:
-    """``base`` (follower i on slot i; the leader holding ``twist``) with the step at ``lead_s``."""
-    why = check_step_test(test, base.n)
-    if why:
-        raise ValueError(why)
-    v, w = twist
-    leader = SegmentsProfile((Segment(0.0, v, w),))
-    switches: tuple[tuple[float, FloatArray], ...] = ()
-    if test.kind == "turn":
-        leader = SegmentsProfile((Segment(0.0, v, w), Segment(lead_s, v, w + test.size)))
-    else:
-        switches = ((lead_s, stepped_slots(test, base.slots, np.arange(base.n))),)
-    return base.replace(leader=leader, switches=switches, duration_s=lead_s + test.window_s, disturbances=())
-
+__all__ = ["BEST_RULE", "LEAD_S", "METRICS", "STEADY_SLACK", "StepRun", "SweepResult", "run_step_test",
+           "settled_start", "step_scenario"]
 
 @dataclass(frozen=True)
 class StepRun:
@@ -67,16 +46,10 @@ def run_step_test(
     gamma: Gamma | None = None,
     lead_s: float = LEAD_S,
 ) -> StepRun:
-    """Run ``test`` with ``gains`` from ``base`` (see :func:`step_scenario`) and score it."""
-    scenario = step_scenario(base.replace(gains=gains), test, twist, lead_s)
-    from core.sim.stepped import simulate_stepped  # here: the page's Tuning panel reads this module's names only
-
-    run = simulate_stepped(scenario, rig, gamma)
-    log = run.log
-    final = scenario.switches[-1][1] if scenario.switches else scenario.slots
-    target = np.broadcast_to(np.asarray(final)[log.assignment], log.p_meas.shape)
-    score = score_step(log.t, log.p_meas, target, log.commands, lead_s, test.window_s, scenario.dynamics.wheel_base_m)
-    return StepRun(score, gains, lead_s)
+    """Run ``test`` with ``gains`` from ``base`` (see :func:`step_scenario`) and score it, through
+    the one point function studies run too (core.study.point)."""
+    outcome = run_point(base.replace(gains=gains), rig, gamma, Step(test, twist, lead_s))
+    return StepRun(outcome.score, gains, lead_s)
 
 
 METRICS = {  # what a sweep's heat map can show: (the score's key, scale, label with its unit, decimals)
