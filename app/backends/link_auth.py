@@ -27,7 +27,10 @@ class FrameCounter:
     2024-01-01 (UTC) plus a random 0..255, and goes up by one per frame: a leader sends far fewer
     than 256 frames a millisecond, so a restarted one always starts above where it stopped (the
     48 bits last until 2058). With a file it also starts above the high-water mark written there,
-    reserved in blocks, so a wrong wall clock after a restart cannot bring back a used counter."""
+    reserved in blocks, so a wrong wall clock after a restart cannot bring back a used counter.
+    The file is checked first (app.backends.radio_keys.check_counter_file): a corrupt, unreadable
+    or unwritable one, or one at the end of the 48 bits or far ahead of the clock, is a one-line
+    UserError, never rewritten or passed over."""
 
     BLOCK = 1 << 20
     EPOCH_S = 1_704_067_200.0  # 2024-01-01T00:00:00Z
@@ -36,22 +39,32 @@ class FrameCounter:
         import secrets
 
         self._path = path
-        self._last = int((wall() - self.EPOCH_S) * 1000) * 256 + secrets.randbelow(256)
+        clock = self.clock_counter(wall())
+        self._last = clock + secrets.randbelow(256)
         self._reserved = -1
         if path is not None:
-            try:
-                self._last = max(self._last, int(path.read_text().split()[0]) + 1)
-            except (OSError, ValueError, IndexError):
-                pass
+            from app.backends.radio_keys import check_counter_file
+
+            self._last = max(self._last, check_counter_file(path, clock) + 1)
+
+    @classmethod
+    def clock_counter(cls, wall_s: float) -> int:
+        """Where the clock alone starts the counter (before the random 0..255)."""
+        return max(0, int((wall_s - cls.EPOCH_S) * 1000) * 256)
 
     def next(self) -> int:
-        """The next frame's counter (never above 2^48 - 1: past it a leader must rotate its key)."""
-        self._last = min(p.COUNTER_MAX, self._last + 1)
+        """The next frame's counter. Past 2^48 - 1 there is none: a RuntimeError, never a counter
+        the robots took already (the start refuses a counter that close to its end)."""
+        if self._last >= p.COUNTER_MAX:
+            raise RuntimeError(f"this leader's frame counter reached {p.COUNTER_MAX}: it cannot sign another frame"
+                               " (docs/follower-protocol.md, Counters that only grow)")
+        self._last += 1
         if self._path is not None and self._last > self._reserved:
-            self._reserved = self._last + self.BLOCK
-            tmp = self._path.with_name(self._path.name + ".new")
-            tmp.write_text(f"{self._reserved}\n")
-            tmp.replace(self._path)
+            from app.backends.radio_keys import write_counter_mark
+
+            reserved = min(p.COUNTER_MAX, self._last + self.BLOCK)
+            write_counter_mark(self._path, reserved)  # before the counters are used
+            self._reserved = reserved
         return self._last
 
 

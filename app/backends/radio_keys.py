@@ -178,6 +178,76 @@ def rotate(directory: Path, finish: bool) -> list[Path]:
     return written
 
 
+# -- the frame counter's high-water mark (run --radio-counter FILE) --------------------------------
+COUNTER_HEADROOM = 1 << 36  # a counter file this close to 2^48 cannot go up for long: refused at start
+COUNTER_PER_DAY = 256 * 86_400_000  # the clock's counter runs 256 a millisecond
+COUNTER_CLOCK_SLACK = COUNTER_PER_DAY  # a clock this far behind the file is wrong: refused at start
+
+
+def _counter_help(clock_counter: int) -> str:
+    return (f"the counter this machine's clock gives now is {clock_counter};"
+            " docs/follower-protocol.md, \"Counters that only grow\", says what to do")
+
+
+def read_counter_mark(path: Path, clock_counter: int | None = None) -> int | None:
+    """The high-water mark in a counter file (None: no file yet). One whole number 0..2^48-1 and a
+    newline is the only content: anything else (empty, -5, 1.5, text) is one UserError line, and
+    the file is left as it is (a guess could bring back a used counter)."""
+    try:
+        raw = read_regular(path, "a frame counter file", limit=64)
+    except FileNotFoundError:
+        if path.is_symlink():
+            raise UserError(f"{path}: cannot read a frame counter file (a link to nothing)") from None
+        return None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read a frame counter file ({exc.strerror or exc})") from None
+    text = raw.decode("ascii", "replace").strip()
+    if not text.isascii() or not text.isdigit() or int(text) > p.COUNTER_MAX:
+        shown = repr(text[:24]) if text else "nothing"
+        raise UserError(f"{path}: not a frame counter (one whole number 0..{p.COUNTER_MAX} expected, found {shown});"
+                        " left as it is: write in it a number above the last counter this leader used"
+                        + (f" ({_counter_help(clock_counter)})" if clock_counter is not None else ""))
+    return int(text)
+
+
+def check_counter_file(path: Path, clock_counter: int) -> int:
+    """``run --radio-counter FILE`` at start: the mark to start above (-1: a new file), checked so
+    that the counter can go up from it, and the file shown to be writable (it is written back as it
+    is, or made with the clock's counter), all before anything is sent. ``clock_counter``: where
+    the clock alone would start. Every problem is one UserError line saying what to do."""
+    mark = read_counter_mark(path, clock_counter)
+    if mark is not None and mark >= p.COUNTER_MAX - COUNTER_HEADROOM:
+        raise UserError(f"{path}: the frame counter is at {mark}, within {COUNTER_HEADROOM} of its 48-bit end"
+                        f" ({p.COUNTER_MAX}): this leader's counter cannot go up; give it a new radio id (fleet-keys"
+                        " --overwrite, then provision the robots) and a new counter file")
+    if clock_counter >= p.COUNTER_MAX - COUNTER_HEADROOM:
+        raise UserError(f"--radio-counter {path}: this machine's clock gives counter {clock_counter}, within"
+                        f" {COUNTER_HEADROOM} of its 48-bit end: is the clock right? Set it and start again")
+    if mark is not None and mark - clock_counter > COUNTER_CLOCK_SLACK:
+        days = (mark - clock_counter) / COUNTER_PER_DAY
+        raise UserError(f"{path}: this machine's clock is {days:.1f} days behind the frame counter this leader"
+                        " reached before: set the clock right (the robots refuse a counter below one they took;"
+                        f" {_counter_help(clock_counter)})")
+    try:
+        write_counter_mark(path, mark if mark is not None else clock_counter)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write the frame counter file ({exc.strerror or exc}); the counter is kept"
+                        " there before it is used, so run needs to write it") from None
+    return mark if mark is not None else -1
+
+
+def write_counter_mark(path: Path, mark: int) -> None:
+    """Reserve counters up to ``mark`` before they are used: written to a temporary name, synced
+    and renamed, so the file always holds a whole mark."""
+    tmp = path.with_name(f".{path.name}.new")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(f"{mark}\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    tmp.replace(path)
+
+
 def copy_into_bundles(files: list[Path], fleet_dir: Path) -> list[Path]:
     """Each leader's ``ID.radio`` also into its identity bundle ``fleet_dir/ID/`` (fleet-keys'
     folder copied whole to that leader's machine), where that bundle exists; mode 0600."""

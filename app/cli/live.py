@@ -238,6 +238,13 @@ def _check_radio_key(args: argparse.Namespace, has_link: bool) -> None:
     key = load_leader_key(args.radio_key)
     if args.radio_id is not None and args.radio_id != key.radio_id:
         raise UserError(f"--radio-id {args.radio_id}: {args.radio_key} is radio id {key.radio_id}'s key")
+    if args.radio_counter is not None:  # corrupt, unwritable or used up: said now, before anything is sent
+        import time
+
+        from app.backends.link_auth import FrameCounter
+        from app.backends.radio_keys import check_counter_file
+
+        check_counter_file(args.radio_counter, FrameCounter.clock_counter(time.time()))
     args.radio_key_bytes, args.radio_sender = key.key, key.radio_id
 
 

@@ -153,3 +153,93 @@ def test_certificates_keys_and_rosters_of_a_bundle_are_read_only_from_small_regu
             if name == "fleet.json":
                 with pytest.raises(KeyFileError, match="fleet.json"):
                     ros2_keys(bundle)
+
+
+# -- the frame counter file (run --radio-counter FILE) --------------------------------------------
+def _run_with_counter(fleet, counter) -> object:
+    return main_cli("run", "--port", "0", "--no-record", "--link", "serial:/dev/null", "--radio-key",
+                    str(fleet / "radio" / "L1.radio"), "--radio-counter", str(counter))
+
+
+@pytest.mark.parametrize("content", ["garbage\n", "", "\n", "-5\n", "1.5\n", "1e9\n", "+5\n", "0x10\n", "12 13\n",
+                                     "\u0663\n", "281474976710656\n", "99999999999999999999999\n", "\x00" * 8])
+def test_a_corrupt_counter_file_is_refused_at_start_and_never_rewritten(tmp_path, fleet, content):
+    counter = tmp_path / "counter"
+    counter.write_text(content)
+    before = counter.read_bytes(), counter.stat().st_mtime_ns
+    line = _one_line(_run_with_counter(fleet, counter))
+    assert f"{counter}: not a frame counter" in line and "write in it a number above" in line, line
+    assert (counter.read_bytes(), counter.stat().st_mtime_ns) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["counter"]  # no temporary left either
+
+
+def test_a_counter_file_that_is_not_a_readable_regular_file_is_refused_at_start(tmp_path, fleet):
+    import os
+
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)  # a link to itself: cannot be opened
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "nowhere")
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    under_a_file = tmp_path / "L1.txt"
+    under_a_file.write_text("a file, not a folder\n")
+    for path, words in ((loop, "cannot read"), (dangling, "a link to nothing"), (fifo, "is a FIFO"),
+                        (tmp_path, "is a folder"), ("/dev/null", "is a device"), ("/dev/zero", "is a device"),
+                        (under_a_file / "counter", "cannot read")):
+        line = _one_line(_run_with_counter(fleet, path))
+        assert f"{path}: " in line and words in line, (path, line)
+    assert not (tmp_path / "nowhere").exists()
+
+
+def test_an_unwritable_counter_file_is_refused_at_start_and_kept(tmp_path, fleet):
+    """The counter is reserved in the file before it is used: a file run cannot write is refused
+    before the first frame. Made unwritable for real: the temporary it is written through is a
+    folder (root writes through any mode bits)."""
+    counter = tmp_path / "counter"
+    counter.write_text("12345\n")
+    (tmp_path / ".counter.new").mkdir()
+    (tmp_path / ".counter.new" / "x").write_text("")
+    line = _one_line(_run_with_counter(fleet, counter))
+    assert f"{counter}: cannot write the frame counter file" in line, line
+    assert counter.read_text() == "12345\n"
+
+
+def test_a_counter_that_cannot_go_up_is_refused_at_start_with_what_to_do(tmp_path, fleet):
+    import time
+
+    from app.backends.link_auth import FrameCounter
+    from core.link import protocol as p
+
+    counter = tmp_path / "counter"
+    for mark in (p.COUNTER_MAX, p.COUNTER_MAX - 1, p.COUNTER_MAX - 1000):  # at or near 2^48: stuck there before
+        counter.write_text(f"{mark}\n")
+        line = _one_line(_run_with_counter(fleet, counter))
+        assert "cannot go up" in line and "new radio id" in line, line
+        assert counter.read_text() == f"{mark}\n"
+    ahead = FrameCounter.clock_counter(time.time() + 2 * 86400)  # the clock two days behind the file
+    counter.write_text(f"{ahead}\n")
+    line = _one_line(_run_with_counter(fleet, counter))
+    assert "days behind the frame counter" in line and "set the clock right" in line, line
+    assert counter.read_text() == f"{ahead}\n"
+
+
+def test_a_good_counter_file_and_a_new_one_are_used_and_only_grow(tmp_path):
+    """The file is made on the first start (the clock's counter), reserved ahead before use, and
+    a clock set back less than a day starts above it."""
+    from app.backends.link_auth import FrameCounter
+    from app.files import UserError
+
+    now = [1_800_000_000.0]
+    counter = tmp_path / "counter"
+    first = FrameCounter(lambda: now[0], counter)
+    assert int(counter.read_text()) == FrameCounter.clock_counter(now[0])  # made at start
+    used = [first.next() for _ in range(5)]
+    assert int(counter.read_text()) == used[0] + FrameCounter.BLOCK  # reserved before the first was used
+    now[0] -= 12 * 3600.0  # set back half a day: the file keeps the counter above
+    assert FrameCounter(lambda: now[0], counter).next() > used[-1]
+    now[0] -= 2 * 86400.0  # two days: refused, the file as it was
+    kept = counter.read_text()
+    with pytest.raises(UserError, match="days behind"):
+        FrameCounter(lambda: now[0], counter)
+    assert counter.read_text() == kept
