@@ -76,6 +76,12 @@ def write_radio_keys(directory: Path, leaders: tuple[str, ...], *, overwrite: bo
     (FileExistsError naming the file) to write over a key unless ``overwrite``."""
     files = check_radio_keys_writable(directory, leaders, overwrite=overwrite)
     _private_dir(directory)
+    stale = directory / NEXT  # a rotation of the key replaced now: its next files mean nothing any more
+    if stale.is_dir():
+        for old in stale.glob(f"*{SUFFIX}"):
+            old.unlink()
+        if not any(stale.iterdir()):
+            stale.rmdir()
     key = secrets.token_bytes(p.RADIO_KEY_LEN)
     ids = {name: k + 1 for k, name in enumerate(leaders)}
     _write_secret(files[0], json.dumps({"keys": [key.hex()], "leaders": ids, "stop": stop}, indent=1) + "\n")
@@ -142,39 +148,215 @@ def set_stop_policy(path: Path, stop: str) -> None:
     _write_secret(path, json.dumps(data, indent=1) + "\n")
 
 
+def leader_key(secret: bytes, radio_id: int) -> bytes:
+    """The key leader ``radio_id`` signs with under the fleet's radio key ``secret``."""
+    return secret
+
+
+def _robots_data(directory: Path) -> tuple[Path, dict[str, object], tuple[bytes, ...], dict[str, int]]:
+    robots = directory / ROBOTS
+    auth = load_robot_auth(robots)  # checked: one line if it cannot serve
+    data = _read_private(robots, "the robots' radio keys")
+    leaders = {str(k): int(v) for k, v in data["leaders"].items()}  # type: ignore[attr-defined]
+    return robots, data, auth.keys, leaders
+
+
+UNREADABLE = b"?"  # a leader's file that cannot serve (Rotation.problems says why)
+
+
+def _key_in(path: Path, problems: dict[Path, str]) -> bytes | None:
+    """The key a leader's file holds (None: no file; UNREADABLE, with the reason in ``problems``)."""
+    if not path.exists() and not path.is_symlink():
+        return None
+    try:
+        return load_leader_key(path).key
+    except UserError as exc:
+        problems[path] = str(exc)
+        return UNREADABLE
+
+
+@dataclass(frozen=True)
+class Rotation:
+    """Where a rotation stands, read from the files themselves (nothing else is kept): the robots'
+    keys (robots.json), and for each leader the key of its file in ``next/``, in the radio folder
+    and in its bundle (None: no such file; bundles only where the bundle's folder exists)."""
+
+    directory: Path
+    keys: tuple[bytes, ...]
+    leaders: dict[str, int]
+    nexts: dict[str, bytes | None]
+    files: dict[str, bytes | None]
+    bundles: dict[str, bytes | None]
+    problems: dict[Path, str]  # files that cannot serve: a step writes them afresh
+
+    def _holds(self, keys: dict[str, bytes | None], secret: bytes) -> list[str]:
+        return [n for n in self.leaders if keys.get(n) == leader_key(secret, self.leaders[n])]
+
+    @property
+    def next_dir(self) -> Path:
+        return self.directory / NEXT
+
+    def begin_interrupted(self) -> bool:
+        """next/ holds a key the robots do not list: a --begin stopped before its last rename."""
+        return len(self.keys) == 1 and any(k not in (None, UNREADABLE, leader_key(self.keys[0], self.leaders[n]))
+                                           for n, k in self.nexts.items())
+
+    def finish_pending(self) -> list[str]:
+        """With one key: what still disagrees with it (a --finish stopped half way, or a copy left
+        behind); empty when the folder agrees."""
+        cur = self.keys[0]
+        out = [f"next/{n}{SUFFIX}" for n, k in self.nexts.items() if k is not None]
+        out += [f"{n}{SUFFIX}" for n in self.leaders if self.files[n] != leader_key(cur, self.leaders[n])]
+        out += [f"../{n}/{n}{SUFFIX}" for n, k in self.bundles.items() if k != leader_key(cur, self.leaders[n])]
+        return out
+
+    def describe(self) -> str:
+        """One paragraph for --status: the step the rotation is at, and what to run next."""
+        text = self._describe()
+        if self.problems:
+            text += "; files that cannot serve: " + "; ".join(self.problems.values())
+        return text
+
+    def _describe(self) -> str:
+        n_all = len(self.leaders)
+        if len(self.keys) == 2:
+            old, new = self.keys
+            ready = self._holds(self.nexts, new)
+            on_new = self._holds(self.files, new) + [f"{n}'s bundle" for n in self._holds(self.bundles, new)]
+            missing = [n for n in self.leaders if n not in ready and self.files[n] != leader_key(new, self.leaders[n])]
+            text = (f"begun: the robots' record lists the current key and the next one; next/ holds {len(ready)} of"
+                    f" {n_all} leaders' files")
+            if missing:
+                text += f" (missing or wrong: {', '.join(missing)}: run --begin again to write them)"
+            if on_new:
+                text += (f"; a --finish was interrupted: {', '.join(on_new)} already on the next key, the others"
+                         " on the current one (the robots accept both): run --finish again")
+            else:
+                text += ("; next: provision the robots (they accept both keys), give each leader its file from next/"
+                         " and restart it, then --finish")
+            return text
+        if self.begin_interrupted():
+            return ("a --begin was interrupted: next/ holds a key the robots' record does not list (nothing was"
+                    " deployed): run --begin again, it starts afresh")
+        pending = self.finish_pending()
+        if pending:
+            return (f"a --finish was interrupted: the robots' record lists only the new key, and {', '.join(pending)}"
+                    " still disagree: run --finish again")
+        return (f"no rotation under way: the robots' record, the {n_all} leaders' files and their bundles' copies"
+                " hold one key (--begin starts a rotation)")
+
+
+def rotation_state(directory: Path) -> Rotation:
+    """Where a rotation of ``directory`` (DIR/radio) stands (one UserError line if a file cannot
+    serve)."""
+    if not directory.is_dir():
+        raise UserError(f"{directory}: not a folder (fleet-keys writes DIR/radio/)")
+    _, _, keys, leaders = _robots_data(directory)
+    fleet_dir = directory.parent
+    problems: dict[Path, str] = {}
+    nexts = {n: _key_in(directory / NEXT / f"{n}{SUFFIX}", problems) for n in leaders}
+    files = {n: _key_in(directory / f"{n}{SUFFIX}", problems) for n in leaders}
+    bundles = {n: _key_in(fleet_dir / n / f"{n}{SUFFIX}", problems) for n in leaders if (fleet_dir / n).is_dir()}
+    return Rotation(directory, keys, leaders, nexts, files, bundles, problems)
+
+
+class _Step:
+    """One step's files: each written to a temporary name beside it first (synced, mode 0600),
+    then all renamed in the order given. If any write fails, every temporary is removed and
+    nothing has changed; the renames come last, robots.json's after the leaders' files, so a
+    step stopped among them is finished by running it again (docs/follower-protocol.md)."""
+
+    def __init__(self) -> None:
+        self.files: list[tuple[Path, bytes]] = []
+
+    def add(self, path: Path, text: str) -> None:
+        self.files.append((path, text.encode()))
+
+    def run(self, what: str) -> list[Path]:
+        tmps: list[tuple[Path, Path]] = []
+        path = Path("?")
+        try:
+            for path, data in self.files:
+                if path.is_dir() and not path.is_symlink():
+                    raise IsADirectoryError(21, "a folder is in its place")
+                tmp = path.with_name(f".{path.name}.new")
+                tmps.append((tmp, path))
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                with os.fdopen(fd, "wb") as fh:
+                    fh.write(data)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                os.chmod(tmp, 0o600)
+        except OSError as exc:
+            for tmp, _ in tmps:
+                try:
+                    tmp.unlink()
+                except OSError:
+                    pass
+            raise UserError(f"{path}: cannot write ({exc.strerror or exc}); {what}: nothing changed, fix it and"
+                            " run the same step again") from None
+        try:
+            for tmp, path in tmps:
+                tmp.replace(path)
+        except OSError as exc:
+            raise UserError(f"{path}: cannot rename ({exc.strerror or exc}); {what} stopped half way: fix it and run"
+                            " the same step again (it finishes what is left)") from None
+        return [path for _, path in tmps]
+
+
 def rotate(directory: Path, finish: bool) -> list[Path]:
     """Begin a rotation (a new key: the robots accept both, the leaders' next files are written to
     ``NEXT``/) or finish it (the robots accept only the new key; the next files replace the
-    leaders' files). docs/follower-protocol.md, "Rotating the key", step by step."""
-    robots = directory / ROBOTS
-    load_robot_auth(robots)  # checked
-    data = _read_private(robots, "the robots' radio keys")
-    keys = list(data["keys"])  # type: ignore[call-overload]
-    leaders: dict[str, int] = dict(data["leaders"])  # type: ignore[call-overload]
+    leaders' files and their bundles' copies). Every file of a step is written to a temporary name
+    first and committed by renames, robots.json last: a step that stopped half way (an unwritable
+    bundle, a full disk, a crash) is finished by running it again, or, for a --begin that never
+    reached robots.json, started afresh. docs/follower-protocol.md, "Rotating the key"."""
+    state = rotation_state(directory)
+    robots, data, keys, leaders = _robots_data(directory)
     nxt = directory / NEXT
+    step = _Step()
     if not finish:
         if len(keys) == 2:
-            raise UserError(f"{robots}: a rotation is already under way; finish it first (--finish)")
+            new = keys[1]
+            missing = [n for n in leaders if state.nexts[n] != leader_key(new, leaders[n])
+                       and state.files[n] != leader_key(new, leaders[n])]
+            if not missing:
+                raise UserError(f"{robots}: a rotation is already under way; finish it first (--finish)")
+            for n in missing:  # a begin whose next/ files went missing: written again, same key
+                step.add(nxt / f"{n}{SUFFIX}", _leader_text(leaders[n], leader_key(new, leaders[n])))
+            _private_dir(nxt)
+            return step.run("radio-rotate --begin")
+        if state.finish_pending() and not state.begin_interrupted():
+            raise UserError(f"{directory}: {state.describe()}")
         new = secrets.token_bytes(p.RADIO_KEY_LEN)
-        data["keys"] = [keys[0], new.hex()]
         _private_dir(nxt)
-        written = [robots] + [nxt / f"{n}{SUFFIX}" for n in leaders]
         for n, rid in leaders.items():
-            _write_secret(nxt / f"{n}{SUFFIX}", _leader_text(rid, new))
-        _write_secret(robots, json.dumps(data, indent=1) + "\n")
-        return written
-    if len(keys) != 2:
-        raise UserError(f"{robots}: no rotation under way (--begin starts one)")
-    data["keys"] = [keys[1]]
-    written = [robots]
-    for n in leaders:
-        src = nxt / f"{n}{SUFFIX}"
-        if src.exists():
-            src.replace(directory / f"{n}{SUFFIX}")
-            written.append(directory / f"{n}{SUFFIX}")
-    _write_secret(robots, json.dumps(data, indent=1) + "\n")
-    if nxt.is_dir() and not any(nxt.iterdir()):
-        nxt.rmdir()
+            step.add(nxt / f"{n}{SUFFIX}", _leader_text(rid, leader_key(new, rid)))
+        step.add(robots, json.dumps({**data, "keys": [keys[0].hex(), new.hex()]}, indent=1) + "\n")
+        return step.run("radio-rotate --begin")
+    if len(keys) == 2:
+        cur = keys[1]  # every file is made from the robots' record: next/ is not read, only removed at the end
+    else:
+        cur = keys[0]
+        if state.begin_interrupted():
+            raise UserError(f"{directory}: {state.describe()}")
+        if not state.finish_pending():
+            raise UserError(f"{robots}: no rotation under way (--begin starts one; --status says where it stands)")
+    for n, rid in leaders.items():
+        if n in state.bundles:
+            step.add(directory.parent / n / f"{n}{SUFFIX}", _leader_text(rid, leader_key(cur, rid)))
+    for n, rid in leaders.items():
+        step.add(directory / f"{n}{SUFFIX}", _leader_text(rid, leader_key(cur, rid)))
+    step.add(robots, json.dumps({**data, "keys": [cur.hex()]}, indent=1) + "\n")
+    written = step.run("radio-rotate --finish")
+    try:  # the robots' record is the new one now: next/ is only a leftover
+        for n in leaders:
+            (nxt / f"{n}{SUFFIX}").unlink(missing_ok=True)
+        if nxt.is_dir() and not any(nxt.iterdir()):
+            nxt.rmdir()
+    except OSError as exc:
+        raise UserError(f"{nxt}: cannot remove ({exc.strerror or exc}); the rotation is finished otherwise: run"
+                        " --finish again to clear it") from None
     return written
 
 

@@ -78,8 +78,11 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                     " leaders' files are replaced (docs/follower-protocol.md, Rotating the key).")
     rot.add_argument("dir", type=Path, metavar="DIR/radio", help="the fleet's radio folder")
     step = rot.add_mutually_exclusive_group(required=True)
-    step.add_argument("--begin", action="store_true")
-    step.add_argument("--finish", action="store_true")
+    step.add_argument("--begin", action="store_true", help="a new key: the robots' record lists both, the leaders'"
+                                                            " new files go to DIR/radio/next/")
+    step.add_argument("--finish", action="store_true", help="the robots accept only the new key; the leaders' files"
+                                                             " and their bundles' copies are replaced")
+    step.add_argument("--status", action="store_true", help="say where a rotation stands (and what to run next)")
     rot.set_defaults(func=cmd_rotate)
 
 
@@ -126,11 +129,12 @@ def cmd_provision(args: argparse.Namespace) -> int:
 
 
 def cmd_rotate(args: argparse.Namespace) -> int:
-    from app.backends.radio_keys import copy_into_bundles, rotate
+    from app.backends.radio_keys import rotate, rotation_state
 
-    written = rotate(args.dir, finish=args.finish)
-    if args.finish:  # the leaders' bundles (fleet-keys' DIR/ID/) hold the new key too
-        written += copy_into_bundles(written, Path(args.dir).parent)
+    if args.status:
+        print(f"omniformation: rotation of {args.dir}: {rotation_state(args.dir).describe()}", flush=True)
+        return 0
+    written = rotate(args.dir, finish=args.finish)  # the leaders' bundles (fleet-keys' DIR/ID/) too
     step = ("finished: provision the robots again (only the new key now); the leaders already sign with it"
             if args.finish else "begun: provision the robots (they accept both keys), then give each leader"
                                 " its file from next/ and restart it, then --finish")

@@ -243,3 +243,145 @@ def test_a_good_counter_file_and_a_new_one_are_used_and_only_grow(tmp_path):
     with pytest.raises(UserError, match="days behind"):
         FrameCounter(lambda: now[0], counter)
     assert counter.read_text() == kept
+
+
+# -- a rotation stopped half way (radio-rotate DIR/radio --begin / --finish / --status) ------------
+def _agree(d) -> bytes:
+    """Every file of the radio folder and every bundle's copy holds the robots' one key; that key."""
+    from app.backends.radio_keys import load_leader_key, load_robot_auth
+
+    auth = load_robot_auth(d / "radio" / "robots.json")
+    assert len(auth.keys) == 1
+    for n in ("L1", "L2", "L3"):
+        assert load_leader_key(d / "radio" / f"{n}.radio").key == auth.keys[0], n
+        assert load_leader_key(d / n / f"{n}.radio").key == auth.keys[0], f"{n}'s bundle"
+    assert not (d / "radio" / "next").exists()
+    assert not [p for p in d.rglob(".*.new")]  # no temporary left behind
+    return auth.keys[0]
+
+
+def _status(radio) -> str:
+    r = main_cli("radio-rotate", str(radio), "--status")
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def _snapshot(d) -> dict[str, bytes]:
+    return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def three(tmp_path):
+    d = tmp_path / "keys"
+    assert main_cli("fleet-keys", str(d), "--fleet", "lab", "--leaders", "L1,L2,L3").returncode == 0
+    return d
+
+
+def test_a_finish_stopped_by_an_unwritable_bundle_changes_nothing_and_is_finished_by_running_it_again(three):
+    """The issue's case: one leader's bundle cannot be written. Before, --finish left robots.json
+    on the new key and L2, L3 on the old, and a second --finish said no rotation was under way."""
+    radio, bundle = three / "radio", three / "L2" / "L2.radio"
+    old = _agree(three)
+    assert "no rotation under way" in _status(radio)
+    assert main_cli("radio-rotate", str(radio), "--begin").returncode == 0
+    assert "begun" in _status(radio) and "next/ holds 3 of 3" in _status(radio)
+    bundle.unlink()
+    bundle.mkdir()  # a folder in the copy's place: the write fails for real
+    (bundle / "keep").write_text("")
+    before = _snapshot(three)
+    line = _one_line(main_cli("radio-rotate", str(radio), "--finish"))
+    assert f"{bundle}: cannot write" in line and "nothing changed" in line and "run the same step again" in line, line
+    assert _snapshot(three) == before  # robots.json still lists both keys, every leader file as it was
+    assert "begun" in _status(radio) and "is a folder" in _status(radio)
+    (bundle / "keep").unlink()
+    bundle.rmdir()  # fixed
+    r = main_cli("radio-rotate", str(radio), "--finish")
+    assert r.returncode == 0, r.stderr
+    assert _agree(three) != old
+    assert "no rotation under way" in _status(radio)
+    again = main_cli("radio-rotate", str(radio), "--finish")
+    assert "no rotation under way" in _one_line(again)
+
+
+def test_a_finish_on_a_read_only_bundle_changes_nothing(three, tmp_path):
+    """The same with a bundle on a read-only file system (a real mount; root only)."""
+    import subprocess
+
+    radio, bundle_dir = three / "radio", three / "L3"
+    assert main_cli("radio-rotate", str(radio), "--begin").returncode == 0
+    saved = _snapshot(bundle_dir)
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m,mode=0700", "tmpfs", str(bundle_dir)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    try:
+        for name, data in saved.items():
+            (bundle_dir / name).write_bytes(data)
+            (bundle_dir / name).chmod(0o600)
+        assert subprocess.run(["mount", "-o", "remount,ro", str(bundle_dir)]).returncode == 0
+        before = _snapshot(three)
+        line = _one_line(main_cli("radio-rotate", str(radio), "--finish"))
+        assert "L3.radio: cannot write (Read-only file system)" in line and "nothing changed" in line, line
+        assert _snapshot(three) == before
+    finally:
+        subprocess.run(["umount", str(bundle_dir)], check=True)
+    for name, data in saved.items():  # the folder under the mount, as it was
+        assert (bundle_dir / name).read_bytes() == data
+    assert main_cli("radio-rotate", str(radio), "--finish").returncode == 0
+    _agree(three)
+
+
+def test_a_finish_stopped_among_its_renames_is_finished_by_running_it_again(three):
+    """What a finish killed between its renames leaves (the bundles and radio files renamed, not
+    robots.json), and what one killed after robots.json leaves (next/ still there): --status says
+    so, --finish completes it."""
+    import shutil
+
+    from app.backends.radio_keys import load_robot_auth
+
+    radio = three / "radio"
+    assert main_cli("radio-rotate", str(radio), "--begin").returncode == 0
+    new = load_robot_auth(radio / "robots.json").keys[1]
+    for n in ("L1", "L2"):  # renamed before the crash: L3 and robots.json not
+        shutil.copy(radio / "next" / f"{n}.radio", three / n / f"{n}.radio")
+        shutil.copy(radio / "next" / f"{n}.radio", radio / f"{n}.radio")
+    status = _status(radio)
+    assert "a --finish was interrupted" in status and "L1" in status and "run --finish again" in status, status
+    assert main_cli("radio-rotate", str(radio), "--finish").returncode == 0
+    assert _agree(three) == new
+    # killed after robots.json, before next/ was removed; and L3's bundle copy not renamed
+    assert main_cli("radio-rotate", str(radio), "--begin").returncode == 0
+    keep = (three / "L3" / "L3.radio").read_bytes()
+    newer = load_robot_auth(radio / "robots.json").keys[1]
+    shutil.copytree(radio / "next", three / "next-saved")
+    assert main_cli("radio-rotate", str(radio), "--finish").returncode == 0
+    shutil.copytree(three / "next-saved", radio / "next")
+    shutil.rmtree(three / "next-saved")
+    (three / "L3" / "L3.radio").write_bytes(keep)
+    status = _status(radio)
+    assert "a --finish was interrupted" in status and "../L3/L3.radio" in status, status
+    assert main_cli("radio-rotate", str(radio), "--finish").returncode == 0
+    assert _agree(three) == newer
+
+
+def test_a_begin_stopped_before_robots_json_is_started_afresh_by_running_it_again(three):
+    """next/ written, robots.json not: the robots know nothing of that key. --finish refuses it,
+    --status says so, --begin starts afresh with a new key."""
+    import json
+
+    from app.backends.radio_keys import load_leader_key, load_robot_auth
+
+    radio = three / "radio"
+    old = _agree(three)
+    (radio / "next").mkdir(mode=0o700)
+    stray = (radio / "next" / "L1.radio")
+    stray.write_text(json.dumps({"radio_id": 1, "key": "ab" * 32}) + "\n")
+    stray.chmod(0o600)
+    assert "a --begin was interrupted" in _status(radio)
+    assert "a --begin was interrupted" in _one_line(main_cli("radio-rotate", str(radio), "--finish"))
+    assert load_robot_auth(radio / "robots.json").keys == (old,)
+    assert main_cli("radio-rotate", str(radio), "--begin").returncode == 0
+    keys = load_robot_auth(radio / "robots.json").keys
+    assert keys[0] == old and keys[1] != bytes.fromhex("ab" * 32)
+    assert all(load_leader_key(radio / "next" / f"{n}.radio").key == keys[1] for n in ("L1", "L2", "L3"))
+    assert main_cli("radio-rotate", str(radio), "--finish").returncode == 0
+    assert _agree(three) == keys[1]
