@@ -107,6 +107,14 @@ class Team(Protocol):
     def close(self) -> None: ...
 
 
+class SimulatedTeam(Team, Protocol):
+    """A team whose truth the simulator (or a fleet's arena) knows: the truth feedback measures it."""
+
+    def observe(self) -> tuple[FloatArray, FloatArray, BoolArray]:
+        """(p (n, 2), a (n,), tracked (n,)) in the leader frame: the truth plus the configured noise."""
+        ...
+
+
 @dataclass(frozen=True)
 class Observation:
     """What a feedback saw this tick."""

@@ -28,7 +28,7 @@ from core.sim.team import TeamState, measure_followers
 from core.types import BoolArray, Commands, FloatArray
 from core.vision.freespace import Scan
 
-from app.contracts import Observation
+from app.contracts import Feedback, Observation
 
 if TYPE_CHECKING:
     from app.backends.serial_link import SerialLink
@@ -430,18 +430,16 @@ def body_rings(centres: FloatArray, radius_m: float, points: int = 8) -> FloatAr
 
 
 class ArenaFeedback:
-    """The team's poses from ``inner`` (the arena's truth plus noise, as TruthFeedback, or this
+    """The team's poses from ``inner`` (the arena's truth plus noise, a TruthFeedback, or this
     leader's camera rendered from the arena and the vision pipeline), and every body that is
     not this team's (other teams' robots, orphans, other leaders) as obstacle points the safety
     filter keeps clear of: rings the size of each body, so two robots of different teams keep
     the filter's distance from each other as two of one team do. Those bodies come from the
     arena's truth, as the other leaders' published states would give them in a real fleet."""
 
-    def __init__(self, team: ArenaTeam, inner: Any = None) -> None:
-        from app.backends.feedback import TruthFeedback
-
+    def __init__(self, team: ArenaTeam, inner: Feedback) -> None:
         self.team = team
-        self.inner = inner if inner is not None else TruthFeedback(team)
+        self.inner = inner
 
     def observe(self, dt: float, commands: FloatArray, error_norm: FloatArray) -> Observation:
         obs = self.inner.observe(dt, commands, error_norm)

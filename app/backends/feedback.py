@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
 from collections.abc import Callable
 
 import numpy as np
@@ -33,11 +32,7 @@ from core.types import FloatArray, Image
 from core.vision.freespace import FreeSpaceScanner, ObstacleMemory, Scan, ScanSettings
 from core.vision.pipeline import PipelineSettings, VisionPipeline
 
-from app.contracts import FrameSource, Observation, Team
-from app.backends.sim import SimTeam
-
-if TYPE_CHECKING:
-    from app.backends.arena import ArenaTeam
+from app.contracts import FrameSource, Observation, SimulatedTeam, Team
 
 STALE_FRAME_S = 0.3  # a camera frame older than this is no ground for moving a robot
 LIGHTING_EVERY = 30  # frames between two looks at the floor's light (a second at 30 Hz)
@@ -49,7 +44,7 @@ class TruthFeedback:
     """Ground truth plus the configured noise: no camera, no start-up; the obstacles as the
     simulator knows them (the nearest point of each box to each robot)."""
 
-    def __init__(self, team: "SimTeam | ArenaTeam", obstacles: tuple[Obstacle, ...] = ()) -> None:
+    def __init__(self, team: SimulatedTeam, obstacles: tuple[Obstacle, ...] = ()) -> None:
         self.team = team
         self.boxes = as_array(obstacles)
 

@@ -68,7 +68,8 @@ class Backends:
         if self.arena is not None:  # a fleet's arena: the same robots after a reset, plus any adopted
             self.arena.resize(n)
             if self.camera is None:  # the truth, and the other teams as obstacles
-                return Made(self.arena, ArenaFeedback(self.arena), self.arena.observe()[0])
+                return Made(self.arena, ArenaFeedback(self.arena, TruthFeedback(self.arena)),
+                            self.arena.observe()[0])
             own, foreign = self.arena.team_hues()  # its camera rendered from the arena; its team by their hues
             vision = VisionFeedback(self.arena, self.camera[0], self.camera[1], vision_seed,
                                     settings=self.pipeline_settings, scene=self.arena.scene,

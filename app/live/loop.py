@@ -37,6 +37,7 @@ from core.types import BoolArray, Commands, FloatArray
 from app.backends.hardware import HardwareTeam
 from app.backends.arena import ArenaTeam
 from app.backends.world import Backends
+from app.live.kernels import compiled, warm_up
 from app.realtime import SWITCH_INTERVAL_S, CpuReservation, make_realtime, scheduling
 from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
 from app.params import Params, ParamsStore
@@ -181,6 +182,29 @@ class ServiceLoop:
     @property
     def hardware(self) -> HardwareTeam | None:
         return self.backends.hardware
+
+    @property
+    def camera(self) -> Rig | None:
+        return self.backends.camera
+
+    @property
+    def obstacles(self) -> tuple[Obstacle, ...]:
+        return self.backends.obstacles
+
+    # -- the warm-up's (app.live.kernels.Warmable) ----------------------------------------
+    @property
+    def ready(self) -> bool:
+        """The team's start-up is over: every follower's pose is known (always, with truth feedback)."""
+        return self._world.ready
+
+    def throwaway(self, store: ParamsStore, camera: Rig | None, obstacles: tuple[Obstacle, ...]) -> ServiceLoop:
+        """A loop like this one (rate, seed, dynamics) on a simulated world of its own, ``camera``'s
+        or the truth's: what the warm-up steps with nobody watching and nothing sent to any robot."""
+        return ServiceLoop(store, rate_hz=self.rate_hz, seed=self.seed, dynamics=self.dynamics, camera=camera,
+                           obstacles=obstacles)
+
+    def solver(self, params: Params) -> str:
+        return self._safety_settings(params).solver
 
     # -- wiring ---------------------------------------------------------------------------
     def subscribe(self, fn: Callable[[TickState], None]) -> None:
@@ -541,9 +565,7 @@ class ServiceLoop:
     def run(self) -> None:
         """Tick until stop(): on a camera's frames when the loop has one (``frames``), else at the
         configured rate. Always leaves the followers at zero. Every kernel it can reach is compiled
-        and warmed first, before its clock starts (app.live.warmup)."""
-        from app.live.warmup import compiled, warm_up
-
+        and warmed first, before its clock starts (app.live.kernels)."""
         warm_up(self)
         compiled_at_start = compiled()
         if self.cpu is not None:  # one line, as the warm-up's: the operator starts a browser off that CPU
@@ -557,7 +579,7 @@ class ServiceLoop:
             if self.cpu is not None:
                 self.cpu.release()
             late = compiled() - compiled_at_start
-            if late:  # a kernel the warm-up did not reach: its first use stalled a tick (name it in app.live.warmup)
+            if late:  # a kernel the warm-up did not reach: its first use stalled a tick (name it in app.live.kernels)
                 log.warning("loop: %d kernel(s) compiled while the loop's clock ran", late)
 
     def _paced(self) -> None:

@@ -40,6 +40,97 @@ def _app_imports(path: Path) -> set[str]:
     return out
 
 
+def _module_names(root: Path) -> dict[str, Path]:
+    """Every module of app/ and core/ by its dotted name (a package by its own, for __init__.py)."""
+    found = {}
+    for pkg in ("app", "core"):
+        for f in sorted((root / pkg).rglob("*.py")):
+            parts = f.relative_to(root).with_suffix("").parts
+            found[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = f
+    return found
+
+
+def _imported_modules(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
+    """The modules of app/ and core/ that ``name`` imports: every import statement, at any depth
+    (inside functions, methods and ``if`` blocks too: an import inside a function runs when it is
+    called, so a circle through one is a circle all the same), relative ones resolved, ``from
+    package import submodule`` taken as the submodule. Imports under ``if TYPE_CHECKING:`` never
+    run, but they are counted too: a module that names another's type depends on it, and a
+    type-only import is where a circle hides until someone needs the name at run time."""
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name in modules}
+        elif isinstance(node, ast.ImportFrom):
+            base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else [])) \
+                if node.level else (node.module or "")
+            for a in node.names:
+                whole = f"{base}.{a.name}"
+                if whole in modules:
+                    out.add(whole)
+                elif base in modules:
+                    out.add(base)
+    out.discard(name)
+    return out
+
+
+def import_circles(root: Path = ROOT) -> list[list[str]]:
+    """The import circles among the modules of ``root``'s app/ and core/: each group of modules that
+    reach one another through imports (a strongly connected component of the import graph, Tarjan's)."""
+    modules = _module_names(root)
+    graph = {m: sorted(_imported_modules(m, f, modules)) for m, f in modules.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                circles.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return circles
+
+
+def test_no_module_of_app_or_core_imports_itself_in_a_circle():
+    """No circle of imports, counting those inside functions and type-only ones (a circle is
+    broken by moving what both sides share down a layer, never by an import inside a function)."""
+    circles = import_circles()
+    assert not circles, "import circles: " + "; ".join(" <-> ".join(group) for group in circles)
+
+
+def test_the_circle_finder_finds_a_circle_through_an_import_inside_a_function(tmp_path: Path) -> None:
+    """The finder itself: two modules that import each other, one of them only inside a function
+    and the other only for types, are one circle; the module that imports one of them is not in it."""
+    (tmp_path / "app").mkdir()
+    (tmp_path / "core").mkdir()
+    (tmp_path / "app" / "__init__.py").write_text("")
+    (tmp_path / "core" / "__init__.py").write_text("")
+    (tmp_path / "app" / "one.py").write_text("def f():\n    from app.two import g\n    return g\n")
+    (tmp_path / "app" / "two.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                             "    from . import one\ng = 1\n")
+    (tmp_path / "app" / "three.py").write_text("import app.one\n")
+    assert import_circles(tmp_path) == [["app.one", "app.two"]]
+
+
 def test_no_folder_of_app_imports_one_above_it():
     broken = []
     for folder, banned in FORBIDDEN.items():
