@@ -14,12 +14,12 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
-from app.cli import bench, camera, emulator, export, fleet, live, ros2, sessions, simulate
+from app.cli import bench, camera, emulator, export, fleet, live, ros2, sessions, simulate, study
 from app.cli.args import EXIT_USAGE, Parser
 from app.console import whole_lines
 from app.files import UserError
 
-FAMILIES = (simulate, live, fleet, camera, emulator, ros2, sessions, export, bench)
+FAMILIES = (simulate, study, live, fleet, camera, emulator, ros2, sessions, export, bench)
 
 
 def build_parser() -> Parser:
