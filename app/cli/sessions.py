@@ -60,6 +60,17 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     from app.files import prepare_out_dir
 
+    if args.file.is_dir():  # a study's folder: its summary and plots again, from its files
+        from app.study.session import redraw
+
+        if args.out is not None:
+            raise UserError(f"--out: a study's report is written into its folder ({display_path(args.file)});"
+                            " leave --out out")
+        for p in redraw(args.file, args.format):
+            print(f"wrote {display_path(p)}")
+        return 0
+    if args.out is None:
+        raise UserError("--out DIR is needed for a recording's report")
     out: Path = args.out
     prepare_out_dir(out)
     rec = load_recording(args.file)
@@ -90,10 +101,12 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     add_foxglove_args(rp)
     rp.set_defaults(func=cmd_replay)
 
-    rep = sub.add_parser("report", help="turn a recording into the paper's figures and a summary",
-                         description="Write figures in the paper's style (PNG, SVG or PDF) and summary.md / summary.json.")
-    rep.add_argument("file", type=Path, help="a recording (.mcap)")
-    rep.add_argument("--out", type=Path, required=True, help="folder for the figures and summary")
+    rep = sub.add_parser("report", help="turn a recording into the paper's figures and a summary (or redraw a study's)",
+                         description="Write figures in the paper's style (PNG, SVG or PDF) and summary.md / summary.json;"
+                                     " given a study's folder (omniformation study --out DIR), draw its summary.md and"
+                                     " plots/ again from its files.")
+    rep.add_argument("file", type=Path, help="a recording (.mcap), or a study's folder")
+    rep.add_argument("--out", type=Path, help="folder for the figures and summary (a recording's report)")
     rep.add_argument("--format", choices=("png", "svg", "pdf"), default="png",
                      help="the figures' file format (default png)")
     rep.set_defaults(func=cmd_report)
