@@ -366,7 +366,8 @@ class Controls:
              + (f" · leader {s.leader_waits}" if s.leader_waits and not s.stopped else "")
              + (" · by a loop fault (below)" if s.fault and s.stopped else "")
              + f" · t = {s.t:.1f} s · loop {s.rate_hz:.1f} Hz"
-             + (f" · frame to command {s.latency_ms:.1f} ms" if np.isfinite(s.latency_ms) else "")),
+             + (f" · frame to command {s.latency_ms:.1f} ms" if np.isfinite(s.latency_ms) else "")
+             + beat(s)),
             f"stages (ms): {stages}",
             f"poses from: {'the simulator (truth + noise)' if s.phase == 'truth' else 'vision, ' + _phase_text(s)}",
             (f"followers tracked {int(np.sum(s.tracked))}/{s.n}, lost {s.n - int(np.sum(s.tracked))}"
@@ -403,6 +404,13 @@ LAYER_KEY = ("<small>**3D key** · dark box, coloured marker: a follower where t
              " (drag a dot to move the slot; shift-click the floor sets a goal) · coloured lines: trails ·"
              " orange points: obstacles as the leader knows them · blue rings: the camera's working area ·"
              " red ring round a follower: the safety filter holding its command back · green pole: the goal</small>")
+
+
+def beat(s: TickState) -> str:
+    """The live state line's mark of the tick it was drawn from (an empty element, nothing shown): the
+    page's script (assets/page.js) takes a state line that stops changing for LINK_LOST_S (app.dashboard.gate)
+    as no link to the loop, whatever broke it (the service, the loop's process, the network)."""
+    return f'<span data-omni-beat="{s.tick}" data-t="{s.t:.1f}" data-hz="{s.rate_hz:.1f}"></span>'
 
 
 def error_line(s: TickState) -> str:

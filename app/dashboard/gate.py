@@ -73,6 +73,8 @@ from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 from websockets.typing import Subprotocol
 
+from core.link.protocol import WATCHDOG_S
+
 from app.dashboard.allowance import RATE, Budget, Throttle, one_line
 from app.dashboard import viser_private
 from app.dashboard.input_filter import OPERATOR, VIEWER, InputFilter, Verdict
@@ -89,6 +91,11 @@ GATE_HEADER = "X-Omniformation-Gate"
 # other pages in new tabs, "Wide panel". The files are assets/page.css and assets/page.js (package
 # data), documented in docs/page-access.md ("What the page adds").
 PAGE_KINDS = ("live", "replay", "fleet")
+# A live page that has had no new tick for this long says it is not connected (its STOP reaches
+# nothing): the loop's state line carries the tick it was drawn from, redrawn about five times a
+# second (app.dashboard.controls.STATUS_S), so this is four missed redraws, and a page whose link
+# went says so within a second of the last tick it had (assets/page.js).
+LINK_LOST_S = 0.8
 
 
 @functools.cache
@@ -101,7 +108,8 @@ def page_head(kind: str = "live") -> bytes:
     live), then the script."""
     if kind not in PAGE_KINDS:
         raise ValueError(f"page kind {kind!r}: must be one of {', '.join(PAGE_KINDS)}")
-    return (f"<style>\n{_asset('page.css')}</style>\n<script>window.OMNI_PAGE = {{kind: {json.dumps(kind)}}};</script>\n"
+    page = f"kind: {json.dumps(kind)}, lost_s: {LINK_LOST_S!r}, watchdog_s: {WATCHDOG_S!r}"  # the robots' own watchdog
+    return (f"<style>\n{_asset('page.css')}</style>\n<script>window.OMNI_PAGE = {{{page}}};</script>\n"
             f"<script>\n{_asset('page.js')}</script>\n").encode()
 
 

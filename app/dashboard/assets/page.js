@@ -3,6 +3,8 @@
   // says which page this is: "live", "fleet", or "replay" (a replay commands nothing: its bar has no
   // STOP and says so, and no key stops anything there).
   var KIND = (window.OMNI_PAGE || {}).kind || "live";
+  var LOST_MS = 1000 * ((window.OMNI_PAGE || {}).lost_s || 1);  // no tick for this long: not connected
+  var WATCHDOG_S = (window.OMNI_PAGE || {}).watchdog_s;  // the robots' own watchdog (the link's)
   var NAMES = ["STOP", "STOP every leader"];
   var STATE = /^(running|STOPPED|PAUSED|recorded|leaders)/;
   function panelStop() {
@@ -31,8 +33,14 @@
     for (var n = strong; n && n.nodeName !== "BR"; n = n.nextSibling) text += n.textContent;
     return text.trim();
   }
+  function panelState() {
+    var strong = Array.prototype.find.call(document.querySelectorAll("strong"), function (e) {
+      return STATE.test(e.textContent.trim()) && !e.closest("#omni-stopbar");
+    });
+    return strong ? strong.parentNode : null;
+  }
   function press() {
-    if (KIND === "replay") return false;
+    if (KIND === "replay" || link.down) return false;  // not connected: a click would reach nothing
     var stop = panelStop();
     if (stop && !stop.disabled) { stop.click(); return true; }
     return false;
@@ -70,6 +78,8 @@
     if (KIND === "replay") b.style.display = "none";  // a replay commands no robot: no STOP to press
     var t = document.createElement("span");
     t.id = "omni-stopstate";
+    var age = document.createElement("span");
+    age.id = "omni-linkage";  // not connected: the last t and loop rate, greyed, with their age
     var alarm = document.createElement("div");
     alarm.id = "omni-alarm";
     alarm.setAttribute("role", "alert");
@@ -82,6 +92,7 @@
     alarm.appendChild(ack);
     el.appendChild(b);
     el.appendChild(t);
+    el.appendChild(age);
     document.body.appendChild(el);
     document.body.appendChild(alarm);  // its own box under the bar: the bar holds one button, STOP
     return el;
@@ -212,6 +223,59 @@
     shownCard = who;
     if (c) c.scrollIntoView({block: "nearest"});
   }
+  // The link to the loop (live page): the loop's state line carries the tick it was drawn from
+  // (data-omni-beat), redrawn about five times a second. No new tick for LOST_MS, whatever the cause
+  // (the service gone, the loop's process dead, the network down), or the page saying the loop has
+  // ended: NOT CONNECTED, the bar full width, its STOP and the panel's disabled, the last t and loop
+  // rate greyed with their age. viser reconnects by itself; the first new tick says so.
+  var link = {down: false, tick: null, t: "", hz: "", state: "", at: performance.now(), since: 0,
+              back: 0, gap: 0, checked: performance.now()};
+  window.omniLink = link;  // the browser tests read it
+  function beatOf() {
+    var el = Array.prototype.find.call(document.querySelectorAll("[data-omni-beat]"), function (e) {
+      return !e.closest("#omni-stopbar");
+    });
+    return el ? {tick: el.getAttribute("data-omni-beat"), t: el.getAttribute("data-t"), hz: el.getAttribute("data-hz")}
+              : null;
+  }
+  function clock(ms) {
+    var d = new Date(Date.now() - (performance.now() - ms));
+    return d.toTimeString().slice(0, 8);
+  }
+  function watchLink() {
+    if (KIND !== "live") return;
+    var now = performance.now();
+    var late = now - link.checked > 400;  // this page's own thread was held (a busy browser): judged next time
+    link.checked = now;
+    var b = beatOf();
+    if (b && b.tick !== link.tick) {
+      var first = link.tick === null;  // the page's first tick: connected, not reconnected
+      link.tick = b.tick; link.t = b.t; link.hz = b.hz; link.at = now;
+      link.state = (lineOf(STATE).match(/^(running|STOPPED|PAUSED)/) || [""])[0];
+      if (link.down) {
+        link.down = false;
+        if (!first) { link.back = now; link.gap = (now - link.since) / 1000; link.reconnects = (link.reconnects || 0) + 1; }
+      }
+    }
+    var ended = !!lineOf(/^THE LOOP HAS ENDED/);
+    if (!link.down && (ended || (!late && now - link.at > LOST_MS))) {
+      link.down = true;
+      link.downAt = now;  // (the browser tests print how long after the last tick it was said)
+      link.since = link.tick === null ? now : link.at;
+      link.back = 0;
+    }
+  }
+  function linkText() {
+    var wd = WATCHDOG_S ? " in " + WATCHDOG_S + " s" : "";
+    return "NOT CONNECTED — STOP unavailable from this page; robots stop on their own watchdog" + wd
+      + " once no command reaches them (a loop that still runs keeps driving them: stop it at the leader)";
+  }
+  function ageText() {
+    if (link.tick === null) return "no tick from the loop yet · reconnecting by itself";
+    var age = (performance.now() - link.at) / 1000;
+    return "last from the loop " + age.toFixed(1) + " s ago (" + clock(link.at) + "): " + (link.state || "state")
+      + " · t = " + link.t + " s · loop " + link.hz + " Hz · reconnecting by itself";
+  }
   // The bar and the card follow the panel as soon as it changes (a STOP shown on the panel is on the
   // bar in the same moment), and four times a second for the layout.
   function refresh() {
@@ -222,17 +286,34 @@
     }
     var el = bar(), stop = panelStop();
     if (!el) return;
-    var show = KIND === "replay" || !!stop;
+    watchLink();
+    var down = KIND === "live" && link.down;
+    var show = KIND === "replay" || !!stop || down;
     el.style.display = show ? "flex" : "none";
+    el.classList.toggle("omni-down", down);
+    var said = panelState();  // the panel's own state line: greyed too (it is no longer the loop's)
+    [stop, said].forEach(function (n) {
+      if (n && down) n.setAttribute("data-omni-down", "");
+      else if (n) n.removeAttribute("data-omni-down");
+    });
     if (!show) return;
-    place(el);
+    if (!down) place(el);
     var state = lineOf(STATE);
     if (KIND === "replay") {
       el.firstChild.disabled = true;
       setText(el.children[1], "REPLAY — no robot is controlled" + (state ? " · " + state : ""));
+    } else if (down) {
+      el.firstChild.disabled = true;
+      setText(el.firstChild, "STOP unavailable");
+      setText(el.children[1], linkText());
+      setText(el.children[2], ageText());
     } else {
       el.firstChild.disabled = stop.disabled;
-      setText(el.children[1], state + (document.body.classList.contains("omni-light") ? " · light mode" : ""));
+      setText(el.firstChild, "STOP (Space)");
+      var back = link.back && performance.now() - link.back < BACK_MS
+        ? " · RECONNECTED at " + clock(link.back) + " after " + link.gap.toFixed(1) + " s without the loop" : "";
+      setText(el.children[1], state + (document.body.classList.contains("omni-light") ? " · light mode" : "") + back);
+      setText(el.children[2], "");
     }
     var alarm = KIND === "replay" ? "" : lineOf(/^ALARM/);
     var box = document.getElementById("omni-alarm");
@@ -251,6 +332,13 @@
   }
   function setText(node, text) { if (node.textContent !== text) node.textContent = text; }  // no change: no mutation
   setInterval(refresh, 250);
+  var BACK_MS = 8000;  // how long the bar says the link came back
+  if (KIND === "live") setInterval(function () {  // the link is judged ten times a second
+    var was = link.down;
+    watchLink();
+    if (link.down !== was) refresh();
+    else if (link.down) { var el = document.getElementById("omni-stopbar"); if (el) setText(el.children[2], ageText()); }
+  }, 100);
   var pending = false;
   function watch() {
     if (!document.body) { setTimeout(watch, 50); return; }

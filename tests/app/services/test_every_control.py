@@ -27,7 +27,7 @@ import pytest
 
 from app.params import FORMATION_PRESETS, PARAMETERS, Params, formation_preset
 from core.bounds import OPERATOR, Parameter
-from tests.helpers import RawPage, chromium_browser, keep_ticks, new_page, settle, wait_for
+from tests.helpers import RawPage, chromium_browser, keep_ticks, new_page, settle, start_timer, timed_ms, wait_for
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 PAGE_MS = 30_000
@@ -206,8 +206,10 @@ def _set_row(c: Console, row: Parameter) -> str:
         _in_force(c, f"{name} = {option}", lambda p: getattr(p, name) == option)
         return "its dropdown"
     if row.kind == "flag" and name == "paused":
+        start_timer(page, "text", ["#omni-stopstate", "^PAUSED"])  # the figure issue 82 asks for, printed (-s)
         _press(page, row.label)
         tick = _in_force(c, "paused", lambda p: p.paused)
+        print(f"\n[{c.mode}] Pause click to PAUSED on the bar: {timed_ms(page):.0f} ms")
         wait_for(lambda: c.service.loop.last.paused, LOOP_S, f"[{c.mode}] the loop's ticks paused")
         frozen = c.service.loop.last
         wait_for(lambda: c.service.loop.last.tick > frozen.tick + 5, LOOP_S, "ticks while paused")
