@@ -42,7 +42,7 @@ chromium:
 	scripts/ensure-chromium
 
 kernels: $(STAMP)
-	$(BIN)/python -m app.live.warmup
+	$(BIN)/python -m app.services.warmup
 
 bytecode: $(STAMP)
 	$(BIN)/python -m compileall -q app core tests

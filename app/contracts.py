@@ -1,10 +1,13 @@
 """The contracts the loop is typed against: what a team, a feedback, a camera's frame source
 and a follower link must offer, and the value a rig is (its camera config and Γ).
 
-The loop (app.live.loop) knows only these shapes; the simulated team and real robots
-(app.backends.sim, app.backends.hardware), the truth and vision feedbacks (app.backends.feedback),
-the cameras (app.backends.camera) and the serial links (app.backends.serial_link) plug in
-behind them.
+The loop (app.live.loop) knows only these shapes and imports nothing from app.backends; the
+simulated team and real robots (app.backends.sim, app.backends.hardware, app.backends.arena), the
+truth and vision feedbacks (app.backends.feedback), the cameras (app.backends.camera) and the
+serial links (app.backends.serial_link) plug in behind them, and app.backends.world.Backends is
+the :class:`World` the services hand the loop. What the loop needs of a real rig is said here as
+members: a team's radio delay and leader link (:class:`Team`), a camera's real-time capture
+thread (:class:`RealtimeFrameSource`).
 """
 
 from __future__ import annotations
@@ -16,7 +19,8 @@ import numpy as np
 
 from core.camera.config import CameraConfig
 from core.camera.gamma import Gamma
-from core.sim.team import TeamState
+from core.obstacles import Obstacle
+from core.sim.team import FollowerDynamics, TeamState
 from core.types import BoolArray, Commands, FloatArray, Image
 from core.vision.freespace import Scan
 
@@ -46,6 +50,15 @@ class FrameSource(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+class RealtimeFrameSource(FrameSource, Protocol):
+    """A frame source the loop's ticks start on (a real camera, a video, a folder of images)."""
+
+    def make_realtime(self) -> str:
+        """Ask real-time scheduling (app.realtime) for the source's own capture thread, as the loop
+        does for its own with --realtime: "" when granted, else why not, in one line."""
+        ...
 
 
 class FollowerLink(Protocol):
@@ -96,6 +109,19 @@ class Team(Protocol):
 
     def truth(self) -> tuple[FloatArray, FloatArray]:
         """(p (n, 2), a (n,)) in the leader frame: the simulator's truth; NaN for real robots."""
+        ...
+
+    @property
+    def leader_link(self) -> FollowerLink | None:
+        """The leader's base, when it is a real one (its serial link, a ROS 2 base): the loop
+        compensates what it measured (eq. 5); None: the commanded twist is the leader's."""
+        ...
+
+    def radio_delay_s(self) -> float | None:
+        """How long a command takes to reach a real follower (half the link's mean round trip; 0
+        before any answer): the loop predicts each pose over the frame's age and this (a real rig's
+        latency, core.control.prediction). None for a team with no real rig to bridge (simulated,
+        an arena's)."""
         ...
 
     def send(self, commands: Commands) -> None: ...
@@ -156,4 +182,44 @@ class Feedback(Protocol):
     @property
     def scan_pending(self) -> bool:
         """A scan's first half is done and its second is due on the next tick."""
+        ...
+
+
+@dataclass(frozen=True)
+class Made:
+    """A team and its feedback, ready; ``start_p``: where the followers are known to start
+    (leader frame; eq. 33 runs on it at once), None when the camera's start-up must find them."""
+
+    team: Team
+    feedback: Feedback
+    start_p: FloatArray | None
+
+
+class World(Protocol):
+    """What the loop runs on, handed in by the services (app.backends.world.Backends is one): it
+    makes the team and its feedback at the start and at every reset, and says what they are made of."""
+
+    seed: int
+    dynamics: FollowerDynamics
+    position_noise_m: float
+    heading_noise_rad: float
+    camera: Rig | None
+    obstacles: tuple[Obstacle, ...]
+
+    @property
+    def frames(self) -> RealtimeFrameSource | None:
+        """A real camera's frames: the loop's ticks start on them (None: ticks at the loop's rate)."""
+        ...
+
+    def make(self, n: int, resets: int) -> Made:
+        """The team of ``n`` followers after ``resets`` resets, and its feedback."""
+        ...
+
+    def robots(self) -> tuple[int, ...] | None:
+        """An arena leader's: the fleet's robot index of each follower it drives (None elsewhere)."""
+        ...
+
+    def simulated(self, camera: Rig | None, obstacles: tuple[Obstacle, ...]) -> World:
+        """A simulated world of the same kind (seed, dynamics, noise) seen through ``camera`` (None:
+        the truth), with ``obstacles``: what the warm-up steps with nothing sent to any robot."""
         ...

@@ -382,6 +382,15 @@ class ArenaTeam:
     def truth(self) -> tuple[FloatArray, FloatArray]:
         return measure_followers(self.state, self.rng)
 
+    @property
+    def leader_link(self) -> None:
+        """The arena moves this leader: no base of its own to measure."""
+        return None
+
+    def radio_delay_s(self) -> None:
+        """The arena's robots: no camera-to-radio latency to bridge (the truth is the arena's)."""
+        return None
+
     def send(self, commands: Commands) -> None:
         v, w = np.asarray(commands.v, dtype=np.float64), np.asarray(commands.w, dtype=np.float64)
         truth = self.latest_truth()

@@ -27,7 +27,7 @@ import numpy as np
 
 from core.camera.config import CaptureSettings
 
-from app.contracts import FrameSource
+from app.contracts import RealtimeFrameSource
 from app.realtime import make_realtime
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -265,7 +265,7 @@ class FolderSource(ThreadedSource):
                 return
 
 
-def open_frame_source(spec: str, fps: float | None = None, settings: CaptureSettings | None = None) -> FrameSource:
+def open_frame_source(spec: str, fps: float | None = None, settings: CaptureSettings | None = None) -> RealtimeFrameSource:
     """``0`` (a camera index), a device path, a video file or a folder of images; a camera is set
     as ``settings`` say (the camera file's ``[capture]``).
 

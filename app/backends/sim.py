@@ -70,6 +70,15 @@ class SimTeam:
     def truth(self) -> tuple[FloatArray, FloatArray]:
         return measure_followers(self.state, self.rng)
 
+    @property
+    def leader_link(self) -> FollowerLink | None:
+        """The real leader base (``leader``), whose measured motion eq. 5 compensates."""
+        return self.leader
+
+    def radio_delay_s(self) -> None:
+        """Simulated followers: no real rig's latency to bridge (real ones on ``link`` move a simulated world)."""
+        return None
+
     def send(self, commands: Commands) -> None:
         self.commands = commands
         if self.leader is not None and not self._leader_sent:  # a tick that does not move the world (paused,

@@ -18,17 +18,9 @@ from app.backends.arena import ArenaFeedback, ArenaTeam
 from app.backends.feedback import TruthFeedback, VisionFeedback
 from app.backends.hardware import HardwareTeam
 from app.backends.sim import SimTeam, spread_start
-from app.contracts import Feedback, FollowerLink, FrameSource, Rig, Team
+from app.contracts import Feedback, FollowerLink, Made, RealtimeFrameSource, Rig
 
-
-@dataclass(frozen=True)
-class Made:
-    """A team and its feedback, ready; ``start_p``: where the followers are known to start
-    (leader frame; eq. 33 runs on it at once), None when the camera's start-up must find them."""
-
-    team: Team
-    feedback: Feedback
-    start_p: FloatArray | None
+__all__ = ["Backends", "Made"]
 
 
 @dataclass
@@ -45,7 +37,7 @@ class Backends:
     initial_poses: tuple[FloatArray, FloatArray] | None = None
     camera: Rig | None = None
     link: FollowerLink | None = None
-    frames: FrameSource | None = None
+    frames: RealtimeFrameSource | None = None
     hardware: HardwareTeam | None = None
     pipeline_settings: PipelineSettings = field(default_factory=PipelineSettings)
     obstacles: tuple[Obstacle, ...] = ()
@@ -55,6 +47,15 @@ class Backends:
     def __post_init__(self) -> None:
         if self.frames is not None and (self.hardware is None or self.camera is None):
             raise ValueError("a real frame source needs the real team (hardware) and the rig's calibration (camera)")
+
+    def robots(self) -> tuple[int, ...] | None:
+        """An arena leader's: the fleet's robot index of each follower it drives (None elsewhere)."""
+        return tuple(self.arena.active) if self.arena is not None else None
+
+    def simulated(self, camera: Rig | None, obstacles: tuple[Obstacle, ...]) -> Backends:
+        """The simulated world of the same seed and dynamics, seen through ``camera`` (None: the truth),
+        with ``obstacles``: no link, camera frames, real team or arena (app.contracts.World)."""
+        return Backends(self.seed, self.dynamics, camera=camera, obstacles=obstacles)
 
     def make(self, n: int, resets: int) -> Made:
         """The team of ``n`` followers (a real or an arena's team: the robots it has) after

@@ -6,15 +6,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from core.config import ConfigError, MeasurementNoise, Table, parse_dynamics, parse_measurement, toml_loads
+from core.link.spec import forms, parse_spec
 from core.sim.team import FollowerDynamics
 
-from app.backends.serial_link import parse_link_spec
 from app.contracts import Rig
 from app.files import (DEFAULT_CONFIG, SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, UserError, display_path,
                        load_synthetic_rig)
 
 __all__ = ["DEFAULT_CONFIG", "FEEDBACKS", "ServiceConfig", "load_service_config"]
 FEEDBACKS = ("vision", "truth")
+CONFIG_LINKS = ("sim", "none", "serial")  # the link schemes service.link may name (core.link.spec)
 
 
 @dataclass(frozen=True)
@@ -57,11 +58,10 @@ def load_service_config(path: Path, max_followers: int) -> ServiceConfig:
         seed = svc.integer("seed", 0, 2**32 - 1, default=0)
         feedback = svc.text("feedback", default="vision", choices=FEEDBACKS)
         link = svc.text("link", default="sim")
-        if link != "none":
-            try:
-                parse_link_spec(link)
-            except ValueError:
-                raise svc.fail("link", link, "'sim', 'none' or 'serial:PATH' (e.g. serial:/dev/ttyUSB0)") from None
+        try:
+            parse_spec(link, "service.link", CONFIG_LINKS)  # the link registry's grammar (core.link.spec)
+        except ValueError:
+            raise svc.fail("link", link, f"{forms(CONFIG_LINKS)} (e.g. serial:/dev/ttyUSB0)") from None
         svc.finish()
         cam = top.table("camera")
         frames = cam.text("source", default="synthetic")

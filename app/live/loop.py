@@ -31,15 +31,11 @@ from core.config import MeasurementNoise
 from core.obstacles import Obstacle
 from core.sim.profiles import Eq39Profile
 from core.sim.team import FollowerDynamics
-from core.vision.pipeline import PipelineSettings
 from core.types import BoolArray, Commands, FloatArray
 
-from app.backends.hardware import HardwareTeam
-from app.backends.arena import ArenaTeam
-from app.backends.world import Backends
-from app.live.kernels import compiled, warm_up
+from app.live.warmup import compiled, warm_up
 from app.realtime import SWITCH_INTERVAL_S, CpuReservation, make_realtime, scheduling
-from app.contracts import Feedback, FollowerLink, FrameSource, Observation, Rig, Team
+from app.contracts import Feedback, Observation, RealtimeFrameSource, Rig, Team, World
 from app.params import Params, ParamsStore
 from app.keys import follower_name
 from app.tick import TickState
@@ -101,40 +97,18 @@ def safety_text(result: SafetyResult | None, on: bool, name: Callable[[int], str
 class ServiceLoop:
     """The one loop. ``tick()`` does one step; ``run()`` paces ticks until stopped."""
 
-    def __init__(
-        self,
-        store: ParamsStore,
-        rate_hz: float = 30.0,
-        seed: int = 0,
-        dynamics: FollowerDynamics | None = None,
-        position_noise_m: float = DEFAULT_NOISE.position_noise_m,
-        heading_noise_rad: float = DEFAULT_NOISE.heading_noise_rad,
-        initial_poses: tuple[FloatArray, FloatArray] | None = None,
-        camera: Rig | None = None,
-        link: FollowerLink | None = None,
-        frames: FrameSource | None = None,
-        hardware: HardwareTeam | None = None,
-        pipeline_settings: PipelineSettings | None = None,
-        obstacles: tuple[Obstacle, ...] = (),
-        switches: tuple[tuple[float, FloatArray], ...] = (),
-        arena: ArenaTeam | None = None,
-        realtime: bool = False,
-        leader_base: FollowerLink | None = None,
-    ) -> None:
-        """``realtime``: the loop's thread (and a real camera's capture thread) ask for SCHED_FIFO
-        when the loop starts (app.realtime); ``priority`` says what they got.
-        The team and its feedback are made by :class:`app.backends.world.Backends` from these
-        (its docstring says what each means); the loop only drives what it is handed.
+    def __init__(self, store: ParamsStore, world: World, rate_hz: float = 30.0, realtime: bool = False,
+                 switches: tuple[tuple[float, FloatArray], ...] = ()) -> None:
+        """``world``: what the loop runs on, handed in by the services (app.contracts.World;
+        app.backends.world.Backends says what each kind of team and feedback is); the loop only
+        drives what it makes. ``realtime``: the loop's thread (and a real camera's capture thread)
+        ask for SCHED_FIFO when the loop starts (app.realtime); ``priority`` says what they got.
         ``switches``: (time s, slots) a scenario's formation switches, applied as the operator's
-        would be (they count from the loop's start and from every reset). ``leader_base``: the
-        simulated team's leader is a real base (app.backends.sim)."""
+        would be (they count from the loop's start and from every reset)."""
         self.store = store
         self.dt = 1.0 / rate_hz
         self.rate_hz = rate_hz
-        self.seed = seed
-        self.backends = Backends(seed, dynamics or FollowerDynamics(), position_noise_m, heading_noise_rad,
-                                 initial_poses, camera, link, frames, hardware,
-                                 pipeline_settings or PipelineSettings(), tuple(obstacles), arena, leader_base)
+        self.backends = world
         self.realtime = realtime
         self.cpu: CpuReservation | None = None  # a CPU kept for the loop's thread (the service sets it: --reserve-cpu)
         self.priority = "normal"  # how the loop's thread is scheduled, once it runs
@@ -162,7 +136,11 @@ class ServiceLoop:
         self._safety: SafetySettings | None = None
         self._world = self._make_world(store.get())
 
-    # what the team is made of (the backends' own; read by the service, the tuning bench and run())
+    # what the team is made of (the world's own; read by the service, the tuning bench and run())
+    @property
+    def seed(self) -> int:
+        return self.backends.seed
+
     @property
     def dynamics(self) -> FollowerDynamics:
         return self.backends.dynamics
@@ -176,12 +154,8 @@ class ServiceLoop:
         return self.backends.heading_noise_rad
 
     @property
-    def frames(self) -> FrameSource | None:
+    def frames(self) -> RealtimeFrameSource | None:
         return self.backends.frames
-
-    @property
-    def hardware(self) -> HardwareTeam | None:
-        return self.backends.hardware
 
     @property
     def camera(self) -> Rig | None:
@@ -191,7 +165,7 @@ class ServiceLoop:
     def obstacles(self) -> tuple[Obstacle, ...]:
         return self.backends.obstacles
 
-    # -- the warm-up's (app.live.kernels.Warmable) ----------------------------------------
+    # -- the warm-up's (app.live.warmup.Warmable) ----------------------------------------
     @property
     def ready(self) -> bool:
         """The team's start-up is over: every follower's pose is known (always, with truth feedback)."""
@@ -200,8 +174,7 @@ class ServiceLoop:
     def throwaway(self, store: ParamsStore, camera: Rig | None, obstacles: tuple[Obstacle, ...]) -> ServiceLoop:
         """A loop like this one (rate, seed, dynamics) on a simulated world of its own, ``camera``'s
         or the truth's: what the warm-up steps with nobody watching and nothing sent to any robot."""
-        return ServiceLoop(store, rate_hz=self.rate_hz, seed=self.seed, dynamics=self.dynamics, camera=camera,
-                           obstacles=obstacles)
+        return ServiceLoop(store, self.backends.simulated(camera, obstacles), rate_hz=self.rate_hz)
 
     def solver(self, params: Params) -> str:
         return self._safety_settings(params).solver
@@ -266,11 +239,10 @@ class ServiceLoop:
         old as its frame (arrival to now; older when the camera was late), and this tick's command
         acts half a round trip after it is written (the link's measured RTT). Over the ticks since
         the frame the followers applied the commands sent in them; after, they hold the last one."""
-        assert self.hardware is not None
         now = time.monotonic() if now is None else now
         since = max(0.0, now - observed_at) if np.isfinite(observed_at) else 0.0
         past = min(int(round(since / self.dt)), len(self._sent))
-        ahead = int(round(self.hardware.radio_delay_s() / self.dt))
+        ahead = int(round((self._world.team.radio_delay_s() or 0.0) / self.dt))
         history = list(self._sent)[len(self._sent) - past:]
         last = self._sent[-1][0] if self._sent else np.zeros((len(a), 2))
         commands = [c for c, _ in history] + [last] * ahead
@@ -283,7 +255,7 @@ class ServiceLoop:
         """The leader's (v, w) for eq. 5's compensation: what its base measured (its odometry:
         /odom, or a serial base's encoders) while that is fresh, else the commanded twist (and
         the source says why); the commanded one when there is no leader base."""
-        base = self.backends.leader or (self.hardware.leader_link if self.hardware is not None else None)
+        base = self._world.team.leader_link
         if base is None:
             return twist, "command"
         if base.lost:
@@ -296,8 +268,7 @@ class ServiceLoop:
 
     def _robots(self) -> tuple[int, ...] | None:
         """An arena leader's: the fleet's robot index of each follower it drives (None elsewhere)."""
-        arena = self.backends.arena
-        return tuple(arena.active) if arena is not None else None
+        return self.backends.robots()
 
     def _name(self, i: int) -> str:
         """Follower ``i``'s one name for people (app.keys.follower_name: "R3 (F1)" in an arena)."""
@@ -449,8 +420,8 @@ class ServiceLoop:
             world.err_norm = np.linalg.norm(world.memory.slots.p_d - p, axis=1)
         else:
             acting = None
-            if self.hardware is not None and advance:  # a real rig: each follower where it will be when this acts
-                acting = self._over_latency(p, a, obs.observed_at, twist)
+            if advance and world.team.radio_delay_s() is not None:  # a real rig: each follower where it will be
+                acting = self._over_latency(p, a, obs.observed_at, twist)  # when this acts
             step = team_step(world.memory, p, a, tracked, params.slots, twist, params.gains, self.dt,
                              active=tracked & (not params.stop) & advance, obstacles=known, safety=settings,
                              filter_now=not params.stop, scale=self._nav[1], advance=advance and world.ready,
@@ -496,15 +467,15 @@ class ServiceLoop:
         # with the loop on real-time scheduling, a thread holding the GIL is what is left (app.realtime)
         sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         why = make_realtime()
-        camera = getattr(self.frames, "make_realtime", None)
-        camera_why = camera() if camera is not None else ""
+        camera = self.frames
+        camera_why = camera.make_realtime() if camera is not None else ""
         self.priority = scheduling() if not why else f"normal (real-time refused: {why})"
         if why or camera_why:
             log.warning("loop: --realtime: %s", why or f"the camera's thread: {camera_why}")
         else:
             log.info("loop: real-time scheduling for the loop%s", " and the camera" if camera is not None else "")
 
-    def _run_on_frames(self, frames: FrameSource) -> None:
+    def _run_on_frames(self, frames: RealtimeFrameSource) -> None:
         """Frame-triggered ticks: each starts as soon as a new frame arrives, so no frame waits for
         the loop's schedule. No frame within ``LATE_FRAME_PERIODS`` periods of the configured rate
         is a late camera: the tick runs anyway, on the newest estimates, and the stale-frame rule
@@ -565,7 +536,7 @@ class ServiceLoop:
     def run(self) -> None:
         """Tick until stop(): on a camera's frames when the loop has one (``frames``), else at the
         configured rate. Always leaves the followers at zero. Every kernel it can reach is compiled
-        and warmed first, before its clock starts (app.live.kernels)."""
+        and warmed first, before its clock starts (app.live.warmup)."""
         warm_up(self)
         compiled_at_start = compiled()
         if self.cpu is not None:  # one line, as the warm-up's: the operator starts a browser off that CPU
@@ -579,7 +550,7 @@ class ServiceLoop:
             if self.cpu is not None:
                 self.cpu.release()
             late = compiled() - compiled_at_start
-            if late:  # a kernel the warm-up did not reach: its first use stalled a tick (name it in app.live.kernels)
+            if late:  # a kernel the warm-up did not reach: its first use stalled a tick (name it in app.live.warmup)
                 log.warning("loop: %d kernel(s) compiled while the loop's clock ran", late)
 
     def _paced(self) -> None:

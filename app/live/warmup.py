@@ -20,8 +20,9 @@ one line is printed only when something was compiled.
 
 This module sits below the loop (app.live.loop calls :func:`warm_up` as its run() starts): it
 knows a loop only by :class:`Warmable`, what the warm-up asks of one, and the loop makes its
-own throwaway twin. Filling the cache for every kind of world `run` makes, from the command
-line, is app.live.warmup's (above the loop: it builds loops).
+own throwaway twin on a world its own world makes (app.contracts.World.simulated). Filling the
+cache for every kind of world `run` makes (`python -m app.services.warmup`, a step of `make
+test`) builds worlds, so it is a composition root's: app.services.warmup.
 """
 
 from __future__ import annotations
@@ -32,8 +33,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from app.params import Params, ParamsStore, default_slots
 
-if TYPE_CHECKING:  # for the types alone: importing them loads kernels, and `python -m app.live.warmup` refuses
-    # a mistaken argument before any kernel loads
+if TYPE_CHECKING:  # for the types alone: importing them loads kernels, and `python -m app.services.warmup`
+    # refuses a mistaken argument before any kernel loads
     from core.obstacles import Obstacle
 
     from app.contracts import Rig

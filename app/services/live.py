@@ -23,7 +23,7 @@ from core.sim.profiles import ConstantProfile, Eq39Profile, GoalProfile
 
 from app.backends.hardware import HardwareTeam
 from app.backends.arena import ArenaTeam
-from app.contracts import FollowerLink, FrameSource, Rig
+from app.contracts import FollowerLink, RealtimeFrameSource, Rig
 from app.dashboard import Dashboard, LatestStatePublisher
 from app.dashboard.calibration_panel import CalibrationPanel
 from app.dashboard.camera_panel import Overlay
@@ -34,6 +34,7 @@ from app.services.page_process import PageProcess, goal_check_for  # (both proce
 from app.services.page_tuning import serve_tuning
 from app.services.replay import ReplayService
 from app.live.loop import DEFAULT_NOISE, ServiceLoop
+from app.backends.world import Backends
 from app.params import LeaderMode, Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base
@@ -96,7 +97,7 @@ class Service:
                  n_followers: int = 3, rate_hz: float = 30.0, seed: int = 0,
                  camera: Rig | None = None,
                  dynamics: FollowerDynamics | None = None, noise: MeasurementNoise | None = None,
-                 link: FollowerLink | None = None, frames: FrameSource | None = None,
+                 link: FollowerLink | None = None, frames: RealtimeFrameSource | None = None,
                  hardware: HardwareTeam | None = None, recordings: Path | None = None,
                  token: str | None = None, arena: ArenaTeam | None = None, params: Params | None = None,
                  viewer_token: str | None = None, realtime: bool = False,
@@ -123,12 +124,12 @@ class Service:
             dynamics = scenario.dynamics
             seed = scenario.seed
         obstacles = scenario.obstacles if scenario is not None and hardware is None else ()
-        self.loop = ServiceLoop(self.store, rate_hz=rate_hz, seed=seed, dynamics=dynamics, camera=camera,
-                                link=link, frames=frames, hardware=hardware,
-                                position_noise_m=noise.position_noise_m, heading_noise_rad=noise.heading_noise_rad,
-                                initial_poses=initial_poses, obstacles=obstacles,
-                                switches=scenario.switches if scenario is not None else (), arena=arena,
-                                realtime=realtime, leader_base=leader_base)
+        world = Backends(seed=seed, dynamics=dynamics or FollowerDynamics(), position_noise_m=noise.position_noise_m,
+                         heading_noise_rad=noise.heading_noise_rad, initial_poses=initial_poses, camera=camera,
+                         link=link, frames=frames, hardware=hardware, obstacles=obstacles, arena=arena,
+                         leader=leader_base)  # what the loop runs on, handed in (app.contracts.World)
+        self.loop = ServiceLoop(self.store, world, rate_hz=rate_hz,
+                                switches=scenario.switches if scenario is not None else (), realtime=realtime)
         if obstacles:
             self.store.goal_check = goal_check_for(obstacles)
         overlay = None

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
     from app.backends.arena import ArenaTeam
     from app.backends.hardware import HardwareTeam
-    from app.contracts import FollowerLink, FrameSource, Rig
+    from app.contracts import FollowerLink, RealtimeFrameSource, Rig
     from app.fleet.bridge import FleetBridge, Presence
     from app.fleet.security import FleetKeys
     from app.live.config import ServiceConfig
@@ -158,7 +158,7 @@ def compose(plan: RunPlan, say: Callable[..., None]) -> Iterator[Running]:
         yield Running(service, link, recorder, bridge)
 
 
-def _open_camera(plan: RunPlan, handed: contextlib.ExitStack) -> FrameSource | None:
+def _open_camera(plan: RunPlan, handed: contextlib.ExitStack) -> RealtimeFrameSource | None:
     if not plan.real or plan.camera_source is None:
         return None
     from app.backends.camera import open_frame_source
@@ -252,7 +252,7 @@ def _build_rig(plan: RunPlan, handed: contextlib.ExitStack,
     return link, hardware
 
 
-def _serve(plan: RunPlan, frames: FrameSource | None, link: FollowerLink | None, hardware: HardwareTeam | None,
+def _serve(plan: RunPlan, frames: RealtimeFrameSource | None, link: FollowerLink | None, hardware: HardwareTeam | None,
            fleet: _Fleet | None, base: FollowerLink | None, say: Callable[..., None]) -> Service:
     from app.dashboard.gate import is_loopback
     from app.services.live import Service

@@ -21,7 +21,8 @@ from tests.helpers import ROOT
 # folder -> the app folders it must not import (no allow-list: a file that needs one moves its need down)
 SIDEWAYS = {"dashboard", "recording", "fleet"}
 FORBIDDEN = {
-    "live": {"dashboard", "fleet", "ros2", "services", "cli", "recording"},
+    # the loop types against app.contracts alone: the services hand it its world (app.backends.world)
+    "live": {"backends", "dashboard", "fleet", "ros2", "services", "cli", "recording"},
     "backends": {"live", "dashboard", "fleet", "ros2", "services", "recording", "cli"},
     **{row: (SIDEWAYS - {row}) | {"ros2", "services", "cli"} for row in SIDEWAYS},
     "ros2": {"live", "dashboard", "recording", "services", "cli"},
@@ -143,8 +144,8 @@ def test_no_folder_of_app_imports_one_above_it():
 
 
 def test_the_loop_builds_no_backend_itself():
-    """The loop is handed its team and feedback (app.backends.world): it imports no backend's
-    class to make one."""
+    """The loop is handed its world (app.contracts.World, app.backends.world.Backends, by the
+    services): it names no backend's class to make one."""
     text = (ROOT / "app" / "live" / "loop.py").read_text(encoding="utf-8")
     for made_elsewhere in ("SimTeam(", "VisionFeedback(", "TruthFeedback(", "ArenaFeedback(", "spread_start("):
         assert made_elsewhere not in text, made_elsewhere

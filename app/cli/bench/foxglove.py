@@ -53,12 +53,13 @@ def bench_foxglove(print_fn: Callable[[str], None] = print, seconds: float = 4.0
     """Loop rate alone and served to a subscribed Foxglove client, and the CPU added per tick (medians)."""
     from app.live.config import DEFAULT_CONFIG, load_service_config
     from app.live.loop import ServiceLoop
+    from app.backends.world import Backends
     from app.params import MAX_FOLLOWERS, Params, ParamsStore, default_slots
     from app.services.foxglove_live import FoxgloveLive
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)  # what `make run` serves: vision in the loop
     store = ParamsStore(Params(n_followers=3, slots=default_slots(3), leader_mode="circle"))
-    loop = ServiceLoop(store, rate_hz=30.0, camera=config.camera(), dynamics=config.dynamics)
+    loop = ServiceLoop(store, Backends(camera=config.camera(), dynamics=config.dynamics), rate_hz=30.0)
     thread = threading.Thread(target=loop.run, name="bench-loop", daemon=True)
     thread.start()
 

@@ -18,6 +18,7 @@ def write_long_recording(path: Any, minutes: float) -> tuple[int, float]:
 
     from app.live.config import DEFAULT_CONFIG, load_service_config
     from app.live.loop import ServiceLoop
+    from app.backends.world import Backends
     from app.params import MAX_FOLLOWERS, ParamsStore, default_slots
     from app.recording.writer import Recorder
 
@@ -25,7 +26,7 @@ def write_long_recording(path: Any, minutes: float) -> tuple[int, float]:
     from app.params import Params
 
     store = ParamsStore(Params(n_followers=3, slots=default_slots(3), leader_mode="eq39"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=3, dynamics=config.dynamics, camera=config.camera())
+    loop = ServiceLoop(store, Backends(seed=3, dynamics=config.dynamics, camera=config.camera()), rate_hz=30.0)
     rec = Recorder(path, {"scenario": "long", "command": "omniformation bench --long-recording"}, store.get(),
                    frame_rate_hz=10.0, lossless=True)
     loop.subscribe(rec.on_tick)

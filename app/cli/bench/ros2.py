@@ -34,12 +34,13 @@ def _make_loop(ros2: Any | None) -> Any:
     from app.files import DEFAULT_CONFIG
     from app.live.config import load_service_config
     from app.live.loop import ServiceLoop
+    from app.backends.world import Backends
     from app.params import MAX_FOLLOWERS, Params, ParamsStore, default_slots
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     store = ParamsStore(Params(n_followers=3, slots=default_slots(3), leader_mode="straight"))
-    return store, ServiceLoop(store, rate_hz=30.0, seed=1, dynamics=config.dynamics, camera=config.camera(),
-                              leader_base=ros2)
+    return store, ServiceLoop(store, Backends(seed=1, dynamics=config.dynamics, camera=config.camera(), leader=ros2),
+                              rate_hz=30.0)
 
 
 def bench_ros2(print_fn: Callable[[str], None] = print, seconds: float = 5.0, rounds: int = 3) -> dict[str, float]:

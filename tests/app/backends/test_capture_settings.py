@@ -136,6 +136,7 @@ def test_a_live_camera_in_other_light_than_its_calibration_is_said_on_the_status
     from app.backends.hardware import HardwareTeam
     from app.contracts import Rig
     from app.live.loop import ServiceLoop
+    from app.backends.world import Backends
     from app.params import ParamsStore
     from core.camera.config import gamma_toml
     from core.camera.lighting import measure_lighting
@@ -150,8 +151,8 @@ def test_a_live_camera_in_other_light_than_its_calibration_is_said_on_the_status
     for k in range(3):
         cv2.imwrite(str(tmp_path / f"f{k}.png"), (view * 0.6).astype(np.uint8))
     source = FolderSource(tmp_path, fps=30.0, loop=True)
-    loop = ServiceLoop(ParamsStore(), rate_hz=30.0, frames=source, hardware=HardwareTeam(2),
-                       camera=Rig(rig, rig.require_gamma()))
+    loop = ServiceLoop(ParamsStore(), Backends(frames=source, hardware=HardwareTeam(2),
+                                               camera=Rig(rig, rig.require_gamma())), rate_hz=30.0)
     states: list = []
     loop.subscribe(states.append)
     thread = threading.Thread(target=loop.run, daemon=True)

@@ -20,6 +20,7 @@ import serial
 
 from app.backends.serial_link import SerialLink
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import Params, ParamsStore, default_slots
 from core.link import protocol as p
 
@@ -146,7 +147,7 @@ def test_the_service_holds_the_formation_with_the_firmware_and_stop_stops_it(fir
     # each robot starts 25-30 cm from its slot (the formation's convergence from anywhere
     # is the simulator's tests'; this one is the firmware's: it drives them there and holds them)
     start = default_slots(3) + np.array([[0.25, -0.1], [-0.2, 0.15], [0.1, 0.28]])
-    loop = ServiceLoop(store, rate_hz=30.0, seed=4, link=link, initial_poses=(start, np.full(3, np.pi / 2)))
+    loop = ServiceLoop(store, Backends(seed=4, link=link, initial_poses=(start, np.full(3, np.pi / 2))), rate_hz=30.0)
     seen: list = []
     loop.subscribe(lambda s: seen.append(s))
     thread = threading.Thread(target=loop.run, daemon=True)

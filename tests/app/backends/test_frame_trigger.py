@@ -13,6 +13,7 @@ import pytest
 from app.backends.camera import ThreadedSource
 from app.backends.hardware import HardwareTeam
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import ParamsStore
 from tests.helpers import wait_for
 
@@ -58,7 +59,7 @@ def rig_and_frame():
 def test_ticks_follow_the_cameras_frames(rig_and_frame, hz):
     camera, picture = rig_and_frame
     source = PacedCamera(picture, hz)
-    loop = ServiceLoop(ParamsStore(), rate_hz=30.0, frames=source, hardware=HardwareTeam(2), camera=camera)
+    loop = ServiceLoop(ParamsStore(), Backends(frames=source, hardware=HardwareTeam(2), camera=camera), rate_hz=30.0)
     ticks: list = []
     loop.subscribe(ticks.append)
     thread = threading.Thread(target=loop.run, daemon=True)
@@ -96,7 +97,7 @@ def test_the_latency_is_recorded_and_reported(tmp_path):
     from app.recording.writer import Recorder
 
     store = ParamsStore(Params(leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+    loop = ServiceLoop(store, Backends(seed=1), rate_hz=30.0)
     rec = Recorder(tmp_path / "s.mcap", {"scenario": "latency"}, store.get(), lossless=True)
     loop.subscribe(rec.on_tick)
     states = [loop.tick() for _ in range(40)]
@@ -176,7 +177,7 @@ def test_a_real_rig_predicts_its_followers_over_the_measured_latency(rig_and_fra
     source = FolderSource(tmp_path, fps=30.0)
     team = HardwareTeam(2)
     team.link = Link()  # only its measured round trip is read here
-    loop = ServiceLoop(ParamsStore(), rate_hz=30.0, frames=source, hardware=team, camera=camera)
+    loop = ServiceLoop(ParamsStore(), Backends(frames=source, hardware=team, camera=camera), rate_hz=30.0)
     try:
         sent = [np.array([[0.1 * k, 0.2], [0.05, -0.1 * k]]) for k in range(5)]
         for c in sent:

@@ -212,13 +212,14 @@ def test_a_reopened_port_gets_stop_for_everyone_before_anything_else():
 def test_while_the_link_is_lost_the_loop_commands_zero():
     """A line nobody answers: the loop's controller would drive, but every tick's commands are zero."""
     from app.live.loop import ServiceLoop
+    from app.backends.world import Backends
     from app.params import ParamsStore
 
     line = Line(lambda data: None)
     link = SerialLink(line.path, 2)
     store = ParamsStore()
     store.update("test", leader_mode="straight")
-    loop = ServiceLoop(store, rate_hz=30.0, seed=1, link=link)
+    loop = ServiceLoop(store, Backends(seed=1, link=link), rate_hz=30.0)
     try:
         wait_for(lambda: link.connects == 1, 5, "the port to open")
         states = [loop.tick() for _ in range(60)]
@@ -373,6 +374,7 @@ def test_a_robot_that_does_not_answer_in_time_is_sent_only_zero(device, answerin
     """The loop drives (leader straight, followers far from their slots); on the wire, every
     SET_VELOCITY to a robot that has not answered in time is zero. Counted frame by frame."""
     from app.live.loop import ServiceLoop
+    from app.backends.world import Backends
     from app.params import ParamsStore
 
     behave = {"stale by 10 ticks": stale_acker(10), "stuck on one sequence number": fixed_acker(),
@@ -383,7 +385,7 @@ def test_a_robot_that_does_not_answer_in_time_is_sent_only_zero(device, answerin
     link = SerialLink(line.path, 3)
     store = ParamsStore()
     store.update("test", leader_mode="straight", n_followers=3)
-    loop = ServiceLoop(store, rate_hz=30.0, seed=1, link=link)
+    loop = ServiceLoop(store, Backends(seed=1, link=link), rate_hz=30.0)
     try:
         wait_for(lambda: link.connects == 1, 5, "the port to open")
         states = []

@@ -17,7 +17,8 @@ from app.backends.serial_link import SerialLink
 from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_camera
 from app.backends.feedback import STALE_FRAME_S
 from app.live.loop import ServiceLoop
-from app.live.warmup import warm_all
+from app.backends.world import Backends
+from app.services.warmup import warm_all
 from app.tick import TickState
 from app.params import Params, ParamsStore
 from core.camera.render import Renderer
@@ -105,9 +106,10 @@ def test_real_rig_loop_drives_robots_on_the_wire_and_stops_them_when_the_camera_
     frames = FolderSource(tmp_path, fps=30.0)
     store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]])),
                         fixed_followers=3)
-    loop = ServiceLoop(store, rate_hz=30.0, camera=(calibration, calibration.gamma), frames=frames,
-                       hardware=HardwareTeam(3, link),
-                       pipeline_settings=PipelineSettings(probe_s=30.0))  # still probing when the frames end
+    loop = ServiceLoop(store, Backends(camera=(calibration, calibration.gamma), frames=frames,
+                                       hardware=HardwareTeam(3, link),
+                                       pipeline_settings=PipelineSettings(probe_s=30.0)),
+                       rate_hz=30.0)  # still probing when the frames end
     seen: list[TickState] = []
     loop.subscribe(seen.append)
     thread = threading.Thread(target=loop.run, daemon=True)

@@ -20,6 +20,7 @@ from app.services.fleet_page import FleetView
 from app.recording.fleet import FleetRecorder
 from app.dashboard import Dashboard
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import Params, ParamsStore, default_slots
 from app.tick import LatestStatePublisher
 
@@ -44,7 +45,7 @@ class Leader:
         n = len(self.team.owned)
         self.store = ParamsStore(Params(n_followers=n, slots=default_slots(n), leader_mode="straight",
                                         leader_speed_mps=0.02), fixed_followers=n)
-        self.loop = ServiceLoop(self.store, rate_hz=30.0, arena=self.team)
+        self.loop = ServiceLoop(self.store, Backends(arena=self.team), rate_hz=30.0)
         self.bridge = FleetBridge(self.store, fleet, leader_id, allow_control=allow_control, session=self.session)
         self.loop.subscribe(self.bridge.on_tick)
         self.adopter = Adopter(self.session, fleet, leader_id, self.team, self.store, event=self.bridge.event)

@@ -14,6 +14,7 @@ import pytest
 
 from app.fleet.bridge import FleetBridge, loopback_endpoint
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import Params, ParamsStore, default_slots
 
 from tests.helpers import ROOT, interrupt, main_cli, wait_for
@@ -65,7 +66,7 @@ def leader_on_the_bus(fleet: str) -> tuple[ParamsStore, ServiceLoop, FleetBridge
     ticking yet, and a third program connected to it."""
     endpoint = loopback_endpoint()
     store = ParamsStore(Params(n_followers=2, slots=default_slots(2), leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+    loop = ServiceLoop(store, Backends(seed=1), rate_hz=30.0)
     bridge = FleetBridge(store, fleet, "L1", listen=[endpoint])
     loop.subscribe(bridge.on_tick)
     return store, loop, bridge, Listener(endpoint, fleet)
@@ -196,7 +197,7 @@ def test_of_two_leaders_with_one_id_the_later_stands_down_and_the_first_carries_
 
     def leader(name: str, **bus) -> None:
         store = ParamsStore(Params(n_followers=1, slots=default_slots(1), leader_mode="straight"))
-        loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+        loop = ServiceLoop(store, Backends(seed=1), rate_hz=30.0)
         bridges[name] = FleetBridge(store, "arena1", "L1", on_twin=stops[name].set, **bus)
         loop.subscribe(bridges[name].on_tick)
 

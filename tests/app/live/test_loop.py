@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from app.live.loop import CATCH_UP_S, ServiceLoop, next_tick
+from app.backends.world import Backends
 from app.params import Params, ParamsStore
 from tests.helpers import main_cli, serve_then_signal, wait_for
 
@@ -14,7 +15,7 @@ from tests.helpers import main_cli, serve_then_signal, wait_for
 def test_team_reaches_formation_in_the_live_loop():
     store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]]),
                                leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=2)
+    loop = ServiceLoop(store, Backends(seed=2), rate_hz=30.0)
     for _ in range(30 * 40):
         s = loop.tick()
     err = np.linalg.norm(s.p_true - s.p_d, axis=1)
@@ -34,7 +35,7 @@ def test_the_live_loop_sees_the_team_through_the_vision_pipeline():
     config, camera = _default_camera()
     store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]]),
                                leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=3, dynamics=config.dynamics, camera=camera)
+    loop = ServiceLoop(store, Backends(seed=3, dynamics=config.dynamics, camera=camera), rate_hz=30.0)
     phases = []
     s = loop.tick()
     assert s.frame is not None and s.frame.shape == (480, 640, 3) and s.phase == "base"
@@ -56,7 +57,7 @@ def test_the_live_loop_sees_the_team_through_the_vision_pipeline():
 def test_stop_during_start_up_holds_everyone():
     config, camera = _default_camera()
     store = ParamsStore(Params(n_followers=2, slots=np.array([[-0.5, -0.4], [0.5, -0.4]])))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=5, dynamics=config.dynamics, camera=camera)
+    loop = ServiceLoop(store, Backends(seed=5, dynamics=config.dynamics, camera=camera), rate_hz=30.0)
     for _ in range(40):  # into the first probe
         s = loop.tick()
     assert s.phase == "probe" and s.commands[0, 0] > 0
@@ -67,7 +68,7 @@ def test_stop_during_start_up_holds_everyone():
 
 def test_stop_pause_step_and_reset():
     store = ParamsStore(Params(leader_mode="circle"))
-    loop = ServiceLoop(store, rate_hz=30.0)
+    loop = ServiceLoop(store, Backends(), rate_hz=30.0)
     for _ in range(30):
         loop.tick()
     store.update("test", stop=True)
@@ -85,13 +86,13 @@ def test_stop_pause_step_and_reset():
 
 
 def test_a_failing_subscriber_does_not_stop_the_loop():
-    loop = ServiceLoop(ParamsStore())
+    loop = ServiceLoop(ParamsStore(), Backends())
     loop.subscribe(lambda s: 1 / 0)
     assert loop.tick().tick == 0 and loop.tick().tick == 1
 
 
 def test_run_paces_ticks_and_halts_followers_on_stop():
-    loop = ServiceLoop(ParamsStore(Params(leader_mode="straight")), rate_hz=50.0)
+    loop = ServiceLoop(ParamsStore(Params(leader_mode="straight")), Backends(), rate_hz=50.0)
     import threading
 
     th = threading.Thread(target=loop.run)
@@ -127,7 +128,7 @@ def test_pacing_catches_up_a_short_stall_and_skips_past_a_long_one():
 
 
 def test_a_stall_longer_than_the_catch_up_is_counted_as_skipped_ticks():
-    loop = ServiceLoop(ParamsStore(Params(leader_mode="straight")), rate_hz=50.0)
+    loop = ServiceLoop(ParamsStore(Params(leader_mode="straight")), Backends(), rate_hz=50.0)
     stalled = threading.Event()
 
     def stall_once(_state):
@@ -182,7 +183,7 @@ def test_other_hosts_warn_and_bad_ports_exit_2():
 
 def test_an_exception_inside_a_tick_stops_every_follower_and_the_loop_lives_on():
     store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=60.0, seed=1)
+    loop = ServiceLoop(store, Backends(seed=1), rate_hz=60.0)
     seen: list = []
     loop.subscribe(seen.append)
     th = threading.Thread(target=loop.run, daemon=True)
@@ -235,7 +236,7 @@ def _preset_swaps(safety: bool, switches: int = 16, seed: int = 5, until_under: 
     rng = np.random.default_rng(seed)
     store = ParamsStore(Params(n_followers=6, slots=formation_preset("ring", 6), leader_mode="straight",
                                leader_speed_mps=0.03, safety=safety))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=seed, position_noise_m=0.0, heading_noise_rad=0.0)
+    loop = ServiceLoop(store, Backends(seed=seed, position_noise_m=0.0, heading_noise_rad=0.0), rate_hz=30.0)
     closest, under, errors = np.inf, 0, []
     for _ in range(switches):
         name = FORMATION_PRESETS[int(rng.integers(len(FORMATION_PRESETS)))]
@@ -271,9 +272,9 @@ def test_the_live_loop_drives_narrow_gap_to_its_goal_clear_of_the_boxes():
 
     s = load_scenario("narrow_gap")
     store = ParamsStore(params_for(s, s.n))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=s.seed, dynamics=s.dynamics, initial_poses=(s.initial_p, s.initial_a),
-                       position_noise_m=s.measurement.position_noise_m, heading_noise_rad=s.measurement.heading_noise_rad,
-                       obstacles=s.obstacles)
+    loop = ServiceLoop(store, Backends(seed=s.seed, dynamics=s.dynamics, initial_poses=(s.initial_p, s.initial_a),
+                                       position_noise_m=s.measurement.position_noise_m,
+                                       heading_noise_rad=s.measurement.heading_noise_rad, obstacles=s.obstacles), rate_hz=30.0)
     boxes = as_array(s.obstacles)
     gaps, scales, reached = [], [], None
     for _ in range(int(100 * 30)):
@@ -312,7 +313,7 @@ def test_stop_stops_the_leader_in_every_mode_and_a_release_waits_for_the_team():
 
     for mode in ("straight", "circle", "eq39", "goal"):
         store = ParamsStore(Params(n_followers=2, leader_mode=mode, goal=(0.0, 3.0)))
-        loop = ServiceLoop(store, rate_hz=30.0, seed=4)
+        loop = ServiceLoop(store, Backends(seed=4), rate_hz=30.0)
         for _ in range(20):
             s = loop.tick()
         assert s.leader_twist != (0.0, 0.0), mode
@@ -323,7 +324,7 @@ def test_stop_stops_the_leader_in_every_mode_and_a_release_waits_for_the_team():
         assert all(np.all(h.commands == 0.0) for h in held), mode
 
     store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=4)
+    loop = ServiceLoop(store, Backends(seed=4), rate_hz=30.0)
     for _ in range(10):
         loop.tick()
     feedback = loop._world.feedback
@@ -371,7 +372,7 @@ def test_stop_pressed_while_a_tick_clears_the_leaders_hold_keeps_the_hold():
             return params
 
     store = StopAfterRead(Params(n_followers=2, leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=4)
+    loop = ServiceLoop(store, Backends(seed=4), rate_hz=30.0)
     for _ in range(10):
         loop.tick()
     store.update("test", stop=True)
@@ -435,8 +436,8 @@ def test_the_free_space_scan_runs_in_two_halves_after_two_ticks_commands_and_cou
     config, camera = _default_camera()
     store = ParamsStore(Params(n_followers=3, slots=np.array([[-0.5, -0.4], [0.5, -0.4], [0.0, -0.8]]),
                                leader_mode="goal", goal=(0.0, 4.0), leader_speed_mps=0.05, safety=True))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=3, dynamics=config.dynamics, camera=camera,
-                       obstacles=(Obstacle(1.2, 1.5, 0.3, 0.3),))
+    loop = ServiceLoop(store, Backends(seed=3, dynamics=config.dynamics, camera=camera,
+                                       obstacles=(Obstacle(1.2, 1.5, 0.3, 0.3),)), rate_hz=30.0)
     for _ in range(30 * 15):
         if loop.tick().phase == "tracking":
             break
@@ -479,11 +480,12 @@ _FIRST_SOLVE = """
 import json, sys
 from app.live import warmup
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import Params, ParamsStore, default_slots
 from core.control.safety import filter_commands
 from core.types import Commands
 import numpy as np
-loop = ServiceLoop(ParamsStore(Params(n_followers=2, slots=default_slots(2))), rate_hz=30.0)
+loop = ServiceLoop(ParamsStore(Params(n_followers=2, slots=default_slots(2))), Backends(), rate_hz=30.0)
 warmup.warm_up(loop, say=False)
 before = set(sys.modules)
 # two followers 0.3 m apart heading for each other: no safety distance lets that through unfiltered

@@ -15,6 +15,7 @@ import pytest
 
 from app.files import load_scenario
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import ParamsStore
 from app.services.live import params_for
 from core.config import MeasurementNoise, Scenario
@@ -30,10 +31,9 @@ def _quiet(scenario: Scenario, seconds: float) -> Scenario:
 
 def _live_commands(scenario: Scenario, ticks: int) -> tuple[np.ndarray, np.ndarray]:
     store = ParamsStore(params_for(scenario, scenario.n))
-    loop = ServiceLoop(store, rate_hz=scenario.rate_hz, seed=scenario.seed, dynamics=scenario.dynamics,
-                       position_noise_m=0.0, heading_noise_rad=0.0,
-                       initial_poses=(scenario.initial_p, scenario.initial_a), obstacles=scenario.obstacles,
-                       switches=scenario.switches)
+    loop = ServiceLoop(store, Backends(seed=scenario.seed, dynamics=scenario.dynamics, position_noise_m=0.0,
+                                       heading_noise_rad=0.0, initial_poses=(scenario.initial_p, scenario.initial_a),
+                                       obstacles=scenario.obstacles), rate_hz=scenario.rate_hz, switches=scenario.switches)
     states = [loop.tick() for _ in range(ticks)]
     loop.close_team()
     return np.array([s.commands for s in states]), np.array([s.followers_world for s in states])

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import Params, ParamsStore, default_slots
 from app.live.sweep import SweepRunner
 from app.live.tuning import StepTests, live_base, trials_csv
@@ -26,8 +27,8 @@ def _team(tmp_path, n=3):
     store = ParamsStore(Params(n_followers=n, slots=default_slots(n), leader_mode="straight"))
     dynamics = FollowerDynamics(actuator_tau_s=0.2, speed_max_mps=0.35, turn_max_rps=2.5, accel_max_mps2=0.6,
                                 turn_accel_max_rps2=6.0)
-    loop = ServiceLoop(store, rate_hz=30.0, seed=5, dynamics=dynamics,
-                       initial_poses=(default_slots(n), np.full(n, math.pi / 2)))
+    loop = ServiceLoop(store, Backends(seed=5, dynamics=dynamics,
+                                       initial_poses=(default_slots(n), np.full(n, math.pi / 2))), rate_hz=30.0)
     tests = StepTests(store, dynamics.wheel_base_m)
     loop.subscribe(tests.on_tick)
     rec = Recorder(tmp_path / "t.mcap", {"scenario": "tuning"}, store.get())
@@ -99,7 +100,7 @@ def test_the_loop_publishes_v_trend_and_active_limits():
     store = ParamsStore(Params(n_followers=2, slots=slots, leader_mode="stop"))
     # F1 starts 0.8 m behind its slot (the slots are where the team starts: no ramp): eq. 4 saturates
     start = slots + np.array([[0.0, -0.8], [0.0, 0.0]])
-    loop = ServiceLoop(store, rate_hz=30.0, seed=5, initial_poses=(start, np.full(2, math.pi / 2)))
+    loop = ServiceLoop(store, Backends(seed=5, initial_poses=(start, np.full(2, math.pi / 2))), rate_hz=30.0)
     _tick(loop, 1.5)
     s = loop.last
     assert s is not None and s.limits is not None and s.v_rate is not None

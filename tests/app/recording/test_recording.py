@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import Params, ParamsStore
 from app.recording.reader import RecordingError, read_recording
 from app.recording.schema import tick_from_payload, tick_payload
@@ -36,7 +37,7 @@ def _close(a, b):
 
 def test_round_trip_every_tick_as_published(tmp_path):
     store = ParamsStore(Params(n_followers=3, leader_mode="circle", slots=np.array([[-0.5, -0.3], [0.5, -0.3], [0.0, -0.8]])))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+    loop = ServiceLoop(store, Backends(seed=1), rate_hz=30.0)
     published = []
     rec = Recorder(tmp_path / "s.mcap", {"scenario": "test"}, store.get())
     loop.subscribe(rec.on_tick)
@@ -79,7 +80,7 @@ def test_foxglove_channels_carry_foxgloves_own_schemas_and_decode_from_the_file_
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     store = ParamsStore(Params(n_followers=2))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=2, camera=config.camera())
+    loop = ServiceLoop(store, Backends(seed=2, camera=config.camera()), rate_hz=30.0)
     rec = Recorder(tmp_path / "f.mcap", {"scenario": "test"}, store.get(), frame_rate_hz=10.0)
     loop.subscribe(rec.on_tick)
     for _ in range(40):
@@ -377,7 +378,7 @@ def test_live_camera_frames_are_recorded_at_the_frame_rate(tmp_path):
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     store = ParamsStore(Params(n_followers=2))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=2, camera=config.camera())
+    loop = ServiceLoop(store, Backends(seed=2, camera=config.camera()), rate_hz=30.0)
     rec = Recorder(tmp_path / "v.mcap", {"scenario": "test"}, store.get(), frame_rate_hz=10.0)
     published = []
     loop.subscribe(rec.on_tick)
@@ -458,7 +459,7 @@ def test_recordings_made_before_the_published_schemas_still_replay_their_frames(
     from mcap.writer import Writer
 
     store = ParamsStore(Params(n_followers=2))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+    loop = ServiceLoop(store, Backends(seed=1), rate_hz=30.0)
     state = loop.tick()
     jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 90, np.uint8))[1].tobytes()
     with (tmp_path / "old.mcap").open("wb") as f:
@@ -588,7 +589,7 @@ def test_the_summary_counts_stops_and_releases_apart_and_gives_each_segment(tmp_
     from core.control.tuning import SETTLE_TOL_M
 
     store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=3)
+    loop = ServiceLoop(store, Backends(seed=3), rate_hz=30.0)
     rec = Recorder(tmp_path / "s.mcap", {"scenario": "counts"}, store.get())
     seen = []
     loop.subscribe(rec.on_tick)

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import ParamsStore
 from app.recording.reader import read_recording
 from app.recording.writer import Recorder, RecordingRefused, apply_retention
@@ -42,7 +43,7 @@ def noisy_ticks(n_ticks: int, seed: int = 0):
     """A simulated team's ticks, each with a camera frame of noise (JPEG cannot shrink it)."""
     store = ParamsStore()
     store.update("test", leader_mode="straight")
-    loop = ServiceLoop(store, rate_hz=30.0, seed=seed)
+    loop = ServiceLoop(store, Backends(seed=seed), rate_hz=30.0)
     rng = np.random.default_rng(seed)
     for _ in range(n_ticks):
         s = loop.tick()

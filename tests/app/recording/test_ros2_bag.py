@@ -15,6 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from app.live.config import DEFAULT_CONFIG, load_service_config
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import MAX_FOLLOWERS, Params, ParamsStore
 from app.recording.reader import read_recording
 from app.recording.writer import Recorder
@@ -27,7 +28,7 @@ TICKS = 120  # four chunks of ticks at 30 Hz
 def recording(tmp_path_factory) -> Path:
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     store = ParamsStore(Params(n_followers=2, leader_mode="circle"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=3, camera=config.camera())
+    loop = ServiceLoop(store, Backends(seed=3, camera=config.camera()), rate_hz=30.0)
     path = tmp_path_factory.mktemp("ros2") / "s.mcap"
     rec = Recorder(path, {"scenario": "test"}, store.get(), frame_rate_hz=10.0, start_ns=1_700_000_000_000_000_000,
                    lossless=True)

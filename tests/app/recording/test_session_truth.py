@@ -10,6 +10,7 @@ import json
 import numpy as np
 
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import Params, ParamsStore
 from app.recording.reader import params_from_recording, read_recording, session_clock
 from app.recording.report import scan, summarise, write_report
@@ -20,7 +21,7 @@ def session_with_a_reset(path):
     """60 ticks; k_f1 to 0.15 at tick 30; STOP at 45; a reset at tick 60 (the loop's clock back
     to 0); 90 ticks more, released."""
     store = ParamsStore(Params(n_followers=2, leader_mode="straight"))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=4)
+    loop = ServiceLoop(store, Backends(seed=4), rate_hz=30.0)
     rec = Recorder(path, {"scenario": "reset-test"}, store.get(), frame_rate_hz=0.0)
     loop.subscribe(rec.on_tick)
     store.subscribe(rec.on_params)

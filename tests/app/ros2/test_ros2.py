@@ -88,6 +88,7 @@ def rig():
     bridge with --ros2-control; a ROS party listening to /tf and /cmd_vel."""
     from app.backends.ros2 import Ros2Base, Ros2Node
     from app.live.loop import ServiceLoop
+    from app.backends.world import Backends
     from app.params import Params, ParamsStore
     from app.ros2.base import EmulatedBase
     from app.ros2.bridge import Ros2Bridge
@@ -106,8 +107,8 @@ def rig():
     node = Ros2Node(open_ros2_session([endpoint]), "omniformation")
     leader = Ros2Base(node)
     store = ParamsStore(Params(n_followers=2, slots=SLOTS.copy(), leader_mode="straight", leader_speed_mps=0.08))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=5, initial_poses=(SLOTS.copy(), np.full(2, math.pi / 2)),
-                       leader_base=leader)
+    loop = ServiceLoop(store, Backends(seed=5, initial_poses=(SLOTS.copy(), np.full(2, math.pi / 2)), leader=leader),
+                       rate_hz=30.0)
     bridge = Ros2Bridge(node, store, allow_control=True, base_state=lambda: leader.link_state)
     states: list[Any] = []
     loop.subscribe(states.append)
@@ -375,6 +376,7 @@ def test_eq5_compensates_the_leaders_odometry_not_its_command():
     commanded twist and its link state says so."""
     from app.backends.ros2 import Ros2Base, Ros2Node
     from app.live.loop import ServiceLoop
+    from app.backends.world import Backends
     from app.params import Params, ParamsStore
     from app.ros2.base import EmulatedBase
     from app.ros2.session import open_ros2_session
@@ -387,8 +389,8 @@ def test_eq5_compensates_the_leaders_odometry_not_its_command():
     node = Ros2Node(open_ros2_session([endpoint]), "omniformation")
     leader = Ros2Base(node)
     store = ParamsStore(Params(n_followers=2, slots=SLOTS.copy(), leader_mode="straight", leader_speed_mps=0.2))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=7, initial_poses=(SLOTS.copy(), np.full(2, math.pi / 2)),
-                       leader_base=leader)
+    loop = ServiceLoop(store, Backends(seed=7, initial_poses=(SLOTS.copy(), np.full(2, math.pi / 2)), leader=leader),
+                       rate_hz=30.0)
     used: list[tuple[Any, tuple[tuple[float, float], str]]] = []
     loop.subscribe(lambda s: used.append((s, loop.leader_motion)))  # each tick's own compensation
     thread = threading.Thread(target=loop.run, daemon=True)

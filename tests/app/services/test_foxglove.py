@@ -25,6 +25,7 @@ from websockets.sync.client import connect
 
 from app.live.config import DEFAULT_CONFIG, load_service_config
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import MAX_FOLLOWERS, Params, ParamsStore
 from tests.helpers import main_cli, wait_for
 
@@ -134,7 +135,7 @@ def loop_and_live():
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     store = ParamsStore(Params(n_followers=3))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=2, camera=config.camera())
+    loop = ServiceLoop(store, Backends(seed=2, camera=config.camera()), rate_hz=30.0)
     live = FoxgloveLive("127.0.0.1", 0, params=store.get())
     loop.subscribe(live.on_tick)
     store.subscribe(live.on_params)
@@ -317,7 +318,7 @@ def test_replay_serves_the_recordings_ticks_at_their_recorded_times(tmp_path):
     import argparse
 
     store = ParamsStore(Params(n_followers=2))
-    loop = ServiceLoop(store, rate_hz=30.0, seed=1)
+    loop = ServiceLoop(store, Backends(seed=1), rate_hz=30.0)
     rec = Recorder(tmp_path / "r.mcap", {"scenario": "test"}, store.get())
     loop.subscribe(rec.on_tick)
     for _ in range(30):

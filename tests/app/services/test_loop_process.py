@@ -58,13 +58,13 @@ def test_a_fresh_cache_is_compiled_before_the_clock_starts_and_only_once(tmp_pat
 
 
 def test_the_warm_up_step_refuses_arguments_in_one_line(tmp_path: Path) -> None:
-    """`python -m app.live.warmup` (a step of `make test`) warms what `run` reaches with the default
+    """`python -m app.services.warmup` (a step of `make test`) warms what `run` reaches with the default
     config: an argument is a mistake, said in one line with exit code 2, before anything is compiled."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
-    done = subprocess.run([sys.executable, "-m", "app.live.warmup", "--config", "x.toml"], capture_output=True,
+    done = subprocess.run([sys.executable, "-m", "app.services.warmup", "--config", "x.toml"], capture_output=True,
                           text=True, env=env, timeout=120)
     assert done.returncode == 2, done
-    assert done.stderr.strip().splitlines() == ["python -m app.live.warmup: takes no arguments (got '--config x.toml')"]
+    assert done.stderr.strip().splitlines() == ["python -m app.services.warmup: takes no arguments (got '--config x.toml')"]
     assert done.stdout == "" and not any(tmp_path.iterdir())  # nothing compiled into the cache
 
 
@@ -76,10 +76,11 @@ import json, sys, threading, time
 from app.live import warmup
 from app.live.config import DEFAULT_CONFIG, load_service_config
 from app.live.loop import ServiceLoop
+from app.backends.world import Backends
 from app.params import MAX_FOLLOWERS, Params, ParamsStore, default_slots
 config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
-loop = ServiceLoop(ParamsStore(Params(n_followers=3, slots=default_slots(3))), rate_hz=30.0, camera=config.camera(),
-                   dynamics=config.dynamics)
+loop = ServiceLoop(ParamsStore(Params(n_followers=3, slots=default_slots(3))),
+                   Backends(camera=config.camera(), dynamics=config.dynamics), rate_hz=30.0)
 warmup.warm_up(loop)
 at_start = warmup.compiled()
 files = sorted({(fn._cache._cache_path, fn.py_func.__code__.co_filename) for fn in warmup.kernels()})
