@@ -13,6 +13,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from core.config import Scenario
+    from core.control.tuning import GainRange
     from core.sim.stepped import SafetyLog
 from app.files import (SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, UserError, check_new_file, display_path,
                        scenario_names)
@@ -71,7 +72,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
     tune.add_argument("--vision", action="store_true", help="vision in the loop (the synthetic rig) instead of truth")
     tune.add_argument("--camera", type=Path, default=SYNTHETIC_CAMERA, help="synthetic rig for --vision")
     tune.add_argument("--calibration", type=Path, default=SYNTHETIC_CALIBRATED, help="Γ for --vision")
-    tune.add_argument("--out", type=Path, required=True, help="folder for sweep.csv, sweep.png and summary.md")
+    tune.add_argument("--out", type=Path, required=True, help="folder for sweep.csv, sweep.png, summary.md and study/")
+    tune.add_argument("--workers", type=int_in(1, 1024),
+                      help="local worker processes the runs share (default: the CPUs less one, at least 1)")
     tune.set_defaults(func=cmd_tune)
 
 
@@ -203,14 +206,53 @@ def safety_line(sf: "SafetyLog", t: "np.ndarray", scenario: "Scenario") -> str:
     return "; ".join(parts)
 
 
+def tune_study_text(args: argparse.Namespace, ranges: "list[GainRange]", seed: int) -> str:
+    """`tune`'s sweep as a study file: the step test from the team settled on its slots, a grid of
+    one or two gains, one run per point (written to OUT/study/study.toml)."""
+    from pathlib import Path as _Path
+
+    scen = args.scenario
+    if scen.endswith(".toml"):
+        scen = str(_Path(scen).resolve())
+    lines = ["# omniformation tune, as a study (docs/studies.md)", "[study]", f"scenario = {_toml_str(scen)}",
+             f'feedback = "{"vision" if args.vision else "truth"}"', f"seed = {seed}", "replicates = 1"]
+    if args.vision:
+        lines += [f"camera = {_toml_str(str(_Path(args.camera).resolve()))}",
+                  f"calibration = {_toml_str(str(_Path(args.calibration).resolve()))}"]
+    lines += ["",
+             "[test]", f'kind = "{args.test}"', f"window_s = {args.window!r}"]
+    if args.test == "offset":
+        lines += [f"follower = {args.follower}", f"size_cm = {float(args.size if args.size is not None else 10.0)!r}"]
+    elif args.test == "turn":
+        lines.append(f"size_deg_s = {float(args.size if args.size is not None else 5.0)!r}")
+    else:
+        lines.append(f"formation = {_toml_str(args.formation)}")
+    lines += ["", "[grid]"]
+    for r in ranges:
+        lo, hi, n = float(r.values[0]), float(r.values[-1]), len(r.values)
+        lines.append(f'"gains.{r.name}" = {{lo = {lo!r}, hi = {hi!r}, n = {n}}}')
+    return "\n".join(lines) + "\n"
+
+
+def _toml_str(text: str) -> str:
+    import json
+
+    return json.dumps(text)  # a TOML basic string is a JSON string
+
+
 def cmd_tune(args: argparse.Namespace) -> int:
     import math
+    import time
+
+    import numpy as np
 
     from app.files import load_scenario, prepare_out_dir
-    from app.live.sweep import run_sweep
     from app.figures import sweep_figure
-    from core.control.tuning import StepTest, check_step_test, parse_gain_range, sweep_grid
-    from core.sim.sweep import LEAD_S, settled_start
+    from app.study.session import parse_study_text, run_session
+    from app.study.store import StudyFolder
+    from core.control.tuning import StepScore, StepTest, check_step_test, parse_gain_range, sweep_grid
+    from core.sim.sweep import BEST_RULE, LEAD_S, SweepResult, settled_start
+    from core.study.spec import point_key
 
     if len(args.gain) > 2:
         raise UserError(f"--gain given {len(args.gain)} times: a sweep takes one or two gains")
@@ -232,36 +274,48 @@ def cmd_tune(args: argparse.Namespace) -> int:
     why = check_step_test(test, base.n)
     if why:
         raise UserError(f"--test {args.test}: {why}")
-    vision = None
-    if args.vision:
-        from app.files import load_synthetic_rig
-
-        vision = load_synthetic_rig(args.camera, args.calibration)
-        base = base.replace(rate_hz=VISION_RATE_HZ)
+    text = tune_study_text(args, ranges, scenario.seed)
+    spec = parse_study_text(text, "tune's study")
     prepare_out_dir(args.out)
-    twist = tuple(float(x) for x in scenario.leader.twist(0.0))
+    study_dir = args.out / "study"
+    study_dir.mkdir(exist_ok=True)
+    (study_dir / "study.toml").write_text(text, encoding="utf-8")
     print(f"tune {scenario.name}: {test.label()} over {' x '.join(r.label() for r in ranges)}"
-          f" ({len(grid)} runs, {'vision' if vision else 'truth'} feedback)", flush=True)
-
-    def progress(done: int, total: int) -> None:
-        print(f"  [{done}/{total}]", flush=True)
-
-    result = run_sweep(base, test, (twist[0], twist[1]), ranges, scenario.gains, vision, progress)
+          f" ({len(grid)} runs, {'vision' if args.vision else 'truth'} feedback)", flush=True)
+    start = time.perf_counter()
+    session = run_session(spec, study_dir / "study.toml", study_dir, args.workers, None, overwrite=True)
+    rows = {r["point"]: r for r in StudyFolder(study_dir).table().to_pylist()}
+    scores: list[StepScore | None] = []
+    for g in grid:
+        row = rows.get(point_key({f"gains.{r.name}": float(getattr(g, r.name)) for r in ranges}))
+        if row is None:
+            scores.append(None)
+            continue
+        one = [float(row[k]) if row[k] is not None else math.nan
+               for k in ("settling_s", "overshoot_m", "final_rms_m", "effort")]
+        settle, over, steady, effort = (np.array([v]) for v in one)
+        scores.append(StepScore(settle, over, steady, effort, 0))  # the team's figures, as tune shows them
+    result = SweepResult(tuple(ranges), test, spec.feedback, tuple(grid), tuple(scores), time.perf_counter() - start,
+                         session.outcome.interrupted)
+    if session.outcome.interrupted:
+        raise KeyboardInterrupt
     (args.out / "sweep.csv").write_text(result.csv(), encoding="utf-8")
     fig = sweep_figure(result)
     fig.savefig(args.out / "sweep.png", dpi=110)
-    from core.sim.sweep import BEST_RULE
-
     best = result.best()
     lines = [f"# Sweep: {scenario.name}, {test.label()}", "",
-             f"- {len(grid)} runs with {result.feedback} feedback in {result.seconds:.1f} s",
+             f"- {len(grid)} runs with {result.feedback} feedback in {result.seconds:.1f} s"
+             f" on {session.outcome.workers} worker{'s' if session.outcome.workers != 1 else ''}",
              f"- from the team settled on its slots; the step at {LEAD_S:g} s, measured for {test.window_s:g} s",
              f"- {BEST_RULE}: {result.point_label(best) if best is not None else 'none'}",
              "- Pareto front (settling time vs. overshoot): " + "; ".join(result.point_label(k) for k in result.pareto()),
-             "", "sweep.csv: every point; sweep.png: heat map (or line) and Pareto plot."]
+             "", "sweep.csv: every point; sweep.png: heat map (or line) and Pareto plot; study/: the sweep as a study"
+             " (its runs as Parquet, manifest, summary, plots: docs/studies.md)."]
     (args.out / "summary.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
     for name in ("sweep.csv", "sweep.png", "summary.md"):
         print(f"wrote {display_path(args.out / name)}")
     print(lines[4][2:])
     print(f"{len(grid)} runs in {result.seconds:.1f} s")
+    if session.outcome.failed:
+        print(f"{session.outcome.failed} runs failed: {display_path(study_dir / 'failures.parquet')}")
     return 0

@@ -5,8 +5,8 @@ The worker is one process started for the sweep (``spawn``: a fresh interpreter,
 fork of the threads serving the page and the robots), at a lower CPU priority than the loop;
 the grid's points go to it one by one, so progress is counted point by point and a cancel
 drops every point not started (the one running finishes in well under a second with truth
-feedback, a few seconds with vision). The same code serves ``omniformation tune``, which
-runs the points in its own process.
+feedback, a few seconds with vision). ``omniformation tune`` runs the same points as a study
+(app.study); :func:`run_sweep` runs them here, one after the other.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from core.camera.gamma import Gamma
 from core.config import Scenario
 from core.control.tuning import GainRange, StepScore, StepTest, sweep_grid
 from core.sim.sweep import SweepResult, run_step_test
+from core.study.spec import point_key, run_seed
 from core.types import Gains
 
 WORKER_NICE = 19  # the lowest priority: the robots' loop comes first
@@ -36,22 +37,30 @@ def _lower_priority() -> None:
         pass
 
 
+def point_seed(base: Scenario, ranges: list[GainRange], gains: Gains) -> int:
+    """A sweep point's seed as a study of the same sweep derives it (core.study.spec.run_seed: the
+    base's seed, the point's values, replicate 0), so the page's sweeps, `tune` and a study file of
+    the same sweep give the same numbers."""
+    return run_seed(base.seed, point_key({f"gains.{r.name}": float(getattr(gains, r.name)) for r in ranges}), 0)
+
+
 def run_point(base: Scenario, test: StepTest, twist: tuple[float, float], gains: Gains,
-              vision: tuple[CameraConfig, Gamma] | None) -> StepScore:
-    """One point of a sweep (the worker's task)."""
+              vision: tuple[CameraConfig, Gamma] | None, seed: int | None = None) -> StepScore:
+    """One point of a sweep (the worker's task), through the one point function (core.study.point)."""
     rig, gamma = vision if vision is not None else (None, None)
-    return run_step_test(base, test, twist, gains, rig, gamma).score
+    sc = base if seed is None else base.replace(seed=seed)
+    return run_step_test(sc, test, twist, gains, rig, gamma).score
 
 
 def run_sweep(base: Scenario, test: StepTest, twist: tuple[float, float], ranges: list[GainRange], base_gains: Gains,
               vision: tuple[CameraConfig, Gamma] | None = None,
               progress: Callable[[int, int], None] | None = None) -> SweepResult:
-    """Every point here, one after the other (``omniformation tune``)."""
+    """Every point here, one after the other: the serial sweep (`tune` runs the same points as a study)."""
     grid = sweep_grid(ranges, base_gains)
     start = time.perf_counter()
     scores: list[StepScore | None] = []
     for k, g in enumerate(grid):
-        scores.append(run_point(base, test, twist, g, vision))
+        scores.append(run_point(base, test, twist, g, vision, point_seed(base, ranges, g)))
         if progress:
             progress(k + 1, len(grid))
     return SweepResult(tuple(ranges), test, "vision" if vision else "truth", tuple(grid), tuple(scores),
@@ -109,7 +118,8 @@ class SweepRunner:
         errors: list[str] = []
         ctx = multiprocessing.get_context("spawn")
         with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_lower_priority) as pool:
-            futures = {pool.submit(run_point, base, test, twist, g, vision): k for k, g in enumerate(grid)}
+            futures = {pool.submit(run_point, base, test, twist, g, vision, point_seed(base, ranges, g)): k
+                       for k, g in enumerate(grid)}
             done = 0
             pending = set(futures)
             while pending:

@@ -28,12 +28,18 @@ class RunItem:
     seed: int
 
 
-def _rig() -> Any:
-    if "rig" not in _RIGS:
-        from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_synthetic_rig
+def _rig(camera: str | None = None, calibration: str | None = None) -> Any:
+    """The synthetic rig and its Γ (the shipped ones unless the study names others)."""
+    from pathlib import Path
 
-        _RIGS["rig"] = load_synthetic_rig(SYNTHETIC_CAMERA, SYNTHETIC_CALIBRATED)
-    return _RIGS["rig"]
+    from app.files import SYNTHETIC_CALIBRATED, SYNTHETIC_CAMERA, load_synthetic_rig
+
+    cam = Path(camera) if camera else SYNTHETIC_CAMERA
+    cal = Path(calibration) if calibration else SYNTHETIC_CALIBRATED
+    key = f"{cam}|{cal}"
+    if key not in _RIGS:
+        _RIGS[key] = load_synthetic_rig(cam, cal)
+    return _RIGS[key]
 
 
 def run_one(spec: StudySpec, item: RunItem) -> dict[str, Any]:
@@ -41,7 +47,7 @@ def run_one(spec: StudySpec, item: RunItem) -> dict[str, Any]:
     name = item.values.get(SCENARIO_AXIS, spec.scenarios[0].name)
     source = next(s for s in spec.scenarios if s.name == name)
     scenario = scenario_for(spec, source, item.values, item.seed)
-    rig, gamma = _rig() if spec.vision else (None, None)
+    rig, gamma = _rig(spec.camera, spec.calibration) if spec.vision else (None, None)
     step = None
     if spec.test is not None:
         from core.study.point import LEAD_S, settled_start

@@ -124,7 +124,7 @@ def _score(t: FloatArray, p: FloatArray, target: Any, commands: FloatArray, t0: 
     last = t[rows] >= t[rows][-1] - STEADY_S if rows.size else np.zeros(0, dtype=bool)
     tail = team_rms[last]
     converged = bool(tail.size > 0 and np.all(np.isfinite(tail)) and np.all(tail <= CONVERGED_RMS_M))
-    final_rms = float(np.sqrt(np.mean(tail ** 2))) if tail.size else math.nan
+    final_rms = worst["steady_rms_m"]  # the RMS over the last STEADY_S, as score_step measures it
     max_err = float(np.nanmax(err)) if np.isfinite(err).any() else math.nan
     dmin, hits = _proximity(np.asarray(followers_world)[rows], np.asarray(leader)[rows])
     lost = 0.0

@@ -108,6 +108,8 @@ class StudySpec:
     seed: int
     replicates: int
     formation: str | None  # the preset for team.followers (None: a sensible one for the count)
+    camera: str | None  # vision: the synthetic rig that renders frames (None: the shipped one)
+    calibration: str | None  # vision: the Γ that reads them (None: the shipped one)
     test: StepTest | None  # a step test run from the team settled on its slots (`tune`), else the scenario's run
     axes: tuple[Axis, ...]  # scenario axis first (several scenarios), then the grid's, then the sample's
     sample_n: int = 0
@@ -231,6 +233,12 @@ def parse_study(text: str, source: str, load_scenario: Any) -> StudySpec:
     formation: str | None = st.text("formation", choices=FORMATION_PRESETS) if st.has("formation") else None
     if formation is None:
         st.used.add("formation")
+    camera = st.text("camera") if st.has("camera") else None
+    calibration = st.text("calibration") if st.has("calibration") else None
+    st.used.update(("camera", "calibration"))
+    if (camera is not None or calibration is not None) and feedback != "vision":
+        raise st.fail("camera" if camera is not None else "calibration", camera or calibration,
+                      'given only with feedback = "vision"')
     st.finish()
     test = _parse_test(top)
 
@@ -279,8 +287,8 @@ def parse_study(text: str, source: str, load_scenario: Any) -> StudySpec:
         if a.name in seen:
             raise ConfigError(f"{source}: axis \"{a.name}\" is given twice (in [grid] and [sample]): once")
         seen.add(a.name)
-    spec = StudySpec(source, text, scenarios, feedback, duration, seed, replicates, formation, test, tuple(axes),
-                     sample_n, optimize)
+    spec = StudySpec(source, text, scenarios, feedback, duration, seed, replicates, formation, camera, calibration,
+                     test, tuple(axes), sample_n, optimize)
     if spec.runs > MAX_RUNS:
         raise ConfigError(f"{source}: {spec.points} points x {replicates} replicates = {spec.runs} runs: at most"
                           f" {MAX_RUNS}")

@@ -154,6 +154,20 @@ def test_tune_writes_the_table_and_the_figure(tmp_path):
     assert lines[0].startswith("k_w2,k_f1,settling_s") and len(lines) == 10
     assert (out / "sweep.png").stat().st_size > 20_000
     assert "best" in (out / "summary.md").read_text() and "9 runs in" in r.stdout
+    # tune is a study of the two gains (on a local Dask cluster): its files are there, and its
+    # numbers are the serial sweep's, point by point
+    import pyarrow.dataset as ds
+
+    from app.files import load_scenario
+    from app.live.sweep import run_sweep
+    from core.sim.sweep import settled_start
+
+    assert ds.dataset(str(out / "study" / "results"), format="parquet").count_rows() == 9
+    assert (out / "study" / "manifest.json").exists() and (out / "study" / "summary.md").exists()
+    sc = load_scenario("experiment1")
+    serial = run_sweep(settled_start(sc), StepTest("offset", 0, 0.1, window_s=10.0), (0.06, 0.0),
+                       [parse_gain_range("k_w2=1:4:3"), parse_gain_range("k_f1=0.05:0.2:3")], sc.gains)
+    assert serial.csv().splitlines()[1:] == lines[1:]
 
 
 @pytest.mark.parametrize("args, needle", [
