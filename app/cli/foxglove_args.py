@@ -48,9 +48,11 @@ def _tls(args: argparse.Namespace) -> tuple[bytes, bytes] | None:
     out = []
     for flag, path in (("--foxglove-tls-cert", cert), ("--foxglove-tls-key", key)):
         try:  # a regular file of at most 64 KiB: a FIFO or /dev/zero is one line, not a hang
-            data = read_regular(path, f"{flag}'s PEM file")
+            data = read_regular(path, "a PEM file")
         except OSError as exc:
             raise UserError(f"{flag} {path}: cannot be read ({exc.strerror or exc})") from None
+        except UserError as exc:
+            raise UserError(f"{flag}: cannot be read: {exc}") from None
         if b"-----BEGIN " not in data:
             raise UserError(f"{flag} {path}: not a PEM file (expected -----BEGIN ...)")
         out.append(data)
