@@ -2,12 +2,14 @@
  * The reference firmware driven by a script, for the conformance test that holds it and the
  * Python follower (core/link/follower.py) to one behaviour (tests/app/test_firmware.py).
  *
- *   conformance ADDRESS [--key HEX64]... [--leaders 1,2,..] [--stop-authenticated] < script
+ *   conformance ADDRESS [--key HEX64]... [--leaders 1,2,..] [--leader-key ID HEX64]...
+ *               [--stop-authenticated] < script
  *   conformance --siphash < vectors      (lines "KEY_HEX MESSAGE_HEX": prints each tag as 16 hex digits)
  *
  * With --key (the current key, then the next one) the robot speaks protocol 3 (authenticated
  * frames); --leaders lists the senders it knows (default: any); the STOP policy is fail-safe
- * unless --stop-authenticated.
+ * unless --stop-authenticated. With --leader-key instead, a key per leader (per_leader): each
+ * ID's current key, then its next one (every leader the same number of keys).
  *
  * Each input line is "T_MS HEX": at T_MS (ms, not decreasing) the bytes HEX reach the robot
  * (of_tick first, then of_receive). For each line it prints every frame the robot sent, as
@@ -88,6 +90,7 @@ int main(int argc, char **argv) {
     of_hardware hw = {0.12f, 0.45f, 6800u};
     of_radio_auth auth;
     int i, authenticated = 0;
+    uint8_t per_leader_keys[OF_MAX_SENDERS] = {0};
     char line[512];
     memset(&auth, 0, sizeof auth);
     if (argc == 2 && strcmp(argv[1], "--siphash") == 0) return siphash_vectors();
@@ -107,6 +110,22 @@ int main(int argc, char **argv) {
                 p = *end == ',' ? end + 1 : end;
                 if (end == p && *p) return 2;
             }
+        } else if (strcmp(argv[i], "--leader-key") == 0 && i + 2 < argc) {
+            uint8_t id = (uint8_t)atoi(argv[++i]);
+            uint8_t at;
+            for (at = 0; at < auth.n_leaders && auth.leaders[at] != id; at++) {}
+            if (at == auth.n_leaders) {
+                if (auth.n_leaders >= OF_MAX_SENDERS) return 2;
+                auth.leaders[auth.n_leaders++] = id;
+                per_leader_keys[at] = 0;
+            }
+            if (per_leader_keys[at] >= OF_MAX_KEYS ||
+                hex_bytes(argv[++i], auth.leader_keys[at][per_leader_keys[at]], OF_KEY_LEN) != (int)OF_KEY_LEN)
+                return 2;
+            per_leader_keys[at]++;
+            auth.per_leader = 1;
+            auth.n_keys = per_leader_keys[0];
+            authenticated = 1;
         } else if (strcmp(argv[i], "--stop-authenticated") == 0) {
             auth.stop_policy = OF_STOP_AUTHENTICATED;
         } else {
@@ -114,6 +133,8 @@ int main(int argc, char **argv) {
             return 2;
         }
     }
+    for (i = 0; auth.per_leader && i < auth.n_leaders; i++)
+        if (per_leader_keys[i] != auth.n_keys) return 2;  /* every leader the same number of keys */
     of_init(&f, (uint8_t)atoi(argv[1]), &hw, NULL, 0u);
     if (authenticated) of_set_auth(&f, &auth);
     while (fgets(line, sizeof line, stdin)) {

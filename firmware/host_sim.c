@@ -8,8 +8,8 @@
  *                [--radio-record FILE.bin | --protocol 2]
  *
  * The robots speak protocol 3 (authenticated frames): with --radio-record (written by
- * `omniformation radio-provision --record`) they hold the fleet's key and leaders, as a flashed
- * robot does; without it the open key (any leader); --protocol 2 makes them older robots.
+ * `omniformation radio-provision --record`) they hold each leader's key (or one key for the
+ * fleet, an older record) and the leaders, as a flashed robot does; without it the open key (any leader); --protocol 2 makes them older robots.
  *
  * Prints "firmware followers 1,2,3 on /dev/pts/N", then one line per event
  * ("robot 2: moving", "robot 2: still", "robot 2: STOP", "robot 2: watchdog").
@@ -140,16 +140,33 @@ static int open_pty(char *name, size_t size, int *slave_fd) {
 
 static of_radio_auth auth;  /* the open key unless a record is given */
 
-/* The record radio-provision writes: "OFR3", n keys, keys, n leaders, ids, STOP policy, CRC-16. */
+/* The record radio-provision writes: "OFR3", n keys, keys, n leaders, ids, STOP policy, CRC-16
+ * (one key for the fleet); or "OFR4", n keys, n leaders, then per leader its id and its n keys
+ * (current, next), STOP policy, CRC-16 (a key per leader: each signs as its own id alone). */
 static int load_record(const char *path) {
-    uint8_t b[4 + 1 + OF_MAX_KEYS * OF_KEY_LEN + 1 + OF_MAX_SENDERS + 1 + 2];
-    size_t n, k = 4;
+    static uint8_t b[4 + 2 + OF_MAX_SENDERS * (1 + OF_MAX_KEYS * OF_KEY_LEN) + 1 + 2 + 1];
+    size_t n, k = 4, i;
     FILE *f = fopen(path, "rb");
     if (f == NULL) return -1;
     n = fread(b, 1, sizeof b, f);
     fclose(f);
-    if (n < 4 + 1 + OF_KEY_LEN + 1 + 1 + 2 || memcmp(b, "OFR3", 4) != 0) return -1;
+    if (n < 4 + 1 + 1 + 1 + 2 || n == sizeof b) return -1;
     if (of_crc16(b, n - 2) != (uint16_t)(b[n - 2] | (b[n - 1] << 8))) return -1;
+    if (memcmp(b, "OFR4", 4) == 0) {
+        auth.per_leader = 1;
+        auth.n_keys = b[k++];
+        auth.n_leaders = b[k++];
+        if (auth.n_keys < 1 || auth.n_keys > OF_MAX_KEYS || auth.n_leaders < 1 || auth.n_leaders > OF_MAX_SENDERS ||
+            k + auth.n_leaders * (1u + auth.n_keys * OF_KEY_LEN) + 1 != n - 2) return -1;
+        for (i = 0; i < auth.n_leaders; i++) {
+            auth.leaders[i] = b[k++];
+            memcpy(auth.leader_keys[i], b + k, (size_t)auth.n_keys * OF_KEY_LEN);
+            k += (size_t)auth.n_keys * OF_KEY_LEN;
+        }
+        auth.stop_policy = b[k];
+        return auth.stop_policy <= OF_STOP_AUTHENTICATED ? 0 : -1;
+    }
+    if (memcmp(b, "OFR3", 4) != 0 || n < 4 + 1 + OF_KEY_LEN + 1 + 1 + 2) return -1;
     auth.n_keys = b[k++];
     if (auth.n_keys < 1 || auth.n_keys > OF_MAX_KEYS || k + auth.n_keys * OF_KEY_LEN + 1 > n - 2) return -1;
     memcpy(auth.keys, b + k, (size_t)auth.n_keys * OF_KEY_LEN);

@@ -288,7 +288,8 @@ static void handle_auth(of_follower *f, const uint8_t *buf, uint8_t n) {
     int fail_safe = kind == OF_MSG_STOP && a->stop_policy == OF_STOP_ANYONE;
     const uint8_t *payload = buf + 4;
     uint32_t *why = NULL;
-    uint8_t k, key = 0, ok = 0, ident, slot;
+    uint8_t k, key = 0, ok = 0, ident, slot, n_keys;
+    const uint8_t (*keys)[OF_KEY_LEN];
     uint64_t counter = 0;
     if ((address != f->address && address != OF_BROADCAST) || (type & 0x80u)) return;
     if (!(type & OF_AUTH)) {
@@ -298,16 +299,23 @@ static void handle_auth(of_follower *f, const uint8_t *buf, uint8_t n) {
             f->count.unauthenticated++;
         return;
     }
-    for (k = 0; k < a->n_keys && !ok; k++) {
-        uint64_t want = of_siphash24(a->keys[k], buf, (size_t)(4 + n - OF_TAG_LEN));
+    ident = payload[n - OF_TRAILER_LEN];
+    counter = get_u64(payload + n - OF_TRAILER_LEN + 1, 6);
+    keys = a->keys;
+    n_keys = a->n_keys;
+    if (a->per_leader) {  /* only the keys of the id the frame carries */
+        for (k = 0; k < a->n_leaders && a->leaders[k] != ident; k++) {}
+        if (k < a->n_leaders) keys = a->leader_keys[k];
+        else n_keys = 0;
+    }
+    for (k = 0; k < n_keys && !ok; k++) {
+        uint64_t want = of_siphash24(keys[k], buf, (size_t)(4 + n - OF_TAG_LEN));
         uint64_t got = get_u64(payload + n - OF_TAG_LEN, 8);
         if (want == got) { ok = 1; key = k; }
     }
-    ident = payload[n - OF_TRAILER_LEN];
-    counter = get_u64(payload + n - OF_TRAILER_LEN + 1, 6);
     for (slot = 0; slot < f->n_senders && f->sender_id[slot] != ident; slot++) {}
     if (!ok) {
-        why = &f->count.bad_mac;
+        why = &f->count.bad_mac;  /* with a key per leader, an id with none: no key of the robot's verifies it */
     } else {
         int known = 0, names_other;
         if (a->n_leaders == 0) known = ident >= 1 && ident <= OF_MAX_LEADER;
@@ -325,7 +333,7 @@ static void handle_auth(of_follower *f, const uint8_t *buf, uint8_t n) {
     }
     if (slot == f->n_senders) { f->sender_id[slot] = ident; f->n_senders++; }
     f->sender_counter[slot] = counter;
-    reply_key = a->keys[key];
+    reply_key = keys[key];
     request_tag = payload + n - OF_TAG_LEN;
     reply_id = ident;
     reply_counter = counter;

@@ -1,7 +1,7 @@
 /*
  * omniformation reference follower firmware: the follower protocol of
  * docs/follower-protocol.md (protocol 2: ownership by one leader at a time, with a
- * lease; protocol 3: every frame authenticated with SipHash-2-4 under the fleet's radio
+ * lease; protocol 3: every frame authenticated with SipHash-2-4 under its leader's own radio
  * key, fresh by a per-sender counter, replies bound to the request they answer), the
  * watchdog and differential-drive odometry, in portable C99 for a small microcontroller.
  *
@@ -90,11 +90,16 @@ typedef struct {
 
 /* What a robot is provisioned with for protocol 3 (`omniformation radio-provision` writes it). */
 typedef struct {
-    uint8_t keys[OF_MAX_KEYS][OF_KEY_LEN];
+    uint8_t keys[OF_MAX_KEYS][OF_KEY_LEN];  /* one key for every sender (unless per_leader) */
     uint8_t n_keys;             /* 1, or 2 during a rotation */
     uint8_t leaders[OF_MAX_SENDERS];
     uint8_t n_leaders;          /* 0: any leader 1..250 (the first OF_MAX_SENDERS heard) */
     uint8_t stop_policy;        /* OF_STOP_ANYONE or OF_STOP_AUTHENTICATED */
+    /* 1: a key per leader: a frame is checked only against leader_keys[i] of the id it carries
+     * (leaders[i]), so a leader's key signs as its own id alone; an id with no keys here is an
+     * unknown sender. keys[] is then unused (the robot never holds the fleet's secret). */
+    uint8_t per_leader;
+    uint8_t leader_keys[OF_MAX_SENDERS][OF_MAX_KEYS][OF_KEY_LEN];
 } of_radio_auth;
 
 typedef struct {

@@ -2,15 +2,19 @@
 firmware is flashed with (docs/follower-protocol.md, "Keys and provisioning").
 
 `omniformation fleet-keys DIR ...` writes DIR/radio/ (mode 0700, the operator's, like the CA):
-``robots.json`` (the keys the robots accept, the leaders' radio ids, the STOP policy) and
-``<leader>.radio`` per leader (its radio id, its place among the leaders, and the key it signs
-with), each mode 0600. A leader's machine gets only its own ``.radio`` file; the robots get
-``robots.json`` turned into a C header or a binary record by `omniformation radio-provision`.
-A key file that others may read, or that is not what it should be, is one line naming it.
+``robots.json`` (the fleet's radio secret, the leaders' radio ids, the STOP policy) and
+``<leader>.radio`` per leader (its radio id, its place among the leaders, and its own key,
+derived from the secret and its radio id: a leader's key signs as its own id alone), each mode
+0600. A leader's machine gets only its own ``.radio`` file; the robots get each leader's key
+(never the secret) from ``robots.json`` as a C header or a binary record by `omniformation
+radio-provision`. A key file that others may read, or that is not what it should be, is one
+line naming it. A rotation (`radio-rotate`) and the frame counter's file (`run --radio-counter`)
+fail closed: see :func:`rotate` and :func:`check_counter_file`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import secrets
@@ -27,7 +31,9 @@ from app.files import UserError, parse_json, read_regular
 ROBOTS = "robots.json"
 SUFFIX = ".radio"
 NEXT = "next"  # during a rotation: the leaders' files with the next key, to deploy once the robots hold both
-RECORD_MAGIC = b"OFR3"
+RECORD_MAGIC = b"OFR3"  # one key for the fleet (an older robots.json)
+RECORD_MAGIC_PER_LEADER = b"OFR4"  # a key per leader
+DERIVE_LABEL = b"omniformation radio leader key "
 
 
 @dataclass(frozen=True)
@@ -71,9 +77,10 @@ def check_radio_keys_writable(directory: Path, leaders: tuple[str, ...], *, over
 
 def write_radio_keys(directory: Path, leaders: tuple[str, ...], *, overwrite: bool = False,
                      stop: str = STOP_ANYONE) -> list[Path]:
-    """A fresh radio key (32 random bytes) for the fleet: ``directory``/robots.json and one
-    ``<leader>.radio`` per leader (radio id = its place among the leaders, 1..). Refuses
-    (FileExistsError naming the file) to write over a key unless ``overwrite``."""
+    """A fresh radio secret (32 random bytes) for the fleet: ``directory``/robots.json (the
+    secret: the operator's) and one ``<leader>.radio`` per leader (radio id = its place among the
+    leaders, 1..; its own key, :func:`leader_key`). Refuses (FileExistsError naming the file) to
+    write over a key unless ``overwrite``."""
     files = check_radio_keys_writable(directory, leaders, overwrite=overwrite)
     _private_dir(directory)
     stale = directory / NEXT  # a rotation of the key replaced now: its next files mean nothing any more
@@ -82,11 +89,12 @@ def write_radio_keys(directory: Path, leaders: tuple[str, ...], *, overwrite: bo
             old.unlink()
         if not any(stale.iterdir()):
             stale.rmdir()
-    key = secrets.token_bytes(p.RADIO_KEY_LEN)
+    secret = secrets.token_bytes(p.RADIO_KEY_LEN)
     ids = {name: k + 1 for k, name in enumerate(leaders)}
-    _write_secret(files[0], json.dumps({"keys": [key.hex()], "leaders": ids, "stop": stop}, indent=1) + "\n")
+    _write_secret(files[0], json.dumps({"keys": [secret.hex()], "leaders": ids, "stop": stop, "per_leader": True},
+                                       indent=1) + "\n")
     for name in leaders:
-        _write_secret(directory / f"{name}{SUFFIX}", _leader_text(ids[name], key))
+        _write_secret(directory / f"{name}{SUFFIX}", _leader_text(ids[name], leader_key(secret, ids[name])))
     return files
 
 
@@ -136,10 +144,20 @@ def load_robot_auth(path: Path) -> RadioAuth:
     if not isinstance(leaders, dict) or not leaders or len(leaders) > MAX_SENDERS or any(
             type(v) is not int or not 1 <= v <= p.MAX_LEADER for v in leaders.values()):
         raise UserError(f"{path}: leaders must map 1..{MAX_SENDERS} leader names to radio ids 1..{p.MAX_LEADER}")
+    if len(set(leaders.values())) != len(leaders):
+        raise UserError(f"{path}: leaders must have distinct radio ids")
     stop = data.get("stop", STOP_ANYONE)
     if stop not in STOP_POLICIES:
         raise UserError(f"{path}: stop must be one of {', '.join(STOP_POLICIES)}, not {stop!r}")
-    return RadioAuth(tuple(_key(path, k) for k in keys), tuple(sorted(leaders.values())), str(stop))
+    per_leader = data.get("per_leader", False)
+    if not isinstance(per_leader, bool):
+        raise UserError(f"{path}: per_leader must be true or false")
+    secrets_ = tuple(_key(path, k) for k in keys)
+    ids = tuple(sorted(leaders.values()))
+    if not per_leader:  # an older fleet: one key every leader signs with
+        return RadioAuth(secrets_, ids, str(stop))
+    # the robots hold each leader's keys, never the fleet's secret
+    return RadioAuth((), ids, str(stop), tuple(tuple(leader_key(k, rid) for k in secrets_) for rid in ids))
 
 
 def set_stop_policy(path: Path, stop: str) -> None:
@@ -148,17 +166,25 @@ def set_stop_policy(path: Path, stop: str) -> None:
     _write_secret(path, json.dumps(data, indent=1) + "\n")
 
 
-def leader_key(secret: bytes, radio_id: int) -> bytes:
-    """The key leader ``radio_id`` signs with under the fleet's radio key ``secret``."""
-    return secret
+def leader_key(secret: bytes, radio_id: int, per_leader: bool = True) -> bytes:
+    """The key leader ``radio_id`` signs with under the fleet's radio secret: its own, derived
+    with keyed BLAKE2b (the secret as the key, the leader's radio id in the message), so that no
+    leader's key gives another's; ``per_leader`` False (an older fleet's robots.json): the secret
+    itself, one key for every leader."""
+    if not per_leader:
+        return secret
+    return hashlib.blake2b(DERIVE_LABEL + bytes((radio_id,)), key=secret, digest_size=p.RADIO_KEY_LEN).digest()
 
 
-def _robots_data(directory: Path) -> tuple[Path, dict[str, object], tuple[bytes, ...], dict[str, int]]:
+def _robots_data(directory: Path) -> tuple[Path, dict[str, object], tuple[bytes, ...], dict[str, int], bool]:
+    """robots.json checked: its path, its data, the fleet's secrets (current, next), the leaders'
+    radio ids, and whether each leader has a key of its own."""
     robots = directory / ROBOTS
-    auth = load_robot_auth(robots)  # checked: one line if it cannot serve
+    load_robot_auth(robots)  # checked: one line if it cannot serve
     data = _read_private(robots, "the robots' radio keys")
     leaders = {str(k): int(v) for k, v in data["leaders"].items()}  # type: ignore[attr-defined]
-    return robots, data, auth.keys, leaders
+    secrets_ = tuple(_key(robots, k) for k in data["keys"])  # type: ignore[attr-defined]
+    return robots, data, secrets_, leaders, data.get("per_leader") is True
 
 
 UNREADABLE = b"?"  # a leader's file that cannot serve (Rotation.problems says why)
@@ -188,9 +214,14 @@ class Rotation:
     files: dict[str, bytes | None]
     bundles: dict[str, bytes | None]
     problems: dict[Path, str]  # files that cannot serve: a step writes them afresh
+    per_leader: bool = True  # each leader a key of its own (False: an older fleet's one key)
+
+    def key_of(self, secret: bytes, name: str) -> bytes:
+        """Leader ``name``'s key under the fleet's radio secret ``secret``."""
+        return leader_key(secret, self.leaders[name], self.per_leader)
 
     def _holds(self, keys: dict[str, bytes | None], secret: bytes) -> list[str]:
-        return [n for n in self.leaders if keys.get(n) == leader_key(secret, self.leaders[n])]
+        return [n for n in self.leaders if keys.get(n) == self.key_of(secret, n)]
 
     @property
     def next_dir(self) -> Path:
@@ -198,7 +229,7 @@ class Rotation:
 
     def begin_interrupted(self) -> bool:
         """next/ holds a key the robots do not list: a --begin stopped before its last rename."""
-        return len(self.keys) == 1 and any(k not in (None, UNREADABLE, leader_key(self.keys[0], self.leaders[n]))
+        return len(self.keys) == 1 and any(k not in (None, UNREADABLE, self.key_of(self.keys[0], n))
                                            for n, k in self.nexts.items())
 
     def finish_pending(self) -> list[str]:
@@ -206,8 +237,8 @@ class Rotation:
         behind); empty when the folder agrees."""
         cur = self.keys[0]
         out = [f"next/{n}{SUFFIX}" for n, k in self.nexts.items() if k is not None]
-        out += [f"{n}{SUFFIX}" for n in self.leaders if self.files[n] != leader_key(cur, self.leaders[n])]
-        out += [f"../{n}/{n}{SUFFIX}" for n, k in self.bundles.items() if k != leader_key(cur, self.leaders[n])]
+        out += [f"{n}{SUFFIX}" for n in self.leaders if self.files[n] != self.key_of(cur, n)]
+        out += [f"../{n}/{n}{SUFFIX}" for n, k in self.bundles.items() if k != self.key_of(cur, n)]
         return out
 
     def describe(self) -> str:
@@ -223,7 +254,7 @@ class Rotation:
             old, new = self.keys
             ready = self._holds(self.nexts, new)
             on_new = self._holds(self.files, new) + [f"{n}'s bundle" for n in self._holds(self.bundles, new)]
-            missing = [n for n in self.leaders if n not in ready and self.files[n] != leader_key(new, self.leaders[n])]
+            missing = [n for n in self.leaders if n not in ready and self.files[n] != self.key_of(new, n)]
             text = (f"begun: the robots' record lists the current key and the next one; next/ holds {len(ready)} of"
                     f" {n_all} leaders' files")
             if missing:
@@ -251,13 +282,13 @@ def rotation_state(directory: Path) -> Rotation:
     serve)."""
     if not directory.is_dir():
         raise UserError(f"{directory}: not a folder (fleet-keys writes DIR/radio/)")
-    _, _, keys, leaders = _robots_data(directory)
+    _, _, keys, leaders, per_leader = _robots_data(directory)
     fleet_dir = directory.parent
     problems: dict[Path, str] = {}
     nexts = {n: _key_in(directory / NEXT / f"{n}{SUFFIX}", problems) for n in leaders}
     files = {n: _key_in(directory / f"{n}{SUFFIX}", problems) for n in leaders}
     bundles = {n: _key_in(fleet_dir / n / f"{n}{SUFFIX}", problems) for n in leaders if (fleet_dir / n).is_dir()}
-    return Rotation(directory, keys, leaders, nexts, files, bundles, problems)
+    return Rotation(directory, keys, leaders, nexts, files, bundles, problems, per_leader)
 
 
 class _Step:
@@ -312,18 +343,18 @@ def rotate(directory: Path, finish: bool) -> list[Path]:
     bundle, a full disk, a crash) is finished by running it again, or, for a --begin that never
     reached robots.json, started afresh. docs/follower-protocol.md, "Rotating the key"."""
     state = rotation_state(directory)
-    robots, data, keys, leaders = _robots_data(directory)
+    robots, data, keys, leaders, per_leader = _robots_data(directory)
     nxt = directory / NEXT
     step = _Step()
     if not finish:
         if len(keys) == 2:
             new = keys[1]
-            missing = [n for n in leaders if state.nexts[n] != leader_key(new, leaders[n])
-                       and state.files[n] != leader_key(new, leaders[n])]
+            missing = [n for n in leaders if state.nexts[n] != leader_key(new, leaders[n], per_leader)
+                       and state.files[n] != leader_key(new, leaders[n], per_leader)]
             if not missing:
                 raise UserError(f"{robots}: a rotation is already under way; finish it first (--finish)")
             for n in missing:  # a begin whose next/ files went missing: written again, same key
-                step.add(nxt / f"{n}{SUFFIX}", _leader_text(leaders[n], leader_key(new, leaders[n])))
+                step.add(nxt / f"{n}{SUFFIX}", _leader_text(leaders[n], leader_key(new, leaders[n], per_leader)))
             _private_dir(nxt)
             return step.run("radio-rotate --begin")
         if state.finish_pending() and not state.begin_interrupted():
@@ -331,7 +362,7 @@ def rotate(directory: Path, finish: bool) -> list[Path]:
         new = secrets.token_bytes(p.RADIO_KEY_LEN)
         _private_dir(nxt)
         for n, rid in leaders.items():
-            step.add(nxt / f"{n}{SUFFIX}", _leader_text(rid, leader_key(new, rid)))
+            step.add(nxt / f"{n}{SUFFIX}", _leader_text(rid, leader_key(new, rid, per_leader)))
         step.add(robots, json.dumps({**data, "keys": [keys[0].hex(), new.hex()]}, indent=1) + "\n")
         return step.run("radio-rotate --begin")
     if len(keys) == 2:
@@ -344,9 +375,9 @@ def rotate(directory: Path, finish: bool) -> list[Path]:
             raise UserError(f"{robots}: no rotation under way (--begin starts one; --status says where it stands)")
     for n, rid in leaders.items():
         if n in state.bundles:
-            step.add(directory.parent / n / f"{n}{SUFFIX}", _leader_text(rid, leader_key(cur, rid)))
+            step.add(directory.parent / n / f"{n}{SUFFIX}", _leader_text(rid, leader_key(cur, rid, per_leader)))
     for n, rid in leaders.items():
-        step.add(directory / f"{n}{SUFFIX}", _leader_text(rid, leader_key(cur, rid)))
+        step.add(directory / f"{n}{SUFFIX}", _leader_text(rid, leader_key(cur, rid, per_leader)))
     step.add(robots, json.dumps({**data, "keys": [cur.hex()]}, indent=1) + "\n")
     written = step.run("radio-rotate --finish")
     try:  # the robots' record is the new one now: next/ is only a leftover
@@ -446,24 +477,39 @@ def copy_into_bundles(files: list[Path], fleet_dir: Path) -> list[Path]:
 
 
 def binary_record(auth: RadioAuth) -> bytes:
-    """What a robot's flash holds (firmware/host_sim.c reads it): "OFR3", n keys, the keys, n
-    leaders, their ids, the STOP policy (0 anyone, 1 authenticated), CRC-16 of all before it."""
+    """What a robot's flash holds (firmware/host_sim.c reads it): with a key per leader "OFR4", n
+    keys, n leaders, then each leader's id and its n keys (current, next), the STOP policy (0
+    anyone, 1 authenticated), CRC-16 of all before it; one key for the fleet (an older
+    robots.json): "OFR3", n keys, the keys, n leaders, their ids, the STOP policy, CRC-16."""
+    if auth.leader_keys:
+        body = RECORD_MAGIC_PER_LEADER + bytes((len(auth.leader_keys[0]), len(auth.leaders))) + b"".join(
+            bytes((rid,)) + b"".join(keys) for rid, keys in zip(auth.leaders, auth.leader_keys)) \
+            + bytes((STOP_POLICIES.index(auth.stop),))
+        return body + struct.pack("<H", p.crc16(body))
     body = RECORD_MAGIC + bytes((len(auth.keys),)) + b"".join(auth.keys) + bytes((len(auth.leaders),)) \
         + bytes(auth.leaders) + bytes((STOP_POLICIES.index(auth.stop),))
     return body + struct.pack("<H", p.crc16(body))
 
 
 def c_header(auth: RadioAuth) -> str:
-    """A C header defining ``OF_RADIO_AUTH`` (an of_radio_auth) for firmware/omni_follower.h."""
+    """A C header defining ``OF_RADIO_AUTH`` (an of_radio_auth) for firmware/omni_follower.h: each
+    leader's keys (``per_leader``), or one key for the fleet from an older robots.json."""
     def arr(b: bytes) -> str:
         return "{" + ", ".join(f"0x{x:02x}" for x in b) + "}"
 
+    stop = "OF_STOP_ANYONE" if auth.stop == STOP_ANYONE else "OF_STOP_AUTHENTICATED"
+    head = ("/* The fleet's radio keys for the robots: SECRET, keep out of version control. */\n"
+            "#include \"omni_follower.h\"\n")
+    if auth.leader_keys:
+        per = ",\n     ".join("{" + ", ".join(arr(k) for k in keys) + "}" for keys in auth.leader_keys)
+        return (head + "static const of_radio_auth OF_RADIO_AUTH = {\n"
+                f"    .n_keys = {len(auth.leader_keys[0])}u,\n    .leaders = {arr(bytes(auth.leaders))},\n"
+                f"    .n_leaders = {len(auth.leaders)}u,\n    .stop_policy = {stop},\n    .per_leader = 1u,\n"
+                f"    .leader_keys = {{{per}}}\n}};\n")
     keys = ",\n     ".join(arr(k) for k in auth.keys)
-    return ("/* The fleet's radio key for the robots: SECRET, keep out of version control. */\n"
-            "#include \"omni_follower.h\"\n"
-            f"static const of_radio_auth OF_RADIO_AUTH = {{\n    {{{keys}}},\n    {len(auth.keys)}u,\n"
-            f"    {arr(bytes(auth.leaders))},\n    {len(auth.leaders)}u,\n"
-            f"    {'OF_STOP_ANYONE' if auth.stop == STOP_ANYONE else 'OF_STOP_AUTHENTICATED'}\n}};\n")
+    return (head + f"static const of_radio_auth OF_RADIO_AUTH = {{\n    .keys = {{{keys}}},\n"
+            f"    .n_keys = {len(auth.keys)}u,\n    .leaders = {arr(bytes(auth.leaders))},\n"
+            f"    .n_leaders = {len(auth.leaders)}u,\n    .stop_policy = {stop}\n}};\n")
 
 
 def write_provision(auth: RadioAuth, header: Path | None, record: Path | None) -> list[Path]:

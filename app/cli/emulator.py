@@ -123,7 +123,9 @@ def cmd_provision(args: argparse.Namespace) -> int:
         written = write_provision(auth, args.header, args.record)
     except OSError as exc:
         raise UserError(f"cannot write the robots' provisioning ({exc.strerror or exc})") from None
-    print(f"omniformation: robots provisioned: {len(auth.keys)} key(s), leaders {list(auth.leaders)}, STOP from"
+    n_keys = len(auth.leader_keys[0]) if auth.leader_keys else len(auth.keys)
+    mode = "a key per leader" if auth.leader_keys else "one key for the fleet"
+    print(f"omniformation: robots provisioned: {n_keys} key(s), {mode}, leaders {list(auth.leaders)}, STOP from"
           f" {auth.stop}" + "".join(f"; {w}" for w in written), flush=True)
     return 0
 

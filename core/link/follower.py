@@ -22,7 +22,9 @@ those of docs/follower-protocol.md:
   the robot does not know, a counter not above the last one taken from that sender, or a plain
   frame of protocol 1/2 is refused without a word and counted (``refusals``, in the STATUS). The
   replies are authenticated with the same key and carry the request's counter, so they prove
-  they answer that very frame. STOP follows the provisioned policy (docs/safety.md).
+  they answer that very frame. STOP follows the provisioned policy (docs/safety.md). With a key
+  per leader (``RadioAuth.leader_keys``) a frame is checked only against the keys of the id it
+  carries: a leader's key signs as its own id alone (another's id: bad MAC).
 """
 
 from __future__ import annotations
@@ -198,6 +200,16 @@ class RadioAuth:
     keys: tuple[bytes, ...] = (p.OPEN_KEY,)  # the current key, then the next one during a rotation
     leaders: tuple[int, ...] = ()  # the leaders' radio ids it obeys; empty: any 1..250 (first MAX_SENDERS seen)
     stop: str = STOP_ANYONE
+    # a key per leader (aligned with ``leaders``; current, then next): a frame is checked only
+    # against the keys of the id it carries, so a leader's key signs as its own id alone and
+    # ``keys`` serves nobody. Empty: ``keys`` verify every sender (one key for the fleet).
+    leader_keys: tuple[tuple[bytes, ...], ...] = ()
+
+    def keys_of(self, ident: int) -> tuple[bytes, ...]:
+        """The keys that may verify a frame carrying sender ``ident`` (none: an unknown sender)."""
+        if not self.leader_keys:
+            return self.keys
+        return self.leader_keys[self.leaders.index(ident)] if ident in self.leaders else ()
 
 
 def _refused(s: FollowerState, kind: str) -> FollowerState:
@@ -226,10 +238,11 @@ def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame,
         if fail_safe:
             return _stopped(s), None  # obeyed, never answered
         return (_refused(s, "unauthenticated") if kind in REFUSED_PLAIN else s), None
-    opened = p.open_sealed(frame, auth.keys)
+    keys = auth.keys_of(p.trailer(frame)[0]) if len(frame.payload) >= p.TRAILER_LEN else auth.keys
+    opened = p.open_sealed(frame, keys) if keys else None
     why = ""
     if opened is None:
-        why = "bad_mac"
+        why = "bad_mac"  # with a key per leader, an id with none: no key of the robot's verifies it
     else:
         named = p.sender(opened.frame)
         slots = dict(s.counters)
@@ -249,7 +262,7 @@ def handle_frame(s: FollowerState, hw: FollowerHardware, frame: p.Frame,
         return s, None
     if reply.msg_type == p.MSG_STATUS:
         reply = p.Frame(reply.address, reply.seq, reply.msg_type, p.status_counts(reply.payload, s.refusals))
-    return s, p.seal(reply, auth.keys[opened.key_index], opened.ident, opened.counter, p.tag_of(frame))
+    return s, p.seal(reply, keys[opened.key_index], opened.ident, opened.counter, p.tag_of(frame))
 
 
 def _handle_plain(s: FollowerState, hw: FollowerHardware, frame: p.Frame) -> tuple[FollowerState, p.Frame | None]:

@@ -246,18 +246,28 @@ def test_a_good_counter_file_and_a_new_one_are_used_and_only_grow(tmp_path):
 
 
 # -- a rotation stopped half way (radio-rotate DIR/radio --begin / --finish / --status) ------------
-def _agree(d) -> bytes:
-    """Every file of the radio folder and every bundle's copy holds the robots' one key; that key."""
-    from app.backends.radio_keys import load_leader_key, load_robot_auth
+def _secrets(radio) -> tuple[bytes, ...]:
+    """The fleet's radio secrets in robots.json (the current one, and the next during a rotation)."""
+    import json
 
+    return tuple(bytes.fromhex(k) for k in json.loads((radio / "robots.json").read_text())["keys"])
+
+
+def _agree(d) -> bytes:
+    """Every file of the radio folder and every bundle's copy holds its leader's key under the
+    robots' one secret, and the robots hold those keys; that secret."""
+    from app.backends.radio_keys import leader_key, load_leader_key, load_robot_auth
+
+    (secret,) = _secrets(d / "radio")
     auth = load_robot_auth(d / "radio" / "robots.json")
-    assert len(auth.keys) == 1
-    for n in ("L1", "L2", "L3"):
-        assert load_leader_key(d / "radio" / f"{n}.radio").key == auth.keys[0], n
-        assert load_leader_key(d / n / f"{n}.radio").key == auth.keys[0], f"{n}'s bundle"
+    for rid, n in enumerate(("L1", "L2", "L3"), start=1):
+        key = leader_key(secret, rid)
+        assert auth.keys_of(rid) == (key,), n
+        assert load_leader_key(d / "radio" / f"{n}.radio").key == key, n
+        assert load_leader_key(d / n / f"{n}.radio").key == key, f"{n}'s bundle"
     assert not (d / "radio" / "next").exists()
     assert not [p for p in d.rglob(".*.new")]  # no temporary left behind
-    return auth.keys[0]
+    return secret
 
 
 def _status(radio) -> str:
@@ -336,11 +346,9 @@ def test_a_finish_stopped_among_its_renames_is_finished_by_running_it_again(thre
     so, --finish completes it."""
     import shutil
 
-    from app.backends.radio_keys import load_robot_auth
-
     radio = three / "radio"
     assert main_cli("radio-rotate", str(radio), "--begin").returncode == 0
-    new = load_robot_auth(radio / "robots.json").keys[1]
+    new = _secrets(radio)[1]
     for n in ("L1", "L2"):  # renamed before the crash: L3 and robots.json not
         shutil.copy(radio / "next" / f"{n}.radio", three / n / f"{n}.radio")
         shutil.copy(radio / "next" / f"{n}.radio", radio / f"{n}.radio")
@@ -351,7 +359,7 @@ def test_a_finish_stopped_among_its_renames_is_finished_by_running_it_again(thre
     # killed after robots.json, before next/ was removed; and L3's bundle copy not renamed
     assert main_cli("radio-rotate", str(radio), "--begin").returncode == 0
     keep = (three / "L3" / "L3.radio").read_bytes()
-    newer = load_robot_auth(radio / "robots.json").keys[1]
+    newer = _secrets(radio)[1]
     shutil.copytree(radio / "next", three / "next-saved")
     assert main_cli("radio-rotate", str(radio), "--finish").returncode == 0
     shutil.copytree(three / "next-saved", radio / "next")
@@ -368,7 +376,7 @@ def test_a_begin_stopped_before_robots_json_is_started_afresh_by_running_it_agai
     --status says so, --begin starts afresh with a new key."""
     import json
 
-    from app.backends.radio_keys import load_leader_key, load_robot_auth
+    from app.backends.radio_keys import leader_key, load_leader_key
 
     radio = three / "radio"
     old = _agree(three)
@@ -378,10 +386,10 @@ def test_a_begin_stopped_before_robots_json_is_started_afresh_by_running_it_agai
     stray.chmod(0o600)
     assert "a --begin was interrupted" in _status(radio)
     assert "a --begin was interrupted" in _one_line(main_cli("radio-rotate", str(radio), "--finish"))
-    assert load_robot_auth(radio / "robots.json").keys == (old,)
+    assert _secrets(radio) == (old,)
     assert main_cli("radio-rotate", str(radio), "--begin").returncode == 0
-    keys = load_robot_auth(radio / "robots.json").keys
+    keys = _secrets(radio)
     assert keys[0] == old and keys[1] != bytes.fromhex("ab" * 32)
-    assert all(load_leader_key(radio / "next" / f"{n}.radio").key == keys[1] for n in ("L1", "L2", "L3"))
+    assert all(load_leader_key(radio / "next" / f"L{r}.radio").key == leader_key(keys[1], r) for r in (1, 2, 3))
     assert main_cli("radio-rotate", str(radio), "--finish").returncode == 0
     assert _agree(three) == keys[1]

@@ -45,7 +45,9 @@ def test_fleet_keys_writes_private_radio_keys_and_refuses_to_write_over_them(key
         assert stat.S_IMODE((keys / name).stat().st_mode) == 0o600, name
     l1, l2 = load_leader_key(keys / "L1.radio"), load_leader_key(keys / "L2.radio")
     auth = load_robot_auth(keys / "robots.json")
-    assert (l1.radio_id, l2.radio_id) == (1, 2) and l1.key == l2.key == auth.keys[0] and len(l1.key) == 32
+    assert (l1.radio_id, l2.radio_id) == (1, 2) and len(l1.key) == len(l2.key) == 32
+    # a key per leader: the robots hold each leader's own, never the fleet's secret (robots.json's)
+    assert l1.key != l2.key and auth.leader_keys == ((l1.key,), (l2.key,)) and auth.keys == ()
     assert auth.leaders == (1, 2) and auth.stop == "anyone"
     for name in ("L1", "L2"):  # each leader's own file also in its bundle (the folder copied to its machine)
         bundled = keys.parent / name / f"{name}.radio"
@@ -75,17 +77,18 @@ def test_the_firmware_provisioned_from_fleet_keys_obeys_the_fleet_and_refuses_an
     assert stat.S_IMODE(header.stat().st_mode) == 0o600 and stat.S_IMODE(record.stat().st_mode) == 0o600
     # the header builds with the firmware, pedantic, and holds the key
     probe = tmp_path / "probe.c"
-    probe.write_text('#include "radio_auth.h"\n#include <stdio.h>\nint main(void) { printf("%u %u %u %u\\n",'
-                     ' OF_RADIO_AUTH.n_keys, OF_RADIO_AUTH.n_leaders, OF_RADIO_AUTH.keys[0][0],'
+    probe.write_text('#include "radio_auth.h"\n#include <stdio.h>\nint main(void) { printf("%u %u %u %u %u %u\\n",'
+                     ' OF_RADIO_AUTH.n_keys, OF_RADIO_AUTH.n_leaders, OF_RADIO_AUTH.per_leader,'
+                     ' OF_RADIO_AUTH.leader_keys[0][0][0], OF_RADIO_AUTH.leader_keys[1][0][0],'
                      ' OF_RADIO_AUTH.stop_policy); return 0; }\n')
     cc = shutil.which("cc") or shutil.which("gcc")
     build = subprocess.run([cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", f"-I{FIRMWARE}",
                             f"-I{tmp_path}", str(probe), "-o", str(tmp_path / "probe")],
                            capture_output=True, text=True)
     assert build.returncode == 0, build.stderr
-    key = load_robot_auth(keys / "robots.json").keys[0]
+    key, key2 = load_leader_key(keys / "L1.radio").key, load_leader_key(keys / "L2.radio").key
     out = subprocess.run([str(tmp_path / "probe")], capture_output=True, text=True).stdout.split()
-    assert out == ["1", "2", str(key[0]), "0"]
+    assert out == ["1", "2", "1", str(key[0]), str(key2[0]), "0"]
     # the firmware flashed with the record: the fleet's leader drives it, the open key drives nothing
     fw = Firmware(sim_bin, tmp_path / "followers", "--radio-record", str(record))
     good = SerialLink(str(fw.link), 3, radio_key=key, sender_id=1)
@@ -114,7 +117,7 @@ def test_a_rotation_keeps_the_fleet_driving_and_retires_the_old_key(keys, tmp_pa
     assert main_cli("radio-rotate", str(work), "--begin").returncode == 0
     both = load_robot_auth(work / "robots.json")
     new = load_leader_key(work / "next" / "L1.radio").key
-    assert both.keys == (old, new) and load_leader_key(work / "L1.radio").key == old
+    assert both.leader_keys[0] == (old, new) and load_leader_key(work / "L1.radio").key == old
     assert main_cli("radio-rotate", str(work), "--begin").returncode == 2  # one at a time
     radio = Radio(1, 2, auth=both)  # the robots provisioned with both (step 2)
     import threading
@@ -132,7 +135,7 @@ def test_a_rotation_keeps_the_fleet_driving_and_retires_the_old_key(keys, tmp_pa
                 link.close()
         assert main_cli("radio-rotate", str(work), "--finish").returncode == 0
         after = load_robot_auth(work / "robots.json")
-        assert after.keys == (new,) and load_leader_key(work / "L1.radio").key == new
+        assert after.leader_keys[0] == (new,) and load_leader_key(work / "L1.radio").key == new
         assert load_leader_key(tmp_path / "L1" / "L1.radio").key == new  # the bundle's copy too
         radio.robots.auth = after  # provisioned again (step 4): the old key is refused
         link = SerialLink(radio.paths[0], 2, radio_key=old, sender_id=1)
@@ -193,7 +196,7 @@ def test_a_leader_never_believes_a_strangers_reply(keys):
     stop = threading.Event()
     carrier = threading.Thread(target=radio.run, args=(stop,), daemon=True)
     carrier.start()
-    link = SerialLink(radio.paths[0], 2, radio_id=1, radio_key=auth.keys[0])
+    link = SerialLink(radio.paths[0], 2, radio_id=1, radio_key=load_leader_key(keys / "L1.radio").key)
     import serial
 
     stranger = serial.Serial(radio.paths[1], 115200, timeout=0.01)
