@@ -12,7 +12,7 @@ import argparse
 from collections.abc import Callable
 
 from app.cli.args import Parser, float_in, int_in
-from app.cli.bench import browsers, fleet, floods, foxglove, loop, ros2, speed, sweeps
+from app.cli.bench import browsers, fleet, floods, foxglove, loop, ros2, speed, study, sweeps
 from app.cli.bench.latency import bench_latency
 from app.cli.bench.recordings import bench_long_recording, damage_table, loss_cases, replay_probe, write_long_recording
 from app.cli.bench.soak import GcPauses, run_soak
@@ -24,6 +24,7 @@ __all__ = ["FAMILIES", "GcPauses", "bench_latency", "bench_long_recording", "dam
 FAMILIES: list[Callable[[Callable[[str], None]], dict[str, float]]] = [
     speed.run_family,
     sweeps.run_family,
+    study.run_family,
     browsers.run_family,
     foxglove.run_family,
     floods.run_family,
