@@ -210,18 +210,6 @@ def finite_twist(t: Any) -> tuple[float, float]:
     return v, w
 
 
-def parse_leader_spec(text: str) -> tuple[str, bool]:
-    """``ros2:/cmd_vel`` or ``ros2:/cmd_vel:stamped`` -> (topic, stamped), else ValueError."""
-    body = text.removeprefix("ros2:")
-    stamped = body.endswith(":stamped")
-    topic = body.removesuffix(":stamped")
-    try:
-        check_topic(topic)
-    except ValueError as exc:
-        raise ValueError(f"--leader {text!r}: must be ros2:/TOPIC or ros2:/TOPIC:stamped ({exc})") from None
-    return topic, stamped
-
-
 class Ros2Base:
     """The leader's base as a ROS 2 robot, a FollowerLink of one: each tick's leader (v, w) goes
     out on its command topic (Twist, or TwistStamped), its odometry (nav_msgs/msg/Odometry on

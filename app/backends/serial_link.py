@@ -67,7 +67,7 @@ from app.backends.link_auth import ALLOWED_NOTE, UNAUTHENTICATED, FrameCounter, 
 from app.backends.link_stats import QUALITY_WINDOW, FollowerLinkStats
 
 __all__ = ["ALLOWED_NOTE", "QUALITY_WINDOW", "REPLY_TIMEOUT_S", "UNAUTHENTICATED", "FollowerLinkStats", "FrameCounter",
-           "PortPerFollowerLink", "SerialLink", "make_link", "parse_link_spec"]
+           "PortPerFollowerLink", "SerialLink", "make_link"]
 
 REPLY_TIMEOUT_S = 0.25  # a SET_VELOCITY not answered by then counts as a lost reply
 SILENT_S = 0.5  # no reply at all for this long: "link lost"
@@ -86,18 +86,6 @@ REPLIES = {p.MSG_SET_VELOCITY: (p.MSG_ACK,), p.MSG_STOP: (p.MSG_ACK,), p.MSG_PIN
 MOTION = (p.MSG_SET_VELOCITY, p.MSG_DRIVE)  # the frames counted as sent (one per robot per tick)
 LEASE_MS = 1000  # with a radio id: the lease asked for; each DRIVE renews it
 CLAIM_RETRY_S = 0.5  # a robot another leader holds is asked again this often (its lease may have lapsed)
-
-
-def parse_link_spec(spec: str) -> str:
-    """``serial:PATH`` (or a pyserial URL such as ``serial:socket://host:port``) -> the port's name.
-
-    ValueError with one line for anything else."""
-    kind, _, rest = spec.partition(":")
-    if kind == "sim" and not rest:
-        return ""
-    if kind != "serial" or not rest:
-        raise ValueError(f"--link {spec!r}: must be 'sim' or 'serial:PATH' (e.g. serial:/dev/ttyUSB0)")
-    return rest
 
 
 class SerialLink:

@@ -145,7 +145,13 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
     from app.files import load_scenario
     from app.live.config import load_service_config
 
-    check_run_args(args)  # takes a ros2: leader out of --leader
+    from app.backends.links import FOLLOWERS, LEADER, LINK_TYPES, parse_link
+
+    try:  # the link registry says what --leader takes (app.backends.links)
+        leader = parse_link(args.leader, LEADER) if args.leader is not None else None
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    check_run_args(args, leader)
     if args.viewer_token is not None and args.viewer_token == args.token:
         raise UserError("--viewer-token: must differ from --token (a viewer may not command the robots)")
     config = load_service_config(args.config, MAX_FOLLOWERS)
@@ -163,23 +169,25 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
     real = args.camera is not None
     configured_link = config.link if config.link != "sim" or not real else None
     link_spec = args.link or configured_link or ("none" if real else "sim")
-    if real and (scenario is not None or args.feedback == "truth" or link_spec == "sim"):
+    try:  # the link registry says what --link takes (app.backends.links)
+        link = parse_link(link_spec, FOLLOWERS)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if real and (scenario is not None or args.feedback == "truth" or link.scheme == "sim"):
         raise UserError("--camera runs a real rig: it cannot be combined with --scenario, --feedback truth"
                         " or --link sim (give --link serial:PATH, or none to only observe)")
-    if not real and (link_spec == "none" or args.leader is not None):
+    if not real and (link.scheme == "none" or (leader is not None and not LINK_TYPES[leader.scheme].leads_simulated_team)):
         raise UserError("--link none and --leader need --camera: the simulated team has its own leader and link")
     if args.calibration is not None and not real:
         raise UserError("--calibration goes with --camera (the synthetic camera's is set in the config)")
-    from app.backends.serial_link import link_ports, parse_link_spec, same_device
+    from app.backends.serial_link import same_device
 
-    try:
-        link_port = "" if link_spec == "none" else parse_link_spec(link_spec)
-        leader_port = parse_link_spec(args.leader) if args.leader is not None else ""
-        followers_ports = link_ports(link_port) if link_port else []
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    if leader_port == "" and args.leader is not None:
-        raise UserError(f"--leader {args.leader!r}: must be 'serial:PATH' (the leader base's port)")
+    followers_ports = link.ports
+    link_port = ",".join(followers_ports)
+    leader_ports = leader.ports if leader is not None else ()
+    if len(leader_ports) > 1:
+        raise UserError(f"--leader {args.leader!r}: one port, the leader base's (serial:PATH)")
+    leader_port = leader_ports[0] if leader_ports else ""
     if leader_port and any(same_device(leader_port, port) for port in followers_ports):
         raise UserError(f"--leader serial:{leader_port}: the followers' link (--link) has that port, and a port is"
                         " one link's alone: give the leader base a port of its own")
@@ -194,14 +202,15 @@ def _plan_run(args: argparse.Namespace) -> RunPlan:
     else:
         camera = config.camera() if (args.feedback or config.feedback) == "vision" else None
     n_followers = scenario.n if scenario is not None else args.followers or config.followers
-    return RunPlan(config, scenario, fleet_scenario, real, link_port, leader_port, camera, n_followers,
+    return RunPlan(config, scenario, fleet_scenario, real, link if link_port else None,
+                   leader if leader is not None and leader.scheme == "serial" else None, camera, n_followers,
                    scenario_name=args.scenario, camera_source=args.camera, camera_fps=args.camera_fps,
                    host=args.host, port=args.port, token=args.token, viewer_token=args.viewer_token,
                    rate_hz=args.rate, seed=args.seed, recordings=args.recordings, realtime=args.realtime,
                    loop_process=not getattr(args, "one_process", False),
                    reserve_cpu=getattr(args, "reserve_cpu", False), record=not args.no_record,
                    record_to=args.record, frames_hz=args.frames_hz, radio=_radio_plan(args),
-                   fleet=_fleet_plan(args), ros2=ros2_plan(args), foxglove=foxglove_plan(args))
+                   fleet=_fleet_plan(args), ros2=ros2_plan(args, leader), foxglove=foxglove_plan(args))
 
 
 def _radio_plan(args: argparse.Namespace) -> RadioPlan:
@@ -289,17 +298,18 @@ def _arena_radio(args: argparse.Namespace, number: int) -> str:
     """With ``--arena``, ``--link serial:PTY`` is this leader's radio (`arena --radio` prints one
     per leader): the robots are commanded over it, the arena gives the world. The leader's radio
     id is its place among the arena's leaders (given, it must be that). "": no radio."""
-    from app.backends.serial_link import parse_link_spec
+    from app.backends.links import FOLLOWERS, parse_link
 
     if args.link is None:
         if args.radio_id is not None:
             raise UserError("--radio-id goes with --link serial:PATH (the radio this leader shares with others)")
         return ""
     try:
-        port = parse_link_spec(args.link) if args.link != "none" else ""
+        link = parse_link(args.link, FOLLOWERS)
     except ValueError as exc:
         raise UserError(str(exc)) from None
-    if not port or "," in port:
+    port = link.ports[0] if len(link.ports) == 1 else ""
+    if not port:
         raise UserError(f"--arena with --link {args.link!r}: the link is this leader's radio, one serial:PATH"
                         " (`omniformation arena FLEET --radio` prints one per leader)")
     if args.radio_id is not None and args.radio_id != number:

@@ -11,6 +11,8 @@ from app.cli.args import Parser, float_in, int_in
 from app.files import UserError
 
 if TYPE_CHECKING:
+    from app.backends.links import LinkSpec
+
     from app.fleet.security import FleetKeys
     from app.services.ros2_node import Ros2Plan
 
@@ -90,20 +92,11 @@ def load_keys(directory: Path | None) -> FleetKeys | None:
 
 
 # -- run --ros2 ------------------------------------------------------------------------------
-def check_run_args(args: argparse.Namespace) -> None:
-    """Before anything opens: ``--leader ros2:TOPIC[:stamped]`` is taken out of ``--leader`` (into
-    ``args.ros2_leader``) and needs --ros2; --ros2 needs --zenoh-connect."""
-    args.ros2_leader = None
-    if args.leader is not None and args.leader.startswith("ros2:"):
-        from app.backends.ros2 import parse_leader_spec
-
-        if not args.ros2:
-            raise UserError(f"--leader {args.leader}: a ROS 2 base needs --ros2 and --zenoh-connect ROUTER")
-        try:
-            args.ros2_leader = parse_leader_spec(args.leader)
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-        args.leader = None
+def check_run_args(args: argparse.Namespace, leader: LinkSpec | None) -> None:
+    """Before anything opens: a ROS 2 leader base (``--leader ros2:TOPIC[:stamped]``, looked up in the
+    link registry by the caller) needs --ros2; --ros2 needs --zenoh-connect."""
+    if leader is not None and leader.scheme == "ros2" and not args.ros2:
+        raise UserError(f"--leader {args.leader}: a ROS 2 base needs --ros2 and --zenoh-connect ROUTER")
     if not args.ros2 and (args.ros2_control or args.ros2_domain):
         raise UserError("--ros2-control and --ros2-domain go with --ros2")
     if args.ros2 and (args.fleet is not None or args.arena is not None):
@@ -115,10 +108,12 @@ def check_run_args(args: argparse.Namespace) -> None:
     args.ros2_keys = load_keys(args.keys) if args.ros2 else None
 
 
-def ros2_plan(args: argparse.Namespace) -> Ros2Plan | None:
-    """``run --ros2`` as the services take it (checked by check_run_args; None without --ros2)."""
+def ros2_plan(args: argparse.Namespace, leader: LinkSpec | None = None) -> Ros2Plan | None:
+    """``run --ros2`` as the services take it (checked by check_run_args; None without --ros2);
+    ``leader``: the --leader spec, a ROS 2 base's when its scheme is ros2."""
     if not args.ros2:
         return None
     from app.services.ros2_node import Ros2Plan
 
-    return Ros2Plan(tuple(args.zenoh_connect), args.ros2_keys, args.ros2_domain, args.ros2_leader, args.ros2_control)
+    base = leader if leader is not None and leader.scheme == "ros2" else None
+    return Ros2Plan(tuple(args.zenoh_connect), args.ros2_keys, args.ros2_domain, base, args.ros2_control)

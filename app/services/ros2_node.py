@@ -11,20 +11,23 @@ from typing import TYPE_CHECKING, Any
 from app.files import UserError
 
 if TYPE_CHECKING:
-    from app.backends.ros2 import Ros2Base, Ros2Node
+    from app.backends.links import LinkSpec
+
+    from app.backends.ros2 import Ros2Node
+    from app.contracts import FollowerLink
     from app.fleet.security import FleetKeys
     from app.services.live import Service
 
 
 @dataclass(frozen=True)
 class Ros2Plan:
-    """``run --ros2`` as checked: the router, the keys, the domain, a ROS 2 leader base (topic,
-    stamped) and whether ROS may send STOP and goals."""
+    """``run --ros2`` as checked: the router, the keys, the domain, a ROS 2 leader base (its
+    ``ros2:/TOPIC[:stamped]`` spec, app.backends.links) and whether ROS may send STOP and goals."""
 
     connect: tuple[str, ...]
     keys: FleetKeys | None
     domain: int
-    leader: tuple[str, bool] | None
+    leader: LinkSpec | None
     control: bool
 
 
@@ -55,18 +58,19 @@ def open_run_node(plan: Ros2Plan | None, stack: contextlib.ExitStack) -> Ros2Nod
     return node
 
 
-def leader_base(plan: Ros2Plan | None, node: Ros2Node | None) -> Ros2Base | None:
-    """``--leader ros2:TOPIC``: the leader's base on ROS 2 (its odometry on /odom)."""
+def leader_base(plan: Ros2Plan | None, node: Ros2Node | None) -> FollowerLink | None:
+    """``--leader ros2:TOPIC``: the leader's base on ROS 2 (its odometry on /odom), made by the link registry."""
     if plan is None or node is None or plan.leader is None:
         return None
-    from app.backends.ros2 import Ros2Base, publishers_of
+    from app.backends import links
+    from app.backends.ros2 import publishers_of
 
-    topic, stamped = plan.leader
+    topic = plan.leader.topic[0] if plan.leader.topic is not None else ""
     others = publishers_of(node.session, plan.domain, topic)
     if others:  # a robot is never commanded by two programs
         raise UserError(f"--leader {topic}: {', '.join(sorted(set(others)))} publish(es) on {topic} already (domain"
                         f" {plan.domain}); stop it first, a base takes commands from one program")
-    return Ros2Base(node, topic, stamped)
+    return links.make(plan.leader, links.LEADER, links.Wiring(node=node))
 
 
 def start_bridge(plan: Ros2Plan | None, node: Ros2Node | None, service: Service, base: Any, frames_hz: float,

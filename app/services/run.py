@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from app.backends.arena import ArenaTeam
     from app.backends.hardware import HardwareTeam
     from app.contracts import FollowerLink, RealtimeFrameSource, Rig
+    from app.backends.links import LinkSpec
     from app.fleet.bridge import FleetBridge, Presence
     from app.fleet.security import FleetKeys
     from app.live.config import ServiceConfig
@@ -74,8 +75,8 @@ class RunPlan:
     scenario: Scenario | None
     fleet_scenario: FleetScenario | None
     real: bool  # a real rig: real camera, real robots, no simulator
-    link_port: str  # the followers' serial port ("": none)
-    leader_port: str  # the leader base's ("": none)
+    link: LinkSpec | None  # the followers' link to open (--link serial:...; None: the simulated team's own, or none)
+    leader: LinkSpec | None  # the leader base's serial link (--leader serial:PATH; a ROS 2 base is the node's)
     camera: Rig | None
     n_followers: int
     scenario_name: str | None = None  # as given on the command line (the recording's metadata)
@@ -229,24 +230,28 @@ def _join_fleet(plan: RunPlan, stack: contextlib.ExitStack, handed: contextlib.E
 
 def _build_rig(plan: RunPlan, handed: contextlib.ExitStack,
                base: FollowerLink | None = None) -> tuple[FollowerLink | None, HardwareTeam | None]:
-    """The followers' link (serial, or the emulator) and, on a real rig, the real team."""
-    from app.backends.serial_link import SerialLink, make_link
+    """The followers' link (serial, or the emulator) and, on a real rig, the real team: each link
+    made by the link registry (app.backends.links) from the spec the command line looked up."""
+    from app.backends import links
     from core.types import Gains
 
     limits = plan.scenario.gains if plan.scenario is not None else Gains()
     link = None
-    if plan.link_port:
+    if plan.link is not None:
+        wiring = links.Wiring(n=plan.n_followers, baud=plan.radio.baud, v_max=limits.v_max, w_max=limits.w_max,
+                              radio_id=plan.radio.radio_id, radio=plan.radio.options())
         try:
-            link = make_link(plan.link_port, plan.n_followers, baud=plan.radio.baud, v_max=limits.v_max,
-                             w_max=limits.w_max, radio_id=plan.radio.radio_id, **plan.radio.options())
+            link = links.make(plan.link, links.FOLLOWERS, wiring)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-        handed.callback(link.close)
+        if link is not None:
+            handed.callback(link.close)
     hardware = None
     if plan.real:
         from app.backends.hardware import HardwareTeam
 
-        leader = SerialLink(plan.leader_port, 1, baud=plan.radio.baud, addresses=[0]) if plan.leader_port else base
+        leader = links.make(plan.leader, links.LEADER, links.Wiring(baud=plan.radio.baud)) if plan.leader is not None \
+            else base
         hardware = HardwareTeam(plan.n_followers, link, leader)
         handed.callback(hardware.close)
     return link, hardware

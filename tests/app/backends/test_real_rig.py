@@ -85,7 +85,7 @@ def test_frame_source_arguments_are_checked(tmp_path):
         (("--camera", str(tmp_path), "--link", "sim"), "--camera runs a real rig"),
         (("--link", "none"), "need --camera"),
         (("--camera", str(tmp_path), "--calibration", str(SYNTHETIC_CAMERA)), "has no [gamma]"),
-        (("--camera", str(tmp_path), "--leader", "ttyUSB1"), "must be 'sim' or 'serial:PATH'"),
+        (("--camera", str(tmp_path), "--leader", "ttyUSB1"), "--leader 'ttyUSB1': must be 'serial:PATH' or 'ros2:/TOPIC'"),
     ]:
         out = main_cli("run", "--port", "0", "--no-record", *args)
         assert out.returncode == 2, (args, out.stderr)
