@@ -37,7 +37,8 @@ def test_each_cause_is_one_alarm_while_it_lasts_and_stays_until_acknowledged() -
     assert len(heard) == 1 and "28.0 Hz" in heard[0]
     health.check(tick(2.4, rate_hz=29.0))  # 29 Hz is above 95 %: the cause ends, the banner keeps it
     assert len(health.alarms) == 1
-    health.check(tick(2.5, latency_ms=40.0))  # longer than one period (33 ms)
+    health.check(tick(2.5, latency_ms=40.0))  # longer than one period (33 ms), on 3 of the last 30 ticks
+    health.check(tick(2.55, latency_ms=40.0))
     health.check(tick(2.6, latency_ms=40.0))
     dropped[0] = 11
     health.check(tick(2.7))
@@ -53,6 +54,32 @@ def test_each_cause_is_one_alarm_while_it_lasts_and_stays_until_acknowledged() -
     health.check(tick(3.1))
     health.check(tick(3.2, link_state="link lost (again)"))  # it came back: a new alarm
     assert len(heard) == 6 and len(health.alarms) == 1
+
+
+def test_a_tick_by_tick_alarm_must_hold_on_3_of_30_ticks_and_is_one_line_with_its_count() -> None:
+    """Frame to command over one period on two ticks of any 30 is no alarm (a busy machine's odd
+    tick); on three it is, once while it lasts, and the banner's line for it counts the times in the
+    last minute and gives the last value, rewritten in place (never a line more per occurrence)."""
+    health = Health(30.0, dropped=lambda: 0)
+    heard: list[str] = []
+    health.listeners.append(lambda _t, text: heard.append(text))
+    for k in range(300):  # ten seconds, a late tick every 20 (two in any 30): no alarm
+        health.check(tick(k / 30, latency_ms=90.0 if k % 20 == 0 else 20.0))
+    assert heard == [] and health.alarms == []
+    for k in range(300, 306):  # three late ticks in a row: one alarm
+        health.check(tick(k / 30, latency_ms=94.0 if k < 303 else 20.0))
+    assert heard == ["frame to command 94 ms, longer than one period (33 ms)"]
+    # the line counts every late tick of the last minute (the 15 that raised nothing, and these 3)
+    assert health.alarms == ["frame to command over one period (33 ms): 18 times in the last minute, last 94 ms"]
+    for k in range(306, 312):  # late again within the window: still the same alarm, its line updated
+        health.check(tick(k / 30, latency_ms=70.0 if k < 308 else 20.0))
+    assert len(heard) == 1
+    assert health.alarms == ["frame to command over one period (33 ms): 20 times in the last minute, last 70 ms"]
+    health.check(tick(100.0))  # a minute on: the line's count forgets what is older
+    assert health.alarms == ["frame to command over one period (33 ms): 0 times in the last minute, last 70 ms"]
+    health.acknowledge()
+    health.check(tick(100.1))
+    assert health.alarms == []
 
 
 def test_the_page_says_what_it_is_and_only_what_it_may_be() -> None:
