@@ -32,10 +32,13 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class MeasurementNoise:
-    """Gaussian noise on the ground-truth leader-frame measurements."""
+    """Gaussian noise on the ground-truth leader-frame measurements (truth feedback), and on the
+    vision pipeline's position estimates (vision feedback: a rig whose calibration or markers are
+    worse than the synthetic one's; none by default, the camera being the measurement)."""
 
     position_noise_m: float = 0.0
     heading_noise_rad: float = 0.0
+    vision_position_noise_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -283,6 +286,7 @@ def parse_measurement(t: Table) -> MeasurementNoise:
     noise = MeasurementNoise(
         t.number("position_noise_m", 0.0, 0.5, default=0.0, unit="m"),
         math.radians(t.number("heading_noise_deg", 0.0, 90.0, default=0.0, unit="deg")),
+        t.number("vision_position_noise_m", 0.0, 0.5, default=0.0, unit="m"),
     )
     t.finish()
     return noise

@@ -206,6 +206,9 @@ class _Eyes:
                 self.on_frame(k, frame)
             out = self.pipeline.step(frame, 1.0 / self.scenario.rate_hz, odo, last_cmd, err_norm)
             pos_m, head_m, tracked = out.positions, out.headings, out.tracked
+            extra = self.scenario.measurement.vision_position_noise_m
+            if extra > 0:  # drawn only when asked: a run without it is the same run as before
+                pos_m = pos_m + self.rng.normal(0.0, extra, (n, 2))
             manoeuvre = out.manoeuvre
             if self.scanner is not None and manoeuvre is None:  # not during the start-up: nobody is tracked yet
                 scan = self.scanner.scan(frame, pos_m, tracked)

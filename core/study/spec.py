@@ -393,12 +393,19 @@ def _range_axis(table: Table, name: str, kind: str) -> Axis:
     return Axis(name, kind, lo=lo, hi=hi, log=log, integer=integer)
 
 
+TRUTH_ONLY = ("measurement.position_noise_m", "measurement.heading_noise_deg")
+
+
 def _check_axes(spec: StudySpec) -> None:
     """Every axis's extreme values, applied to every scenario and parsed as the scenario reader
     parses a file: a value a scenario file could not hold is refused here, not in run 9,000."""
     for axis in spec.axes:
         if axis.kind == "scenario":
             continue
+        if spec.vision and axis.name in TRUTH_ONLY:
+            raise ConfigError(f"{spec.source}: \"{axis.name}\" is noise on ground-truth feedback, which a vision study"
+                              " does not use (the pipeline's own error is its measurement): vary"
+                              " \"measurement.vision_position_noise_m\" (noise added to the pipeline's estimates)")
         extremes = [min(axis.values), max(axis.values)] if axis.values else [axis.lo, axis.hi]
         section = {"grid": "grid", "sample": "sample", "optimize": "optimize"}[axis.kind]
         for value in extremes:
