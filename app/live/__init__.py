@@ -1,5 +1,10 @@
-"""The live service: the one loop (loop), what each tick produced (tick), the operator's
-parameters (params), where poses come from (feedback), the service around the loop with its
-viser server (service) and its configuration file (config).
+"""The loop and what runs beside it: the one loop (loop: observe, control step, link, publish),
+its warm-up of numba's kernels before its clock starts (warmup), the tuning bench's step tests
+(tuning) and gain sweeps in a worker process (sweep), and the service's configuration file
+(config).
+
+The loop types against app.contracts alone and imports nothing from app.backends: the services
+hand it its world. What each tick produced is app.tick's, the operator's parameters app.params',
+the service around the loop app.services.live's.
 
 Nothing is re-exported here: importing ``app.tick`` must not import the loop."""
