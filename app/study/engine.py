@@ -259,9 +259,8 @@ def run_grid(spec: StudySpec, folder: StudyFolder, engine: Engine, progress: Pro
             try:
                 rows, fails = fut.result()
             except Exception as exc:  # noqa: BLE001 - a batch Dask gave up on: its runs are failure rows
-                worker = "?"
                 rows, fails = [], [{"point": i.point, "replicate": i.replicate, "seed": i.seed, **i.values,
-                                    "error": f"{type(exc).__name__}: {exc}"[:500], "worker": worker} for i in items]
+                                    "error": f"{type(exc).__name__}: {exc}"[:500], "worker": "?"} for i in items]
             if rows:
                 folder.write_part(spec, rows)
                 if not math.isfinite(first):

@@ -128,7 +128,8 @@ def run_optimize(spec: StudySpec, folder: StudyFolder, engine: Engine, progress:
     first = math.nan
     ac = as_completed()
     open_trials: dict[int, dict[str, Any]] = {}  # trial number -> {"key", "values", "missing": set, "rows"}
-    futures: dict[Any, int] = {}
+    futures: dict[Any, tuple[int, list[RunItem]]] = {}
+    failures = {(f["point"], f["replicate"]): f for f in folder.failures()}
     interrupted = False
     running = optuna.trial.TrialState.RUNNING
 
@@ -146,7 +147,7 @@ def run_optimize(spec: StudySpec, folder: StudyFolder, engine: Engine, progress:
             return
         items = [RunItem(key, values, r, run_seed(spec.seed, key, r)) for r in missing]
         fut = engine.client.submit(run_batch, shipped, items, pure=False)
-        futures[fut] = number
+        futures[fut] = (number, items)
         ac.add(fut)
 
     def finish(number: int) -> None:
@@ -169,11 +170,20 @@ def run_optimize(spec: StudySpec, folder: StudyFolder, engine: Engine, progress:
     try:
         top_up()
         for fut in ac:
-            number = futures.pop(fut)
+            number, items = futures.pop(fut)
             try:
                 rows, fails = fut.result()
-            except Exception as exc:  # noqa: BLE001 - a batch Dask gave up on: the trial fails
-                rows, fails = [], [{"error": f"{type(exc).__name__}: {exc}"}]
+            except Exception as exc:  # noqa: BLE001 - a batch Dask gave up on: its runs are failure rows
+                rows, fails = [], [{"point": i.point, "replicate": i.replicate, "seed": i.seed, **i.values,
+                                    "error": f"{type(exc).__name__}: {exc}"[:500], "worker": "?"} for i in items]
+            changed = False
+            for r in rows:
+                changed |= failures.pop((r["point"], r["replicate"]), None) is not None
+            for f in fails:
+                failures[(f["point"], f["replicate"])] = f
+                changed = True
+            if changed:
+                folder.write_failures(spec, list(failures.values()))
             if rows:
                 folder.write_part(spec, rows)
                 if not math.isfinite(first):
