@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test checks chromium kernels bytecode bench bench-radio samples venv clean
+.PHONY: run test checks chromium kernels bytecode bench bench-full bench-radio samples venv clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -47,8 +47,14 @@ kernels: $(STAMP)
 bytecode: $(STAMP)
 	$(BIN)/python -m compileall -q app core tests
 
+# the default families (did this change make it slower? within 5 minutes): one line per figure, the
+# services' log and the run's JSON under bench-results/ (`omniformation bench --compare A.json B.json`)
 bench: $(STAMP) bench-radio
 	$(BIN)/omniformation bench
+
+# every family (the page's floods and clients by turns, the fleet, browsers, sweeps, studies)
+bench-full: $(STAMP) bench-radio
+	$(BIN)/omniformation bench --full
 
 # what authenticating the radio frames costs the reference firmware (ns per frame, the radio's load)
 bench-radio:

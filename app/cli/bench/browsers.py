@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from app.cli.bench.family import Family
 
 
 def bench_loop_with_browsers(seconds: float = 6.0, browsers: int = 3) -> tuple[float, float, float] | None:
@@ -160,3 +161,7 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
         f" software WebGL on this same machine {watched:.2f} Hz ({(watched / alone - 1) * 100:+.1f} %)"
     )
     return {"loop_hz_no_browser": alone, "loop_hz_3_browsers_served": served, "loop_hz_3_browsers_same_machine": watched}
+
+
+FAMILY = Family('browsers', run_family, "the live loop's rate with three browsers watching",
+                default=False, order=30)

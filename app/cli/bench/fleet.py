@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from app.processes import interrupt
+from app.cli.bench.family import Family
 
 
 def bench_fleet_latency(seconds: float = 15.0, feedback: str = "vision", keyed: bool = False) -> tuple[float, float, int]:
@@ -331,3 +332,7 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
         results["leader_cpu_percent" + ("_one_process" if extra else "")] = count.at(max(held, 1)).leader_cpu
         print_fn(leader_line(name, count))
     return results
+
+
+FAMILY = Family('fleet', run_family, "the fleet's bus: state latency, leaders per machine, arena",
+                default=False, order=70)

@@ -19,6 +19,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from app.cli.bench.family import Family
+
 FLOOD_S = 10.0  # how long each flood lasts (the rate is measured over it)
 SEE_STOP_S = 30.0  # a new client that has not seen STOP by then is reported as "> 30 s"
 NEWCOMER_ADDRESS = "127.0.0.60"  # loopback: each party an address of its own (a flooder's refusal is its own)
@@ -203,6 +205,10 @@ def _counts(svc: Any) -> str:
 def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     """The page under floods (docs/page-access.md)."""
     return bench_floods(print_fn)
+
+
+FAMILY = Family('floods', run_family, 'what one hostile page client costs the loop (docs/page-access.md)',
+                default=True, order=50)
 
 
 if __name__ == "__main__":

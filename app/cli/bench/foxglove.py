@@ -16,6 +16,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from app.cli.bench.family import Family
+
 ROUNDS = 3
 
 # A viewer from the protocol spec: advertise -> subscribe to every channel; prints "ready" once
@@ -113,6 +115,10 @@ def bench_foxglove(print_fn: Callable[[str], None] = print, seconds: float = 4.0
 def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     """Foxglove live's cost (docs/foxglove.md)."""
     return bench_foxglove(print_fn)
+
+
+FAMILY = Family('foxglove', run_family, 'what Foxglove live costs the loop (docs/foxglove.md)',
+                default=True, order=40)
 
 
 if __name__ == "__main__":

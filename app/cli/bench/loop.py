@@ -29,6 +29,7 @@ from collections.abc import Callable
 from typing import Any
 
 from app.cli.bench.floods import FLOODER  # one hostile party for both benches
+from app.cli.bench.family import Family
 
 FLOOD_S = 20.0
 TURNS = 2
@@ -236,6 +237,10 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     from app.cli.bench.latency import bench_latency
 
     return bench_loops(print_fn, latency=bench_latency)
+
+
+FAMILY = Family('loop', run_family, "the page's clients against the loop, the page in and out of its process, by turns",
+                default=False, order=60)
 
 
 if __name__ == "__main__":  # `python -m app.cli.bench.loop [--one-process]`: these figures alone

@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable
 from typing import Any
+from app.cli.bench.family import Family
 
 
 def _loop_rate(loop: Any, seconds: float) -> tuple[float, float]:
@@ -123,6 +124,10 @@ def serve_ros_side(endpoint: str) -> None:
 def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     """The loop's rate and CPU per tick with --ros2 (docs/ros2.md)."""
     return bench_ros2(print_fn)
+
+
+FAMILY = Family('ros2', run_family, "the loop's rate and CPU per tick as a ROS 2 node (docs/ros2.md)",
+                default=True, order=80)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from app.files import load_scenario
+from app.cli.bench.family import Family
 
 
 def _median_seconds(fn: Callable[[], object], repeats: int, inner: int) -> float:
@@ -262,3 +263,7 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
     print_fn(f"vision-in-the-loop simulation (experiment1, 30 Hz, start-up manoeuvres + 20 s): {best:.1f}x real time,"
              f" best of 5 runs (target >= 30x); median {median:.1f}x; the process's first run {first:.1f}x")
     return results
+
+
+FAMILY = Family('speed', run_family, "the core's speeds: controller, safety filter, simulator, renderer, vision pipeline, free-space scan",
+                default=True, order=10)

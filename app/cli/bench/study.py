@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+from app.cli.bench.family import Family
 
 TRUTH = """[study]
 scenario = "experiment1"
@@ -212,3 +213,7 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
             figures[f"study_model_{n}w_truth_runs_per_s"] = rates[0]
             figures[f"study_model_{n}w_vision_runs_per_s"] = rates[1]
     return figures
+
+
+FAMILY = Family('study', run_family, 'studies: runs per second serial against 1 and 2 Dask workers, overhead, first result, memory',
+                default=False, order=25)

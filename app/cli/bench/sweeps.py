@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from app.cli.bench.family import Family
 
 
 def bench_sweeps() -> tuple[float, float, float, float, int]:
@@ -61,3 +62,7 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
              f" {alone_hz:.2f} Hz before it")
     return {"sweep_truth_s": truth_s, "sweep_vision_s": vision_s, "loop_hz_before_sweep": alone_hz,
             "loop_hz_during_sweep": sweeping_hz}
+
+
+FAMILY = Family('sweeps', run_family, "a 5 x 5 gain sweep's time, and the live loop's rate while the page's worker sweeps",
+                default=False, order=20)
