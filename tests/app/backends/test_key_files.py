@@ -311,6 +311,43 @@ def test_a_finish_stopped_by_an_unwritable_bundle_changes_nothing_and_is_finishe
     assert "no rotation under way" in _status(radio)
     again = main_cli("radio-rotate", str(radio), "--finish")
     assert "no rotation under way" in _one_line(again)
+    _l2_drives(three)
+
+
+def _l2_drives(d) -> None:
+    """Robots provisioned from robots.json answer L2 driving with its bundle's key (before, L2 drove
+    0 of 309 ticks after the interrupted finish)."""
+    import threading
+    import time
+
+    import numpy as np
+
+    from app.backends.radio import Radio
+    from app.backends.radio_keys import load_leader_key, load_robot_auth
+    from app.backends.serial_link import SerialLink
+    from core.types import Commands
+    from tests.helpers import wait_for
+
+    radio = Radio(1, 2, auth=load_robot_auth(d / "radio" / "robots.json"))
+    stop = threading.Event()
+    carrier = threading.Thread(target=radio.run, args=(stop,), daemon=True)
+    carrier.start()
+    l2 = load_leader_key(d / "L2" / "L2.radio")
+    link = SerialLink(radio.paths[0], 2, radio_key=l2.key, sender_id=l2.radio_id)
+
+    def drive() -> bool:
+        for _ in range(6):
+            link.send(Commands(np.full(2, 0.1), np.zeros(2), observed_at=time.monotonic()))
+            time.sleep(1 / 30)
+        return bool(link.answering().all())
+
+    try:
+        wait_for(drive, 10, "L2 driving its robots on the rotated key")
+    finally:
+        link.close()
+        stop.set()
+        carrier.join(5)
+        radio.close()
 
 
 def test_a_finish_on_a_read_only_bundle_changes_nothing(three, tmp_path):
