@@ -98,10 +98,10 @@ class Progress:
         eta = _duration(left / rate) if rate > 0 else "?"
         frac = self.done / self.total if self.total else 1.0
         bar = "#" * int(round(24 * frac))
-        pts = self.done // self.replicates if self.replicates else 0
+        reps = max(self.replicates, 1)
         fail = f", {self.failed} failed" if self.failed else ""
-        return (f"[{bar:<24}] {self.done}/{self.total} runs (~{pts}/{self.points} points){fail}"
-                f" · {rate:.1f} runs/s · {eta} left   ")
+        return (f"[{bar:<24}] {self.done // reps}/{self.points} points ({self.done}/{self.total} runs{fail})"
+                f" · {rate / reps:.2f} points/s ({rate:.1f} runs/s) · {eta} left   ")
 
     def finish(self) -> None:
         self.update(self.done, self.failed, force=True)

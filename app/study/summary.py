@@ -59,7 +59,11 @@ def per_point(table: pa.Table, axes: tuple[str, ...]) -> list[dict[str, Any]]:
                 else (math.nan, math.nan, math.nan)
             entry[f"{m}_finite"] = int(v.size)
         out.append(entry)
-    return out
+
+    def order(p: dict[str, Any]) -> tuple[Any, ...]:
+        return tuple((0, v, "") if isinstance(v, (int, float)) else (1, 0.0, str(v)) for v in (p[a] for a in axes))
+
+    return sorted(out, key=order)
 
 
 def _fmt(x: Any) -> str:
@@ -90,11 +94,13 @@ def write_summary(spec: StudySpec, folder: StudyFolder, seconds: float | None = 
         held = [p for p in points if p["converged"] >= 0.95]
         lines.append(f"- the formation held (error RMS ≤ 2 cm over the last 2 s) in {conv.mean() * 100:.1f} % of the"
                      f" runs; {len(held)} of {len(points)} points held in at least 95 % of their replicates")
-        for a in spec.axes:
-            if a.name == SCENARIO_AXIS or not held:
-                continue
-            vals = [p[a.name] for p in held]
-            lines.append(f"  - {a.name} where it held: {_fmt(min(vals))} to {_fmt(max(vals))}")
+        failing = [p for p in points if p["converged"] < 0.95]
+        if failing and len(failing) <= 30:
+            lines.append("- it held in fewer than 95 % of the replicates at: " + "; ".join(
+                ", ".join(f"{a} = {_fmt(p[a])}" for a in spec.axis_names) + f" ({p['converged'] * 100:.0f} %)"
+                for p in failing))
+        elif failing:
+            lines.append(f"- it held in fewer than 95 % of the replicates at {len(failing)} points (the table below)")
     if best is not None:
         lines.append(f"- best point ({best['trial']} of {best['trials']} trials): "
                      + ", ".join(f"{k} = {_fmt(v)}" for k, v in best["values"].items())
@@ -125,6 +131,7 @@ def _axis_values(table: pa.Table, name: str) -> np.ndarray:
 
 def _label(name: str) -> str:
     return {"measurement.position_noise_m": "position noise (m)", "latency.camera_ms": "camera latency (ms)",
+            "measurement.vision_position_noise_m": "noise on the vision estimates (m)",
             START_OFFSET: "start offset (m)", START_BEARING: "start bearing (deg)"}.get(name, name)
 
 
