@@ -401,8 +401,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     from app.dashboard.tuning_panel import TuningPanel
     from app.services.page_tuning import PageBench
     from app.dashboard.widgets import on_page_thread
-    from app.recording.reader import check_ticks, read_recording
-    from app.services.replay import ReplayService
+    from app.services.replay_process import ReplayProcess
 
     store = ForwardingStore(params, conn)
     if obstacles:  # a goal the loop would refuse is refused here too (Drive to goal then leaves the mode as it was)
@@ -432,13 +431,11 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
     dashboard.controls.health.target_hz = rate_hz
     dashboard.controls.health.dropped = lambda: skipped[0] - max(skipped[1], 0)
 
-    def replay(path: Path) -> ReplayService:
+    def replay(path: Path) -> ReplayProcess:
         """A replay with credentials of its own (as in one process: the live page's token never
-        goes into a link); a file that is no recording raises RecordingError (a ValueError)."""
-        rec = read_recording(path)
-        check_ticks(rec)
-        return ReplayService(rec, host=host, port=0, token=new_token() if gate.token else None,
-                             viewer_token=new_token())
+        goes into a link), in a process of its own at the lowest priority (app.services.replay_process);
+        a file that is no recording raises a ValueError."""
+        return ReplayProcess(path, host, new_token() if gate.token else None, new_token())
 
     panel = RecordingsPanel(server, replay, recordings, role_of=gate.role_of)
     dashboard.watched = lambda: gate.open_connections > 0  # nobody connected: nothing drawn, history kept
