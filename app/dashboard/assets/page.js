@@ -324,11 +324,22 @@
     box.style.display = alarm ? "flex" : "none";
     el.classList.toggle("omni-alarmed", !!alarm);
     if (alarm) {
-      setText(box.firstChild, alarm);
+      setText(box.firstChild, alarm + pageCause());
       var ack = panelButton("Acknowledge alarms");
       box.lastChild.style.display = ack && !ack.disabled ? "" : "none";
     }
     if (KIND === "live") showCard();
+  }
+  // A cause on this side, named beside the alarm: this browser busy (long tasks over half of each
+  // second) while it runs on the loop's own machine (a page opened on the loopback address) takes
+  // the CPU the loop needs; elsewhere, it only makes what this page shows late.
+  function pageCause() {
+    var busy = window.omniBusy;
+    if (!(busy > LIGHT_BUSY)) return "";
+    var share = Math.round(100 * busy) + " % of its main thread";
+    return /^(127\.|localhost$|\[::1\]$)/.test(location.hostname)
+      ? " · this browser, on the loop's machine, is busy (" + share + "): it takes the loop's CPU"
+      : " · this browser is busy (" + share + "): what it shows is late";
   }
   function setText(node, text) { if (node.textContent !== text) node.textContent = text; }  // no change: no mutation
   setInterval(refresh, 250);
