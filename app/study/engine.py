@@ -207,6 +207,42 @@ def _user_error(message: str) -> Exception:
     return UserError(message)
 
 
+class Ledger:
+    """What a session wrote: each finished batch's part, the failures file kept current, the counts,
+    and when the first result came. The grid's loop and the optimisation's share it."""
+
+    def __init__(self, spec: StudySpec, folder: StudyFolder, start: float) -> None:
+        self.spec, self.folder, self.start = spec, folder, start
+        self.failures = {(f["point"], f["replicate"]): f for f in folder.failures()}
+        self.made = self.failed = 0
+        self.first = math.nan
+
+    def take(self, fut: Any, items: list[RunItem]) -> list[dict[str, Any]]:
+        """A finished batch: its rows written as a part (returned), its failures recorded."""
+        rows: list[dict[str, Any]]
+        fails: list[dict[str, Any]]
+        try:
+            rows, fails = fut.result()
+        except Exception as exc:  # noqa: BLE001 - a batch Dask gave up on: its runs are failure rows
+            rows, fails = [], [{"point": i.point, "replicate": i.replicate, "seed": i.seed, **i.values,
+                                "error": f"{type(exc).__name__}: {exc}"[:500], "worker": "?"} for i in items]
+        if rows:
+            self.folder.write_part(self.spec, rows)
+            if not math.isfinite(self.first):
+                self.first = time.monotonic() - self.start
+        changed = False
+        for r in rows:
+            changed |= self.failures.pop((r["point"], r["replicate"]), None) is not None
+        for f in fails:
+            self.failures[(f["point"], f["replicate"])] = f
+            changed = True
+        if changed:
+            self.folder.write_failures(self.spec, list(self.failures.values()))
+        self.made += len(rows)
+        self.failed += len(fails)
+        return rows
+
+
 def run_grid(spec: StudySpec, folder: StudyFolder, engine: Engine, progress: Progress | None = None,
              start: float | None = None) -> Outcome:
     """Every run of a grid / sample study not yet in ``folder``; parts written as batches finish.
@@ -216,13 +252,11 @@ def run_grid(spec: StudySpec, folder: StudyFolder, engine: Engine, progress: Pro
     start = time.monotonic() if start is None else start
     done = folder.done()
     skipped = len(done)
-    failures = {(f["point"], f["replicate"]): f for f in folder.failures()}
+    ledger = Ledger(spec, folder, start)
     todo = pending_runs(spec, done)
     shipped = light(spec)
     workers = engine.workers
     per_run = math.nan  # seconds of compute a run takes, from the batches back
-    made = failed = 0
-    first = math.nan
     in_flight: dict[Any, list[RunItem]] = {}
     remaining = spec.runs - skipped
     ac = as_completed()
@@ -233,7 +267,7 @@ def run_grid(spec: StudySpec, folder: StudyFolder, engine: Engine, progress: Pro
     def batch_size() -> int:
         if not math.isfinite(per_run) or per_run <= 0:
             return 1
-        left = max(remaining - made - failed, 1)
+        left = max(remaining - ledger.made - ledger.failed, 1)
         return int(max(1, min(MAX_BATCH, round(BATCH_S / per_run), math.ceil(left / (IN_FLIGHT * workers)))))
 
     def top_up() -> None:
@@ -255,31 +289,12 @@ def run_grid(spec: StudySpec, folder: StudyFolder, engine: Engine, progress: Pro
     try:
         top_up()
         for fut in ac:
-            items = in_flight.pop(fut)
-            try:
-                rows, fails = fut.result()
-            except Exception as exc:  # noqa: BLE001 - a batch Dask gave up on: its runs are failure rows
-                rows, fails = [], [{"point": i.point, "replicate": i.replicate, "seed": i.seed, **i.values,
-                                    "error": f"{type(exc).__name__}: {exc}"[:500], "worker": "?"} for i in items]
+            rows = ledger.take(fut, in_flight.pop(fut))
             if rows:
-                folder.write_part(spec, rows)
-                if not math.isfinite(first):
-                    first = time.monotonic() - start
-                walls = [r["wall_s"] for r in rows]
-                mean = sum(walls) / len(walls)
+                mean = sum(r["wall_s"] for r in rows) / len(rows)
                 per_run = mean if not math.isfinite(per_run) else 0.5 * per_run + 0.5 * mean
-            changed = False
-            for r in rows:
-                changed |= failures.pop((r["point"], r["replicate"]), None) is not None
-            for f in fails:
-                failures[(f["point"], f["replicate"])] = f
-                changed = True
-            if changed:
-                folder.write_failures(spec, list(failures.values()))
-            made += len(rows)
-            failed += len(fails)
             if progress is not None:
-                progress.update(skipped + made, failed)
+                progress.update(skipped + ledger.made, ledger.failed)
             batches += 1
             if batches % 20 == 0:  # workers that joined (or left) a cluster since
                 workers = engine.workers
@@ -291,5 +306,5 @@ def run_grid(spec: StudySpec, folder: StudyFolder, engine: Engine, progress: Pro
         in_flight.clear()
     if progress is not None:
         progress.finish()
-    return Outcome(made, failed, skipped, spec.runs, time.monotonic() - start, workers, first, interrupted,
-                   engine.dashboard)
+    return Outcome(ledger.made, ledger.failed, skipped, spec.runs, time.monotonic() - start, workers, ledger.first,
+                   interrupted, engine.dashboard)

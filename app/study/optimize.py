@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from app.study.batch import RunItem, run_batch
-from app.study.engine import IN_FLIGHT, Engine, Outcome, Progress, light
+from app.study.engine import IN_FLIGHT, Engine, Ledger, Outcome, Progress, light
 from app.study.store import JOURNAL, StudyFolder
 from core.study.point import METRICS
 from core.study.spec import StudySpec, evaluate_objective, point_key, run_seed
@@ -124,12 +124,10 @@ def run_optimize(spec: StudySpec, folder: StudyFolder, engine: Engine, progress:
     skipped = sum(len(v) for v in have.values())
     shipped = light(spec)
     workers = engine.workers
-    made = failed = 0
-    first = math.nan
+    ledger = Ledger(spec, folder, start)
     ac = as_completed()
     open_trials: dict[int, dict[str, Any]] = {}  # trial number -> {"key", "values", "missing": set, "rows"}
     futures: dict[Any, tuple[int, list[RunItem]]] = {}
-    failures = {(f["point"], f["replicate"]): f for f in folder.failures()}
     interrupted = False
     running = optuna.trial.TrialState.RUNNING
 
@@ -171,31 +169,13 @@ def run_optimize(spec: StudySpec, folder: StudyFolder, engine: Engine, progress:
         top_up()
         for fut in ac:
             number, items = futures.pop(fut)
-            try:
-                rows, fails = fut.result()
-            except Exception as exc:  # noqa: BLE001 - a batch Dask gave up on: its runs are failure rows
-                rows, fails = [], [{"point": i.point, "replicate": i.replicate, "seed": i.seed, **i.values,
-                                    "error": f"{type(exc).__name__}: {exc}"[:500], "worker": "?"} for i in items]
-            changed = False
-            for r in rows:
-                changed |= failures.pop((r["point"], r["replicate"]), None) is not None
-            for f in fails:
-                failures[(f["point"], f["replicate"])] = f
-                changed = True
-            if changed:
-                folder.write_failures(spec, list(failures.values()))
-            if rows:
-                folder.write_part(spec, rows)
-                if not math.isfinite(first):
-                    first = time.monotonic() - start
-            made += len(rows)
-            failed += len(fails)
+            rows = ledger.take(fut, items)
             entry = open_trials.get(number)
             if entry is not None:
                 entry["rows"].extend(rows)
                 finish(number)
             if progress is not None:
-                progress.update(skipped + made, failed)
+                progress.update(skipped + ledger.made, ledger.failed)
             top_up()
     except KeyboardInterrupt:
         interrupted = True
@@ -203,5 +183,5 @@ def run_optimize(spec: StudySpec, folder: StudyFolder, engine: Engine, progress:
             fut.cancel()
     if progress is not None:
         progress.finish()
-    return Outcome(made, failed, skipped, spec.runs, time.monotonic() - start, workers, first, interrupted,
-                   engine.dashboard)
+    return Outcome(ledger.made, ledger.failed, skipped, spec.runs, time.monotonic() - start, workers, ledger.first,
+                   interrupted, engine.dashboard)

@@ -60,10 +60,10 @@ def per_point(table: pa.Table, axes: tuple[str, ...]) -> list[dict[str, Any]]:
             entry[f"{m}_finite"] = int(v.size)
         out.append(entry)
 
-    def order(p: dict[str, Any]) -> tuple[Any, ...]:
+    def by_axes(p: dict[str, Any]) -> tuple[Any, ...]:
         return tuple((0, v, "") if isinstance(v, (int, float)) else (1, 0.0, str(v)) for v in (p[a] for a in axes))
 
-    return sorted(out, key=order)
+    return sorted(out, key=by_axes)
 
 
 def _fmt(x: Any) -> str:
