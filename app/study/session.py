@@ -43,7 +43,7 @@ def load_study(path: Path) -> StudySpec:
     """Read and check a study file; any problem is one UserError line."""
     if path.is_dir():
         raise UserError(f"{display_path(path)}: is a folder; give the study's .toml file")
-    return parse_study_text(read_text(path, "study file"), display_path(path), path.parent)
+    return parse_study_text(read_text(path, "study"), display_path(path), path.parent)
 
 
 def spec_of_folder(out: Path) -> StudySpec:
