@@ -103,7 +103,8 @@ def record(figures: dict[str, dict[str, float]], started: float, seconds: float,
     """The saved form of a run: figures by family, the commit, the machine (its load before and after)."""
     after = machine()
     return {"format": "omniformation-bench/1", "commit": commit(), "started_unix": started, "seconds": seconds,
-            "machine": {**before, "load_before": before["load"], "load_after": after["load"]},
+            "machine": {**{k: v for k, v in before.items() if k != "load"}, "load_before": before["load"],
+                        "load_after": after["load"]},
             "log": str(log), "figures": {fam: {k: _jsonable(v) for k, v in figs.items()} for fam, figs in figures.items()}}
 
 
