@@ -130,3 +130,31 @@ def decode_attachment(data: bytes) -> tuple[int, int, bytes]:
                          f" (int64, int64, length {GID_SIZE}, GID)")
     sequence, stamp, _ = struct.unpack_from("<qqB", data)
     return int(sequence), int(stamp), bytes(data[17:])
+
+
+@dataclass(frozen=True)
+class EntityToken:
+    """A publisher's or subscription's liveliness token as read off the graph: its kind (``MP``,
+    ``MS``), the node (``namespace/name``), the topic (``/a/b``), the DDS type and the GID
+    rmw_zenoh gives it (XXH3-128 of the whole token)."""
+
+    key: str
+    kind: str
+    node: str
+    topic: str
+    dds_type: str
+
+    @property
+    def gid(self) -> bytes:
+        return entity_gid(self.key)
+
+
+def parse_entity_token(key: str, domain: int) -> EntityToken | None:
+    """A ``MP``/``MS`` token of ``domain`` (``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<kind>/<enclave>/
+    <namespace>/<node>/<topic>/<type>/<hash>/<qos>``), else None (a node's token, another domain,
+    something that is not a token)."""
+    parts = key.split("/")
+    if len(parts) < 13 or parts[0] != ADMIN_SPACE or parts[1] != str(domain) or parts[5] not in MESSAGE_KINDS:
+        return None
+    namespace = parts[7].replace("%", "/").rstrip("/")
+    return EntityToken(key, parts[5], f"{namespace}/{parts[8]}", parts[9].replace("%", "/"), parts[10])

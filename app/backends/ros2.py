@@ -17,6 +17,8 @@ from ROS that does not decode, carries a bad attachment or non-finite numbers is
 from __future__ import annotations
 
 import math
+import re
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -25,9 +27,10 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
-from core.rmw_zenoh import PUBLISHER, SUBSCRIPTION, NodeName, check_topic, data_key, decode_attachment, \
-    encode_attachment, entity_gid
-from core.types import BoolArray, Commands, FloatArray
+from core.rmw_zenoh import ADMIN_SPACE, PUBLISHER, SUBSCRIPTION, EntityToken, NodeName, check_topic, data_key, \
+    decode_attachment, encode_attachment, entity_gid, parse_entity_token
+from core.bounds import LEADER_SPEED, LEADER_TURN
+from core.types import GAIN_BOUNDS, BoolArray, Commands, FloatArray
 
 if TYPE_CHECKING:
     import zenoh
@@ -153,9 +156,12 @@ class Ros2Node:
         self._entities.append(pub)
         return pub
 
-    def subscribe(self, topic: str, ros_type: str, on_message: Callable[[Any], None]) -> None:
-        """Call ``on_message(msg)`` with each decoded message; a message that does not decode, a bad
-        attachment, or ``on_message`` raising ValueError: counted in ``dropped``, nothing else."""
+    def subscribe(self, topic: str, ros_type: str, on_message: Callable[..., None],
+                  with_attachment: bool = False) -> None:
+        """Call ``on_message(msg)`` (``on_message(msg, attachment)`` with ``with_attachment``: its
+        (sequence, source ns, GID)) with each decoded message. A publication without rmw_zenoh's
+        attachment or with a malformed one, a message that does not decode, or ``on_message``
+        raising ValueError: counted in ``dropped``, nothing else."""
         h = type_hash(ros_type)
         key = data_key(self.name.domain, check_topic(topic), ros_type, h)
         token = self.session.liveliness().declare_token(
@@ -164,9 +170,11 @@ class Ros2Node:
 
         def handler(sample: Any) -> None:
             try:
-                if sample.attachment is not None:
-                    decode_attachment(sample.attachment.to_bytes())
-                on_message(ts.deserialize_cdr(sample.payload.to_bytes(), ros_type))
+                if sample.attachment is None:  # every rmw_zenoh publication carries one (design.md)
+                    raise ValueError("no attachment")
+                attachment = decode_attachment(sample.attachment.to_bytes())
+                message = ts.deserialize_cdr(sample.payload.to_bytes(), ros_type)
+                on_message(message, attachment) if with_attachment else on_message(message)
             except Exception:  # noqa: BLE001 - bytes from the network: whatever fails to decode is dropped
                 with self._lock:
                     self.dropped += 1
@@ -175,6 +183,31 @@ class Ros2Node:
                 self.received += 1
 
         self._entities.extend([self.session.declare_subscriber(key, handler), token])
+
+    def watch_graph(self, on_token: Callable[[EntityToken, bool], None]) -> None:
+        """Call ``on_token(token, alive)`` for every publisher's and subscription's liveliness
+        token of this node's domain on the graph now and as each comes (True) or goes (False)."""
+        import zenoh
+
+        domain = self.name.domain
+
+        def handler(sample: Any) -> None:
+            token = parse_entity_token(str(sample.key_expr), domain)
+            if token is not None:
+                on_token(token, sample.kind == zenoh.SampleKind.PUT)
+
+        self._entities.append(self.session.liveliness().declare_subscriber(f"{ADMIN_SPACE}/{domain}/**", handler,
+                                                                          history=True))
+
+    def watch_data(self, topic: str, on_sample: Callable[[bytes | None], None]) -> None:
+        """Call ``on_sample(attachment bytes or None)`` for every publication on ``topic``, of any
+        type, ours included (a plain Zenoh subscriber: no token, ROS tools do not see it)."""
+        key = f"{self.name.domain}/{check_topic(topic).strip('/')}/*/*"
+
+        def handler(sample: Any) -> None:
+            on_sample(None if sample.attachment is None else sample.attachment.to_bytes())
+
+        self._entities.append(self.session.declare_subscriber(key, handler))
 
     def close(self) -> None:
         for e in reversed(self._entities):
@@ -210,33 +243,213 @@ def finite_twist(t: Any) -> tuple[float, float]:
     return v, w
 
 
+# What a leader base's odometry may say (docs/ros2.md, "What the service believes of /odom"): twice
+# what the leader may be told (the parameter table's speed and turn-rate bounds: a base overshoots
+# a little, never by double), no faster change than the table lets any robot be commanded, a stamp
+# within ODOM_STAMP_AGE_S of this machine's clock and later than the one before, an odom frame.
+ODOM_SPEED_MAX = 2.0 * LEADER_SPEED.hi  # m/s
+ODOM_TURN_MAX = 2.0 * math.radians(LEADER_TURN.hi)  # rad/s
+ODOM_ACCEL_MAX = GAIN_BOUNDS["accel_v_max"].hi  # m/s^2
+ODOM_TURN_ACCEL_MAX = GAIN_BOUNDS["accel_w_max"].hi  # rad/s^2
+ODOM_MIN_DT_S = 0.01  # the acceleration is judged over at least this long (stamps closer than that: 100 Hz)
+ODOM_STAMP_AGE_S = 1.0  # the base's clock and ours agree within this (NTP or chrony between machines)
+ODOM_FRAME = re.compile(r"([A-Za-z0-9_]+[/_])?odom")
+ODOM_CHILD = re.compile(r"([A-Za-z0-9_]+[/_])?base_(link|footprint)")
+UNANNOUNCED_AFTER = 3  # a GID on no token of the graph is named after this many of its messages
+STRANGER_HOLD_S = 5.0  # a publisher without a token is named this long after its last message
+
+
+def odometry_refusal(v: float, w: float, stamp_ns: int, frame: str, child: str, sequence: int,
+                     last: tuple[float, float, int, int] | None, now_ns: int) -> str:
+    """Why an Odometry from the believed base is not plausible ("" when it is): ``last`` is the
+    (v, w, stamp ns, sequence) of that publisher's message before, ``now_ns`` this machine's clock."""
+    if not (math.isfinite(v) and math.isfinite(w)):
+        return "not finite"
+    if ODOM_FRAME.fullmatch(frame) is None or ODOM_CHILD.fullmatch(child) is None:
+        return "frame"
+    if abs(v) > ODOM_SPEED_MAX:
+        return "speed"
+    if abs(w) > ODOM_TURN_MAX:
+        return "turn rate"
+    if abs(now_ns - stamp_ns) > ODOM_STAMP_AGE_S * 1e9:
+        return "stamp age"
+    if last is not None:
+        if sequence <= last[3]:
+            return "sequence"
+        if stamp_ns <= last[2]:
+            return "stamp order"
+        dt = max((stamp_ns - last[2]) * 1e-9, ODOM_MIN_DT_S)
+        if abs(v - last[0]) > ODOM_ACCEL_MAX * dt or abs(w - last[1]) > ODOM_TURN_ACCEL_MAX * dt:
+            return "acceleration"
+    return ""
+
+
+def _say(text: str) -> None:
+    print(f"omniformation: ROS 2: {text}", file=sys.stderr, flush=True)
+
+
 class Ros2Base:
     """The leader's base as a ROS 2 robot, a FollowerLink of one: each tick's leader (v, w) goes
     out on its command topic (Twist, or TwistStamped), its odometry (nav_msgs/msg/Odometry on
-    ``odom_topic``) is what it measured. No odometry for ODOM_TIMEOUT_S: it is ``lost``, measured
-    (0, 0) (the leader counts as stopped), and its state says so."""
+    ``odom_topic``) is what it measured. No believable odometry for ODOM_TIMEOUT_S: it is
+    ``lost``, measured (0, 0) (the leader counts as stopped), and its state says so.
+
+    Only the base is believed: the odometry of the one publisher on ``odom_topic`` the graph (its
+    liveliness token, whose hash is the GID its attachment carries) showed alone when its first
+    plausible message came; every other publisher there is named (the link state, stderr once)
+    and not heard. Each message is judged by :func:`odometry_refusal`; what fails is dropped and
+    counted. Another publisher on the command topic is named too, as an alarm (the link state
+    says our exclusive command is lost), and told to :meth:`on_intrusion`'s listener once."""
 
     n = 1
 
     def __init__(self, node: Ros2Node, cmd_topic: str = "/cmd_vel", stamped: bool = False,
-                 odom_topic: str = "/odom", clock: Callable[[], float] = time.monotonic) -> None:
+                 odom_topic: str = "/odom", clock: Callable[[], float] = time.monotonic,
+                 wall_ns: Callable[[], int] = time.time_ns) -> None:
         self.node = node
-        self.cmd_topic, self.stamped = cmd_topic, stamped
+        self.cmd_topic, self.odom_topic, self.stamped = cmd_topic, odom_topic, stamped
         self._cmd = node.publisher(cmd_topic, TWIST_STAMPED if stamped else TWIST)
-        self._clock = clock
+        self._clock, self._wall_ns = clock, wall_ns
         self._lock = threading.Lock()
         self._odom: tuple[float, float, float] | None = None  # (v, w, monotonic time it came)
         self.odom_pose: tuple[float, float, float] | None = None
         self.odometry = 0
-        node.subscribe(odom_topic, ODOMETRY, self._on_odom)
+        self.refused: dict[str, int] = {}  # odometry dropped, by why
+        self._on_intruder: Callable[[str], None] | None = None
+        self._intrusions: list[str] = []  # every intruder on the command topic named so far
+        self._tokens: dict[str, dict[bytes, EntityToken]] = {cmd_topic: {}, odom_topic: {}}  # live MP tokens by GID
+        self._believed: bytes | None = None  # the base's /odom publisher (its GID), once chosen
+        self._last: tuple[float, float, int, int] | None = None  # the believed publisher's last message
+        self._unannounced: dict[tuple[str, bytes], list[float]] = {}  # (topic, GID) -> [messages, last seen]
+        self._named: set[tuple[str, str]] = set()  # (topic, name) said on stderr already
+        node.watch_graph(self._on_token)
+        node.watch_data(cmd_topic, self._on_cmd_sample)
+        node.subscribe(odom_topic, ODOMETRY, self._on_odom, with_attachment=True)
 
-    def _on_odom(self, m: Any) -> None:
-        v, w = finite_twist(m.twist.twist)
-        p = m.pose.pose
+    # -- the graph ----------------------------------------------------------------------
+    def _on_token(self, token: EntityToken, alive: bool) -> None:
+        if token.kind != PUBLISHER or token.topic not in self._tokens or token.key == self._cmd.token_key:
+            return
         with self._lock:
+            if alive:
+                self._tokens[token.topic][token.gid] = token
+            else:
+                self._tokens[token.topic].pop(token.gid, None)
+        if alive:
+            self._check_strangers()
+
+    def _on_cmd_sample(self, attachment: bytes | None) -> None:
+        try:
+            gid = decode_attachment(attachment)[2] if attachment is not None else b""
+        except ValueError:
+            gid = b""
+        if gid == self._cmd.gid:
+            return  # ours
+        with self._lock:
+            known = gid in self._tokens[self.cmd_topic]
+        if not known:
+            self._count_unannounced(self.cmd_topic, gid)
+        self._check_strangers()
+
+    def _count_unannounced(self, topic: str, gid: bytes) -> None:
+        with self._lock:
+            seen = self._unannounced.setdefault((topic, gid), [0, 0.0])
+            seen[0] += 1
+            seen[1] = self._clock()
+
+    def strangers(self) -> dict[str, list[str]]:
+        """Per topic (command, odometry), the publishers named now besides ours and the base's."""
+        now = self._clock()
+        with self._lock:
+            out: dict[str, list[str]] = {self.cmd_topic: [], self.odom_topic: []}
+            for topic, tokens in self._tokens.items():
+                for gid, token in tokens.items():
+                    if topic == self.cmd_topic or (self._believed is not None and gid != self._believed):
+                        out[topic].append(token.node)
+            for (topic, gid), (count, last) in self._unannounced.items():
+                if count >= UNANNOUNCED_AFTER and now - last <= STRANGER_HOLD_S and gid != self._believed:
+                    out[topic].append(f"GID {gid.hex()[:12] or 'none'} (no token on the graph)")
+        return {topic: sorted(set(names)) for topic, names in out.items()}
+
+    def _check_strangers(self) -> None:
+        """Name each new stranger once on stderr; a new one on the command topic is an intrusion."""
+        for topic, names in self.strangers().items():
+            for name in names:
+                if (topic, name) in self._named:
+                    continue
+                self._named.add((topic, name))
+                if topic == self.cmd_topic:
+                    text = f"{name} publishes on {topic} too: the base may obey it, not us"
+                    _say(text)
+                    with self._lock:
+                        self._intrusions.append(text)
+                        tell = self._on_intruder
+                    if tell is not None:
+                        tell(text)
+                else:
+                    _say(f"{name} publishes on {topic} too: not believed (the base's is)")
+
+    def on_intrusion(self, tell: Callable[[str], None]) -> None:
+        """Call ``tell(text)`` for each publisher on the command topic besides us: those named
+        already, then each as it is named."""
+        with self._lock:
+            self._on_intruder = tell
+            told = list(self._intrusions)
+        for text in told:
+            tell(text)
+
+    # -- odometry -----------------------------------------------------------------------
+    def _refuse(self, why: str) -> None:
+        with self._lock:
+            self.refused[why] = self.refused.get(why, 0) + 1
+            first = self.refused[why] == 1
+        if first:
+            _say(f"odometry on {self.odom_topic} dropped: {why} (counted in the link detail; said once)")
+
+    def _on_odom(self, m: Any, attachment: tuple[int, int, bytes]) -> None:
+        sequence, _, gid = attachment
+        with self._lock:
+            tokens = dict(self._tokens[self.odom_topic])
+            believed = self._believed
+        if gid not in tokens:
+            if believed is None or gid != believed:
+                self._count_unannounced(self.odom_topic, gid)
+                self._refuse("no publisher on the graph")
+                self._check_strangers()
+                return
+        elif believed is None and len(tokens) > 1:
+            self._refuse("several publishers, none believed")
+            return
+        elif believed is not None and gid != believed:
+            self._refuse("another publisher")
+            self._check_strangers()
+            return
+        v, w = float(m.twist.twist.linear.x), float(m.twist.twist.angular.z)
+        st = m.header.stamp
+        stamp_ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+        p = m.pose.pose
+        pose_xyw = (float(p.position.x), float(p.position.y), yaw_of(p.orientation))
+        why = odometry_refusal(v, w, stamp_ns, str(m.header.frame_id), str(m.child_frame_id), sequence, self._last,
+                               self._wall_ns())
+        if why == "" and not all(math.isfinite(q) for q in pose_xyw):
+            why = "not finite"
+        if why not in ("sequence", "stamp order", "stamp age", "not finite"):
+            self._last = (v, w, stamp_ns, sequence) if math.isfinite(v) and math.isfinite(w) else self._last
+        if why:
+            self._refuse(why)
+            return
+        with self._lock:
+            if self._believed is None:
+                self._believed = gid
+                chosen = tokens[gid].node
+            else:
+                chosen = ""
             self._odom = (v, w, self._clock())
-            self.odom_pose = (float(p.position.x), float(p.position.y), yaw_of(p.orientation))
+            self.odom_pose = pose_xyw
             self.odometry += 1
+        if chosen:
+            _say(f"the base's odometry: {chosen} on {self.odom_topic} (only it is believed)")
+            self._check_strangers()
 
     @property
     def lost(self) -> bool:
@@ -246,8 +459,21 @@ class Ros2Base:
     @property
     def link_state(self) -> str:
         if self._odom is None:
-            return f"ros2 {self.cmd_topic}: no odometry yet"
-        return f"ros2 {self.cmd_topic}: no odometry for {ODOM_TIMEOUT_S:g} s" if self.lost else f"ros2 {self.cmd_topic}"
+            state = f"ros2 {self.cmd_topic}: no odometry yet"
+        else:
+            state = f"ros2 {self.cmd_topic}: no odometry for {ODOM_TIMEOUT_S:g} s" if self.lost else f"ros2 {self.cmd_topic}"
+        strangers = self.strangers()
+        with self._lock:
+            several = self._believed is None and len(self._tokens[self.odom_topic]) > 1
+            several_names = sorted(t.node for t in self._tokens[self.odom_topic].values())
+        if several:
+            state += f" · several publishers on {self.odom_topic} ({', '.join(several_names)}): none believed"
+        elif strangers[self.odom_topic]:
+            state += f" · not believed on {self.odom_topic}: {', '.join(strangers[self.odom_topic])}"
+        if strangers[self.cmd_topic]:  # an alarm on the page ("lost"), an event in the recording
+            state += (f" · exclusive command lost: {', '.join(strangers[self.cmd_topic])} publish(es) on"
+                      f" {self.cmd_topic} too")
+        return state
 
     def send(self, commands: Commands) -> None:
         v, w = float(commands.v[0]), float(commands.w[0])
@@ -267,7 +493,11 @@ class Ros2Base:
         return np.array([odom[0]]), np.array([odom[1]])
 
     def detail(self) -> str:
-        return f"leader base: {self.odometry} odometry messages, {self.node.dropped} malformed dropped"
+        with self._lock:
+            refused = sum(self.refused.values())
+            kinds = ", ".join(f"{k} {n}" for k, n in sorted(self.refused.items()))
+        return (f"leader base: {self.odometry} odometry messages, {self.node.dropped} malformed dropped,"
+                f" {refused} not believed" + (f" ({kinds})" if kinds else ""))
 
     def close(self) -> None:
         try:

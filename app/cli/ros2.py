@@ -30,6 +30,9 @@ def add_run_args(run: argparse.ArgumentParser) -> None:
     run.add_argument("--ros2-control", action="store_true",
                      help="--ros2: take /omniformation/stop (std_msgs/msg/Bool) and /omniformation/goal"
                           " (geometry_msgs/msg/PoseStamped) from ROS, with the page's checks")
+    run.add_argument("--ros2-intruder-stop", action="store_true",
+                     help="--leader ros2:TOPIC: STOP when another publisher appears on the base's command topic"
+                          " (without it: an alarm on the page, an event, a line on stderr; docs/ros2.md)")
 
 
 def register(sub: "argparse._SubParsersAction[Parser]") -> None:
@@ -99,6 +102,8 @@ def check_run_args(args: argparse.Namespace, leader: LinkSpec | None) -> None:
         raise UserError(f"--leader {args.leader}: a ROS 2 base needs --ros2 and --zenoh-connect ROUTER")
     if not args.ros2 and (args.ros2_control or args.ros2_domain):
         raise UserError("--ros2-control and --ros2-domain go with --ros2")
+    if args.ros2_intruder_stop and (leader is None or leader.scheme != "ros2"):
+        raise UserError("--ros2-intruder-stop goes with --leader ros2:TOPIC (a ROS 2 base's command topic)")
     if args.ros2 and (args.fleet is not None or args.arena is not None):
         raise UserError("--ros2 cannot be combined with --fleet or --arena: its --zenoh-connect is the ROS 2 machines'"
                         " router (the fleet's bus is a separate Zenoh network)")
@@ -116,4 +121,5 @@ def ros2_plan(args: argparse.Namespace, leader: LinkSpec | None = None) -> Ros2P
     from app.services.ros2_node import Ros2Plan
 
     base = leader if leader is not None and leader.scheme == "ros2" else None
-    return Ros2Plan(tuple(args.zenoh_connect), args.ros2_keys, args.ros2_domain, base, args.ros2_control)
+    return Ros2Plan(tuple(args.zenoh_connect), args.ros2_keys, args.ros2_domain, base, args.ros2_control,
+                    args.ros2_intruder_stop)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from typing import Any
 
@@ -31,6 +32,24 @@ TOPICS = {  # topic -> ROS 2 type, what the node publishes
 }
 STOP_TOPIC, GOAL_TOPIC = "/omniformation/stop", "/omniformation/goal"
 GOAL_FRAMES = ("", WORLD, "odom")  # a goal is in the odometry frame the leader started in
+GOAL_UNIT_TOLERANCE = 0.01  # a goal's orientation is a unit quaternion within this
+
+
+def goal_refusal(m: Any) -> str:
+    """Why a PoseStamped goal is refused ("" when it is not): a frame other than the odometry
+    frame's names, a position or orientation that is not finite, an orientation that is not a unit
+    quaternion (|q| within GOAL_UNIT_TOLERANCE of 1; all zeros, a forgotten orientation, is not)."""
+    x, y, z = (float(v) for v in (m.pose.position.x, m.pose.position.y, m.pose.position.z))
+    q = m.pose.orientation
+    quat = [float(v) for v in (q.x, q.y, q.z, q.w)]
+    if m.header.frame_id not in GOAL_FRAMES:
+        return f"frame {m.header.frame_id!r} (must be world, odom or empty)"
+    if not all(math.isfinite(v) for v in (x, y, z, *quat)):
+        return "position or orientation not finite"
+    norm = math.sqrt(sum(v * v for v in quat))
+    if abs(norm - 1.0) > GOAL_UNIT_TOLERANCE:
+        return f"orientation not a unit quaternion (|q| = {norm:.3g})"
+    return ""
 
 
 def transform(parent: str, child: str, x: float, y: float, yaw: float, ns: int) -> Any:
@@ -140,9 +159,13 @@ class Ros2Bridge:
 
     def _on_goal(self, m: Any) -> None:
         x, y = float(m.pose.position.x), float(m.pose.position.y)
-        if m.header.frame_id not in GOAL_FRAMES or not (math.isfinite(x) and math.isfinite(y)):
+        why = goal_refusal(m)
+        if why:
             self.refused += 1
-            self.events.append(("refused", f"ros2 goal: frame {m.header.frame_id!r} (must be world) or not finite"))
+            self.events.append(("refused", f"ros2 goal: {why}"))
+            if self.refused == 1:  # per-message refusals: the first one on stderr, then counted
+                print(f"omniformation: ROS 2 goal refused: {why} (further refusals counted)", file=sys.stderr,
+                      flush=True)
             return
         if self._apply(GOAL_TOPIC, goal=(x, y)) and self.store.get().goal == (x, y):
             self._apply(GOAL_TOPIC, leader_mode="goal")  # as the page's "Drive to goal" (orientation unused)

@@ -29,6 +29,7 @@ class Ros2Plan:
     domain: int
     leader: LinkSpec | None
     control: bool
+    intruder_stop: bool = False  # --ros2-intruder-stop: another publisher on the base's command topic is STOP
 
 
 def open_node(connect: list[str] | tuple[str, ...], keys: FleetKeys | None, domain: int, name: str) -> Ros2Node:
@@ -84,6 +85,8 @@ def start_bridge(plan: Ros2Plan | None, node: Ros2Node | None, service: Service,
                         base_state=(lambda: base.link_state) if base is not None else None)
     stack.callback(bridge.close)
     service.loop.subscribe(bridge.on_tick)
+    if plan.intruder_stop and hasattr(base, "on_intrusion"):  # a ROS 2 base: a second commander is STOP
+        base.on_intrusion(lambda text: service.store.update("ros2:intruder", stop=True))
     say(f"omniformation: ROS 2 node /omniformation on domain {plan.domain} via {', '.join(plan.connect)}"
         f" ({'taking STOP and goals' if plan.control else 'publishing only'})")
 
