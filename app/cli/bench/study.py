@@ -35,7 +35,7 @@ seed = 1
 replicates = {reps}
 [grid]
 "gains.k_f1" = [0.1, 0.2, 0.3]
-"measurement.position_noise_m" = [0.0, 0.01]
+"measurement.vision_position_noise_m" = [0.0, 0.01]
 """
 # 10^5 short truth runs: what the client and the scheduler hold must not grow with the study
 MEMORY = """[study]
