@@ -47,13 +47,23 @@ def serve_foxglove(plan: FoxglovePlan | None, say: Say, subscribe: Callable[[Cal
 def attach_to_service(plan: FoxglovePlan | None, service: Any, recorder: Any, stack: contextlib.ExitStack,
                       say: Say) -> None:
     """`run --foxglove`: the live service's ticks, parameter sets and step tests served to
-    Foxglove with the recording's clock (its ``start_ns``), closed with the session."""
-    live = serve_foxglove(plan, say, service.loop.subscribe, params=service.store.get(),
-                          start_ns=recorder.start_ns if recorder is not None else None)
-    if live is not None:
-        service.store.subscribe(live.on_params)
-        service.tests.listeners.append(live.on_trial)
-        stack.callback(live.close)
+    Foxglove with the recording's clock (its ``start_ns``), closed with the session. The server
+    runs in a process of its own (FoxgloveProcess): no client can take the loop's CPU or time."""
+    if plan is None:
+        return
+    from app.services.foxglove_live import FoxgloveProcess, FoxgloveRefused
+
+    try:
+        live = FoxgloveProcess(plan.host, plan.port, plan.tls, params=service.store.get(),
+                               start_ns=recorder.start_ns if recorder is not None else None,
+                               rate_hz=service.loop.rate_hz)
+    except FoxgloveRefused as exc:
+        raise UserError(str(exc)) from None
+    stack.callback(live.close)
+    service.loop.subscribe(live.on_tick)
+    service.store.subscribe(live.on_params)
+    service.tests.listeners.append(live.on_trial)
+    say(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)")
 
 
 def serve_replay(plan: FoxglovePlan | None, rec: Any, say: Say) -> FoxgloveLive | None:
