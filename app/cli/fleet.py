@@ -106,6 +106,9 @@ def register(sub: "argparse._SubParsersAction[Parser]") -> None:
                                                                          " default 365)")
     keys.add_argument("--ros2", action="store_true", help="also a bundle DIR/ros2/ for the ROS 2 machines (their Zenoh"
                                                           " router, a ROS base; docs/ros2.md)")
+    keys.add_argument("--ros2-control-by", metavar="ID,...", default="ros2",
+                      help="with --ros2: the identities the ROS 2 router (DIR/ros2/router.json5) lets publish"
+                           " /omniformation/stop and /omniformation/goal (default: ros2, the operator's ROS tools)")
     keys.add_argument("--overwrite", action="store_true", help="replace keys already in DIR (a new CA: every"
                                                                " identity needs its new files)")
     keys.set_defaults(func=cmd_fleet_keys)
@@ -118,6 +121,13 @@ def cmd_fleet_keys(args: argparse.Namespace) -> int:
     try:
         check_name(args.fleet, "--fleet")
         leaders = parse_leaders(args.leaders)
+        controllers = tuple(c.strip() for c in args.ros2_control_by.split(","))
+        if args.ros2:
+            from app.fleet.security import Roster, check_ros2_controllers
+
+            check_ros2_controllers(Roster(args.fleet, leaders, True), controllers)
+        elif args.ros2_control_by != "ros2":
+            raise ValueError("--ros2-control-by goes with --ros2 (the ROS 2 machines' router)")
     except ValueError as exc:
         raise UserError(str(exc)) from None
     if args.dir.exists() and not args.dir.is_dir():
@@ -130,7 +140,7 @@ def cmd_fleet_keys(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     try:
         written = make_fleet_keys(args.dir, args.fleet, leaders, overwrite=args.overwrite, days=args.days,
-                                  ros2=args.ros2)
+                                  ros2=args.ros2, ros2_control_by=controllers)
     except FileExistsError as exc:
         raise UserError(str(exc)) from None
     except OSError as exc:

@@ -30,6 +30,8 @@ PAGE = "page"
 HUBS = (ARENA, PAGE)  # the identities that may listen; of them only the arena writes what it forwards
 ROS2 = "ros2"  # fleet-keys --ros2: the ROS 2 machines' identity (their router, a ROS base); nothing on the fleet's bus
 ROSTER = "fleet.json"
+ROS2_ROUTER = "router.json5"  # fleet-keys --ros2: the ROS 2 machines' router config, in DIR/ros2/ (docs/ros2.md)
+ROS2_CONTROL_KEYS = ("*/omniformation/stop/**", "*/omniformation/goal/**")  # every domain, every type
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"  # only fleet-keys needs it (a new identity): keep it off the robots
 CA_DIR = "ca"  # DIR/ca/: the CA's key and certificate, for the operator's machine only
@@ -126,18 +128,21 @@ def parse_leaders(text: str) -> tuple[str, ...]:
 
 # -- making keys ---------------------------------------------------------------------------------
 def bundle_files(identity: str) -> tuple[str, ...]:
-    """What DIR/<identity>/ holds: all that identity's process needs, nothing of another's."""
-    return (CA_CERT, ROSTER, f"{identity}.pem", f"{identity}.key")
+    """What DIR/<identity>/ holds: all that identity's process needs, nothing of another's (the
+    ROS 2 machines' bundle also their router's config)."""
+    return (CA_CERT, ROSTER, f"{identity}.pem", f"{identity}.key", *((ROS2_ROUTER,) if identity == ROS2 else ()))
 
 
 def make_fleet_keys(directory: Path, fleet: str, leaders: tuple[str, ...], *, overwrite: bool = False,
-                    days: int = DEFAULT_DAYS, now: dt.datetime | None = None, ros2: bool = False) -> list[Path]:
+                    days: int = DEFAULT_DAYS, now: dt.datetime | None = None, ros2: bool = False,
+                    ros2_control_by: tuple[str, ...] = (ROS2,)) -> list[Path]:
     """Writes DIR/ca/ (ca.key and ca.pem: the operator's, never given to a process) and one
     bundle per identity, DIR/<identity>/ (ca.pem, fleet.json, <identity>.pem and .key: what
     ``--keys DIR/<identity>`` reads) for ``arena``, ``page`` and every leader; folders mode
     0700, keys 0600. Refuses (FileExistsError naming the first file) to write over any of them
-    unless ``overwrite``. ``ros2``: a bundle DIR/ros2/ for the ROS 2 machines too. Returns the
-    files written."""
+    unless ``overwrite``. ``ros2``: a bundle DIR/ros2/ for the ROS 2 machines too, with their
+    router's config (:func:`ros2_router_config`; ``ros2_control_by`` may STOP and set goals).
+    Returns the files written."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -204,6 +209,9 @@ def make_fleet_keys(directory: Path, fleet: str, leaders: tuple[str, ...], *, ov
         write(f"{identity}/{ROSTER}", roster_json)
         write(f"{identity}/{identity}.pem", cert.public_bytes(serialization.Encoding.PEM))
         write(f"{identity}/{identity}.key", pem_key(key), secret=True)
+    if ros2:
+        config = ros2_router_config(roster, ros2_control_by)
+        write(f"{ROS2}/{ROS2_ROUTER}", (json.dumps(config, indent=1) + "\n").encode())
     return written
 
 
@@ -413,3 +421,43 @@ def access_control(roster: Roster) -> dict[str, Any]:
 def session_config(keys: FleetKeys) -> dict[str, Any]:
     """The parts of a Zenoh session's config that ``--keys`` adds."""
     return {"transport": {"link": {"tls": tls_config(keys)}}, "access_control": access_control(keys.roster)}
+
+
+# -- the ROS 2 machines' router ------------------------------------------------------------------
+def check_ros2_controllers(roster: Roster, controllers: tuple[str, ...]) -> tuple[str, ...]:
+    """Who may publish /omniformation/stop and /goal on the ROS 2 router: identities with a
+    bundle (``ros2`` and the fleet's); else ValueError in one line."""
+    unknown = [c for c in controllers if c not in roster.bundles]
+    if not controllers or unknown:
+        raise ValueError(f"--ros2-control-by {','.join(controllers)}: {', '.join(unknown) or 'nobody'} is no identity"
+                         f" of this fleet (one or more of {', '.join(roster.bundles)})")
+    return controllers
+
+
+def ros2_access_control(roster: Roster, controllers: tuple[str, ...] = (ROS2,)) -> dict[str, Any]:
+    """Zenoh's access control for the ROS 2 machines' router: ROS traffic goes as it would (the
+    default allows), but a put on ``/omniformation/stop`` or ``/omniformation/goal`` (any domain,
+    any type) is let in only from ``controllers`` (default: ``ros2``, the operator's ROS tools):
+    every other identity of the fleet, a leader's certificate among them, is denied it."""
+    others = [i for i in roster.bundles if i not in check_ros2_controllers(roster, controllers)]
+    acl: dict[str, Any] = {"enabled": True, "default_permission": "allow", "rules": [], "subjects": [],
+                           "policies": []}
+    if others:
+        acl["rules"] = [{"id": "no-control", "permission": "deny", "flows": ["ingress"], "messages": ["put", "delete"],
+                         "key_exprs": list(ROS2_CONTROL_KEYS)}]
+        acl["subjects"] = [{"id": i, "cert_common_names": [i]} for i in others]
+        acl["policies"] = [{"id": "not-controllers", "rules": ["no-control"], "subjects": others}]
+    return acl
+
+
+def ros2_router_config(roster: Roster, controllers: tuple[str, ...] = (ROS2,),
+                       endpoint: str = "tls/[::]:7447") -> dict[str, Any]:
+    """The ROS 2 router's config (``ZENOH_ROUTER_CONFIG_URI`` for ``rmw_zenohd``, started in the
+    ``ros2`` bundle's folder: its file names are relative to it): mutual TLS with the ``ros2``
+    identity, and :func:`ros2_access_control`."""
+    tls = {"root_ca_certificate": CA_CERT, "enable_mtls": True,
+           "listen_private_key": f"{ROS2}.key", "listen_certificate": f"{ROS2}.pem",
+           "connect_private_key": f"{ROS2}.key", "connect_certificate": f"{ROS2}.pem", "verify_name_on_connect": False}
+    return {"mode": "router", "listen": {"endpoints": [endpoint]},
+            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+            "transport": {"link": {"tls": tls}}, "access_control": ros2_access_control(roster, controllers)}

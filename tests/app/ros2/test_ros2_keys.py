@@ -45,7 +45,8 @@ def _tls(bundle: Path, identity: str) -> dict[str, Any]:
 
 def test_fleet_keys_ros2_makes_a_bundle_for_the_ros_machines(keys):
     bundle = keys / "ros2"
-    assert sorted(p.name for p in bundle.iterdir()) == ["ca.pem", "fleet.json", "ros2.key", "ros2.pem"]
+    assert sorted(p.name for p in bundle.iterdir()) == ["ca.pem", "fleet.json", "ros2.key", "ros2.pem",
+                                                          "router.json5"]
     assert (bundle / "ca.pem").read_bytes() == (keys / "L1" / "ca.pem").read_bytes()
     assert json.loads((bundle / "fleet.json").read_text())["ros2"] is True
 
@@ -115,3 +116,90 @@ def test_the_ros2_bundle_is_nobody_on_the_fleets_bus(keys):
     with pytest.raises(KeyFileError, match="'ros2' is not in fleet f"):
         load_fleet_keys(keys / "ros2", "ros2", "f")
     assert load_fleet_keys(keys / "ros2", "ros2", "f", ros2=True).identity == "ros2"
+
+
+def _router_from_bundle(bundle: Path, endpoint: str) -> dict[str, Any]:
+    """DIR/ros2/router.json5 as docs/ros2.md says to use it: its file names are the bundle's."""
+    config = json.loads((bundle / "router.json5").read_text())
+    tls = config["transport"]["link"]["tls"]
+    for k, v in tls.items():
+        if isinstance(v, str):
+            tls[k] = str(bundle / v)
+    config["listen"]["endpoints"] = [endpoint]
+    return config
+
+
+def _client(bundle: Path, identity: str, endpoint: str) -> Any:
+    return _open({"mode": "client", "connect": {"endpoints": [endpoint]},
+                  "scouting": {"multicast": {"enabled": False}}, "transport": {"link": {"tls": _tls(bundle, identity)}}})
+
+
+def test_only_the_ros2_identity_may_stop_or_set_goals_through_the_routers_access_rules(tmp_path):
+    """fleet-keys --ros2 writes the ROS router's config: on it a leader's certificate (L2's) can
+    publish ROS traffic but not /omniformation/stop or /goal; the ros2 identity can. The listener
+    holds L1's certificate, as `run --ros2 --ros2-control --keys KEYS/L1` would."""
+    import threading
+    import time
+
+    from rosbags.typesys import Stores, get_typestore
+
+    out = main_cli("fleet-keys", str(tmp_path), "--fleet", "f", "--leaders", "L1,L2", "--ros2")
+    assert out.returncode == 0, out.stderr
+    port = _port()
+    endpoint = f"tls/127.0.0.1:{port}"
+    router = _open(_router_from_bundle(tmp_path / "ros2", endpoint))
+    heard: list[tuple[str, bool]] = []
+    lock = threading.Lock()
+    service = _client(tmp_path / "L1", "L1", endpoint)
+
+    def on(sample: Any) -> None:
+        with lock:
+            heard.append((str(sample.key_expr).split("/")[2], sample.payload.to_bytes()[4] == 1))
+
+    sub = service.declare_subscriber("0/omniformation/*/**", on)
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    true, false = (bytes(ts.serialize_cdr(ts.types["std_msgs/msg/Bool"](data=b), "std_msgs/msg/Bool"))
+                   for b in (True, False))
+    attachment = bytes(33)
+    l2 = _client(tmp_path / "L2", "L2", endpoint)
+    operator = _client(tmp_path / "ros2", "ros2", endpoint)
+
+    def key(kind: str) -> str:
+        return f"0/omniformation/{kind}/std_msgs::msg::dds_::Bool_/RIHS01_x"
+
+    def until(what: tuple[str, bool], put: Any = None) -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and what not in heard:
+            if put is not None:
+                put()
+            time.sleep(0.05)
+
+    try:
+        until(("status", True), lambda: l2.put(key("status"), true, attachment=attachment))  # L2 reaches the service
+        for kind in ("stop", "goal"):
+            l2.put(key(kind), true, attachment=attachment)
+        l2.put(key("status"), false, attachment=attachment)  # after its stop and goal on the same link
+        until(("status", False))
+        until(("stop", True), lambda: operator.put(key("stop"), true, attachment=attachment))
+        with lock:
+            got = list(heard)
+        print(f"the service heard {got}: L2's stop and goal denied by the router, the operator's stop let through")
+        marker = got.index(("status", False))  # L2's stop and goal, had they passed, came before it
+        assert all(k == "status" for k, _ in got[:marker]) and ("stop", True) in got[marker:]
+        assert all(k != "goal" for k, _ in got)
+    finally:
+        sub.undeclare()
+        for s in (l2, operator, service, router):
+            s.close()
+
+
+def test_ros2_control_by_names_identities_of_the_fleet(tmp_path):
+    from app.fleet.security import Roster, ros2_access_control
+
+    roster = Roster("f", ("L1", "L2"), True)
+    acl = ros2_access_control(roster, ("ros2", "L1"))
+    assert acl["policies"][0]["subjects"] == ["arena", "page", "L2"]
+    out = main_cli("fleet-keys", str(tmp_path / "k"), "--fleet", "f", "--leaders", "L1", "--ros2",
+                   "--ros2-control-by", "ros2,L9")
+    assert out.returncode == 2 and "L9 is no identity of this fleet" in out.stderr, out
+    assert not (tmp_path / "k").exists()
