@@ -78,14 +78,14 @@ class Refusals:
         who = next(iter(clients)) if len(clients) == 1 else f"{len(clients)} clients"
         return f"{kind}: {count} more from {who} since the last line"
 
-    def flush(self) -> None:
-        """Say every pending count whose kind may speak now; what may not waits for the next
-        timer (one is started while counts wait)."""
+    def flush(self, final: bool = False) -> None:
+        """Say every pending count whose kind may speak now (``final``: every one, as a process
+        ends); what may not waits for the next timer (one is started while counts wait)."""
         now = self._clock()
         with self._lock:
             self._timer = None
             out = [self._summary(kind, now) for kind in list(self._pending)
-                   if now - self._last_summary.get(kind, -float("inf")) >= self.every_s - 1e-3]
+                   if final or now - self._last_summary.get(kind, -float("inf")) >= self.every_s - 1e-3]
             if self._pending and self._timer is None:
                 self._timer = threading.Timer(self.every_s, self.flush)
                 self._timer.daemon = True

@@ -48,7 +48,7 @@ from core.camera.render.looks import hue_rgb
 
 from app.dashboard.gate import is_loopback
 from app.params import Params, params_events
-from app.refusals import refuse
+from app.refusals import REFUSALS, refuse
 from app.recording.foxglove import PROTOBUF_TOPICS, encode, schema_data
 from app.recording.schema import (EVENT_TOPIC, IMAGE_TOPIC, PARAMS_TOPIC, SCAN_HZ, SCAN_TOPIC, SCHEMAS, TF_TOPIC,
                                   TICK_TOPIC, TOPIC_SCHEMA, TRIAL_TOPIC, image_payload, jsonable, params_payload,
@@ -551,6 +551,7 @@ def foxglove_main(conn: Any, host: str, port: int, tls: tuple[bytes, bytes] | No
                     conn.send(("watch", now))
     finally:
         live.close()
+        REFUSALS.flush(final=True)  # the counts not said yet
         logging.shutdown()
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
