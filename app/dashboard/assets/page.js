@@ -229,7 +229,7 @@
   // ended: NOT CONNECTED, the bar full width, its STOP and the panel's disabled, the last t and loop
   // rate greyed with their age. viser reconnects by itself; the first new tick says so.
   var link = {down: false, tick: null, t: "", hz: "", state: "", at: performance.now(), since: 0,
-              back: 0, gap: 0, checked: performance.now()};
+              back: 0, gap: 0, checked: performance.now(), stopSeen: false};
   window.omniLink = link;  // the browser tests read it
   function beatOf() {
     var el = Array.prototype.find.call(document.querySelectorAll("[data-omni-beat]"), function (e) {
@@ -257,6 +257,8 @@
         if (!first) { link.back = now; link.gap = (now - link.since) / 1000; link.reconnects = (link.reconnects || 0) + 1; }
       }
     }
+    if (!link.stopSeen) link.stopSeen = !!panelStop();
+    if (!link.stopSeen) return;  // a page with no STOP (the calibration page) has no loop to lose
     var ended = !!lineOf(/^THE LOOP HAS ENDED/);
     if (!link.down && (ended || (!late && now - link.at > LOST_MS))) {
       link.down = true;
