@@ -89,19 +89,29 @@ def _worker_name() -> str:
         return "local"
 
 
-def warm_up(vision: bool) -> float:
-    """Load the kernels a run uses (from numba's cache on disk, which every worker process on one
-    machine shares: numba writes a cache file under a temporary name and renames it, so a reader
-    never sees half of one) and, for vision, the rig; returns the seconds it took. Runs a plain
-    run, a stepped one (latency) and, for vision, one with the rig."""
-    start = time.perf_counter()
-    from app.files import load_scenario
-    from core.config import Latency
+def warm_up(spec: StudySpec) -> float:
+    """Load the kernels this study's runs use (from numba's cache on disk, which every worker
+    process on one machine shares: numba writes a cache file under a temporary name and renames it,
+    so a reader never sees half of one) and, for vision, its rig: the study's first point, two
+    ticks long, through the same path as every run. Returns the seconds it took."""
+    import dataclasses
 
-    sc = load_scenario("paper_simulation").replace(duration_s=0.2)
-    run_point(sc)
-    run_point(sc.replace(latency=Latency.split(0.05)))
-    if vision:
-        rig, gamma = _rig()
-        run_point(sc.replace(rate_hz=30.0, duration_s=1.0 / 30.0), rig, gamma)
+    start = time.perf_counter()
+    values = spec.point(0) if spec.optimize is None else {}
+    name = values.get(SCENARIO_AXIS, spec.scenarios[0].name)
+    source = next(s for s in spec.scenarios if s.name == name)
+    scenario = scenario_for(spec, source, values, 0)
+    scenario = scenario.replace(duration_s=2.0 / scenario.rate_hz)
+    rig, gamma = _rig(spec.camera, spec.calibration) if spec.vision else (None, None)
+    step = None
+    if spec.test is not None:
+        from core.study.point import settled_start
+
+        twist = scenario.leader.twist(0.0)
+        step = Step(dataclasses.replace(spec.test, window_s=WARM_WINDOW_S), (float(twist[0]), float(twist[1])), 0.0)
+        scenario = settled_start(scenario)
+    run_point(scenario, rig, gamma, step)
     return time.perf_counter() - start
+
+
+WARM_WINDOW_S = 3.0  # the shortest window a step test takes (core.control.tuning.WINDOW_S)

@@ -55,11 +55,11 @@ class WarmUp(WorkerPlugin):
     name = "omniformation-study-warm-up"
     idempotent = True
 
-    def __init__(self, vision: bool) -> None:
-        self.vision = vision
+    def __init__(self, spec: StudySpec) -> None:
+        self.spec = spec
 
     def setup(self, worker: Any) -> None:
-        worker.omniformation_warm_up_s = warm_up(self.vision)
+        worker.omniformation_warm_up_s = warm_up(self.spec)
 
 
 @dataclass
@@ -160,7 +160,7 @@ def serial_rows(spec: StudySpec) -> tuple[list[dict[str, Any]], list[dict[str, A
 class Engine:
     """A Dask client (and, by default, the LocalCluster behind it) for one study session."""
 
-    def __init__(self, workers: int | None = None, cluster: str | None = None, vision: bool = False,
+    def __init__(self, spec: StudySpec, workers: int | None = None, cluster: str | None = None,
                  say: Callable[[str], None] = print) -> None:
         from distributed import Client, LocalCluster
 
@@ -179,7 +179,7 @@ class Engine:
                               else f"cannot start the local Dask cluster: {exc}") from None
         except ValueError as exc:
             raise _user_error(f"--cluster {cluster}: {exc} (give tcp://HOST:PORT)") from None
-        self.client.register_plugin(WarmUp(vision), name=WarmUp.name)
+        self.client.register_plugin(WarmUp(light(spec)), name=WarmUp.name)
 
     @property
     def workers(self) -> int:

@@ -87,7 +87,7 @@ def run_session(spec: StudySpec, study_path: Path, out: Path, workers: int | Non
     if not spec.optimize and done >= spec.runs:
         say(f"study: all {spec.runs} runs are in {display_path(out / 'results')}: 0 to run")
         return _finish(spec, folder, Outcome(0, 0, done, spec.runs, 0.0, 0, float("nan")))
-    engine = Engine(workers, cluster, spec.vision)
+    engine = Engine(spec, workers, cluster)
     try:
         where = cluster or f"a local cluster of {engine.workers} worker{'s' if engine.workers != 1 else ''}"
         say(f"study: on {where}; Dask dashboard: {engine.dashboard or 'none (bokeh missing)'}")

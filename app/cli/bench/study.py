@@ -9,9 +9,7 @@ runs per second at N workers against the same runs made here one after another."
 from __future__ import annotations
 
 import math
-import resource
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -55,20 +53,12 @@ def _spec(text: str, name: str) -> Any:
     return parse_study_text(text, name)
 
 
-def _rss_mb() -> float:
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * resource.getpagesize() / 1e6
-    except OSError:
-        return math.nan
-
-
 def serial_rate(spec: Any) -> tuple[float, float]:
     """(runs per second, mean compute per run) of every run made here one after another."""
     from app.study.batch import run_runs, warm_up
     from app.study.engine import pending_runs
 
-    warm_up(spec.vision)
+    warm_up(spec)
     items = list(pending_runs(spec, set()))
     start = time.perf_counter()
     rows, _ = run_runs(spec, items, "local")
@@ -83,7 +73,7 @@ def engine_rate(spec: Any, workers: int, tmp: Path) -> dict[str, float]:
     from app.study.store import StudyFolder
 
     t0 = time.monotonic()
-    engine = Engine(workers, None, spec.vision)
+    engine = Engine(spec, workers, None)
     try:
         folder = StudyFolder(tmp)
         folder.open(spec, tmp / "study.toml", overwrite=True)
@@ -117,45 +107,36 @@ def part_write_s(spec: Any, tmp: Path, rows_per_part: int = 500) -> float:
 
 
 def memory_run(tmp: Path, workers: int = 2) -> dict[str, float]:
-    """The client's RSS (the LocalCluster's scheduler runs in it) every second over 10^5 short runs."""
-    from app.study.engine import Engine, run_grid
-    from app.study.store import StudyFolder
+    """`omniformation study` of 10^5 short truth runs as a user starts it, and its RSS (the client;
+    a LocalCluster's scheduler runs in the same process) every second, against the parts written."""
+    import subprocess
+    import sys
 
-    spec = _spec(MEMORY, "memory study")
-    engine = Engine(workers, None, False)
-    samples: list[tuple[int, float]] = []
-    stop = threading.Event()
-    folder = StudyFolder(tmp)
-    folder.open(spec, tmp / "study.toml", overwrite=True)
-    made = [0]
-
-    class _Count:
-        def update(self, done: int, failed: int, force: bool = False) -> None:
-            made[0] = done
-
-        def finish(self) -> None:
-            pass
-
-    def sample() -> None:
-        while not stop.wait(1.0):
-            samples.append((made[0], _rss_mb()))
-
-    th = threading.Thread(target=sample, daemon=True)
-    th.start()
+    tmp.mkdir(parents=True, exist_ok=True)
+    (tmp / "memory.toml").write_text(MEMORY)
+    out = tmp / "out"
     start = time.monotonic()
-    try:
-        out = run_grid(spec, folder, engine, _Count())  # type: ignore[arg-type]  # a progress that only counts
-    finally:
-        stop.set()
-        th.join()
-        engine.close()
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "study", str(tmp / "memory.toml"), "--out", str(out),
+                             "--workers", str(workers)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    samples: list[tuple[int, float]] = []
+    while proc.poll() is None:
+        time.sleep(1.0)
+        try:
+            status = Path(f"/proc/{proc.pid}/status").read_text()
+        except OSError:
+            break
+        rss = next((int(line.split()[1]) / 1e3 for line in status.splitlines() if line.startswith("VmRSS:")), math.nan)
+        samples.append((len(list((out / "results").glob("part-*.parquet"))) if (out / "results").exists() else 0, rss))
     wall = time.monotonic() - start
-    after = [m for d, m in samples if d >= 0.1 * spec.runs]
-    early = [m for d, m in samples if 0.1 * spec.runs <= d <= 0.3 * spec.runs]
-    late = [m for d, m in samples if d >= 0.8 * spec.runs]
-    return {"runs": out.made, "wall_s": wall, "peak_mb": max((m for _, m in samples), default=math.nan),
+    import pyarrow.dataset as pds
+
+    runs = pds.dataset(str(out / "results"), format="parquet").count_rows() if proc.returncode == 0 else 0
+    total = max((p for p, _ in samples), default=0) or 1
+    early = [m for p, m in samples if 0.1 * total <= p <= 0.3 * total]
+    late = [m for p, m in samples if p >= 0.8 * total]
+    return {"runs": runs, "wall_s": wall, "peak_mb": max((m for _, m in samples), default=math.nan),
             "early_mb": sum(early) / len(early) if early else math.nan,
-            "late_mb": sum(late) / len(late) if late else math.nan, "after_mb": max(after, default=math.nan)}
+            "late_mb": sum(late) / len(late) if late else math.nan}
 
 
 def scaling_model(compute_s: float, per_task_s: float, part_s: float, batch_s: float,
@@ -199,9 +180,9 @@ def run_family(print_fn: Callable[[str], None] = print) -> dict[str, float]:
         part = part_write_s(_spec(TRUTH.format(reps=1), "truth study"), tmp / "parts")
         figures["study_part_write_s"] = part
         mem = memory_run(tmp / "memory")
-        print_fn(f"study of {mem['runs']:.0f} short truth runs on 2 workers in {mem['wall_s']:.0f} s: the client's RSS"
-                 f" (scheduler included) {mem['early_mb']:.0f} MB at 10-30 % of the runs, {mem['late_mb']:.0f} MB"
-                 f" from 80 %, peak {mem['peak_mb']:.0f} MB (target <= 500 MB, flat)")
+        print_fn(f"`study` of {mem['runs']:.0f} short truth runs on 2 workers in {mem['wall_s']:.0f} s: the client's RSS"
+                 f" (the LocalCluster's scheduler runs in it) {mem['early_mb']:.0f} MB at 10-30 % of the parts,"
+                 f" {mem['late_mb']:.0f} MB from 80 %, peak {mem['peak_mb']:.0f} MB (target <= 500 MB, flat)")
         figures.update({"study_memory_peak_mb": mem["peak_mb"], "study_memory_early_mb": mem["early_mb"],
                         "study_memory_late_mb": mem["late_mb"]})
         print_fn(f"one part of 500 rows written by the client in {part * 1e3:.1f} ms")
