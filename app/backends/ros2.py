@@ -458,11 +458,17 @@ class Ros2Base:
 
     @property
     def link_state(self) -> str:
-        if self._odom is None:
-            state = f"ros2 {self.cmd_topic}: no odometry yet"
-        else:
-            state = f"ros2 {self.cmd_topic}: no odometry for {ODOM_TIMEOUT_S:g} s" if self.lost else f"ros2 {self.cmd_topic}"
+        """``ros2 TOPIC``, then (first: the page's alarm reads "lost" before any parenthesis) another
+        publisher on the command topic, the odometry's state and the publishers not believed."""
+        state = f"ros2 {self.cmd_topic}"
         strangers = self.strangers()
+        if strangers[self.cmd_topic]:  # an alarm on the page ("lost"), an event in the recording
+            state += (f": exclusive command lost, {', '.join(strangers[self.cmd_topic])} publish(es) on"
+                      f" {self.cmd_topic} too")
+        if self._odom is None:
+            state += ": no odometry yet"
+        elif self.lost:
+            state += f": no odometry for {ODOM_TIMEOUT_S:g} s"
         with self._lock:
             several = self._believed is None and len(self._tokens[self.odom_topic]) > 1
             several_names = sorted(t.node for t in self._tokens[self.odom_topic].values())
@@ -470,9 +476,6 @@ class Ros2Base:
             state += f" · several publishers on {self.odom_topic} ({', '.join(several_names)}): none believed"
         elif strangers[self.odom_topic]:
             state += f" · not believed on {self.odom_topic}: {', '.join(strangers[self.odom_topic])}"
-        if strangers[self.cmd_topic]:  # an alarm on the page ("lost"), an event in the recording
-            state += (f" · exclusive command lost: {', '.join(strangers[self.cmd_topic])} publish(es) on"
-                      f" {self.cmd_topic} too")
         return state
 
     def send(self, commands: Commands) -> None:

@@ -97,6 +97,7 @@ class Ros2Bridge:
         self.base_state = base_state
         self.taken = self.refused = 0
         self.events: list[tuple[str, str]] = []
+        self._said: set[str] = set()  # kinds of refused goal already on stderr
         if allow_control:
             node.subscribe(STOP_TOPIC, "std_msgs/msg/Bool", self._on_stop)
             node.subscribe(GOAL_TOPIC, "geometry_msgs/msg/PoseStamped", self._on_goal)
@@ -163,8 +164,10 @@ class Ros2Bridge:
         if why:
             self.refused += 1
             self.events.append(("refused", f"ros2 goal: {why}"))
-            if self.refused == 1:  # per-message refusals: the first one on stderr, then counted
-                print(f"omniformation: ROS 2 goal refused: {why} (further refusals counted)", file=sys.stderr,
+            kind = why.split(" (")[0]
+            if kind not in self._said:  # per-message refusals: the first of each kind on stderr, then counted
+                self._said.add(kind)
+                print(f"omniformation: ROS 2 goal refused: {why} (said once; further ones counted)", file=sys.stderr,
                       flush=True)
             return
         if self._apply(GOAL_TOPIC, goal=(x, y)) and self.store.get().goal == (x, y):
