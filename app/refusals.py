@@ -7,7 +7,8 @@ only counted, and at most one summary line per kind every ``SUMMARY_EVERY_S`` se
 were refused and from how many clients. A flood of any size then adds at most
 ``FIRSTS_PER_WINDOW + 1`` lines per kind per window (docs/safety.md, "Logs that cannot be flooded").
 
-The lines go to the ``omniformation.refused`` logger as warnings (stderr, as the service logs)."""
+The lines are warnings of the ``omniformation.refused`` logger, or of the logger a part names for
+its kinds (the page's gate: its own), on stderr as the service logs."""
 
 from __future__ import annotations
 
@@ -36,16 +37,20 @@ class Refusals:
         self._window: dict[str, tuple[float, int]] = {}  # kind -> (window start, first lines said in it)
         self._pending: dict[str, tuple[int, set[str]]] = {}  # kind -> (refusals not said, their clients)
         self._last_summary: dict[str, float] = {}
+        self._say_of: dict[str, Callable[[str], None]] = {}  # kind -> where its lines go (a part's logger)
         self._timer: threading.Timer | None = None
         self.total: dict[str, int] = {}  # refusals per kind since start (said or counted)
         self.lines = 0  # lines written
 
-    def refuse(self, kind: str, client: str, detail: str) -> None:
+    def refuse(self, kind: str, client: str, detail: str, logger: logging.Logger | None = None) -> None:
         """One refused message of ``kind`` (e.g. ``"foxglove: invalid message"``) from ``client``
-        (an address, an identity), ``detail`` what was wrong; said or counted, never raises."""
+        (an address, an identity), ``detail`` what was wrong; said or counted, never raises.
+        ``logger``: where this kind's lines go (default: the one given at construction)."""
         now = self._clock()
-        out: list[str] = []
+        out: list[tuple[str, str]] = []
         with self._lock:
+            if logger is not None:
+                self._say_of[kind] = logger.warning
             self.total[kind] = self.total.get(kind, 0) + 1
             seen = self._seen.setdefault(kind, {})
             start, said = self._window.get(kind, (now, 0))
@@ -56,8 +61,8 @@ class Refusals:
                 if len(seen) > REMEMBERED:
                     del seen[next(iter(seen))]
                 self._window[kind] = (start, said + 1)
-                out.append(f"{kind} ({client}): {detail} (more of this kind are counted: one line every"
-                           f" {self.every_s:g} s)")
+                out.append((kind, f"{kind} ({client}): {detail} (more of this kind are counted: one line every"
+                                  f" {self.every_s:g} s)"))
             else:
                 self._window[kind] = (start, said)
                 count, clients = self._pending.get(kind, (0, set()))
@@ -65,7 +70,7 @@ class Refusals:
                     clients.add(client)
                 self._pending[kind] = (count + 1, clients)
                 if now - self._last_summary.get(kind, -float("inf")) >= self.every_s:
-                    out.append(self._summary(kind, now))
+                    out.append((kind, self._summary(kind, now)))
                 elif self._timer is None:
                     self._timer = threading.Timer(self.every_s, self.flush)
                     self._timer.daemon = True
@@ -84,7 +89,7 @@ class Refusals:
         now = self._clock()
         with self._lock:
             self._timer = None
-            out = [self._summary(kind, now) for kind in list(self._pending)
+            out = [(kind, self._summary(kind, now)) for kind in list(self._pending)
                    if final or now - self._last_summary.get(kind, -float("inf")) >= self.every_s - 1e-3]
             if self._pending and self._timer is None:
                 self._timer = threading.Timer(self.every_s, self.flush)
@@ -92,11 +97,11 @@ class Refusals:
                 self._timer.start()
         self._write(out)
 
-    def _write(self, lines: list[str]) -> None:
-        for line in lines:
+    def _write(self, lines: list[tuple[str, str]]) -> None:
+        for kind, line in lines:
             self.lines += 1
             try:
-                self._say(line)
+                self._say_of.get(kind, self._say)(line)
             except Exception:  # noqa: BLE001 - a log that cannot be written must not take the refusing part down
                 pass
 
@@ -104,6 +109,6 @@ class Refusals:
 REFUSALS = Refusals()
 
 
-def refuse(kind: str, client: str, detail: str) -> None:
+def refuse(kind: str, client: str, detail: str, logger: logging.Logger | None = None) -> None:
     """The process's refusals (see :class:`Refusals`)."""
-    REFUSALS.refuse(kind, client, detail)
+    REFUSALS.refuse(kind, client, detail, logger)

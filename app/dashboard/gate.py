@@ -77,6 +77,7 @@ from core.link.protocol import WATCHDOG_S
 
 from app.dashboard.allowance import RATE, Budget, Throttle, one_line
 from app.dashboard import viser_private
+from app.refusals import refuse
 from app.dashboard.input_filter import OPERATOR, VIEWER, InputFilter, Verdict
 from app.dashboard.viser_private import GuiUpdateMessage
 
@@ -200,7 +201,6 @@ class Gate:
         self._client_of: dict[str, int] = {}  # gate connection key -> viser client id
         self._taken_in: dict[str, Callable[[], None]] = {}  # gate connection key -> tell it viser took its client in
         self._telling: dict[str, asyncio.Task[None]] = {}  # gate connection key -> its refusal waiting for its client
-        self._log_throttle = Throttle()
         self._notice_throttle = Throttle(NOTICE_EVERY_S)
         self._banned: dict[str, float] = {}  # address -> refused until (monotonic)
         self._open: dict[str, int] = {}  # address -> open websockets
@@ -396,10 +396,7 @@ class Gate:
 
     def _refuse(self, connection: websockets.asyncio.server.ServerConnection, status: http.HTTPStatus,
                 kind: str, why: str) -> Response:
-        held = self._log_throttle.due(("request", kind))
-        if held >= 0:
-            log.warning("dashboard: refused %s: %s%s", connection.remote_address, one_line(why),
-                        f" (and {held} more like it not logged)" if held else "")
+        refuse(f"dashboard: {kind} request refused", _address(connection.remote_address), one_line(why), log)
         return connection.respond(status, f"omniformation: refused: {why}\n")
 
     async def _process_request(self, connection: websockets.asyncio.server.ServerConnection,
@@ -503,11 +500,9 @@ class Gate:
                             greeted = greeted or first
                             if verdict.forward and not first and not self._address_allows(address, verdict):
                                 self.refused.address += 1
-                                held = self._log_throttle.due(("address", address))
-                                if held >= 0:
-                                    log.warning("dashboard: %s's connections together send more than %g messages a"
-                                                " second: dropped%s", address, ADDRESS_RATE,
-                                                f" ({held} more since the last line)" if held else "")
+                                refuse("dashboard: over the address's message budget", address,
+                                       f"its connections together send more than {ADDRESS_RATE:g} messages a"
+                                       " second: dropped", log)
                                 continue
                             if verdict.forward:
                                 await dst.send(message)
@@ -550,20 +545,15 @@ class Gate:
         if budget.over:
             self.refused.cut += 1
             self._ban(address)
-        held = self._log_throttle.due(("flood", address))
-        if held >= 0 or budget.over:
-            what = f"closed, address refused for {BAN_S:g} s" if budget.over else "dropped"
-            log.warning("dashboard: %s (%s) sends more than %g messages a second: %s%s", address, role, RATE, what,
-                        f" ({max(held, 0)} more dropped since the last line)" if held > 0 else "")
+        what = f"closed, address refused for {BAN_S:g} s" if budget.over else "dropped"
+        refuse(f"dashboard: over a connection's message budget ({what.split(',')[0]})", address,
+               f"{role} sends more than {RATE:g} messages a second: {what}", log)
 
     def _refused_message(self, key: str, role: str, address: str, verdict: Verdict) -> bool:
         """Count it, log it (briefly, per address), and tell that client alone what is in force;
         False: there was no client to tell yet."""
         self.refused.messages += 1
-        held = self._log_throttle.due(("client", address))
-        if held >= 0:
-            log.warning("dashboard: refused from %s (%s): %s%s", address, role, one_line(verdict.why),
-                        f" (and {held} more refused since the last line)" if held else "")
+        refuse("dashboard: message refused", address, f"{role}: {one_line(verdict.why)}", log)
         return self._tell(key, verdict)
 
     def _tell_later(self, taken_in: asyncio.Event, key: str, verdict: Verdict) -> None:
