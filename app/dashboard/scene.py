@@ -18,9 +18,9 @@ from core.obstacles import Obstacle
 
 from core.camera.render.looks import follower_rgb
 from app.dashboard.controls import CARD_HINT, Controls
-from app.dashboard.allowance import Throttle
 from app.tick import TickState
 from app.params import ParamsStore
+from app.refusals import refuse
 from core.camera.guide import WORKING_RING_M
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,6 @@ class Scene:
         self.server = server
         self.store = store
         self.controls = controls
-        self._camera_throttle = Throttle()  # a client whose camera cannot be placed: one line a second
         s = server.scene
         s.set_up_direction("+z")
         s.add_grid("/grid", width=30.0, height=30.0, plane="xy", cell_size=0.25, section_size=1.0)
@@ -290,8 +289,7 @@ class Scene:
                     client.camera.position = position
                     client.camera.look_at = look_at
             except (ValueError, ArithmeticError, AttributeError) as exc:
-                if self._camera_throttle.due(client.client_id) >= 0:
-                    log.warning("dashboard: client %d's camera not placed: %s", client.client_id, str(exc)[:120])
+                refuse("dashboard: a client's camera not placed", f"client {client.client_id}", str(exc)[:120], log)
 
     def _safety_view(self, state: TickState, est_world: np.ndarray, known: np.ndarray) -> None:
         """The obstacles the leader knows (scan and memory), the goal, the planned heading, and a
