@@ -399,12 +399,15 @@ class Ros2Base:
             tell(text)
 
     # -- odometry -----------------------------------------------------------------------
-    def _refuse(self, why: str) -> None:
+    def _refuse(self, why: str, gid: bytes, detail: str = "") -> None:
+        """One odometry message dropped: counted (the link detail) and said through the process's
+        rate-limited refusals (app.refusals: the first per publisher and kind, then counts)."""
+        from app.refusals import refuse
+
         with self._lock:
             self.refused[why] = self.refused.get(why, 0) + 1
-            first = self.refused[why] == 1
-        if first:
-            _say(f"odometry on {self.odom_topic} dropped: {why} (counted in the link detail; said once)")
+        refuse(f"ros2: {self.odom_topic} dropped: {why}", f"GID {gid.hex()[:12] or 'none'}",
+               detail or "not the base's odometry")
 
     def _on_odom(self, m: Any, attachment: tuple[int, int, bytes]) -> None:
         sequence, _, gid = attachment
@@ -414,14 +417,14 @@ class Ros2Base:
         if gid not in tokens:
             if believed is None or gid != believed:
                 self._count_unannounced(self.odom_topic, gid)
-                self._refuse("no publisher on the graph")
+                self._refuse("no publisher on the graph", gid)
                 self._check_strangers()
                 return
         elif believed is None and len(tokens) > 1:
-            self._refuse("several publishers, none believed")
+            self._refuse("several publishers, none believed", gid)
             return
         elif believed is not None and gid != believed:
-            self._refuse("another publisher")
+            self._refuse("another publisher", gid, f"{tokens[gid].node} is not the base")
             self._check_strangers()
             return
         v, w = float(m.twist.twist.linear.x), float(m.twist.twist.angular.z)
@@ -436,7 +439,8 @@ class Ros2Base:
         if why not in ("sequence", "stamp order", "stamp age", "not finite"):
             self._last = (v, w, stamp_ns, sequence) if math.isfinite(v) and math.isfinite(w) else self._last
         if why:
-            self._refuse(why)
+            self._refuse(why, gid, f"v {v:g} m/s, w {w:g} rad/s, stamp {stamp_ns * 1e-9:.3f} s, frames"
+                                   f" {str(m.header.frame_id)[:32]!r} -> {str(m.child_frame_id)[:32]!r}, sequence {sequence}")
             return
         with self._lock:
             if self._believed is None:

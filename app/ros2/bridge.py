@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from typing import Any
 
@@ -97,7 +96,6 @@ class Ros2Bridge:
         self.base_state = base_state
         self.taken = self.refused = 0
         self.events: list[tuple[str, str]] = []
-        self._said: set[str] = set()  # kinds of refused goal already on stderr
         if allow_control:
             node.subscribe(STOP_TOPIC, "std_msgs/msg/Bool", self._on_stop)
             node.subscribe(GOAL_TOPIC, "geometry_msgs/msg/PoseStamped", self._on_goal)
@@ -164,11 +162,9 @@ class Ros2Bridge:
         if why:
             self.refused += 1
             self.events.append(("refused", f"ros2 goal: {why}"))
-            kind = why.split(" (")[0]
-            if kind not in self._said:  # per-message refusals: the first of each kind on stderr, then counted
-                self._said.add(kind)
-                print(f"omniformation: ROS 2 goal refused: {why} (said once; further ones counted)", file=sys.stderr,
-                      flush=True)
+            from app.refusals import refuse  # per-message refusals: rate-limited, the first of each kind said
+
+            refuse(f"ros2: goal refused: {why.split(' (')[0]}", GOAL_TOPIC, why)
             return
         if self._apply(GOAL_TOPIC, goal=(x, y)) and self.store.get().goal == (x, y):
             self._apply(GOAL_TOPIC, leader_mode="goal")  # as the page's "Drive to goal" (orientation unused)

@@ -262,7 +262,7 @@ def test_a_second_odom_publisher_is_named_once_and_not_believed(rig):
 def test_odometry_without_an_attachment_or_absurd_or_stale_or_in_a_wrong_frame_is_dropped(rig):
     """Under the base's own GID (read off its attachments): v = 1e6 without an attachment, then with
     it v = 1e6 and 1e308, stamps from 1970, frames map and evil. The leader does not jump; each
-    kind is said once on stderr."""
+    kind is said on stderr once, then counted (at most one line more)."""
     watch, service = rig["watch"], rig["service"]
     gid = _base_gid(watch)
     liar = Stranger(rig["session"], "liar")
@@ -286,8 +286,8 @@ def test_odometry_without_an_attachment_or_absurd_or_stale_or_in_a_wrong_frame_i
     jump = max(math.dist(a, b) for a, b in zip(xs, xs[1:]))
     print(f"the leader's largest step between two /tf messages meanwhile: {jump * 100:.2f} cm")
     assert jump < 0.05
-    for words in ("dropped: speed", "dropped: stamp age", "dropped: frame"):
-        assert len(_lines(service, words)) == 1, words
+    for words in ("dropped: speed", "dropped: stamp age", "dropped: frame"):  # 10 or 5 messages each: the first
+        assert 1 <= len(_lines(service, words)) <= 2, (words, service.err)  # said, the rest at most one count line
 
 
 def test_goals_with_a_nan_or_non_unit_orientation_are_refused(rig):
