@@ -290,6 +290,7 @@ def test_no_odometry_for_half_a_second_stops_the_leader_and_says_so(rig):
     (["run", "--ros2", "--zenoh-connect", "tcp/10.1.2.3:7447", "--no-record"], "stays on this machine"),
     (["emulate-base", "--ros2", "--zenoh-connect", "CLOSED"], "no ROS 2 Zenoh router answers"),
     (["emulate-base", "--ros2", "--speed-scale", "-1"], "-1 is outside [0, 2]"),
+    (["run", "--ros2", "--zenoh-connect", "tcp/127.0.0.1:7447", "--ros2-intruder-stop"], "goes with --leader ros2:"),
 ])
 def test_bad_ros2_input_is_one_line_and_exit_2(args, words):
     args = [_free_endpoint() if a == "CLOSED" else a for a in args]
@@ -425,3 +426,79 @@ def test_eq5_compensates_the_leaders_odometry_not_its_command():
             n.close()
             n.session.close()
         router.close()
+
+
+@pytest.mark.parametrize("change, why", [
+    ({}, ""),
+    ({"frame": "robot1/odom", "child": "robot1/base_footprint"}, ""),
+    ({"v": 0.61}, "speed"),
+    ({"w": -1.1}, "turn rate"),
+    ({"v": math.inf}, "not finite"),
+    ({"frame": "map"}, "frame"),
+    ({"child": "evil"}, "frame"),
+    ({"stamp_ns": 10**9}, "stamp age"),
+    ({"stamp_ns": 10**12 - 10**6}, "stamp order"),
+    ({"sequence": 7}, "sequence"),
+    ({"v": 0.55}, "acceleration"),  # 0.1 -> 0.55 m/s in 20 ms: 20 m/s^2 allows 0.4
+    ({"v": 0.45}, ""),
+])
+def test_odometry_is_judged_by_the_parameter_tables_limits(change, why):
+    from app.backends.ros2 import odometry_refusal
+
+    now = 10**12 + 10**7
+    m = {"v": 0.1, "w": 0.1, "stamp_ns": 10**12 + 2 * 10**7, "frame": "odom", "child": "base_link", "sequence": 8}
+    m.update(change)
+    last = (0.1, 0.0, 10**12, 7)  # the believed publisher's message before: 20 ms earlier
+    assert odometry_refusal(m["v"], m["w"], m["stamp_ns"], m["frame"], m["child"], m["sequence"], last, now) == why
+
+
+def test_two_odom_publishers_before_one_is_chosen_means_none_is_believed(rig):
+    """Two publishers' tokens on /odom2 (as rmw_zenoh declares them) and odometry from one: not
+    believed, the link state names both; once one token is gone, the other's next message is the
+    base's, and the one that comes back is not believed."""
+    from app.backends.ros2 import Ros2Base, type_hash
+    from core.xxh3 import xxh3_128
+
+    ros = rig["ros"]
+    base = Ros2Base(rig["node"], "/cmd2", odom_topic="/odom2")
+    h = type_hash("nav_msgs/msg/Odometry")
+    zid = ros.session.info.zid()
+
+    def token(node: str) -> tuple[Any, bytes]:
+        key = f"@ros2_lv/0/{zid}/0/10/MP/%/%/{node}/%odom2/nav_msgs::msg::dds_::Odometry_/{h}/::,10:,:,:,,"
+        return ros.session.liveliness().declare_token(key), struct.pack("<QQ", *xxh3_128(key.encode()))
+
+    ts = ros.ts
+    T = ts.types
+
+    def odom(seq: int, gid: bytes) -> None:
+        ns = time.time_ns()
+        m = T["nav_msgs/msg/Odometry"](
+            header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                                            frame_id="odom"), child_frame_id="base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)), covariance=np.zeros(36)),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=T["geometry_msgs/msg/Twist"](
+                linear=T["geometry_msgs/msg/Vector3"](x=0.1, y=0.0, z=0.0),
+                angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)), covariance=np.zeros(36)))
+        key = f"0/odom2/nav_msgs::msg::dds_::Odometry_/{h}"
+        ros.session.put(key, bytes(ts.serialize_cdr(m, "nav_msgs/msg/Odometry")),
+                        attachment=struct.pack("<qqB", seq, ns, 16) + gid)
+
+    (ta, ga), (tb, gb) = token("base_a"), token("base_b")
+    wait_for(lambda: "several publishers on /odom2 (/base_a, /base_b)" in base.link_state, 10, "both named")
+    odom(1, ga)
+    wait_for(lambda: base.refused.get("several publishers, none believed"), 10, "not believed")
+    assert base.odometry == 0
+    tb.undeclare()
+    wait_for(lambda: "several" not in base.link_state, 10, "one publisher left")
+    odom(2, ga)
+    wait_for(lambda: base.odometry == 1, 10, "the base's odometry believed")
+    tb, gb = token("base_b")
+    wait_for(lambda: "not believed on /odom2: /base_b" in base.link_state, 10, "the newcomer named")
+    odom(1, gb)
+    wait_for(lambda: base.refused.get("another publisher"), 10, "the newcomer's odometry dropped")
+    assert base.odometry == 1
+    ta.undeclare()
+    tb.undeclare()
