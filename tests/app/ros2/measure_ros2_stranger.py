@@ -19,7 +19,27 @@ from typing import Any
 import numpy as np
 
 from core.xxh3 import xxh3_128
-from tests.app.ros2.test_ros2 import SLOTS, _free_endpoint, _session
+
+SLOTS = np.array([[-0.4, -0.3], [0.4, -0.3]])
+
+
+def _free_endpoint() -> str:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def _session(mode: str, endpoint: str) -> Any:
+    import json
+
+    import zenoh
+
+    where = "listen" if mode == "router" else "connect"
+    return zenoh.open(zenoh.Config.from_json5(json.dumps({
+        "mode": mode, where: {"endpoints": [endpoint]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}})))
 
 
 def _stranger(session: Any, node: str, topic: str, ros_type: str, ts: Any) -> tuple[list[Any], bytes, str]:
