@@ -72,6 +72,7 @@ class Controls:
 
         self.who: Callable[[int], str] = lambda client_id: f"client {client_id}"  # the gate's: role and address
         self.stopped_by = ""  # who pressed STOP and when (shown on the status)
+        self.cause: Callable[[], str] = lambda: ""  # a cause on the service's side, named beside an alarm (a replay)
         self.health = Health()
         self.stop_button = gui.add_button("STOP", color="red", hint="Command every follower to zero now (keyboard:"
                                                                     " Space, or Escape when no menu is open)."
@@ -347,7 +348,8 @@ class Controls:
         self.judge(s)
         if not self.replay:
             alarms = self.health.alarms
-            text = "**ALARM** · " + " · ".join(as_text(a) for a in alarms)
+            cause = self.cause() if alarms else ""
+            text = "**ALARM** · " + " · ".join(as_text(a) for a in alarms) + (f" · {as_text(cause)}" if cause else "")
             if alarms and text != self.alarm.content:
                 self.alarm.content = text
             if bool(alarms) != self.alarm.visible:

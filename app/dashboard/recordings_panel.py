@@ -140,6 +140,15 @@ class RecordingsPanel:
             self._show_links(client)
         return replay.url
 
+    def cause(self, where: str) -> str:
+        """What the health banner names beside an alarm while replays are open ("": none): a replay's
+        tab draws on some machine's CPU, its service on this one's (``where``: which process serves it)."""
+        with self._lock:
+            n = len(self.replays)
+        if not n:
+            return ""
+        return f"{n} replay{'s' if n > 1 else ''} open from this page, served {where}: a replay playing takes CPU"
+
     def _forget(self, client: viser.ClientHandle) -> None:
         with self._links_lock:
             self._client_links.pop(client.client_id, None)

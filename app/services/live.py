@@ -200,6 +200,7 @@ class Service:
                                  viewer_token=new_token())
 
         self.recordings = RecordingsPanel(self.server, replay, recordings, role_of=self.gate.role_of)
+        self.dashboard.controls.cause = lambda: self.recordings.cause("by the loop's own process")
         self.publisher = LatestStatePublisher(self.dashboard.publish)
         self.loop.subscribe(self.publisher)
 

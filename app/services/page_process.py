@@ -438,6 +438,7 @@ def page_main(conn: multiprocessing.connection.Connection, host: str, port: int,
         return ReplayProcess(path, host, new_token() if gate.token else None, new_token())
 
     panel = RecordingsPanel(server, replay, recordings, role_of=gate.role_of)
+    dashboard.controls.cause = lambda: panel.cause("by a process of its own at the lowest priority")
     dashboard.watched = lambda: gate.open_connections > 0  # nobody connected: nothing drawn, history kept
     publisher = LatestStatePublisher(dashboard.publish)
 

@@ -1,13 +1,15 @@
 """A replay opened from the live page runs where it cannot slow the loop (issue 82, item 3): with the
 page in its own process (`run`'s default), in a process of its own, the leader of its own session
 (hence of its own autogroup) at nice 19; a file that is no recording is one line on the panel and
-leaves no process; closing the service ends the replay's process."""
+leaves no process; an alarm while it is open names it; closing the service ends the replay's process."""
 
 from __future__ import annotations
 
 import os
 import re
 import shutil
+import threading
+import time
 import urllib.request
 from pathlib import Path
 
@@ -70,6 +72,14 @@ def test_a_replay_from_the_live_page_runs_in_a_low_priority_process_of_its_own(t
         with urllib.request.urlopen(url, timeout=30) as response:  # it serves the replay
             assert response.status == 200
         assert svc.loop.tick_count > 0 and not svc.loop.stopping  # the live run went on
+        # an alarm while it is open names it beside the alarm (a loop held back: ticks skipped)
+        held = threading.Event()
+        svc.loop.subscribe(lambda s: None if held.is_set() else time.sleep(0.045))
+        try:
+            assert client.wait_for("1 replay open from this page, served by a process of its own at the lowest"
+                                   " priority", timeout=120.0)
+        finally:
+            held.set()
         client.close()
     finally:
         svc.close()
