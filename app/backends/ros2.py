@@ -257,6 +257,13 @@ ODOM_FRAME = re.compile(r"([A-Za-z0-9_]+[/_])?odom")
 ODOM_CHILD = re.compile(r"([A-Za-z0-9_]+[/_])?base_(link|footprint)")
 UNANNOUNCED_AFTER = 3  # a GID on no token of the graph is named after this many of its messages
 STRANGER_HOLD_S = 5.0  # a publisher without a token is named this long after its last message
+TRACKED_MAX = 256  # publishers remembered per topic, with and without a token (a flood forgets the oldest)
+NAMES_SHOWN = 3  # names in the link state per topic; the rest counted
+
+
+def _names(names: list[str]) -> str:
+    more = len(names) - NAMES_SHOWN
+    return ", ".join(names[:NAMES_SHOWN]) + (f" and {more} more" if more > 0 else "")
 
 
 def odometry_refusal(v: float, w: float, stamp_ns: int, frame: str, child: str, sequence: int,
@@ -321,7 +328,7 @@ class Ros2Base:
         self._believed: bytes | None = None  # the base's /odom publisher (its GID), once chosen
         self._last: tuple[float, float, int, int] | None = None  # the believed publisher's last message
         self._unannounced: dict[tuple[str, bytes], list[float]] = {}  # (topic, GID) -> [messages, last seen]
-        self._named: set[tuple[str, str]] = set()  # (topic, name) said on stderr already
+        self._named: dict[tuple[str, str], None] = {}  # (topic, name) said on stderr already (ordered)
         node.watch_graph(self._on_token)
         node.watch_data(cmd_topic, self._on_cmd_sample)
         node.subscribe(odom_topic, ODOMETRY, self._on_odom, with_attachment=True)
@@ -332,7 +339,11 @@ class Ros2Base:
             return
         with self._lock:
             if alive:
-                self._tokens[token.topic][token.gid] = token
+                tokens = self._tokens[token.topic]
+                tokens[token.gid] = token
+                while len(tokens) > TRACKED_MAX:  # a flood of tokens: the oldest forgotten (never the base's)
+                    oldest = next(g for g in tokens if g != self._believed)
+                    del tokens[oldest]
             else:
                 self._tokens[token.topic].pop(token.gid, None)
         if alive:
@@ -353,9 +364,12 @@ class Ros2Base:
 
     def _count_unannounced(self, topic: str, gid: bytes) -> None:
         with self._lock:
-            seen = self._unannounced.setdefault((topic, gid), [0, 0.0])
+            seen = self._unannounced.pop((topic, gid), [0, 0.0])  # re-inserted: the oldest first
             seen[0] += 1
             seen[1] = self._clock()
+            self._unannounced[(topic, gid)] = seen
+            while len(self._unannounced) > 2 * TRACKED_MAX:
+                del self._unannounced[next(iter(self._unannounced))]
 
     def strangers(self) -> dict[str, list[str]]:
         """Per topic (command, odometry), the publishers named now besides ours and the base's."""
@@ -372,22 +386,30 @@ class Ros2Base:
         return {topic: sorted(set(names)) for topic, names in out.items()}
 
     def _check_strangers(self) -> None:
-        """Name each new stranger once on stderr; a new one on the command topic is an intrusion."""
+        """Name each new stranger once on stderr (through the rate-limited refusals: a flood of
+        ever new names adds a bounded number of lines); a new one on the command topic is an
+        intrusion, told to :meth:`on_intrusion`'s listener."""
+        from app.refusals import refuse
+
         for topic, names in self.strangers().items():
             for name in names:
-                if (topic, name) in self._named:
-                    continue
-                self._named.add((topic, name))
+                with self._lock:
+                    if (topic, name) in self._named:
+                        continue
+                    self._named[(topic, name)] = None
+                    while len(self._named) > 16 * TRACKED_MAX:
+                        del self._named[next(iter(self._named))]
                 if topic == self.cmd_topic:
                     text = f"{name} publishes on {topic} too: the base may obey it, not us"
-                    _say(text)
+                    refuse(f"ros2: another publisher on {topic}", name, "the base may obey it, not us")
                     with self._lock:
                         self._intrusions.append(text)
+                        del self._intrusions[:-TRACKED_MAX]
                         tell = self._on_intruder
                     if tell is not None:
                         tell(text)
                 else:
-                    _say(f"{name} publishes on {topic} too: not believed (the base's is)")
+                    refuse(f"ros2: another publisher on {topic}", name, "not believed (the base's is)")
 
     def on_intrusion(self, tell: Callable[[str], None]) -> None:
         """Call ``tell(text)`` for each publisher on the command topic besides us: those named
@@ -467,8 +489,7 @@ class Ros2Base:
         state = f"ros2 {self.cmd_topic}"
         strangers = self.strangers()
         if strangers[self.cmd_topic]:  # an alarm on the page ("lost"), an event in the recording
-            state += (f": exclusive command lost, {', '.join(strangers[self.cmd_topic])} publish(es) on"
-                      f" {self.cmd_topic} too")
+            state += f": exclusive command lost, {_names(strangers[self.cmd_topic])} publish(es) on {self.cmd_topic} too"
         if self._odom is None:
             state += ": no odometry yet"
         elif self.lost:
@@ -477,9 +498,9 @@ class Ros2Base:
             several = self._believed is None and len(self._tokens[self.odom_topic]) > 1
             several_names = sorted(t.node for t in self._tokens[self.odom_topic].values())
         if several:
-            state += f" · several publishers on {self.odom_topic} ({', '.join(several_names)}): none believed"
+            state += f" · several publishers on {self.odom_topic} ({_names(several_names)}): none believed"
         elif strangers[self.odom_topic]:
-            state += f" · not believed on {self.odom_topic}: {', '.join(strangers[self.odom_topic])}"
+            state += f" · not believed on {self.odom_topic}: {_names(strangers[self.odom_topic])}"
         return state
 
     def send(self, commands: Commands) -> None:

@@ -502,3 +502,34 @@ def test_two_odom_publishers_before_one_is_chosen_means_none_is_believed(rig):
     assert base.odometry == 1
     ta.undeclare()
     tb.undeclare()
+
+
+def test_a_flood_of_publishers_costs_a_bounded_link_state_and_log(rig):
+    """600 publishers without a token, 3 messages each, on a base's odometry topic: the link state
+    names three and counts the rest, what is remembered is bounded, and the log gets a bounded
+    number of lines (the process's rate-limited refusals)."""
+    from app.backends.ros2 import NAMES_SHOWN, TRACKED_MAX, Ros2Base
+    from app.refusals import REFUSALS
+
+    ros = rig["ros"]
+    base = Ros2Base(rig["node"], "/cmd3", odom_topic="/odom3")
+    base._believed = b"\x01" * 16  # a base chosen already: every other GID is a stranger
+    lines = REFUSALS.lines
+    from app.backends.ros2 import ODOMETRY, header, msg, pose, twist, type_hash
+
+    cov = np.zeros(36)
+    odom = msg(ODOMETRY, header=header("odom"), child_frame_id="base_link",
+               pose=msg("geometry_msgs/msg/PoseWithCovariance", pose=pose(0.0, 0.0, 0.0), covariance=cov),
+               twist=msg("geometry_msgs/msg/TwistWithCovariance", twist=twist(0.0, 0.0), covariance=cov))
+    raw = bytes(ros.ts.serialize_cdr(odom, ODOMETRY))
+
+    key = f"0/odom3/nav_msgs::msg::dds_::Odometry_/{type_hash('nav_msgs/msg/Odometry')}"
+    for i in range(600):
+        for seq in (1, 2, 3):
+            ros.session.put(key, raw, attachment=struct.pack("<qqB", seq, time.time_ns(), 16) + (i + 2).to_bytes(16, "little"))
+    wait_for(lambda: base.refused.get("no publisher on the graph", 0) >= 1800, 30, "every message judged")
+    state = base.link_state
+    print(f"600 unannounced publishers: link state of {len(state)} characters; {REFUSALS.lines - lines} log lines")
+    assert state.count("GID ") == NAMES_SHOWN and " more" in state and len(state) < 400
+    assert len(base._unannounced) <= 2 * TRACKED_MAX
+    assert REFUSALS.lines - lines <= 20
