@@ -51,7 +51,8 @@ def attach_to_service(plan: FoxglovePlan | None, service: Any, recorder: Any, st
     runs in a process of its own (FoxgloveProcess): no client can take the loop's CPU or time."""
     if plan is None:
         return
-    from app.services.foxglove_live import FoxgloveProcess, FoxgloveRefused
+    from app.services.foxglove_live import FoxgloveRefused
+    from app.services.foxglove_process import FoxgloveProcess
 
     try:
         live = FoxgloveProcess(plan.host, plan.port, plan.tls, params=service.store.get(),

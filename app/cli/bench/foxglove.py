@@ -112,7 +112,7 @@ def bench_foxglove(print_fn: Callable[[str], None] = print, seconds: float = 4.0
     from app.live.loop import ServiceLoop
     from app.backends.world import Backends
     from app.params import MAX_FOLLOWERS, Params, ParamsStore, default_slots
-    from app.services.foxglove_live import FoxgloveProcess
+    from app.services.foxglove_process import FoxgloveProcess
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)  # what `make run` serves: vision in the loop
     store = ParamsStore(Params(n_followers=3, slots=default_slots(3), leader_mode="circle"))

@@ -10,28 +10,32 @@ import os
 import re
 import threading
 
+import ssl
+
 import pytest
+from websockets.sync.client import connect
 
 from app.backends.world import Backends
 from app.live.config import DEFAULT_CONFIG, load_service_config
 from app.live.loop import ServiceLoop
 from app.params import MAX_FOLLOWERS, Params, ParamsStore
 from app.refusals import FIRSTS_PER_WINDOW, Refusals
-from tests.app.services.foxglove_raw import RawClient, Refused, frame
+from tests.app.services.foxglove_raw import RawClient, Refused, frame, self_signed
 from tests.helpers import wait_for
 
 SILENT = 300
+STALL_S = 2.0  # a client that leaves its send buffer full this long is dropped (10 s in `run`)
 
 
 @pytest.fixture
 def served():
     """The live loop (vision, 3 followers, 30 Hz) running, served by a FoxgloveProcess."""
-    from app.services.foxglove_live import FoxgloveProcess
+    from app.services.foxglove_process import FoxgloveProcess
 
     config = load_service_config(DEFAULT_CONFIG, MAX_FOLLOWERS)
     store = ParamsStore(Params(n_followers=3))
     loop = ServiceLoop(store, Backends(seed=2, camera=config.camera()), rate_hz=30.0)
-    live = FoxgloveProcess("127.0.0.1", 0, params=store.get())
+    live = FoxgloveProcess("127.0.0.1", 0, params=store.get(), stall_s=STALL_S)
     loop.subscribe(live.on_tick)
     store.subscribe(live.on_params)
     thread = threading.Thread(target=loop.run, daemon=True)
@@ -80,9 +84,24 @@ def test_clients_that_never_read_cannot_slow_the_loop(served):
                 assert len(json.loads(payload[13:])["p_est"]) == 3
                 break
         fresh.close()
+        # and each silent client is disconnected by the server once its buffer has stayed full for STALL_S
+        assert all(_closed_by_server(c) for c in silent)
     finally:
         for c in silent:
             c.close()
+
+
+def _closed_by_server(c: RawClient) -> bool:
+    """Read what the socket holds until the server's end (True) or 60 s of nothing (False)."""
+    c.sock.settimeout(60.0)
+    try:
+        while c.sock.recv(1 << 20):
+            pass
+        return True
+    except ConnectionError:
+        return True
+    except OSError:
+        return False
 
 
 def test_a_flood_of_refused_messages_adds_at_most_50_lines(capfd):
@@ -90,7 +109,7 @@ def test_a_flood_of_refused_messages_adds_at_most_50_lines(capfd):
     in bursts of 2,000 from 50 connections (the SDK cuts a connection that sends a few thousand in
     one burst: a client that wants to flood must come back), add at most 50 lines to stderr, and
     every refusal the server saw is said or counted."""
-    from app.services.foxglove_live import FoxgloveProcess
+    from app.services.foxglove_process import FoxgloveProcess
 
     live = FoxgloveProcess("127.0.0.1", 0)
     bad = [b"not json", json.dumps({"op": "bogus"}).encode(), json.dumps({"op": "subscribe"}).encode(),
@@ -154,6 +173,29 @@ def test_subprotocols_as_foxglove_sdk_allows(served):
     both = RawClient("127.0.0.1", live.port, "foxglove.websocket.v1, foxglove.sdk.v1")
     assert both.protocol == "foxglove.sdk.v1"
     both.close()
-    # the SDK's handshake accepts only foxglove.sdk.v1 (docs/foxglove.md says so): the older name alone is a 400
-    with pytest.raises(Refused, match="400"):
-        RawClient("127.0.0.1", live.port, "foxglove.websocket.v1")
+    old = RawClient("127.0.0.1", live.port, "foxglove.websocket.v1")  # the older name alone: answered under it
+    assert old.protocol == "foxglove.websocket.v1"
+    assert old.recv_json("serverInfo")["op"] == "serverInfo"
+    assert old.subscribe_all()
+    old.close()
+    with pytest.raises(Refused, match="400"):  # a client that offers neither is refused
+        RawClient("127.0.0.1", live.port, "chat")
+
+
+def test_tls_is_served_by_the_door_with_either_subprotocol(tmp_path):
+    from app.services.foxglove_process import FoxgloveProcess
+
+    cert, key = self_signed(tmp_path)
+    live = FoxgloveProcess("127.0.0.1", 0, tls=(cert.read_bytes(), key.read_bytes()))
+    try:
+        assert live.url.startswith("wss://")
+        ctx = ssl.create_default_context(cafile=str(cert))
+        ctx.check_hostname = False
+        for offer in (["foxglove.sdk.v1"], ["foxglove.websocket.v1"]):
+            with connect(live.url, subprotocols=offer, ssl=ctx, open_timeout=10) as ws:
+                assert ws.subprotocol == offer[0]
+                assert json.loads(ws.recv(10))["op"] == "serverInfo"
+        with pytest.raises(OSError):  # plain ws:// to a wss:// server: no handshake
+            RawClient("127.0.0.1", live.port, timeout=5.0)
+    finally:
+        live.close()
