@@ -62,6 +62,7 @@ import numpy as np
 
 from app.dashboard.camera_panel import REDRAW_S
 from app.params import Params, ParamsStore
+from app.refusals import refuse
 from app.tick import LatestStatePublisher, TickState
 
 log = logging.getLogger(__name__)
@@ -270,7 +271,7 @@ class PageProcess:
                 try:
                     self.store.update(str(source), **dict(changes))
                 except (ValueError, TypeError) as exc:  # refused as the store refuses any bad change
-                    log.warning("page: change refused: %s", exc)
+                    refuse("page: change refused", str(source), str(exc), log)
             elif msg[0] == "clients" and len(msg) == 2:
                 self.clients = max(0, int(msg[1]))
             elif msg[0] == "alarm" and len(msg) == 3:
