@@ -13,7 +13,6 @@ from app.files import UserError, read_regular
 
 if TYPE_CHECKING:
     from app.services.foxglove_attach import FoxglovePlan
-    from app.services.foxglove_live import FoxgloveLive
 
 
 def endpoint(text: str) -> tuple[str, int]:
@@ -86,7 +85,7 @@ def say(text: str) -> None:
     print(text, flush=True)
 
 
-def serve_replay(args: argparse.Namespace, rec: Any) -> FoxgloveLive | None:
+def serve_replay(args: argparse.Namespace, rec: Any) -> Any:
     """`replay --foxglove`: the recording's ticks served at their recorded times (app.services.foxglove_attach)."""
     from app.services.foxglove_attach import serve_replay as serve
 

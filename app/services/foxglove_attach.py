@@ -7,12 +7,9 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from app.files import UserError
-
-if TYPE_CHECKING:
-    from app.services.foxglove_live import FoxgloveLive
 
 Say = Callable[[str], None]
 
@@ -26,18 +23,54 @@ class FoxglovePlan:
     tls: tuple[bytes, bytes] | None = None
 
 
+class BehindDoor:
+    """A Foxglove server (FoxgloveLive or FoxgloveFleet) on 127.0.0.1 behind the door clients reach
+    (app.services.foxglove_relay, as `run --foxglove` serves): either subprotocol name, a client that
+    does not read disconnected, TLS at the door. Everything else is the server's."""
+
+    def __init__(self, make: Callable[[], Any], plan: FoxglovePlan) -> None:
+        import ssl
+
+        from app.dashboard.gate import is_loopback
+        from app.services.foxglove_live import FoxgloveRefused, _bind_line
+        from app.services.foxglove_relay import STALL_S, Relay
+
+        if plan.tls is None and not is_loopback(plan.host):
+            raise UserError(f"--foxglove {plan.host}:{plan.port}: serving off this machine needs TLS: give"
+                            " --foxglove-tls-cert CERT.pem and --foxglove-tls-key KEY.pem (or serve on 127.0.0.1)")
+        try:
+            self.server = make()
+        except FoxgloveRefused as exc:
+            raise UserError(str(exc)) from None
+        try:
+            self.door = Relay(plan.host, plan.port, self.server.port, plan.tls, STALL_S)
+        except (OSError, ssl.SSLError, ValueError) as exc:
+            self.server.close()
+            errno = getattr(exc, "errno", None) if not isinstance(exc, ssl.SSLError) else None
+            why = RuntimeError(f"(os error {errno})" if errno in (98, 99) else f"TLS: {getattr(exc, 'reason', None) or exc}"
+                               if isinstance(exc, (ssl.SSLError, ValueError)) else str(exc))
+            raise UserError(_bind_line(plan.host, plan.port, why)) from None
+        # the address people are given (and the status line names) is the door's
+        self.server.host, self.server.port = plan.host, self.door.port
+        self.server.scheme = "wss" if plan.tls else "ws"
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.server, name)
+
+    def close(self) -> None:
+        self.door.close()
+        self.server.close()
+
+
 def serve_foxglove(plan: FoxglovePlan | None, say: Say, subscribe: Callable[[Callable[..., None]], None] | None = None,
-                   **kwargs: Any) -> FoxgloveLive | None:
-    """The Foxglove server the plan asks for (None without one), its ``on_tick`` handed to
-    ``subscribe``; ``kwargs`` go to FoxgloveLive (start_ns, params, time_of)."""
+                   **kwargs: Any) -> Any:
+    """The Foxglove server the plan asks for (None without one), behind the door, its ``on_tick``
+    handed to ``subscribe``; ``kwargs`` go to FoxgloveLive (start_ns, params, time_of)."""
     if plan is None:
         return None
-    from app.services.foxglove_live import FoxgloveLive, FoxgloveRefused
+    from app.services.foxglove_live import FoxgloveLive
 
-    try:
-        live = FoxgloveLive(plan.host, plan.port, plan.tls, **kwargs)
-    except FoxgloveRefused as exc:
-        raise UserError(str(exc)) from None
+    live = BehindDoor(lambda: FoxgloveLive("127.0.0.1", 0, None, **kwargs), plan)
     if subscribe is not None:
         subscribe(live.on_tick)
     say(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)")
@@ -67,7 +100,7 @@ def attach_to_service(plan: FoxglovePlan | None, service: Any, recorder: Any, st
     say(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)")
 
 
-def serve_replay(plan: FoxglovePlan | None, rec: Any, say: Say) -> FoxgloveLive | None:
+def serve_replay(plan: FoxglovePlan | None, rec: Any, say: Say) -> Any:
     """`replay --foxglove`: the ticks the replay shows, at the recording's own times (its
     ``start_ns`` and each tick's session time), so Foxglove's clock is the recording's."""
     if plan is None:
@@ -110,11 +143,8 @@ def serve_fleet(plan: FoxglovePlan | None, recorder: Any, say: Say) -> tuple[Any
     """`fleet --foxglove`: (the sink the fleet page writes to, the Foxglove server or None)."""
     if plan is None:
         return recorder, None
-    from app.services.foxglove_live import FoxgloveFleet, FoxgloveRefused
+    from app.services.foxglove_live import FoxgloveFleet
 
-    try:
-        live = FoxgloveFleet(plan.host, plan.port, plan.tls)
-    except FoxgloveRefused as exc:
-        raise UserError(str(exc)) from None
+    live = BehindDoor(lambda: FoxgloveFleet("127.0.0.1", 0, None), plan)
     say(f"omniformation: Foxglove live at {live.url} (view only: docs/foxglove.md)")
     return _Both(recorder, live), live

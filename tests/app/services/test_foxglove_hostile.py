@@ -199,3 +199,24 @@ def test_tls_is_served_by_the_door_with_either_subprotocol(tmp_path):
             RawClient("127.0.0.1", live.port, timeout=5.0)
     finally:
         live.close()
+
+
+def test_replay_and_fleet_serve_behind_the_same_door():
+    """`replay --foxglove` (serve_foxglove) and `fleet --foxglove` (serve_fleet) stand behind the
+    door `run` uses: the older subprotocol name alone is answered under it, as the newer one."""
+    from app.services.foxglove_attach import FoxglovePlan, serve_fleet, serve_foxglove
+
+    said: list[str] = []
+    replay = serve_foxglove(FoxglovePlan("127.0.0.1", 0), said.append)
+    _, fleet = serve_fleet(FoxglovePlan("127.0.0.1", 0), None, said.append)
+    try:
+        for live in (replay, fleet):
+            assert f":{live.door.port}" in live.url and live.door.port != live.server.server.port
+            for offer in ("foxglove.websocket.v1", "foxglove.sdk.v1"):
+                c = RawClient("127.0.0.1", live.door.port, offer)
+                assert c.protocol == offer and c.recv_json("serverInfo")["op"] == "serverInfo"
+                c.close()
+        assert all(f"Foxglove live at ws://127.0.0.1:" in line for line in said)
+    finally:
+        replay.close()
+        fleet.close()
