@@ -38,6 +38,7 @@ from app import wire
 
 from app.keys import robot_index, robot_name, root
 from app.params import Params, ParamsStore, params_events
+from app.refusals import Refusals
 from core.bounds import BUS, settable_by
 from core.types import Gains
 from app.tick import SessionClock, TickState
@@ -350,7 +351,9 @@ class FleetBridge:
         self.session = session if session is not None else open_session(listen or [], connect or [])
         self.endpoints = list(connect or []) + list(listen or [])
         self.commands_taken = 0
-        self.commands_refused = 0
+        self.commands_refused = 0  # every refused command, counted (the state says it); said through:
+        # a flood of bad commands must not become a flood of events on the bus (app.refusals)
+        self.refusals = Refusals(say=lambda line: self.event("refused", line))
         self.states_refused = 0  # messages under this leader's own state key that are no leader's state
         self._state_pub = self.session.declare_publisher(f"{self.base}/state", express=True,  # not batched: latency
                                                          congestion_control=zenoh.CongestionControl.DROP)
@@ -485,18 +488,18 @@ class FleetBridge:
             self.commands_taken += 1
         except (ValueError, TypeError) as exc:
             self.commands_refused += 1
-            self.event("refused", f"from {sender}: {exc}")
+            self.refusals.refuse("bus: a value refused", sender, str(exc))
 
     def _on_command(self, sample: Any) -> None:
         changes, sender = self._changes(sample)
         if not changes:
             self.commands_refused += 1
-            self.event("refused", f"a command on {self.base}/cmd: {sender}")
+            self.refusals.refuse("bus: a malformed command", _sender_of(sample), f"a command on {self.base}/cmd: {sender}")
             return
         if not self.allow_control and changes != {"stop": True}:
             self.commands_refused += 1
-            self.event("refused", f"from {sender}: this leader takes only STOP over the bus (started without"
-                                  " --fleet-control)")
+            self.refusals.refuse("bus: control not allowed", sender, "this leader takes only STOP over the bus (started"
+                                 " without --fleet-control)")
             return
         self._apply(changes, sender)
 
@@ -504,8 +507,9 @@ class FleetBridge:
         changes, sender = self._changes(sample)
         if changes != {"stop": True}:
             self.commands_refused += 1
-            self.event("refused", f"fleet-wide commands are STOP only ({{\"set\": {{\"stop\": true}}}}), got {sender}"
-                       if not changes else f"fleet-wide commands are STOP only, got {sorted(changes)} from {sender}")
+            self.refusals.refuse("bus: a fleet-wide command not STOP", _sender_of(sample) if not changes else sender,
+                                 f"fleet-wide commands are STOP only ({{\"set\": {{\"stop\": true}}}}), got {sender}"
+                                 if not changes else f"fleet-wide commands are STOP only, got {sorted(changes)}")
             return
         self._apply(changes, sender)
 
@@ -516,3 +520,14 @@ class FleetBridge:
         self._token.undeclare()
         if self._own_session:
             self.session.close()
+
+
+def _sender_of(sample: Any) -> str:
+    """Who a command that could not be read says it is from (its "from", if any can be read), for
+    the refusal's first line per sender."""
+    try:
+        msg = json.loads(sample.payload.to_bytes()[:4096])
+    except (ValueError, RecursionError, AttributeError):
+        return "?"
+    who = msg.get("from") if isinstance(msg, dict) else None
+    return who[:40] if isinstance(who, str) and who else "?"
