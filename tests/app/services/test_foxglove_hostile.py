@@ -216,7 +216,7 @@ def test_replay_and_fleet_serve_behind_the_same_door():
                 c = RawClient("127.0.0.1", live.door.port, offer)
                 assert c.protocol == offer and c.recv_json("serverInfo")["op"] == "serverInfo"
                 c.close()
-        assert all(f"Foxglove live at ws://127.0.0.1:" in line for line in said)
+        assert all("Foxglove live at ws://127.0.0.1:" in line for line in said)
     finally:
         replay.close()
         fleet.close()
